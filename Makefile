@@ -1,0 +1,48 @@
+# exolink: `make sim` runs the appliance on simulated hardware, `make test` runs the tests.
+# Both set everything up on a fresh machine: a venv in .venv with the locked dependencies.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
+PYTEST_ARGS ?=
+
+.PHONY: install sim test lint format bench lock dbc clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml requirements.lock
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV) || { \
+	  echo "python venv missing: installing python3-venv"; \
+	  apt-get update -qq && apt-get install -y -qq python3-venv && $(PY) -m venv $(VENV); }
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -c requirements.lock -e '.[dev]'
+	rm -f $(VENV)/.installed-* && touch $@
+
+sim: $(STAMP)
+	$(BIN)/exolink up --sim
+
+test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(BIN)/ruff check . && $(BIN)/ruff format --check .
+
+format: $(STAMP)
+	$(BIN)/ruff format . && $(BIN)/ruff check --fix .
+
+bench: $(STAMP)
+	$(BIN)/python -m benchmarks --out bench-results.json
+
+# Regenerate the pinned set after editing dependencies in pyproject.toml.
+lock:
+	rm -rf /tmp/exolink-lock && $(PY) -m venv /tmp/exolink-lock
+	/tmp/exolink-lock/bin/pip install -q '.[dev]'
+	/tmp/exolink-lock/bin/pip freeze --exclude-editable | grep -v '^exolink' > requirements.lock
+
+dbc: $(STAMP)
+	$(BIN)/python -m exolink.protocol.make_dbc
+
+clean:
+	rm -rf $(VENV) build *.egg-info bench-results.json

@@ -1,0 +1,1 @@
+"""The exolink command line."""

@@ -1,0 +1,41 @@
+"""Board-side commands: validate a config, run a node standalone, list plugins."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import msgspec
+
+DEFAULT_CONFIG = "/etc/exolink/appliance.yaml"
+
+
+def config_path(args: argparse.Namespace) -> str:
+    return getattr(args, "config", None) or DEFAULT_CONFIG
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from exolink.config import load
+
+    cfg = load(args.file)
+    out = msgspec.json.format(msgspec.json.encode(cfg), indent=2)
+    sys.stdout.write(out.decode() + "\n")
+    return 0
+
+
+def cmd_node_run(args: argparse.Namespace) -> int:
+    from exolink import logs
+    from exolink.config import load
+    from exolink.node import run_standalone
+
+    cfg = load(config_path(args))
+    logs.setup(args.name)
+    return run_standalone(cfg, args.name, args.listen)
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    from exolink.plugins import available
+
+    for name, target in sorted(available().items()):
+        sys.stdout.write(f"{name:20} {target}\n")
+    return 0

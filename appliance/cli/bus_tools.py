@@ -1,0 +1,74 @@
+"""Commands that sit directly on a CAN bus: the simulator and a decoded candump."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from datetime import UTC, datetime
+
+from exolink.config import SIM_MULTICAST_GROUP, CanConfig
+
+
+def bus_config(args: argparse.Namespace) -> CanConfig:
+    default = {"udp_multicast": SIM_MULTICAST_GROUP, "socketcan": "can0", "virtual": "exolink"}
+    return CanConfig(interface=args.interface, channel=args.channel or default[args.interface],
+                     bring_up=False)  # fmt: skip
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from exolink import logs
+    from exolink.canbus import id_filters, open_bus
+    from exolink.nodes.simulator import SimParams, Simulator
+
+    log = logs.setup("sim")
+    params = SimParams(maccepa_boards=args.maccepa)
+    bus = open_bus(bus_config(args), filters=id_filters(Simulator.command_ids(params)))
+    sim = Simulator(bus, params)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    log.info("sim_running", bus=f"{args.interface}:{bus.channel_info}", maccepa=args.maccepa)
+    try:
+        sim.run(stop)
+    finally:
+        bus.shutdown()
+        log.info("sim_stopped", **vars(sim.stats))
+    return 0
+
+
+def describe(msg) -> str:  # type: ignore[no-untyped-def]
+    """One decoded line: H2 frames first, MACCEPA otherwise, 'unknown' for the rest."""
+    from exolink.protocol import h2, maccepa
+
+    f = h2.decode(msg)
+    if isinstance(f, h2.Unknown):
+        f2 = maccepa.decode(msg)
+        if isinstance(f2, maccepa.Unknown):
+            return f"{f2.reason} {f2.data.hex(' ')}"
+        return f"maccepa {type(f2).__name__} " + " ".join(
+            f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in f2._asdict().items()
+        )
+    fields = " ".join(f"{k}={v}" for k, v in f._asdict().items())
+    return f"h2 {type(f).__name__} {fields}"
+
+
+def cmd_candump(args: argparse.Namespace) -> int:
+    from exolink.canbus import open_bus
+
+    bus = open_bus(bus_config(args))
+    n = 0
+    try:
+        while args.count == 0 or n < args.count:
+            msg = bus.recv(timeout=0.5)
+            if msg is None:
+                continue
+            n += 1
+            t = datetime.fromtimestamp(msg.timestamp, UTC).strftime("%H:%M:%S.%f")
+            raw = f" [{len(msg.data)}] {msg.data.hex(' ').upper()}" if args.raw else ""
+            sys.stdout.write(f"{t} {msg.arbitration_id:03X}{raw}  {describe(msg)}\n")
+            sys.stdout.flush()
+    finally:
+        bus.shutdown()
+    return 0

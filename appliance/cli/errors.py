@@ -1,0 +1,37 @@
+"""Turns the errors an operator can fix into one line on stderr and an exit code."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+EXIT_USAGE, EXIT_CONFIG, EXIT_UNREACHABLE, EXIT_REFUSED = 2, 3, 4, 5
+
+
+def fail(message: str, code: int) -> int:
+    sys.stderr.write(f"exolink: {message}\n")
+    return code
+
+
+def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    from exolink.canbus import CanOpenError
+    from exolink.config import ConfigError
+    from exolink.messaging import Unreachable
+    from exolink.plugins import PluginError
+    from exolink.protocol import ProtocolError
+
+    try:
+        return func(args)
+    except ConfigError as exc:
+        return fail(f"config error: {exc}", EXIT_CONFIG)
+    except PluginError as exc:
+        return fail(str(exc), EXIT_CONFIG)
+    except CanOpenError as exc:
+        return fail(str(exc), EXIT_CONFIG)
+    except Unreachable as exc:
+        return fail(f"appliance unreachable: {exc}", EXIT_UNREACHABLE)
+    except ProtocolError as exc:
+        return fail(f"refused: {exc}", EXIT_REFUSED)
+    except KeyboardInterrupt:
+        return 130

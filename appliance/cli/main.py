@@ -1,0 +1,74 @@
+"""The ``exolink`` command: board-side (up, node run, sim) and laptop-side (status, echo, send...).
+
+Each subcommand imports only what it needs, so ``exolink --help`` and quick laptop commands start
+fast; errors are one readable line and a non-zero exit code, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from exolink import __version__
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _add_config(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", "-c", help="appliance YAML (default: /etc/exolink/appliance.yaml)")
+
+
+def _add_bus(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--interface", "-i", default="udp_multicast",
+                   choices=["socketcan", "udp_multicast", "virtual"])  # fmt: skip
+    p.add_argument("--channel", default=None, help="can0 / vcan0 / multicast group")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from exolink.cli import board, bus_tools
+
+    parser = argparse.ArgumentParser(prog="exolink", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"exolink {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("config", help="validate an appliance config and print it")
+    p.add_argument("file")
+    p.set_defaults(func=board.cmd_config)
+
+    p = sub.add_parser("node", help="run one node standalone")
+    nsub = p.add_subparsers(dest="node_cmd", required=True)
+    q = nsub.add_parser("run", help="run NAME from the config in this process")
+    q.add_argument("name")
+    _add_config(q)
+    q.add_argument(
+        "--listen", action="append", help="also listen on a Zenoh endpoint (no supervisor)"
+    )
+    q.set_defaults(func=board.cmd_node_run)
+    q = nsub.add_parser("plugins", help="list installed node plugins")
+    q.set_defaults(func=board.cmd_plugins)
+
+    p = sub.add_parser("sim", help="run the hardware simulator on a bus (no Zenoh)")
+    _add_bus(p)
+    p.add_argument("--maccepa", type=int, action="append", default=[], metavar="BOARD")
+    p.set_defaults(func=bus_tools.cmd_sim)
+
+    p = sub.add_parser("candump", help="live decoded view of a CAN bus (H2 + MACCEPA DBC)")
+    _add_bus(p)
+    p.add_argument("--raw", action="store_true", help="also print the raw bytes")
+    p.add_argument("--count", type=int, default=0, help="stop after N frames")
+    p.set_defaults(func=bus_tools.cmd_candump)
+
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from exolink.cli.errors import run_guarded
+
+    return run_guarded(args.func, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

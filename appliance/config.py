@@ -1,0 +1,241 @@
+"""The appliance configuration: one YAML file, typed and validated before anything starts.
+
+Every error names the file, the line, the path inside the document (``nodes[2].params.speed``)
+and what was expected, so a lab engineer can fix the card's config without reading code.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+import yaml
+
+Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
+NodeName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,39}$")]
+DeviceName = Annotated[str, msgspec.Meta(pattern=r"^[a-zA-Z0-9][a-zA-Z0-9_-]{0,39}$")]
+PositiveMs = Annotated[int, msgspec.Meta(ge=1, le=600_000)]
+BoardId = Annotated[int, msgspec.Meta(ge=0, le=9)]
+
+SIM_MULTICAST_GROUP = "239.74.163.2"
+
+
+class ConfigError(Exception):
+    """A configuration that must not be started; the message is for the operator."""
+
+
+class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+    pass
+
+
+class CanConfig(_Strict):
+    interface: Literal["socketcan", "virtual", "udp_multicast"] = "socketcan"
+    channel: str = "can0"
+    bitrate: Annotated[int, msgspec.Meta(ge=10_000, le=1_000_000)] = 1_000_000
+    restart_ms: Annotated[int, msgspec.Meta(ge=0, le=10_000)] = 100
+    # Bring the interface up through netlink (needs CAP_NET_ADMIN); off for vcan/udp.
+    bring_up: bool = True
+    # Check that the DCAN1 device-tree overlay is active before using can0.
+    require_overlay: bool = False
+
+
+class TriggerOutput(_Strict):
+    line: Annotated[int, msgspec.Meta(ge=0, le=511)]
+    chip: str = "/dev/gpiochip0"
+    pulse_ms: Annotated[int, msgspec.Meta(ge=1, le=10_000)] = 10
+
+
+class TriggerConfig(_Strict):
+    source: Literal["gpio", "simulated", "none"] = "gpio"
+    chip: str = "/dev/gpiochip0"
+    line: Annotated[int, msgspec.Meta(ge=0, le=511)] = 7
+    edge: Literal["rising", "falling", "both"] = "rising"
+    debounce_ms: Annotated[int, msgspec.Meta(ge=0, le=1000)] = 5
+    # Simulated source only: seconds between generated edges (0 = only on `exolink trigger fire`).
+    sim_period_s: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 0.0
+    output: TriggerOutput | None = None
+
+
+class ZenohConfig(_Strict):
+    domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
+    namespace: Annotated[str, msgspec.Meta(pattern=r"^[a-z0-9_]+(/[a-z0-9_]+)*$")] = "h2"
+    listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
+    connect: list[str] = msgspec.field(default_factory=list)
+    multicast_scouting: bool = False
+    # Path to a Zenoh JSON5 file with credentials / TLS, merged over the settings above.
+    config_file: str | None = None
+
+
+class WatchdogConfig(_Strict):
+    heartbeat_deadline_ms: PositiveMs = 500
+    h2_silence_ms: PositiveMs = 100
+    safe_action: Literal["disable", "stop"] = "disable"
+    maccepa_boards: list[BoardId] = msgspec.field(default_factory=list)
+    trip_on_operator_lost: bool = True
+    operator_lost_ms: PositiveMs = 2000
+    trip_on_bus_error_passive: bool = True
+
+
+class Priority(_Strict):
+    nice: Annotated[int, msgspec.Meta(ge=-20, le=19)] | None = None
+    fifo: Annotated[int, msgspec.Meta(ge=1, le=99)] | None = None
+    cpus: list[Annotated[int, msgspec.Meta(ge=0, le=255)]] | None = None
+
+
+class RestartPolicy(_Strict):
+    policy: Literal["always", "on-failure", "never"] = "always"
+    backoff_initial_ms: PositiveMs = 200
+    backoff_max_ms: PositiveMs = 10_000
+    max_restarts: Annotated[int, msgspec.Meta(ge=0, le=1000)] = 5
+    window_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 60.0
+
+
+class NodeConfig(_Strict, kw_only=True):
+    name: NodeName
+    plugin: Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]*$")]
+    critical: bool = False
+    enabled: bool = True
+    restart: RestartPolicy = RestartPolicy()
+    priority: Priority = Priority()
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+
+
+class ApplianceConfig(_Strict, kw_only=True):
+    device: DeviceName
+    can: CanConfig = CanConfig()
+    zenoh: ZenohConfig = ZenohConfig()
+    trigger: TriggerConfig = TriggerConfig()
+    watchdog: WatchdogConfig = WatchdogConfig()
+    nodes: list[NodeConfig] = msgspec.field(default_factory=list)
+    # Where this config came from; set by the loader, not by the file.
+    source: str = "<memory>"
+
+    def node(self, name: str) -> NodeConfig:
+        for node in self.nodes:
+            if node.name == name:
+                return node
+        known = ", ".join(n.name for n in self.nodes) or "none"
+        raise ConfigError(f"{self.source}: no node named {name!r} (configured: {known})")
+
+
+_PATH_RE = re.compile(r"`\$(?P<path>[^`]*)`")
+
+
+def _friendly_path(msgspec_path: str) -> str:
+    return msgspec_path.lstrip(".")
+
+
+def _line_of(root: yaml.Node | None, path: str) -> int | None:
+    """Follow ``a.b[2].c`` through the composed YAML tree to report the line the operator edits."""
+    node = root
+    line = node.start_mark.line + 1 if node is not None else None
+    for part in re.findall(r"\.?([^.\[\]]+)|\[(\d+)\]", path):
+        key, index = part
+        if isinstance(node, yaml.MappingNode) and key:
+            match = next((v for k, v in node.value if getattr(k, "value", None) == key), None)
+            if match is None:
+                break
+            node = match
+        elif isinstance(node, yaml.SequenceNode) and index:
+            i = int(index)
+            if i >= len(node.value):
+                break
+            node = node.value[i]
+        else:
+            break
+        line = node.start_mark.line + 1
+    return line
+
+
+def _error(source: str, root: yaml.Node | None, exc: msgspec.ValidationError) -> ConfigError:
+    text = str(exc)
+    m = _PATH_RE.search(text)
+    path = _friendly_path(m.group("path")) if m else ""
+    reason = _PATH_RE.sub("", text).replace(" - at ", "").strip()
+    if "Object contains unknown field" in reason:
+        field = reason.split("`")[1] if "`" in reason else "?"
+        reason = f"unknown key {field!r}"
+        path = f"{path}.{field}".lstrip(".")
+    line = _line_of(root, path) if path else None
+    where = f"{source}:{line}" if line else source
+    return ConfigError(f"{where}: {path or '(top level)'}: {reason}")
+
+
+def parse(text: str, source: str = "<memory>") -> ApplianceConfig:
+    """Parse and validate a config document, including each node's params against its plugin."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = f":{mark.line + 1}" if mark else ""
+        ctx = exc.context_mark
+        where = f" ({exc.context} at line {ctx.line + 1})" if ctx and exc.context else ""
+        raise ConfigError(f"{source}{line}: invalid YAML: {exc.problem or exc}{where}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{source}: invalid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"{source}: expected a mapping at the top level, got {type(data).__name__}"
+        )
+    data["source"] = source
+    try:
+        cfg = msgspec.convert(data, ApplianceConfig)
+    except msgspec.ValidationError as exc:
+        raise _error(source, root, exc) from None
+    _check_nodes(cfg, root)
+    return cfg
+
+
+def _check_nodes(cfg: ApplianceConfig, root: yaml.Node | None) -> None:
+    from exolink.plugins import PluginError, find_node_class
+
+    seen: set[str] = set()
+    for i, node in enumerate(cfg.nodes):
+        if node.name in seen:
+            line = _line_of(root, f"nodes[{i}].name")
+            raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
+        seen.add(node.name)
+        try:
+            cls = find_node_class(node.plugin)
+        except PluginError as exc:
+            line = _line_of(root, f"nodes[{i}].plugin")
+            raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].plugin: {exc}") from None
+        try:
+            msgspec.convert(node.params, cls.Params)
+        except msgspec.ValidationError as exc:
+            err = _error(cfg.source, root, _prefixed(exc, f"nodes[{i}].params"))
+            raise err from None
+
+
+def _prefixed(exc: msgspec.ValidationError, prefix: str) -> msgspec.ValidationError:
+    text = str(exc)
+    text = text.replace("`$", f"`$.{prefix}", 1) if "`$" in text else f"{text} - at `$.{prefix}`"
+    return msgspec.ValidationError(text)
+
+
+def load(path: str | Path) -> ApplianceConfig:
+    """Load the appliance config; any problem is a ConfigError naming file, line and path."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from None
+    return parse(text, str(p))
+
+
+def node_params(cfg: ApplianceConfig, name: str) -> Any:
+    """The typed params of one configured node (already validated by parse)."""
+    from exolink.plugins import find_node_class
+
+    node = cfg.node(name)
+    return msgspec.convert(node.params, find_node_class(node.plugin).Params)
+
+
+def bundled(name: str) -> Path:
+    """Path of a config shipped in the package (``sim`` or ``board``)."""
+    return Path(__file__).with_name("configs") / f"{name}.yaml"

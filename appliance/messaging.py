@@ -1,0 +1,277 @@
+"""Zenoh messaging: the one module that knows key expressions, CDR, attachments and JSON queries.
+
+Data topics are carried the way ROS 2's rmw_zenoh carries them, so a ROS 2 laptop can join later:
+key ``<domain>/<namespace>/<topic>/<pkg>::msg::dds_::<Type>_/RIHS01_<hash>``, CDR payload with
+its 4-byte encapsulation header, and a 33-byte attachment (int64 sequence number, int64 source
+timestamp in ns since the epoch, uint8 16, 16-byte publisher GID). Types, CDR and hashes come
+from rosbags' typestore; the project's own types are .msg files under msgs/.
+Management uses JSON queries under ``exolink/<device>/...``; every reply says ok or an error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import zenoh
+from exolink.config import ApplianceConfig, ZenohConfig
+
+MSG_DIR = Path(__file__).with_name("msgs")
+ATTACHMENT = struct.Struct("<qqB16s")
+DEFAULT_QUERY_TIMEOUT_S = 2.0
+
+
+# --- types -----------------------------------------------------------------------------------
+
+
+@cache
+def typestore() -> Any:
+    """ROS 2 Jazzy's standard types plus every exolink_msgs .msg file."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types: dict[str, Any] = {}
+    for path in sorted(MSG_DIR.glob("*/msg/*.msg")):
+        name = f"{path.parent.parent.name}/msg/{path.stem}"
+        types.update(get_types_from_msg(path.read_text(), name))
+    store.register(types)
+    return store
+
+
+def msg_class(typename: str) -> Any:
+    return typestore().types[typename]
+
+
+def dds_name(typename: str) -> str:
+    """``sensor_msgs/msg/JointState`` -> ``sensor_msgs::msg::dds_::JointState_`` (rmw_zenoh)."""
+    pkg, kind, name = typename.split("/")
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+@cache
+def type_hash(typename: str) -> str:
+    return str(typestore().hash_rihs01(typename))
+
+
+def topic_key(domain_id: int, namespace: str, topic: str, typename: str) -> str:
+    """The only place a data key expression is built."""
+    path = "/".join(p for p in (namespace.strip("/"), topic.strip("/")) if p)
+    return f"{domain_id}/{path}/{dds_name(typename)}/{type_hash(typename)}"
+
+
+def topic_selector(domain_id: int, namespace: str, topic: str = "**") -> str:
+    """Selector matching a topic of any type (for subscribers that discover types from keys)."""
+    path = "/".join(p for p in (namespace.strip("/"), topic.strip("/")) if p)
+    return f"{domain_id}/{path}/*/*" if topic != "**" else f"{domain_id}/{path}"
+
+
+def parse_key(key: str) -> tuple[str, str]:
+    """A data key -> (topic path incl. namespace, typename); ValueError for other keys."""
+    parts = key.split("/")
+    if len(parts) < 4 or not parts[-1].startswith("RIHS01_") or "::dds_::" not in parts[-2]:
+        raise ValueError(f"not a data key: {key}")
+    pkg, kind, _, name = parts[-2].split("::")
+    return "/".join(parts[1:-2]), f"{pkg}/{kind}/{name.rstrip('_')}"
+
+
+def mgmt_key(device: str, *path: str) -> str:
+    """The only place a management key expression is built."""
+    return "/".join(("exolink", device, *path))
+
+
+def serialize(msg: Any, typename: str) -> bytes:
+    return bytes(typestore().serialize_cdr(msg, typename))
+
+
+def deserialize(data: bytes, typename: str) -> Any:
+    return typestore().deserialize_cdr(data, typename)
+
+
+def stamp(ns: int) -> Any:
+    """builtin_interfaces/Time from nanoseconds since the epoch."""
+    return msg_class("builtin_interfaces/msg/Time")(
+        sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000
+    )
+
+
+def header(ns: int, frame_id: str = "") -> Any:
+    return msg_class("std_msgs/msg/Header")(stamp=stamp(ns), frame_id=frame_id)
+
+
+def stamp_ns(t: Any) -> int:
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+# --- sessions --------------------------------------------------------------------------------
+
+
+def session_config(
+    zcfg: ZenohConfig, listen: list[str] | None = None, connect: list[str] | None = None
+) -> zenoh.Config:
+    """Peer mode, multicast scouting off unless configured, no scouting delay (fast restarts)."""
+    cfg = zenoh.Config.from_file(zcfg.config_file) if zcfg.config_file else zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("scouting/multicast/enabled", json.dumps(zcfg.multicast_scouting))
+    cfg.insert_json5("scouting/delay", "0")
+    cfg.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else []))
+    cfg.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else []))
+    return cfg
+
+
+def local_endpoint(zcfg: ZenohConfig) -> str:
+    """Where a process on the board reaches the supervisor: its first listen port, on loopback."""
+    if not zcfg.listen:
+        raise ValueError("zenoh.listen is empty: nodes have no supervisor endpoint to reach")
+    proto, _, addr = zcfg.listen[0].partition("/")
+    port = addr.rsplit(":", 1)[-1]
+    return f"{proto}/127.0.0.1:{port}"
+
+
+def open_node_session(cfg: ApplianceConfig) -> zenoh.Session:
+    return zenoh.open(session_config(cfg.zenoh, connect=[local_endpoint(cfg.zenoh)]))
+
+
+def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
+    """The supervisor's (or a standalone run's) session: listens where laptops connect."""
+    return zenoh.open(session_config(cfg.zenoh, listen=cfg.zenoh.listen, connect=cfg.zenoh.connect))
+
+
+def open_client_session(endpoint: str) -> zenoh.Session:
+    """A laptop tool's session to one appliance."""
+    return zenoh.open(session_config(ZenohConfig(listen=[]), connect=[endpoint]))
+
+
+# --- typed pub/sub ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Meta:
+    key: str
+    seq: int
+    source_ns: int
+    gid: bytes
+
+
+def encode_attachment(seq: int, source_ns: int, gid: bytes) -> bytes:
+    return ATTACHMENT.pack(seq, source_ns, 16, gid)
+
+
+def decode_attachment(raw: bytes) -> tuple[int, int, bytes]:
+    seq, ts, n, gid = ATTACHMENT.unpack(raw)
+    if n != 16:
+        raise ValueError(f"attachment GID length {n} != 16")
+    return seq, ts, gid
+
+
+class Publisher:
+    """A typed publisher: node code hands it message objects, never bytes or keys."""
+
+    def __init__(self, session: zenoh.Session, key: str, typename: str) -> None:
+        self.key, self.typename = key, typename
+        self._pub = session.declare_publisher(key)
+        self._gid = os.urandom(16)
+        self._seq = 0
+        self._ser = typestore().serialize_cdr
+        self._lock = threading.Lock()
+
+    def publish(self, msg: Any, source_ns: int | None = None) -> None:
+        payload = bytes(self._ser(msg, self.typename))
+        with self._lock:
+            self._seq += 1
+            att = ATTACHMENT.pack(self._seq, source_ns or time.time_ns(), 16, self._gid)
+            self._pub.put(payload, attachment=att)
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+class Messaging:
+    """Binds a session to the appliance's domain and namespace."""
+
+    def __init__(self, session: zenoh.Session, cfg: ApplianceConfig) -> None:
+        self.session = session
+        self.domain_id = cfg.zenoh.domain_id
+        self.namespace = cfg.zenoh.namespace
+        self.device = cfg.device
+
+    def key(self, topic: str, typename: str) -> str:
+        return topic_key(self.domain_id, self.namespace, topic, typename)
+
+    def publisher(self, topic: str, typename: str) -> Publisher:
+        return Publisher(self.session, self.key(topic, typename), typename)
+
+    def subscribe(
+        self, topic: str, typename: str, callback: Callable[[Any, Meta], None]
+    ) -> zenoh.Subscriber:
+        des = typestore().deserialize_cdr
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            att = sample.attachment
+            seq, ts, gid = decode_attachment(att.to_bytes()) if att else (0, 0, b"")
+            msg = des(sample.payload.to_bytes(), typename)
+            callback(msg, Meta(str(sample.key_expr), seq, ts, gid))
+
+        return self.session.declare_subscriber(self.key(topic, typename), on_sample)
+
+    def mgmt(self, *path: str) -> str:
+        return mgmt_key(self.device, *path)
+
+
+# --- JSON queries (commands and management) --------------------------------------------------
+
+
+class CommandRefused(Exception):
+    """Raised by a handler to refuse a request; the text reaches the caller verbatim."""
+
+
+def serve(
+    session: zenoh.Session, key: str, handler: Callable[[dict[str, Any]], dict[str, Any] | None]
+) -> zenoh.Queryable:
+    """A JSON queryable: the handler's dict is the reply; refusals and bugs become errors."""
+
+    def on_query(query: zenoh.Query) -> None:
+        try:
+            raw = query.payload.to_bytes() if query.payload is not None else b"{}"
+            request = json.loads(raw or b"{}")
+            if not isinstance(request, dict):
+                raise CommandRefused("request must be a JSON object")
+            reply = {"ok": True, **(handler(request) or {})}
+        except CommandRefused as exc:
+            reply = {"ok": False, "error": str(exc)}
+        except json.JSONDecodeError as exc:
+            reply = {"ok": False, "error": f"request is not valid JSON: {exc}"}
+        except Exception as exc:  # never leave a caller waiting on a handler bug
+            reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+        query.reply(query.key_expr, json.dumps(reply).encode())
+
+    return session.declare_queryable(key, on_query)
+
+
+class Unreachable(Exception):
+    pass
+
+
+def request(
+    session: zenoh.Session,
+    key: str,
+    body: dict[str, Any] | None = None,
+    timeout_s: float = DEFAULT_QUERY_TIMEOUT_S,
+) -> dict[str, Any]:
+    """One JSON query with a deadline; Unreachable when nothing answers."""
+    payload = json.dumps(body or {}).encode()
+    for reply in session.get(key, payload=payload, timeout=timeout_s):
+        if reply.ok is not None:
+            result: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+            return result
+        raise Unreachable(
+            f"{key}: error reply: {reply.err.payload.to_bytes().decode(errors='replace')}"
+        )
+    raise Unreachable(f"no answer from {key} within {timeout_s:g} s")

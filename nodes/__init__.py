@@ -1,0 +1,1 @@
+"""Plugin nodes shipped with exolink; each registers in the ``exolink.nodes`` entry-point group."""

@@ -1,0 +1,182 @@
+"""The hardware simulator: an H2 HAL board and MACCEPA boards on any python-can bus.
+
+``Simulator`` drives the board models on absolute deadlines (no drift: each period is scheduled
+from the first, not from when the last one finished) and can inject faults for tests: go silent,
+send malformed frames, flood the bus. ``SimulatorNode`` runs it under the node runtime with a
+Zenoh queryable for faults; ``exolink sim`` runs it bare on a chosen bus.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import can
+import msgspec
+from exolink.canbus import id_filters, open_bus
+from exolink.messaging import CommandRefused, serve
+from exolink.node import Node
+from exolink.nodes.simulator.boards import H2Board, MaccepaBoard
+from exolink.protocol import h2, maccepa
+
+FAULTS = ("none", "silent", "malformed", "flood")
+
+
+class SimParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    h2: bool = True
+    maccepa_boards: list[Annotated[int, msgspec.Meta(ge=0, le=9)]] = []
+    maccepa_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 100.0
+    max_speed_dps: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 120.0
+    tau_s: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.15
+    battery_start: Annotated[int, msgspec.Meta(ge=0, le=255)] = 225
+    battery_drain_per_min: Annotated[float, msgspec.Meta(ge=0)] = 1.0
+    seed: int = 0
+
+
+@dataclass
+class SimStats:
+    periods: int = 0
+    overruns: int = 0
+    frames_sent: int = 0
+    send_errors: int = 0
+    commands: int = 0
+
+
+class Simulator:
+    def __init__(self, bus: can.BusABC, params: SimParams) -> None:
+        self.bus = bus
+        self.params = params
+        self.h2 = (
+            H2Board(params.max_speed_dps, params.tau_s, float(params.battery_start),
+                    params.battery_drain_per_min, params.seed)
+            if params.h2 else None
+        )  # fmt: skip
+        self.boards = {b: MaccepaBoard(b) for b in params.maccepa_boards}
+        self.stats = SimStats()
+        self._lock = threading.Lock()
+        self._fault = "none"
+        self._fault_until = 0.0
+
+    @staticmethod
+    def command_ids(params: SimParams) -> list[int]:
+        ids = list(h2.COMMAND_IDS) if params.h2 else []
+        return ids + maccepa.command_ids(params.maccepa_boards)
+
+    def inject(self, fault: str, duration_s: float = 1.0) -> None:
+        if fault not in FAULTS:
+            raise ValueError(f"unknown fault {fault!r} (valid: {', '.join(FAULTS)})")
+        if not 0 < duration_s <= 3600:
+            raise ValueError(f"fault duration {duration_s} s is outside (0, 3600]")
+        with self._lock:
+            self._fault = fault
+            self._fault_until = time.monotonic() + duration_s
+
+    def fault(self) -> str:
+        with self._lock:
+            if self._fault != "none" and time.monotonic() >= self._fault_until:
+                self._fault = "none"
+            return self._fault
+
+    def handle(self, msg: can.Message) -> None:
+        self.stats.commands += 1
+        if self.h2 is not None and msg.arbitration_id in h2.COMMAND_IDS:
+            self.h2.handle(msg)
+            return
+        f = maccepa.decode(msg)
+        if not isinstance(f, maccepa.Unknown) and f.board in self.boards:
+            self.boards[f.board].handle(msg)
+
+    def _send(self, msgs: list[can.Message]) -> None:
+        for m in msgs:
+            try:
+                self.bus.send(m)
+                self.stats.frames_sent += 1
+            except can.CanError:
+                self.stats.send_errors += 1
+
+    def _emit(self, msgs: list[can.Message]) -> None:
+        fault = self.fault()
+        if fault == "silent":
+            return
+        if fault == "malformed":
+            bad = [can.Message(arbitration_id=m.arbitration_id, data=bytes(m.data[:3]),
+                               is_extended_id=False) for m in msgs]  # fmt: skip
+            bad.append(can.Message(arbitration_id=0x3FF, data=b"\xde\xad", is_extended_id=False))
+            msgs = bad + msgs
+        self._send(msgs)
+
+    def _flood(self, until: float) -> None:
+        junk = can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False)
+        while time.monotonic() < until and self.fault() == "flood":
+            self._send([junk])
+
+    def run(self, stop: threading.Event, beat: Any = None) -> None:
+        h2_period = h2.PERIOD_S
+        mc_period = 1.0 / self.params.maccepa_rate_hz
+        start = time.monotonic()
+        next_h2, next_mc = start + h2_period, start + mc_period
+        last = start
+        while not stop.is_set():
+            if beat is not None:
+                beat()
+            now = time.monotonic()
+            deadline = min(next_h2, next_mc) if self.boards else next_h2
+            if now < deadline:
+                msg = self.bus.recv(timeout=deadline - now)
+                if msg is not None:
+                    self.handle(msg)
+                continue
+            dt, last = now - last, now
+            if self.h2 is not None:
+                self.h2.step(dt)
+            for b in self.boards.values():
+                b.step(dt)
+            if self.fault() == "flood":
+                self._flood(deadline + h2_period)
+            if now >= next_h2:
+                self.stats.periods += 1
+                if self.h2 is not None and self.h2.streaming:
+                    self._emit(self.h2.frames())
+                next_h2 += h2_period
+                if now - next_h2 > 5 * h2_period:  # fell far behind (machine stalled): resync
+                    self.stats.overruns += 1
+                    next_h2 = now + h2_period
+            if self.boards and now >= next_mc:
+                for b in self.boards.values():
+                    self._emit(b.frames())
+                next_mc += mc_period
+                if now - next_mc > 5 * mc_period:
+                    next_mc = now + mc_period
+
+
+class SimulatorNode(Node):
+    """The simulator as a supervised node (``exolink up --sim`` runs it)."""
+
+    Params = SimParams
+    stall_s = 1.0
+
+    def configure(self) -> None:
+        self.bus = open_bus(
+            self.ctx.config.can, filters=id_filters(Simulator.command_ids(self.params))
+        )
+        self.sim = Simulator(self.bus, self.params)
+        self._q = serve(self.ctx.session, self.ctx.messaging.mgmt("sim", "fault"), self._on_fault)
+
+    def _on_fault(self, req: dict[str, Any]) -> dict[str, Any]:
+        try:
+            self.sim.inject(str(req.get("fault", "")), float(req.get("duration_s", 1.0)))
+        except (TypeError, ValueError) as exc:
+            raise CommandRefused(str(exc)) from None
+        self.log.warning("fault_injected", **req)
+        return {"fault": req["fault"]}
+
+    def run(self, stop: threading.Event) -> None:
+        self.sim.run(stop, self.beat)
+
+    def shutdown(self) -> None:
+        if hasattr(self, "_q"):
+            self._q.undeclare()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

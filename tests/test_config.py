@@ -1,0 +1,103 @@
+"""Config validation: every error names the file, the line, the path and what was expected."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from exolink.config import ConfigError, bundled, load, node_params, parse
+
+GOOD = """\
+device: exo-01
+can:
+  interface: socketcan
+  channel: can0
+nodes:
+  - name: simulator
+    plugin: simulator
+    params:
+      maccepa_boards: [0, 1]
+"""
+
+
+def test_bundled_configs_load() -> None:
+    for name in ("sim", "board"):
+        cfg = load(bundled(name))
+        assert cfg.device
+        assert cfg.nodes
+
+
+def test_good_config_and_typed_params() -> None:
+    cfg = parse(GOOD, "a.yaml")
+    assert cfg.can.bitrate == 1_000_000
+    assert node_params(cfg, "simulator").maccepa_boards == [0, 1]
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"nope\.yaml: config file not found"):
+        load(tmp_path / "nope.yaml")
+
+
+def test_bad_yaml_syntax_names_line() -> None:
+    with pytest.raises(ConfigError) as e:
+        parse("device: x\ncan:\n  interface: [socketcan\n", "a.yaml")
+    assert str(e.value).startswith("a.yaml:4: invalid YAML: expected ',' or ']'")
+    assert "flow sequence at line 3" in str(e.value)
+
+
+def test_wrong_type_names_path_and_line() -> None:
+    text = GOOD.replace("channel: can0", "channel: can0\n  bitrate: fast")
+    with pytest.raises(ConfigError) as e:
+        parse(text, "a.yaml")
+    assert str(e.value) == "a.yaml:5: can.bitrate: Expected `int`, got `str`"
+
+
+def test_unknown_key_is_an_error() -> None:
+    text = GOOD.replace("  channel: can0", "  channel: can0\n  bitrat: 5")
+    with pytest.raises(ConfigError) as e:
+        parse(text, "a.yaml")
+    assert "can.bitrat" in str(e.value) and "unknown key 'bitrat'" in str(e.value)
+
+
+def test_out_of_range_value() -> None:
+    text = GOOD.replace("channel: can0", "channel: can0\n  bitrate: 2000000")
+    with pytest.raises(ConfigError) as e:
+        parse(text, "a.yaml")
+    assert str(e.value) == "a.yaml:5: can.bitrate: Expected `int` <= 1000000"
+
+
+def test_node_params_validated_against_plugin() -> None:
+    text = GOOD.replace("maccepa_boards: [0, 1]", "maccepa_boards: [0, 12]")
+    with pytest.raises(ConfigError) as e:
+        parse(text, "a.yaml")
+    assert str(e.value) == "a.yaml:9: nodes[0].params.maccepa_boards[1]: Expected `int` <= 9"
+
+
+def test_unknown_node_param() -> None:
+    text = GOOD.replace("maccepa_boards: [0, 1]", "speed: 3")
+    with pytest.raises(ConfigError) as e:
+        parse(text, "a.yaml")
+    assert "nodes[0].params.speed: unknown key 'speed'" in str(e.value)
+
+
+def test_unknown_plugin_lists_available() -> None:
+    with pytest.raises(
+        ConfigError, match=r"a\.yaml:7: nodes\[0\]\.plugin: unknown node plugin 'warp'"
+    ):
+        parse(GOOD.replace("plugin: simulator", "plugin: warp"), "a.yaml")
+
+
+def test_duplicate_node_names() -> None:
+    text = GOOD + "  - name: simulator\n    plugin: simulator\n"
+    with pytest.raises(ConfigError, match=r"nodes\[1\]\.name: duplicate node 'simulator'"):
+        parse(text, "a.yaml")
+
+
+def test_missing_required_key() -> None:
+    with pytest.raises(ConfigError, match=r"Object missing required field `device`"):
+        parse("can: {}\n", "a.yaml")
+
+
+def test_top_level_not_a_mapping() -> None:
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        parse("- a\n- b\n", "a.yaml")
