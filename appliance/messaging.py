@@ -27,6 +27,7 @@ from exolink.config import ApplianceConfig, ZenohConfig
 MSG_DIR = Path(__file__).with_name("msgs")
 ATTACHMENT = struct.Struct("<qqB16s")
 DEFAULT_QUERY_TIMEOUT_S = 2.0
+CLIENT_CONNECT_TIMEOUT_MS = 3000
 
 
 # --- types -----------------------------------------------------------------------------------
@@ -114,16 +115,36 @@ def stamp_ns(t: Any) -> int:
 
 
 def session_config(
-    zcfg: ZenohConfig, listen: list[str] | None = None, connect: list[str] | None = None
+    zcfg: ZenohConfig,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    mode: str = "peer",
 ) -> zenoh.Config:
-    """Peer mode, multicast scouting off unless configured, no scouting delay (fast restarts)."""
+    """Multicast scouting off unless configured, no scouting delay (fast node restarts).
+
+    The supervisor's hub session is a router (as rmw_zenoh's zenohd) and nodes and laptops are
+    clients of it: measured with Zenoh 1.10, a router does not forward between two peers that
+    cannot reach each other directly, and nodes should not open ports of their own.
+    """
     cfg = zenoh.Config.from_file(zcfg.config_file) if zcfg.config_file else zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(zcfg.multicast_scouting))
     cfg.insert_json5("scouting/delay", "0")
     cfg.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else []))
     cfg.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else []))
+    if mode == "client":
+        cfg.insert_json5(
+            "connect/timeout_ms",
+            json.dumps({"router": -1, "peer": -1, "client": CLIENT_CONNECT_TIMEOUT_MS}),
+        )
     return cfg
+
+
+def open_session(cfg: zenoh.Config, what: str) -> zenoh.Session:
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as exc:
+        raise Unreachable(f"{what}: {str(exc).split(' at ')[0]}") from None
 
 
 def local_endpoint(zcfg: ZenohConfig) -> str:
@@ -136,17 +157,23 @@ def local_endpoint(zcfg: ZenohConfig) -> str:
 
 
 def open_node_session(cfg: ApplianceConfig) -> zenoh.Session:
-    return zenoh.open(session_config(cfg.zenoh, connect=[local_endpoint(cfg.zenoh)]))
+    endpoint = local_endpoint(cfg.zenoh)
+    zcfg = session_config(cfg.zenoh, connect=[endpoint], mode="client")
+    return open_session(zcfg, f"supervisor's Zenoh router at {endpoint}")
 
 
 def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
     """The supervisor's (or a standalone run's) session: listens where laptops connect."""
-    return zenoh.open(session_config(cfg.zenoh, listen=cfg.zenoh.listen, connect=cfg.zenoh.connect))
+    zcfg = session_config(
+        cfg.zenoh, listen=cfg.zenoh.listen, connect=cfg.zenoh.connect, mode="router"
+    )
+    return open_session(zcfg, f"listening on {', '.join(cfg.zenoh.listen)}")
 
 
 def open_client_session(endpoint: str) -> zenoh.Session:
     """A laptop tool's session to one appliance."""
-    return zenoh.open(session_config(ZenohConfig(listen=[]), connect=[endpoint]))
+    zcfg = session_config(ZenohConfig(listen=[]), connect=[endpoint], mode="client")
+    return open_session(zcfg, f"no appliance answers at {endpoint}")
 
 
 # --- typed pub/sub ---------------------------------------------------------------------------

@@ -71,8 +71,12 @@ def test_joint_control_round_trip(motor: int, mode: str, stiffness: int) -> None
     assert theirs["setpoint"] == sp and theirs["motor"] == motor
 
 
-@given(st.integers(0, 9), st.sampled_from(["kp", "ki", "kd"]),
-       st.floats(-1e6, 1e6, allow_nan=False, width=32), st.integers(0, 1))  # fmt: skip
+@given(
+    st.integers(0, 9),
+    st.sampled_from(["kp", "ki", "kd"]),
+    st.floats(-1e6, 1e6, allow_nan=False, width=32),
+    st.integers(0, 1),
+)
 def test_maccepa_gain_round_trip_agrees_with_cantools(b: int, which: str, v: float, c: int) -> None:
     msg = maccepa.encode_gain(b, which, v, c)
     assert msg.arbitration_id == maccepa.GAIN_BASE[which] + b
@@ -106,15 +110,24 @@ def test_maccepa_duty_and_stop() -> None:
         (lambda: h2.encode_joint_control(7, "position", 0), "motor id 7 is outside 1..6"),
         (lambda: h2.encode_joint_control("r_elbow", "position", 0), "unknown joint 'r_elbow'"),
         (lambda: h2.encode_joint_control(2, 9, 0), "control mode 9 is outside 1..5"),
-        (lambda: h2.encode_joint_control("r_knee", "position", 101), "r_knee position set-point 101 deg is outside 0..100"),
+        (
+            lambda: h2.encode_joint_control("r_knee", "position", 101),
+            "r_knee position set-point 101 deg is outside 0..100",
+        ),
         (lambda: h2.encode_joint_control("r_ankle", "position", -25), "outside -20..20"),
         (lambda: h2.encode_joint_control(1, "position", 10.5), "10.5 is not a whole number"),
         (lambda: h2.encode_joint_control(1, "position", float("nan")), "not a finite number"),
-        (lambda: h2.encode_joint_control(1, "stiffness", 10, 101), "JointControl.stiffness: 101 is outside 0..100"),
+        (
+            lambda: h2.encode_joint_control(1, "stiffness", 10, 101),
+            "JointControl.stiffness: 101 is outside 0..100",
+        ),
         (lambda: h2.encode_joint_control(1, "position", 10, 50), "only valid in stiffness mode"),
         (lambda: h2.encode_joint_control(1, "torque", 200), "setpoint: 200 is outside -128..127"),
         (lambda: h2.encode_accepted_angles("min", [0] * 5), "need 6 values"),
-        (lambda: h2.encode_accepted_angles("max", [0, 0, 30, 0, 0, 0]), "MaxAngles.r_ankle: 30 is outside -20..20"),
+        (
+            lambda: h2.encode_accepted_angles("max", [0, 0, 30, 0, 0, 0]),
+            "MaxAngles.r_ankle: 30 is outside -20..20",
+        ),
         (lambda: maccepa.encode_gain(10, "kp", 1.0, 0), "board id 10 is outside 0..9"),
         (lambda: maccepa.encode_gain(1, "kq", 1.0, 0), "unknown gain 'kq'"),
         (lambda: maccepa.encode_gain(1, "kp", float("inf"), 0), "not a finite number"),
@@ -122,7 +135,7 @@ def test_maccepa_duty_and_stop() -> None:
         (lambda: maccepa.encode_duty(1, 101), "duty cycle 101 must be a whole percentage 0..100"),
         (lambda: maccepa.encode_duty(1, -1), "0..100"),
     ],
-)  # fmt: skip
+)
 def test_invalid_commands_raise_and_make_no_frame(call, error: str) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ProtocolError, match=error.replace("(", r"\(").replace(".", r"\.")):
         call()

@@ -13,8 +13,9 @@ from exolink.config import SIM_MULTICAST_GROUP, CanConfig
 
 def bus_config(args: argparse.Namespace) -> CanConfig:
     default = {"udp_multicast": SIM_MULTICAST_GROUP, "socketcan": "can0", "virtual": "exolink"}
-    return CanConfig(interface=args.interface, channel=args.channel or default[args.interface],
-                     bring_up=False)  # fmt: skip
+    return CanConfig(
+        interface=args.interface, channel=args.channel or default[args.interface], bring_up=False
+    )
 
 
 def cmd_sim(args: argparse.Namespace) -> int:

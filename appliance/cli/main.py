@@ -20,13 +20,17 @@ def _add_config(p: argparse.ArgumentParser) -> None:
 
 
 def _add_bus(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--interface", "-i", default="udp_multicast",
-                   choices=["socketcan", "udp_multicast", "virtual"])  # fmt: skip
+    p.add_argument(
+        "--interface",
+        "-i",
+        default="udp_multicast",
+        choices=["socketcan", "udp_multicast", "virtual"],
+    )
     p.add_argument("--channel", default=None, help="can0 / vcan0 / multicast group")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from exolink.cli import board, bus_tools
+    from exolink.cli import board, bus_tools, remote
 
     parser = argparse.ArgumentParser(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
@@ -59,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, default=0, help="stop after N frames")
     p.set_defaults(func=bus_tools.cmd_candump)
 
+    remote.register(sub)
     return parser
 
 

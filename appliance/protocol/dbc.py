@@ -24,8 +24,14 @@ import structlog
 
 HERE = Path(__file__).parent
 _FORMAT_VERSION = 1
-_INT_FMT = {(8, True): "b", (8, False): "B", (16, True): "h", (16, False): "H",
-            (32, True): "i", (32, False): "I"}  # fmt: skip
+_INT_FMT = {
+    (8, True): "b",
+    (8, False): "B",
+    (16, True): "h",
+    (16, False): "H",
+    (32, True): "i",
+    (32, False): "I",
+}
 
 
 class ProtocolError(ValueError):
@@ -126,15 +132,19 @@ def _compile_with_cantools(path: Path) -> list[dict[str, Any]]:
                 raise ProtocolError(f"{path.name}: {m.name}.{s.name}: only float32 is supported")
             lo, hi = _raw_bounds(fmt)
             scale, offset = float(s.scale), float(s.offset)
-            signals.append({
-                "name": s.name, "byte": s.start // 8, "fmt": fmt, "scale": scale,
-                "offset": offset,
-                "minimum": float(s.minimum) if s.minimum is not None else lo * scale + offset,
-                "maximum": float(s.maximum) if s.maximum is not None else hi * scale + offset,
-                "choices": {int(k): str(v) for k, v in (s.choices or {}).items()},
-            })  # fmt: skip
-        frames.append({"frame_id": m.frame_id, "name": m.name, "dlc": m.length,
-                       "signals": signals})  # fmt: skip
+            signals.append(
+                {
+                    "name": s.name,
+                    "byte": s.start // 8,
+                    "fmt": fmt,
+                    "scale": scale,
+                    "offset": offset,
+                    "minimum": float(s.minimum) if s.minimum is not None else lo * scale + offset,
+                    "maximum": float(s.maximum) if s.maximum is not None else hi * scale + offset,
+                    "choices": {int(k): str(v) for k, v in (s.choices or {}).items()},
+                }
+            )
+        frames.append({"frame_id": m.frame_id, "name": m.name, "dlc": m.length, "signals": signals})
     return frames
 
 

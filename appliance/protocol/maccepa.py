@@ -69,8 +69,13 @@ class Unknown(NamedTuple):
 
 GAIN_NAMES = ("Kp", "Ki", "Kd")
 MaccepaFrame = Sensors | Positions | Controller | Gain | Setpoint | Duty
-_KIND = {"Sensors": Sensors, "Positions": Positions, "Controller": Controller,
-         "Setpoint": Setpoint, "Duty": Duty}  # fmt: skip
+_KIND = {
+    "Sensors": Sensors,
+    "Positions": Positions,
+    "Controller": Controller,
+    "Setpoint": Setpoint,
+    "Duty": Duty,
+}
 
 
 def _table() -> dict[int, tuple[FrameSpec, str, int]]:

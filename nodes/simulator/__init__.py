@@ -49,10 +49,16 @@ class Simulator:
         self.bus = bus
         self.params = params
         self.h2 = (
-            H2Board(params.max_speed_dps, params.tau_s, float(params.battery_start),
-                    params.battery_drain_per_min, params.seed)
-            if params.h2 else None
-        )  # fmt: skip
+            H2Board(
+                params.max_speed_dps,
+                params.tau_s,
+                float(params.battery_start),
+                params.battery_drain_per_min,
+                params.seed,
+            )
+            if params.h2
+            else None
+        )
         self.boards = {b: MaccepaBoard(b) for b in params.maccepa_boards}
         self.stats = SimStats()
         self._lock = threading.Lock()
@@ -101,8 +107,12 @@ class Simulator:
         if fault == "silent":
             return
         if fault == "malformed":
-            bad = [can.Message(arbitration_id=m.arbitration_id, data=bytes(m.data[:3]),
-                               is_extended_id=False) for m in msgs]  # fmt: skip
+            bad = [
+                can.Message(
+                    arbitration_id=m.arbitration_id, data=bytes(m.data[:3]), is_extended_id=False
+                )
+                for m in msgs
+            ]
             bad.append(can.Message(arbitration_id=0x3FF, data=b"\xde\xad", is_extended_id=False))
             msgs = bad + msgs
         self._send(msgs)

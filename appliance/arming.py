@@ -1,0 +1,55 @@
+"""What a motion-capable node knows of the watchdog: armed, or why not.
+
+The supervisor's watchdog is the authority; it publishes its state on ``watchdog`` on every
+change and once a second. A node that has not heard from it recently treats the motors as not
+armed: losing the supervisor must never leave a node free to move a joint.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+from exolink import messaging
+
+WATCHDOG_TOPIC = "watchdog"
+WATCHDOG_TYPE = "exolink_msgs/msg/WatchdogEvent"
+STALE_S = 3.0
+
+
+class ArmingState:
+    def __init__(self, msg: messaging.Messaging, stale_s: float = STALE_S) -> None:
+        self._lock = threading.Lock()
+        self._state, self._reason, self._seen = "unknown", "no word from the watchdog yet", 0.0
+        self.stale_s = stale_s
+        self._sub = msg.subscribe(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
+        try:
+            reply = messaging.request(msg.session, msg.mgmt("watchdog"), {}, timeout_s=0.5)
+            if reply.get("ok"):
+                self._update(str(reply["state"]), str(reply.get("reason", "")))
+        except messaging.Unreachable:
+            pass  # stays "unknown" until the first event
+
+    def _on_event(self, ev: Any, _meta: messaging.Meta) -> None:
+        self._update(ev.state, ev.reason)
+
+    def _update(self, state: str, reason: str) -> None:
+        with self._lock:
+            self._state, self._reason, self._seen = state, reason, time.monotonic()
+
+    def check(self) -> str | None:
+        """None when motion is allowed, else the reason a caller sees."""
+        with self._lock:
+            age = time.monotonic() - self._seen
+            if self._state == "unknown":
+                return f"motors not armed: {self._reason}"
+            if age > self.stale_s:
+                return f"motors not armed: no word from the watchdog for {age:.1f} s"
+            if self._state != "armed":
+                why = f" ({self._reason})" if self._reason else ""
+                return f"motors not armed: watchdog is {self._state}{why}; run `exolink arm`"
+            return None
+
+    def close(self) -> None:
+        self._sub.undeclare()

@@ -1,0 +1,378 @@
+"""Laptop-side commands: talk to an appliance over Zenoh, never hang, say why on failure."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import os
+import statistics
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from exolink import messaging
+from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
+
+DEFAULT_AT = "tcp/127.0.0.1:7447"
+
+
+class Remote:
+    """One session to one appliance; the device name is discovered when not given."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.at = args.at
+        self.timeout = args.timeout
+        self.domain, self.ns = args.domain, args.ns
+        self.session = messaging.open_client_session(self.at)
+        self._device = args.device
+
+    @property
+    def device(self) -> str:
+        if self._device is None:
+            self._device = self._discover()
+        return self._device
+
+    def _discover(self) -> str:
+        """Devices announce themselves through their nodes' liveliness tokens."""
+        deadline = time.monotonic() + self.timeout
+        while True:
+            replies = self.session.liveliness().get("exolink/*/nodes/*/alive", timeout=0.5)
+            devices = {str(r.ok.key_expr).split("/")[1] for r in replies if r.ok is not None}
+            if len(devices) == 1:
+                return devices.pop()
+            if len(devices) > 1:
+                raise messaging.Unreachable(
+                    f"several appliances answer at {self.at}: {', '.join(sorted(devices))}; "
+                    "choose one with --device"
+                )
+            if time.monotonic() >= deadline:
+                raise messaging.Unreachable(
+                    f"no appliance answers at {self.at} within {self.timeout:g} s "
+                    "(is it running and reachable? set --at tcp/<board-ip>:7447)"
+                )
+            time.sleep(0.1)
+
+    def call(self, *path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
+        key = messaging.mgmt_key(self.device, *path)
+        reply = messaging.request(self.session, key, body or {}, timeout_s=self.timeout)
+        if not reply.get("ok"):
+            raise Refused(str(reply.get("error", "refused")))
+        return reply
+
+    def selector(self, topic: str) -> str:
+        if topic.startswith("/"):
+            return f"{self.domain}/{topic.strip('/')}/*/*"
+        return messaging.topic_selector(self.domain, self.ns, topic)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+class Refused(Exception):
+    pass
+
+
+@contextmanager
+def remote(args: argparse.Namespace) -> Iterator[Remote]:
+    r = Remote(args)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def _guard(func):  # type: ignore[no-untyped-def]
+    def wrapped(args: argparse.Namespace) -> int:
+        try:
+            return int(func(args))
+        except Refused as exc:
+            return fail(f"refused: {exc}", EXIT_REFUSED)
+
+    return wrapped
+
+
+def to_builtin(obj: Any) -> Any:
+    """rosbags message -> plain data for printing (numpy arrays become lists)."""
+    if hasattr(obj, "__dataclass_fields__"):
+        return {k: to_builtin(getattr(obj, k)) for k in obj.__dataclass_fields__}
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, list | tuple):
+        return [to_builtin(x) for x in obj]
+    if isinstance(obj, bytes):
+        return obj.hex()
+    return obj
+
+
+def _decode_sample(sample: Any) -> tuple[str, str, Any]:
+    topic, typename = messaging.parse_key(str(sample.key_expr))
+    return topic, typename, messaging.deserialize(sample.payload.to_bytes(), typename)
+
+
+# --- data topics ------------------------------------------------------------------------------
+
+
+@_guard
+def cmd_topics(args: argparse.Namespace) -> int:
+    seen: dict[tuple[str, str], int] = {}
+    lock = threading.Lock()
+
+    def on(sample: Any) -> None:
+        try:
+            key = messaging.parse_key(str(sample.key_expr))
+        except ValueError:
+            return
+        with lock:
+            seen[key] = seen.get(key, 0) + 1
+
+    with remote(args) as r:
+        sub = r.session.declare_subscriber(f"{args.domain}/**", on)
+        time.sleep(args.listen)
+        sub.undeclare()
+    if not seen:
+        return fail(f"no topics seen at {args.at} within {args.listen:g} s", EXIT_UNREACHABLE)
+    for (topic, typename), n in sorted(seen.items()):
+        sys.stdout.write(f"/{topic:40} {typename:40} {n / args.listen:7.1f} Hz\n")
+    return 0
+
+
+@_guard
+def cmd_echo(args: argparse.Namespace) -> int:
+    done = threading.Event()
+    count = [0]
+
+    def on(sample: Any) -> None:
+        if done.is_set():
+            return
+        _topic, _typename, msg = _decode_sample(sample)
+        data = to_builtin(msg)
+        line = json.dumps(data) if args.json else _pretty(data)
+        sys.stdout.write(line + ("\n" if args.json else "\n---\n"))
+        sys.stdout.flush()
+        count[0] += 1
+        if args.count and count[0] >= args.count:
+            done.set()
+
+    with remote(args) as r:
+        sub = r.session.declare_subscriber(r.selector(args.topic), on)
+        start = time.monotonic()
+        while not done.wait(0.1):
+            if count[0] == 0 and time.monotonic() - start > args.timeout:
+                sub.undeclare()
+                return fail(
+                    f"no messages on {args.topic} within {args.timeout:g} s "
+                    f"(appliance at {args.at}; see `exolink topics`)",
+                    EXIT_UNREACHABLE,
+                )
+        sub.undeclare()
+    return 0
+
+
+def _pretty(data: Any, indent: int = 0) -> str:
+    pad = "  " * indent
+    if isinstance(data, dict):
+        lines = []
+        for k, v in data.items():
+            if isinstance(v, dict):
+                lines.append(f"{pad}{k}:\n{_pretty(v, indent + 1)}")
+            else:
+                lines.append(f"{pad}{k}: {_fmt(v)}")
+        return "\n".join(lines)
+    return pad + _fmt(data)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v)
+
+
+@_guard
+def cmd_hz(args: argparse.Namespace) -> int:
+    stamps: list[float] = []
+    lock = threading.Lock()
+
+    def on(_sample: Any) -> None:
+        with lock:
+            stamps.append(time.monotonic())
+
+    with remote(args) as r:
+        sub = r.session.declare_subscriber(r.selector(args.topic), on)
+        start = time.monotonic()
+        reports = 0
+        while args.count == 0 or reports < args.count:
+            time.sleep(args.window)
+            with lock:
+                window = [t for t in stamps if t > time.monotonic() - args.window]
+                del stamps[: max(0, len(stamps) - 10_000)]
+            if len(window) < 2:
+                if time.monotonic() - start > args.timeout and not stamps:
+                    sub.undeclare()
+                    return fail(
+                        f"no messages on {args.topic} within {args.timeout:g} s", EXIT_UNREACHABLE
+                    )
+                continue
+            periods = [b - a for a, b in itertools.pairwise(window)]
+            rate = (len(window) - 1) / (window[-1] - window[0])
+            sys.stdout.write(
+                f"rate {rate:8.2f} Hz  min {min(periods) * 1e3:6.2f} ms  "
+                f"max {max(periods) * 1e3:6.2f} ms  std {statistics.pstdev(periods) * 1e3:6.2f} ms"
+                f"  n={len(window)}\n"
+            )
+            sys.stdout.flush()
+            reports += 1
+        sub.undeclare()
+    return 0
+
+
+# --- commands to the H2 sender ---------------------------------------------------------------
+
+
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return int(v) if v == int(v) else v
+
+
+def _angles(text: str) -> list[float]:
+    parts = [p for p in text.replace(" ", "").split(",") if p]
+    if len(parts) != 6:
+        raise argparse.ArgumentTypeError(f"need six comma-separated angles, got {len(parts)}")
+    return [_number(p) for p in parts]
+
+
+def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
+    with remote(args) as r:
+        reply = r.call("h2", "command", body=body)
+    sys.stdout.write("ok " + " ".join(reply.get("frames", [])) + "\n")
+    return 0
+
+
+@_guard
+def cmd_send(args: argparse.Namespace) -> int:
+    what = args.what
+    if what in ("joint", "position"):
+        mode = args.mode if what == "joint" else "position"
+        body = {
+            "kind": "joint",
+            "joint": args.joint,
+            "mode": mode,
+            "setpoint": args.value,
+            "stiffness": args.stiffness,
+        }
+    elif what == "stiffness":
+        body = {
+            "kind": "joint",
+            "joint": args.joint,
+            "mode": "stiffness",
+            "setpoint": args.value,
+            "stiffness": args.stiffness,
+        }
+    elif what == "torque":
+        body = {"kind": "joint", "joint": args.joint, "mode": "torque", "setpoint": args.value}
+    elif what in ("disable", "stop"):
+        body = {
+            "kind": "joint",
+            "joint": args.joint,
+            "mode": "disabled" if what == "disable" else "stopped",
+        }
+    elif what == "limits":
+        body = {"kind": "limits"}
+        if args.min is not None:
+            body["min"] = args.min
+        if args.max is not None:
+            body["max"] = args.max
+    else:  # stream
+        body = {"kind": "stream", "on": args.state == "on"}
+    return _h2_command(args, body)
+
+
+# --- registration ----------------------------------------------------------------------------
+
+
+def common() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("appliance")
+    g.add_argument(
+        "--at",
+        default=os.environ.get("EXOLINK_AT", DEFAULT_AT),
+        help=f"Zenoh endpoint of the appliance (env EXOLINK_AT, default {DEFAULT_AT})",
+    )
+    g.add_argument(
+        "--device",
+        default=os.environ.get("EXOLINK_DEVICE"),
+        help="device name when several appliances answer (env EXOLINK_DEVICE)",
+    )
+    g.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for an answer")
+    g.add_argument("--domain", type=int, default=0, help="ROS domain id of data topics")
+    g.add_argument("--ns", default="h2", help="namespace of data topics")
+    return p
+
+
+class _Leaves:
+    """Sub-subcommands that all take the appliance options (so `--at` may come last)."""
+
+    def __init__(self, sub: argparse._SubParsersAction, parent: argparse.ArgumentParser) -> None:  # type: ignore[type-arg]
+        self.sub, self.parent = sub, parent
+
+    def add_parser(self, name: str, **kw: Any) -> argparse.ArgumentParser:
+        return self.sub.add_parser(name, parents=[self.parent], **kw)  # type: ignore[no-any-return]
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parent = common()
+
+    p = sub.add_parser("topics", parents=[parent], help="list data topics with type and rate")
+    p.add_argument("--listen", type=float, default=2.0, help="seconds to listen")
+    p.set_defaults(func=cmd_topics)
+
+    p = sub.add_parser("echo", parents=[parent], help="print messages of a topic")
+    p.add_argument("topic")
+    p.add_argument("--json", action="store_true", help="one JSON object per line")
+    p.add_argument("--count", "-n", type=int, default=0, help="stop after N messages")
+    p.set_defaults(func=cmd_echo)
+
+    p = sub.add_parser("hz", parents=[parent], help="measure a topic's publishing rate")
+    p.add_argument("topic")
+    p.add_argument("--window", type=float, default=1.0)
+    p.add_argument("--count", "-n", type=int, default=0, help="stop after N reports")
+    p.set_defaults(func=cmd_hz)
+
+    p = sub.add_parser("send", help="send a validated command to the H2")
+    s = _Leaves(p.add_subparsers(dest="what", required=True), parent)
+    q = s.add_parser("joint", help="joint JOINT MODE VALUE (e.g. joint r_knee position 30)")
+    q.add_argument("joint")
+    q.add_argument("mode", choices=["position", "stiffness", "torque", "disabled", "stopped"])
+    q.add_argument("value", type=_number, nargs="?", default=0)
+    q.add_argument("--stiffness", type=_number, default=0)
+    q = s.add_parser("position", help="position JOINT DEG")
+    q.add_argument("joint")
+    q.add_argument("value", type=_number)
+    q.set_defaults(stiffness=0)
+    q = s.add_parser("stiffness", help="stiffness JOINT DEG PERCENT")
+    q.add_argument("joint")
+    q.add_argument("value", type=_number)
+    q.add_argument("stiffness", type=_number)
+    q = s.add_parser("torque", help="torque JOINT COUNTS")
+    q.add_argument("joint")
+    q.add_argument("value", type=_number)
+    for name in ("disable", "stop"):
+        q = s.add_parser(name, help=f"{name} JOINT|all")
+        q.add_argument("joint")
+    q = s.add_parser("limits", help="limits --min a,b,c,d,e,f --max a,b,c,d,e,f (deg)")
+    q.add_argument("--min", type=_angles)
+    q.add_argument("--max", type=_angles)
+    q = s.add_parser("stream", help="stream on|off")
+    q.add_argument("state", choices=["on", "off"])
+    p.set_defaults(func=cmd_send)

@@ -1,0 +1,218 @@
+"""H2 reader [thesis: H2ros]: CAN ids 110/120/130 -> ``joint_states`` and ``foot_switches``.
+
+Every message carries the CAN frame's kernel receive time, never the time Python got to it.
+A 10 ms stream makes gaps measurable: a period longer than 1.5x nominal counts the frames it
+lost. Malformed frames are counted and skipped. Counters go out on ``diagnostics`` every second.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Annotated, Any
+
+import msgspec
+import numpy as np
+from exolink import messaging
+from exolink.canbus import id_filters, open_bus
+from exolink.node import Node
+from exolink.protocol import h2
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+_DEG = np.pi / 180.0
+
+
+class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    reduction: Annotated[int, msgspec.Meta(ge=1, le=100)] = 1  # publish 1 of N samples
+    start_stream: bool = True  # send the start frame (id 85) on start
+    restart_stream_after_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 1.0  # 0 = never
+    torque_nm_per_count: Annotated[float, msgspec.Meta(gt=0, le=100)] = 1.0
+    battery_volts_per_count: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.1
+    diagnostics_period_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
+
+
+@dataclass
+class ReaderStats:
+    frames: dict[int, int] = field(default_factory=lambda: dict.fromkeys(h2.DATA_IDS, 0))
+    missing: dict[int, int] = field(default_factory=lambda: dict.fromkeys(h2.DATA_IDS, 0))
+    malformed: int = 0
+    unknown: int = 0
+    published_joint_states: int = 0
+    published_foot_switches: int = 0
+    without_torque: int = 0
+    stream_restarts: int = 0
+
+
+class GapCounter:
+    """Counts frames lost in a periodic stream from the receive timestamps alone."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period = period_s
+        self.last: dict[int, float] = {}
+
+    def missed(self, fid: int, ts: float) -> int:
+        prev = self.last.get(fid)
+        self.last[fid] = ts
+        if prev is None:
+            return 0
+        gap = ts - prev
+        return max(0, round(gap / self.period) - 1) if gap > 1.5 * self.period else 0
+
+
+class H2Reader(Node):
+    Params = ReaderParams
+
+    def configure(self) -> None:
+        m = self.ctx.messaging
+        self.bus = open_bus(self.ctx.config.can, filters=id_filters(h2.DATA_IDS))
+        self.pub_js = m.publisher("joint_states", JOINT_STATE)
+        self.pub_fs = m.publisher("foot_switches", FOOT_SWITCHES)
+        self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS)
+        self.stats = ReaderStats()
+        self.gaps = GapCounter(h2.PERIOD_S)
+        self._q = messaging.serve(
+            self.ctx.session, m.mgmt("nodes", self.name, "stats"), lambda _req: asdict(self.stats)
+        )
+        self._classes()
+        self._pending: tuple[float, h2.JointAngles] | None = None
+        self._cycle = 0
+        if self.params.start_stream:
+            self.bus.send(h2.encode_stream(True))
+
+    def _classes(self) -> None:
+        self.JointState = messaging.msg_class(JOINT_STATE)
+        self.FootSwitches = messaging.msg_class(FOOT_SWITCHES)
+        self.names = list(h2.JOINTS)
+        self.empty = np.empty(0, dtype=np.float64)
+
+    def _publish_joints(self, ts: float, angles: h2.JointAngles, torques: Any) -> None:
+        ns = int(ts * 1e9)
+        msg = self.JointState(
+            header=messaging.header(ns),
+            name=self.names,
+            position=np.array(angles, dtype=np.float64) * _DEG,
+            velocity=self.empty,
+            effort=self.empty
+            if torques is None
+            else np.array(torques, dtype=np.float64) * self.params.torque_nm_per_count,
+        )
+        self.pub_js.publish(msg, ns)
+        self.stats.published_joint_states += 1
+
+    def handle(self, msg: Any) -> None:
+        """One frame; never raises for bad input (counted instead)."""
+        frame = h2.decode(msg)
+        ts = msg.timestamp
+        st = self.stats
+        if isinstance(frame, h2.Unknown):
+            if frame.reason == "bad length":
+                st.malformed += 1
+            else:
+                st.unknown += 1
+            return
+        fid = msg.arbitration_id
+        st.frames[fid] += 1
+        st.missing[fid] += self.gaps.missed(fid, ts)
+        if isinstance(frame, h2.JointAngles):
+            if self._pending is not None:  # the torque frame of the last cycle never came
+                st.without_torque += 1
+                if self._selected():
+                    self._publish_joints(*self._pending, None)
+            self._cycle += 1
+            self._pending = (ts, frame)
+        elif isinstance(frame, h2.JointTorques):
+            if self._pending is not None:
+                if self._selected():
+                    self._publish_joints(*self._pending, frame)
+                self._pending = None
+        elif isinstance(frame, h2.FootSwitches) and self._selected():
+            self._publish_feet(ts, frame)
+
+    def _selected(self) -> bool:
+        """The reduction factor: cycles 1, 1+N, 1+2N... are published."""
+        return (self._cycle - 1) % self.params.reduction == 0
+
+    def _publish_feet(self, ts: float, f: h2.FootSwitches) -> None:
+        ns = int(ts * 1e9)
+        self.pub_fs.publish(
+            self.FootSwitches(
+                header=messaging.header(ns),
+                r_heel=bool(f.r_heel),
+                r_toe=bool(f.r_toe),
+                l_heel=bool(f.l_heel),
+                l_toe=bool(f.l_toe),
+                battery_raw=f.battery,
+                battery_volts=f.battery * self.params.battery_volts_per_count,
+            ),
+            ns,
+        )
+        self.stats.published_foot_switches += 1
+
+    def _diagnostics(self) -> None:
+        store = messaging.typestore().types
+        kv = store["diagnostic_msgs/msg/KeyValue"]
+        status = store["diagnostic_msgs/msg/DiagnosticStatus"]
+        st = self.stats
+        values = {
+            **{f"frames_{i}": n for i, n in st.frames.items()},
+            **{f"missing_{i}": n for i, n in st.missing.items()},
+            "malformed": st.malformed,
+            "unknown": st.unknown,
+            "without_torque": st.without_torque,
+            "published_joint_states": st.published_joint_states,
+            "stream_restarts": st.stream_restarts,
+        }
+        silent = self._silent_for() > 0.1
+        level = 2 if silent else 0  # DiagnosticStatus ERROR / OK
+        now = time.time_ns()
+        arr = store[DIAGNOSTICS](
+            header=messaging.header(now),
+            status=[
+                status(
+                    level=level,
+                    name=f"{self.name}/h2_stream",
+                    message="no H2 data" if silent else "streaming",
+                    hardware_id="h2",
+                    values=[kv(key=k, value=str(v)) for k, v in values.items()],
+                )
+            ],
+        )
+        self.pub_diag.publish(arr, now)
+
+    def _silent_for(self) -> float:
+        last = max(self.gaps.last.values(), default=None)
+        return float("inf") if last is None else time.time() - last
+
+    def run(self, stop: threading.Event) -> None:
+        next_diag = time.monotonic() + self.params.diagnostics_period_s
+        last_restart = time.monotonic()
+        while not stop.is_set():
+            self.beat()
+            msg = self.bus.recv(timeout=0.05)
+            if msg is not None:
+                self.handle(msg)
+            now = time.monotonic()
+            if now >= next_diag:
+                next_diag += self.params.diagnostics_period_s
+                self._diagnostics()
+            restart = self.params.restart_stream_after_s
+            if (
+                self.params.start_stream
+                and restart
+                and self._silent_for() > restart
+                and now - last_restart > restart
+            ):
+                last_restart = now
+                self.stats.stream_restarts += 1
+                self.bus.send(h2.encode_stream(True))
+
+    def shutdown(self) -> None:
+        for name in ("_q", "pub_js", "pub_fs", "pub_diag"):
+            obj = getattr(self, name, None)
+            if obj is not None:
+                obj.undeclare() if name == "_q" else obj.close()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

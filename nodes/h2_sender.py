@@ -1,0 +1,165 @@
+"""H2 sender [thesis: H2rosSender, commandSenderUi]: validated commands -> CAN frames.
+
+Commands arrive as Zenoh queries so the caller gets "ok" or the reason for a refusal. Nothing is
+sent unless the whole command is valid; motion (position, stiffness, torque) also needs the
+watchdog armed. Disable, stop and stream on/off are always allowed: they can only make things
+safer or quieter.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Annotated, Any
+
+import can
+import msgspec
+from exolink import messaging
+from exolink.arming import ArmingState
+from exolink.canbus import open_bus
+from exolink.messaging import CommandRefused
+from exolink.node import Node
+from exolink.protocol import ProtocolError, h2
+
+JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
+MOTION = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
+Angles = Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)]
+
+
+class SenderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    # Joint limits this lab accepts (deg, joint order r_hip..l_ankle), inside the mechanical ranges.
+    min_angles: Angles = msgspec.field(default_factory=lambda: [h2.RANGES[j][0] for j in h2.JOINTS])
+    max_angles: Angles = msgspec.field(default_factory=lambda: [h2.RANGES[j][1] for j in h2.JOINTS])
+    send_limits_on_start: bool = True
+    require_armed: bool = True
+
+
+def command_key(msg: messaging.Messaging) -> str:
+    return msg.mgmt("h2", "command")
+
+
+class H2Sender(Node):
+    Params = SenderParams
+
+    def configure(self) -> None:
+        p = self.params
+        # Validate the configured limits with the codec: a bad config starts nothing.
+        try:
+            self.limit_frames = [
+                h2.encode_accepted_angles("min", p.min_angles),
+                h2.encode_accepted_angles("max", p.max_angles),
+            ]
+        except ProtocolError as exc:
+            raise ValueError(f"{self.name} params: {exc}") from None
+        for j, lo, hi in zip(h2.JOINTS, p.min_angles, p.max_angles, strict=True):
+            if lo > hi:
+                raise ValueError(f"{self.name} params: {j} min {lo} > max {hi}")
+        self.bus = open_bus(self.ctx.config.can, filters=[])
+        self.lock = threading.Lock()
+        self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
+        self.pub = self.ctx.messaging.publisher("joint_commands", JOINT_COMMAND)
+        self.JointCommand = messaging.msg_class(JOINT_COMMAND)
+        self.sent = 0
+        self.refused = 0
+        self._q = messaging.serve(
+            self.ctx.session, command_key(self.ctx.messaging), self.on_command
+        )
+        if p.send_limits_on_start:
+            self._send(self.limit_frames)
+
+    def _send(self, frames: list[can.Message]) -> None:
+        with self.lock:
+            for f in frames:
+                self.bus.send(f)
+                self.sent += 1
+
+    def build(self, req: dict[str, Any]) -> list[can.Message]:
+        """Request -> frames, or CommandRefused naming what is wrong. Sends nothing."""
+        kind = req.get("kind")
+        try:
+            if kind == "joint":
+                return self._joint(req)
+            if kind == "limits":
+                return self._limits(req)
+            if kind == "stream":
+                on = req.get("on")
+                if not isinstance(on, bool):
+                    raise CommandRefused("stream needs 'on': true or false")
+                return [h2.encode_stream(on)]
+        except ProtocolError as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(f"unknown command kind {kind!r} (joint, limits or stream)")
+
+    def _joint(self, req: dict[str, Any]) -> list[can.Message]:
+        joint = req.get("joint")
+        mode = h2.mode_id(req.get("mode", ""))
+        if joint == "all":
+            if mode in MOTION:
+                raise CommandRefused("'all' joints is only for disabled or stopped")
+            return [h2.encode_joint_control(m, mode) for m in range(1, 7)]
+        motor = h2.motor_id(joint)  # type: ignore[arg-type]
+        msg = h2.encode_joint_control(motor, mode, req.get("setpoint", 0), req.get("stiffness", 0))
+        if mode in (h2.MODES["position"], h2.MODES["stiffness"]):
+            lo, hi = self.params.min_angles[motor - 1], self.params.max_angles[motor - 1]
+            sp = int(req.get("setpoint", 0))
+            if not lo <= sp <= hi:
+                raise CommandRefused(
+                    f"{h2.JOINTS[motor - 1]} set-point {sp} deg is outside the configured "
+                    f"limits {lo}..{hi}"
+                )
+        if mode in MOTION and self.arming is not None and (why := self.arming.check()):
+            raise CommandRefused(why)
+        return [msg]
+
+    def _limits(self, req: dict[str, Any]) -> list[can.Message]:
+        frames = []
+        for kind in ("min", "max"):
+            if kind in req:
+                frames.append(h2.encode_accepted_angles(kind, req[kind]))
+        if not frames:
+            raise CommandRefused("limits needs 'min' and/or 'max' (six angles in degrees)")
+        return frames
+
+    def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
+        try:
+            frames = self.build(req)
+        except CommandRefused as exc:
+            self.refused += 1
+            self.log.warning("command_refused", request=req, reason=str(exc))
+            raise
+        self._send(frames)
+        for f in frames:
+            self._record(f)
+        self.log.info("command_sent", request=req, frames=len(frames))
+        return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
+
+    def _record(self, frame: can.Message) -> None:
+        jc = h2.decode(frame)
+        if isinstance(jc, h2.JointControl):
+            now = time.time_ns()
+            self.pub.publish(
+                self.JointCommand(
+                    header=messaging.header(now),
+                    joint=h2.JOINTS[jc.motor - 1],
+                    mode=jc.mode,
+                    setpoint=jc.setpoint,
+                    stiffness=jc.stiffness,
+                    source=self.name,
+                ),
+                now,
+            )
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.wait(0.1):
+            self.beat()
+
+    def shutdown(self) -> None:
+        for obj in (getattr(self, "_q", None),):
+            if obj is not None:
+                obj.undeclare()
+        if getattr(self, "arming", None) is not None:
+            self.arming.close()  # type: ignore[union-attr]
+        if hasattr(self, "pub"):
+            self.pub.close()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

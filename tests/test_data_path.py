@@ -1,0 +1,220 @@
+"""The first vertical slice across real processes: simulator -> CAN (udp_multicast) -> reader ->
+Zenoh -> a subscriber in another process, and CLI commands back through the sender."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import EXOLINK, collect, wait_for
+from exolink import messaging
+from exolink.config import load
+from exolink.protocol import h2
+
+NODES = [
+    {"name": "simulator", "plugin": "simulator"},
+    {"name": "h2_reader", "plugin": "h2_reader"},
+    {
+        "name": "h2_sender",
+        "plugin": "h2_sender",
+        "params": {"require_armed": False, "max_angles": [90, 80, 15, 90, 80, 15]},
+    },
+]
+
+SUBSCRIBER = r"""
+import sys, time, zenoh
+from exolink import messaging
+from exolink.config import load
+cfg = load(sys.argv[1])
+s = messaging.open_client_session(messaging.local_endpoint(cfg.zenoh))
+key = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
+out = open(sys.argv[2], "wb")
+def on(sample):
+    att = sample.attachment.to_bytes()
+    p = sample.payload.to_bytes()
+    out.write(len(p).to_bytes(4, "little") + p + att + str(sample.key_expr).encode().ljust(200))
+    out.flush()
+sub = s.declare_subscriber(key, on)
+time.sleep(float(sys.argv[3]))
+sub.undeclare(); out.close(); s.close()
+"""
+
+
+def read_samples(path: Path) -> list[tuple[bytes, bytes, str]]:
+    data, out, i = path.read_bytes(), [], 0
+    while i + 4 <= len(data):
+        n = int.from_bytes(data[i : i + 4], "little")
+        payload = data[i + 4 : i + 4 + n]
+        att = data[i + 4 + n : i + 37 + n]
+        key = data[i + 37 + n : i + 237 + n].decode().strip()
+        out.append((payload, att, key))
+        i += 237 + n
+    return out
+
+
+@pytest.fixture
+def appliance(write_config, spawn):  # type: ignore[no-untyped-def]
+    cfg_path = write_config(nodes=NODES)
+    cfg = load(cfg_path)
+    procs = {
+        "simulator": spawn(
+            "node",
+            "run",
+            "simulator",
+            "-c",
+            str(cfg_path),
+            "--listen",
+            cfg.zenoh.listen[0],
+            name="simulator",
+        ),
+    }
+    for n in ("h2_reader", "h2_sender"):
+        procs[n] = spawn("node", "run", n, "-c", str(cfg_path), name=n)
+    return cfg_path, cfg, procs
+
+
+def cli(cfg, *args: str, timeout: float = 20) -> subprocess.CompletedProcess[str]:  # type: ignore[no-untyped-def]
+    at = messaging.local_endpoint(cfg.zenoh)
+    return subprocess.run(
+        [*EXOLINK, *args, "--at", at], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_joint_states_reach_another_process_with_sim_values(appliance, tmp_path, mbus) -> None:  # type: ignore[no-untyped-def]
+    cfg_path, _cfg, procs = appliance
+    wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)  # reader started the stream
+    out = tmp_path / "samples.bin"
+    sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(cfg_path), str(out), "3"])
+    # What the simulator put on the bus, seen by an independent listener meanwhile.
+    bus_frames = collect(mbus, 3.5, {h2.JOINT_ANGLES, h2.JOINT_TORQUES})
+    sub.wait(10)
+    samples = read_samples(out)
+    assert len(samples) > 200, [p.output() for p in procs.values()]
+    stamps = []
+    by_ts = {round(m.timestamp * 1e9): h2.decode(m) for m in bus_frames if m.arbitration_id == 110}
+    matched = 0
+    for payload, att, key in samples:
+        # Independent decoder: rosbags' own typestore, not exolink's wrapper.
+        from rosbags.typesys import Stores, get_typestore
+
+        msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(
+            payload, "sensor_msgs/msg/JointState"
+        )
+        assert payload[:4] == b"\x00\x01\x00\x00"
+        assert key.startswith("0/h2/joint_states/sensor_msgs::msg::dds_::JointState_/RIHS01_")
+        seq, ts, gid = messaging.decode_attachment(att)
+        assert seq > 0 and len(gid) == 16
+        assert len(att) == 33 and att[16] == 16
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        assert ts == ns
+        stamps.append(ns)
+        assert list(msg.name) == list(h2.JOINTS)
+        sent = by_ts.get(ns)
+        if sent is not None:
+            matched += 1
+            np.testing.assert_allclose(msg.position, np.radians(list(sent)))
+    assert matched > 0.8 * len(samples)
+    periods = np.diff(stamps) / 1e6
+    assert 9.0 < float(np.median(periods)) < 11.0  # 100 Hz from CAN timestamps
+
+
+def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
+    _cfg_path, cfg, procs = appliance
+    wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
+    r = cli(cfg, "send", "position", "r_knee", "30")
+    assert r.returncode == 0, r.stderr + procs["h2_sender"].output()
+    assert r.stdout.startswith("ok 046#02011E")
+    wait_for(lambda: any(h2.decode(m).r_knee == 30 for m in collect(mbus, 0.1, {110})), timeout=5)
+
+    refusals = [
+        (["send", "position", "r_knee", "85"], "outside the configured limits 0..80"),
+        (["send", "position", "r_knee", "101"], "outside 0..100"),
+        (["send", "position", "r_elbow", "10"], "unknown joint 'r_elbow'"),
+        (["send", "stiffness", "l_knee", "10", "120"], "120 is outside 0..100"),
+        (["send", "limits", "--max", "0,0,30,0,0,0"], "MaxAngles.r_ankle: 30 is outside -20..20"),
+        (["send", "torque", "all", "3"], "'all' joints is only for disabled or stopped"),
+    ]
+    for args, expected in refusals:
+        r = cli(cfg, *args)
+        assert r.returncode == 5, (args, r.stderr)
+        assert expected in r.stderr, (args, r.stderr)
+    # The independent listener saw no command frame after the refusals.
+    assert collect(mbus, 0.5, {70, 75, 80, 85}) == []
+    r = cli(cfg, "send", "disable", "all")
+    assert r.returncode == 0, r.stderr
+    frames = collect(mbus, 0.5, {70})
+    assert sorted(h2.decode(f).motor for f in frames) == [1, 2, 3, 4, 5, 6]
+
+
+def test_cli_echo_topics_hz(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
+    _cfg_path, cfg, _procs = appliance
+    wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
+    r = cli(cfg, "echo", "joint_states", "--json", "-n", "3")
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(x) for x in r.stdout.splitlines()]
+    assert len(lines) == 3 and lines[0]["name"] == list(h2.JOINTS)
+    r = cli(cfg, "topics", "--listen", "1")
+    assert "/h2/joint_states" in r.stdout and "sensor_msgs/msg/JointState" in r.stdout
+    assert "/h2/foot_switches" in r.stdout
+    r = cli(cfg, "echo", "no_such_topic", "--timeout", "1")
+    assert r.returncode == 4 and "no messages on no_such_topic within 1 s" in r.stderr
+    r = cli(cfg, "hz", "joint_states", "-n", "2")
+    rates = [float(line.split()[1]) for line in r.stdout.splitlines()]
+    assert rates and all(80 < x < 120 for x in rates), r.stdout
+
+
+def test_cli_unreachable_is_an_error_not_a_hang(tmp_path: Path) -> None:
+    t = time.monotonic()
+    r = subprocess.run(
+        [*EXOLINK, "send", "stream", "on", "--at", "tcp/127.0.0.1:9", "--timeout", "1"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert r.returncode == 4
+    assert "no appliance answers at tcp/127.0.0.1:9" in r.stderr
+    assert time.monotonic() - t < 15
+    r = subprocess.run(
+        [*EXOLINK, "echo", "x", "--at", "tcp/127.0.0.1:9", "--timeout", "1"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert r.returncode == 4 and "no appliance answers at tcp/127.0.0.1:9" in r.stderr
+
+
+def test_reader_counts_gaps_and_malformed(write_config, spawn, group) -> None:  # type: ignore[no-untyped-def]
+    cfg_path = write_config(nodes=NODES[:2])
+    cfg = load(cfg_path)
+    spawn("node", "run", "simulator", "-c", str(cfg_path), "--listen", cfg.zenoh.listen[0])
+    spawn("node", "run", "h2_reader", "-c", str(cfg_path))
+    s = messaging.open_client_session(messaging.local_endpoint(cfg.zenoh))
+    try:
+        wait_for(
+            lambda: (
+                messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=1)["frames"][
+                    "110"
+                ]
+                > 20
+            ),
+            timeout=15,
+        )
+        messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 0.2})
+        time.sleep(0.4)  # one fault at a time
+        messaging.request(s, "exolink/sim/sim/fault", {"fault": "malformed", "duration_s": 0.2})
+        time.sleep(1.0)
+        stats = messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=1)
+        assert stats["missing"]["110"] >= 10  # ~20 periods silent
+        assert stats["malformed"] >= 10
+        r = messaging.request(s, "exolink/sim/sim/fault", {"fault": "meteor"})
+        assert r == {
+            "ok": False,
+            "error": "unknown fault 'meteor' (valid: none, silent, malformed, flood)",
+        }
+    finally:
+        s.close()
