@@ -4,10 +4,12 @@ and helpers to run exolink processes for real (no mocks of buses or sessions).""
 from __future__ import annotations
 
 import os
+import queue
 import random
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -54,15 +56,52 @@ def write_config(tmp_path: Path, group: str) -> Callable[..., Path]:
     return write
 
 
+class DrainedBus:
+    """A python-can bus read continuously by a thread into a queue.
+
+    At 600 frames/s a UDP socket left unread while a test waits on a CLI call overflows its
+    kernel buffer and silently drops the newest frames: exactly the ones a test looks for.
+    """
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.q: queue.Queue[can.Message] = queue.Queue()
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._drain, daemon=True)
+        self._t.start()
+
+    def _drain(self) -> None:
+        while not self._stop.is_set():
+            m = self.bus.recv(timeout=0.05)
+            if m is not None:
+                self.q.put(m)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        try:
+            return self.q.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def send(self, msg: can.Message) -> None:
+        self.bus.send(msg)
+
+    def shutdown(self) -> None:
+        self._stop.set()
+        self._t.join(1)
+        self.bus.shutdown()
+
+
 @pytest.fixture
-def mbus(group: str) -> Iterator[can.BusABC]:
+def mbus(group: str) -> Iterator[DrainedBus]:
     """An independent listener on the test's udp_multicast bus."""
-    bus = can.Bus(interface="udp_multicast", channel=group, receive_own_messages=False)
+    bus = DrainedBus(can.Bus(interface="udp_multicast", channel=group, receive_own_messages=False))
     yield bus
     bus.shutdown()
 
 
-def collect(bus: can.BusABC, seconds: float, ids: set[int] | None = None) -> list[can.Message]:
+def collect(
+    bus: can.BusABC | DrainedBus, seconds: float, ids: set[int] | None = None
+) -> list[can.Message]:
     out = []
     end = time.monotonic() + seconds
     while (left := end - time.monotonic()) > 0:

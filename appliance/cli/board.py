@@ -39,3 +39,17 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     for name, target in sorted(available().items()):
         sys.stdout.write(f"{name:20} {target}\n")
     return 0
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    """The supervisor. A bad config starts nothing and exits non-zero (the caller sees why)."""
+    from exolink import logs
+    from exolink.config import bundled, load
+    from exolink.supervisor.core import run, simulated
+
+    path = args.config or (str(bundled("sim")) if args.sim else DEFAULT_CONFIG)
+    cfg = load(path)
+    if args.sim:
+        cfg = simulated(cfg)
+    logs.setup("supervisor")
+    return run(cfg)

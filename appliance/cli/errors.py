@@ -20,6 +20,8 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
     from exolink.messaging import Unreachable
     from exolink.plugins import PluginError
     from exolink.protocol import ProtocolError
+    from exolink.supervisor.canlink import CanLinkError
+    from exolink.supervisor.trigger import TriggerError
 
     try:
         return func(args)
@@ -27,7 +29,7 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
         return fail(f"config error: {exc}", EXIT_CONFIG)
     except PluginError as exc:
         return fail(str(exc), EXIT_CONFIG)
-    except CanOpenError as exc:
+    except (CanOpenError, CanLinkError, TriggerError) as exc:
         return fail(str(exc), EXIT_CONFIG)
     except Unreachable as exc:
         return fail(f"appliance unreachable: {exc}", EXIT_UNREACHABLE)

@@ -36,6 +36,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
+    p = sub.add_parser("up", help="run the appliance: supervisor, nodes, watchdog (board side)")
+    _add_config(p)
+    p.add_argument(
+        "--sim",
+        action="store_true",
+        help="simulated hardware: udp_multicast bus, simulator node, fake trigger",
+    )
+    p.set_defaults(func=board.cmd_up)
+
     p = sub.add_parser("config", help="validate an appliance config and print it")
     p.add_argument("file")
     p.set_defaults(func=board.cmd_config)
@@ -64,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=bus_tools.cmd_candump)
 
     remote.register(sub)
+    remote.register_management(sub)
     return parser
 
 

@@ -376,3 +376,156 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q = s.add_parser("stream", help="stream on|off")
     q.add_argument("state", choices=["on", "off"])
     p.set_defaults(func=cmd_send)
+
+
+# --- management (supervisor) -----------------------------------------------------------------
+
+
+def _print_json(data: Any) -> None:
+    sys.stdout.write(json.dumps(data, indent=2) + "\n")
+
+
+def _node_table(nodes: list[dict[str, Any]]) -> str:
+    head = f"{'node':14} {'state':9} {'pid':>7} {'uptime':>8} {'restarts':>8} {'cpu_s':>7} {'rss_mb':>7}  last exit"
+    rows = [head]
+    for n in nodes:
+        crit = "*" if n.get("critical") else " "
+        rows.append(
+            f"{n['name'] + crit:14} {n['state']:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
+            f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')}"
+        )
+    return "\n".join(rows) + "\n(* critical)\n"
+
+
+@_guard
+def cmd_status(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        s = r.call("status")
+    if args.json:
+        _print_json(s)
+        return 0
+    wd, bus, trig = s["watchdog"], s["bus"], s["trigger"]
+    why = (
+        f" ({wd['reason']}{': ' + wd['detail'] if wd['detail'] else ''})"
+        if wd["state"] != "armed"
+        else ""
+    )
+    sys.stdout.write(
+        f"device   {s['device']}\nwatchdog {wd['state'].upper()}{why}  trips={wd['trips']}\n"
+        f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
+        f"h2 silent {bus.get('h2_silent_s')} s\n"
+        f"trigger  {trig['source']} count={trig['count']}\n" + _node_table(s["nodes"])
+    )
+    return 0
+
+
+@_guard
+def cmd_nodes(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        nodes = r.call("nodes")["nodes"]
+    sys.stdout.write(json.dumps(nodes, indent=2) + "\n" if args.json else _node_table(nodes))
+    return 0
+
+
+@_guard
+def cmd_control(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        n = r.call("control", body={"action": args.command, "node": args.node})["node"]
+    sys.stdout.write(f"{n['name']}: {n['state']} pid={n.get('pid')}\n")
+    return 0
+
+
+@_guard
+def cmd_logs(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        for line in r.call("logs", body={"node": args.node, "lines": args.lines})["lines"]:
+            sys.stdout.write(line + "\n")
+        if not args.follow:
+            return 0
+        sys.stdout.flush()
+        sub = r.session.declare_subscriber(
+            messaging.mgmt_key(r.device, "log", args.node),
+            lambda s: (
+                sys.stdout.write(s.payload.to_bytes().decode(errors="replace") + "\n"),
+                sys.stdout.flush(),
+            ),
+        )
+        try:
+            while True:
+                time.sleep(1)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            sub.undeclare()
+    return 0
+
+
+@_guard
+def cmd_watchdog(args: argparse.Namespace) -> int:
+    body = {"action": args.command}
+    if args.command == "estop":
+        body["by"] = os.environ.get("USER", "operator")
+    with remote(args) as r:
+        s = r.call("watchdog", body=body)
+    detail = f": {s['detail']}" if s.get("detail") else ""
+    sys.stdout.write(f"watchdog {s['state']} ({s['reason']}{detail})\n")
+    return 0
+
+
+@_guard
+def cmd_params(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        if args.set:
+            key, raw = args.set
+            try:
+                value = json.loads(raw)
+            except json.JSONDecodeError:
+                value = raw
+            reply = r.call("nodes", args.node, "params", body={"set": {"key": key, "value": value}})
+            sys.stdout.write(f"{args.node}.{reply['key']} = {json.dumps(reply['value'])}\n")
+        else:
+            _print_json(r.call("nodes", args.node, "params")["params"])
+    return 0
+
+
+@_guard
+def cmd_trigger(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        reply = r.call("trigger", body={"action": "fire"} if args.action == "fire" else {})
+    sys.stdout.write(json.dumps({k: v for k, v in reply.items() if k != "ok"}) + "\n")
+    return 0
+
+
+def register_management(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parent = common()
+    p = sub.add_parser("status", parents=[parent], help="watchdog, bus, trigger and every node")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_status)
+    p = sub.add_parser("nodes", parents=[parent], help="node table")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_nodes)
+    for name in ("start", "stop", "restart"):
+        p = sub.add_parser(name, parents=[parent], help=f"{name} a node")
+        p.add_argument("node")
+        p.set_defaults(func=cmd_control)
+    p = sub.add_parser("logs", parents=[parent], help="a node's recent output")
+    p.add_argument("node")
+    p.add_argument("--lines", "-n", type=int, default=50)
+    p.add_argument("--follow", "-f", action="store_true")
+    p.set_defaults(func=cmd_logs)
+    for name, text in (
+        ("arm", "allow motion (refused while a failure persists)"),
+        ("disarm", "disable the motors and refuse motion"),
+        ("estop", "trip the watchdog now: motors disabled, latched"),
+    ):
+        p = sub.add_parser(name, parents=[parent], help=text)
+        p.set_defaults(func=cmd_watchdog)
+    p = sub.add_parser("params", parents=[parent], help="show or set a node's params")
+    p.add_argument("node")
+    p.add_argument("--set", nargs=2, metavar=("KEY", "VALUE"))
+    p.set_defaults(func=cmd_params)
+    p = sub.add_parser(
+        "trigger", parents=[parent], help="trigger count, or fire the trigger output"
+    )
+    p.add_argument("action", nargs="?", choices=["fire"])
+    p.set_defaults(func=cmd_trigger)

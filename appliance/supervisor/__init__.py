@@ -1,0 +1,1 @@
+"""The supervisor: node processes, CAN link, trigger line, safety watchdog, management API."""

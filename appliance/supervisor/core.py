@@ -1,0 +1,461 @@
+"""The supervisor (``exolink up``): safe state first, then nodes, watchdog and management API.
+
+Start order is the safety order: validate the whole config (nothing starts on an error), bring up
+CAN, send the safe action on the watchdog's own socket, open the Zenoh router, then spawn nodes.
+Stop order is the reverse with the safe action first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import structlog
+import yaml
+from exolink import messaging
+from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
+from exolink.canbus import id_filters, open_bus
+from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
+from exolink.messaging import CommandRefused
+from exolink.node import HEARTBEAT_TOPIC, HEARTBEAT_TYPE
+from exolink.protocol import h2
+from exolink.supervisor import canlink, trigger
+from exolink.supervisor.processes import Exit, NodeProcess, relay
+from exolink.supervisor.systemd import Notifier
+from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
+
+TICK_S = 0.01
+START_GRACE_S = 20.0
+HEALTH_PERIOD_S = 0.2
+STATE_PERIOD_S = 1.0
+TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+
+
+def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
+    """``--sim``: the same appliance on a udp_multicast bus with the simulator and a fake trigger."""
+    can = msgspec.structs.replace(
+        cfg.can,
+        interface="udp_multicast",
+        channel=cfg.can.channel if cfg.can.interface == "udp_multicast" else SIM_MULTICAST_GROUP,
+        bring_up=False,
+        require_overlay=False,
+    )
+    trig = msgspec.structs.replace(cfg.trigger, source="simulated", output=None)
+    nodes = list(cfg.nodes)
+    if not any(n.plugin == "simulator" for n in nodes):
+        params = {"maccepa_boards": list(cfg.watchdog.maccepa_boards)}
+        nodes.insert(0, NodeConfig(name="simulator", plugin="simulator", params=params))
+    return msgspec.structs.replace(cfg, can=can, trigger=trig, nodes=nodes)
+
+
+class Supervisor:
+    def __init__(self, cfg: ApplianceConfig) -> None:
+        self.cfg = cfg
+        self.log = structlog.get_logger().bind(node="supervisor")
+        self.stop_event = threading.Event()
+        self.stopping = False
+        self.notifier = Notifier()
+        self.trigger_count = 0
+        self.last_trigger_ns: int | None = None
+        self.health: canlink.LinkHealth | None = None
+        self._decls: list[Any] = []
+        self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
+        self.nodes: dict[str, NodeProcess] = {}
+
+    # --- start-up ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        cfg = self.cfg
+        if cfg.can.interface == "socketcan":
+            if cfg.can.require_overlay:
+                canlink.check_overlay()
+            if cfg.can.bring_up:
+                canlink.bring_up(cfg.can)
+        self.bus = open_bus(cfg.can, filters=id_filters([h2.JOINT_ANGLES, h2.JOINT_CONTROL]))
+        self.session = messaging.open_hub_session(cfg)
+        self.msg = messaging.Messaging(self.session, cfg)
+        self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
+        self.watchdog = Watchdog(cfg.watchdog, self.bus, self._publish_watchdog)
+        self.watchdog.start()  # safe action before anything else can move
+        self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE)
+        self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE)
+        self._serve_api()
+        self._watch_heartbeats()
+        self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
+        self.trigger_out = trigger.open_output(cfg.trigger)
+        config_path = self._workdir / "appliance.yaml"
+        config_path.write_text(yaml.safe_dump(_config_data(cfg), sort_keys=False))
+        for ncfg in cfg.nodes:
+            node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
+            self.nodes[ncfg.name] = node
+            if ncfg.enabled:
+                node.start()
+        self.log.info(
+            "supervisor_running",
+            device=cfg.device,
+            nodes=[n.name for n in cfg.nodes if n.enabled],
+            listen=cfg.zenoh.listen,
+            bus=f"{cfg.can.interface}:{cfg.can.channel}",
+        )
+        self.notifier.ready()
+
+    # --- events from other threads ----------------------------------------------------------
+
+    def _on_exit(self, ex: Exit) -> None:
+        node = self.nodes[ex.node]
+        what = ex.signal or f"exit code {ex.code}"
+        if self.stopping:
+            return
+        if node.cfg.critical:
+            why = "critical node stopped by operator" if ex.deliberate else "critical node exited"
+            self.watchdog.trip(why, f"{ex.node}: {what}")
+        self.log.warning("node_exited", node_name=ex.node, how=what, deliberate=ex.deliberate)
+        with node.lock:
+            if ex.deliberate:
+                node.state = "stopped"
+            elif node.failed_by_policy(ex.code):
+                if not node.schedule_restart(time.monotonic()):
+                    self.log.error(
+                        "node_failed_permanently",
+                        node_name=ex.node,
+                        restarts=node.restarts,
+                        window_s=node.cfg.restart.window_s,
+                    )
+            else:
+                node.state = "exited"
+
+    def _on_line(self, name: str, line: str) -> None:
+        relay(self.log, name, line)
+        with contextlib.suppress(
+            Exception
+        ):  # a closed session at shutdown must not kill the reader thread
+            self.session.put(self.msg.mgmt("log", name), line.encode())
+
+    def _on_heartbeat(self, sample: Any) -> None:
+        parts = str(sample.key_expr).split("/")
+        try:
+            name = parts[parts.index("nodes") + 1]
+        except (ValueError, IndexError):
+            return
+        node = self.nodes.get(name)
+        if node is not None and node.pid is not None:
+            node.heartbeat_at = time.monotonic()
+
+    def _on_edge(self, edge: trigger.Edge) -> None:
+        self.trigger_count += 1
+        self.last_trigger_ns = edge.stamp_ns
+        cls = messaging.msg_class(TRIGGER_TYPE)
+        t = self.cfg.trigger
+        self.pub_trigger.publish(
+            cls(
+                stamp=messaging.stamp(edge.stamp_ns),
+                edge="rising" if edge.rising else "falling",
+                chip=t.chip,
+                line=t.line,
+                count=self.trigger_count,
+                source=edge.source,
+            ),
+            edge.stamp_ns,
+        )
+        self.log.info(
+            "trigger",
+            count=self.trigger_count,
+            rising=edge.rising,
+            source=edge.source,
+            stamp_ns=edge.stamp_ns,
+        )
+
+    def _publish_watchdog(self, s: WatchdogState) -> None:
+        cls = messaging.msg_class(WATCHDOG_TYPE)
+        self.pub_wd.publish(
+            cls(
+                stamp=messaging.stamp(s.since_ns),
+                state=s.state,
+                reason=s.reason,
+                detail=s.detail,
+                frames_sent=s.frames_sent,
+            )
+        )
+
+    def _watch_heartbeats(self) -> None:
+        key = self.msg.key(f"nodes/*/{HEARTBEAT_TOPIC}", HEARTBEAT_TYPE)
+        self._decls.append(self.session.declare_subscriber(key, self._on_heartbeat))
+
+    # --- periodic checks --------------------------------------------------------------------
+
+    def _check_nodes(self, now: float) -> None:
+        deadline = self.cfg.watchdog.heartbeat_deadline_ms / 1000
+        for node in self.nodes.values():
+            with node.lock:
+                if node.state == "backoff" and now >= node.next_start:
+                    self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
+                    node.start()
+                    continue
+                if not node.cfg.critical or node.state != "running" or node.pid is None:
+                    continue
+                hb = node.heartbeat_at
+                late = (
+                    (now - hb > deadline)
+                    if hb is not None
+                    else (now - node.started_at > START_GRACE_S)
+                )
+            if late and self.watchdog.armed:
+                detail = (
+                    f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
+                    if hb is not None
+                    else f"{node.name}: no heartbeat {START_GRACE_S:.0f} s after start"
+                )
+                self.watchdog.trip("heartbeat late", detail)
+
+    def _check_bus(self) -> None:
+        if self.cfg.can.interface != "socketcan":
+            return
+        try:
+            self.health = canlink.health(self.cfg.can.channel)
+        except canlink.CanLinkError as exc:
+            self.health = canlink.LinkHealth("down")
+            self.log.error("can_link_missing", error=str(exc))
+        h = self.health
+        if h.state == "bus-off" or (
+            h.state == "error-passive" and self.cfg.watchdog.trip_on_bus_error_passive
+        ):
+            self.watchdog.trip(
+                f"can {h.state}", f"{self.cfg.can.channel} tx errors {h.txerr}, rx errors {h.rxerr}"
+            )
+
+    def arm_blockers(self) -> list[str]:
+        out = []
+        now = time.monotonic()
+        deadline = self.cfg.watchdog.heartbeat_deadline_ms / 1000
+        for n in self.nodes.values():
+            if not (n.cfg.critical and n.cfg.enabled):
+                continue
+            if n.state != "running":
+                out.append(f"critical node {n.name} is {n.state}")
+            elif n.heartbeat_at is None or now - n.heartbeat_at > deadline:
+                out.append(f"critical node {n.name} has no recent heartbeat")
+        silent = self.watchdog.h2_silent_for()
+        limit = self.cfg.watchdog.h2_silence_ms / 1000
+        if silent is None or silent > limit:
+            out.append(
+                "no H2 data on the bus" if silent is None else f"no H2 data for {silent:.1f} s"
+            )
+        if self.health is not None and self.health.bad:
+            out.append(f"CAN bus is {self.health.state}")
+        return out
+
+    def run(self) -> int:
+        next_health = next_state = time.monotonic()
+        ping = self.notifier.ping_interval_s
+        next_ping = time.monotonic()
+        while not self.stop_event.wait(TICK_S):
+            now = time.monotonic()
+            self.watchdog.check()
+            self._check_nodes(now)
+            if now >= next_health:
+                next_health = now + HEALTH_PERIOD_S
+                self._check_bus()
+            if now >= next_state:
+                next_state = now + STATE_PERIOD_S
+                self._publish_watchdog(self.watchdog.snapshot())
+                self._publish_diagnostics()
+            if ping and now >= next_ping:  # only a loop that runs keeps systemd's watchdog quiet
+                next_ping = now + ping
+                self.notifier.ping()
+        return 0
+
+    def _publish_diagnostics(self) -> None:
+        store = messaging.typestore().types
+        kv, status = (
+            store["diagnostic_msgs/msg/KeyValue"],
+            store["diagnostic_msgs/msg/DiagnosticStatus"],
+        )
+        wd = self.watchdog.snapshot()
+        values = {
+            "watchdog": wd.state,
+            "reason": wd.reason,
+            "trips": wd.trips,
+            "trigger_count": self.trigger_count,
+        }
+        if self.health is not None:
+            values |= {
+                "bus_state": self.health.state,
+                "txerr": self.health.txerr,
+                "rxerr": self.health.rxerr,
+            }
+        level = 0 if wd.state != "tripped" else 2
+        now = time.time_ns()
+        self.pub_diag.publish(
+            store[DIAGNOSTICS_TYPE](
+                header=messaging.header(now),
+                status=[
+                    status(
+                        level=level,
+                        name="supervisor",
+                        message=wd.state,
+                        hardware_id=self.cfg.device,
+                        values=[kv(key=k, value=str(v)) for k, v in values.items()],
+                    )
+                ],
+            ),
+            now,
+        )
+
+    # --- shutdown ---------------------------------------------------------------------------
+
+    def shutdown(self) -> None:
+        """Safe action first, then the nodes, then the rest."""
+        self.stopping = True
+        self.notifier.stopping()
+        if hasattr(self, "watchdog"):
+            self.watchdog.trip("supervisor shutdown")
+        threads = [threading.Thread(target=n.stop) for n in self.nodes.values()]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for src in (getattr(self, "trigger_src", None), getattr(self, "trigger_out", None)):
+            if src is not None:
+                src.close()
+        if hasattr(self, "watchdog"):
+            self.watchdog.close()
+        for d in self._decls:
+            with contextlib.suppress(Exception):
+                d.undeclare()
+        if hasattr(self, "session"):
+            self.session.close()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()
+        shutil.rmtree(self._workdir, ignore_errors=True)
+        self.log.info("supervisor_stopped")
+
+    # --- management API ---------------------------------------------------------------------
+
+    def _serve_api(self) -> None:
+        routes = {
+            "status": self.api_status,
+            "nodes": lambda _r: {"nodes": [n.describe() for n in self.nodes.values()]},
+            "control": self.api_control,
+            "logs": self.api_logs,
+            "watchdog": self.api_watchdog,
+            "trigger": self.api_trigger,
+        }
+        for path, handler in routes.items():
+            self._decls.append(messaging.serve(self.session, self.msg.mgmt(path), handler))
+
+    def api_status(self, _req: dict[str, Any]) -> dict[str, Any]:
+        wd = self.watchdog.snapshot()
+        silent = self.watchdog.h2_silent_for()
+        return {
+            "device": self.cfg.device,
+            "watchdog": {
+                "state": wd.state,
+                "reason": wd.reason,
+                "detail": wd.detail,
+                "since_ns": wd.since_ns,
+                "trips": wd.trips,
+                "frames_sent": wd.frames_sent,
+                "violations": wd.violations,
+            },
+            "bus": {
+                "interface": self.cfg.can.interface,
+                "channel": self.cfg.can.channel,
+                **(vars(self.health) if self.health else {"state": "n/a"}),
+                "h2_silent_s": None if silent is None else round(silent, 3),
+            },
+            "trigger": {
+                "source": self.cfg.trigger.source,
+                "count": self.trigger_count,
+                "last_ns": self.last_trigger_ns,
+            },
+            "nodes": [n.describe() for n in self.nodes.values()],
+        }
+
+    def _node(self, req: dict[str, Any]) -> NodeProcess:
+        name = req.get("node")
+        if name not in self.nodes:
+            raise CommandRefused(f"unknown node {name!r} (configured: {', '.join(self.nodes)})")
+        return self.nodes[name]
+
+    def api_control(self, req: dict[str, Any]) -> dict[str, Any]:
+        node, action = self._node(req), req.get("action")
+        if action == "start":
+            with node.lock:
+                node.restart_times.clear()
+                node.start()
+        elif action == "stop":
+            node.stop()
+        elif action == "restart":
+            node.stop()
+            with node.lock:
+                node.start()
+        else:
+            raise CommandRefused(f"unknown action {action!r} (start, stop or restart)")
+        return {"node": node.describe()}
+
+    def api_logs(self, req: dict[str, Any]) -> dict[str, Any]:
+        node = self._node(req)
+        n = req.get("lines", 50)
+        if not isinstance(n, int) or n < 1:
+            raise CommandRefused("lines must be a positive integer")
+        return {"lines": list(node.logs)[-n:]}
+
+    def api_watchdog(self, req: dict[str, Any]) -> dict[str, Any]:
+        action = req.get("action")
+        if action == "arm":
+            try:
+                self.watchdog.arm(self.arm_blockers())
+            except ArmRefused as exc:
+                raise CommandRefused(str(exc)) from None
+        elif action == "disarm":
+            self.watchdog.disarm()
+        elif action == "estop":
+            self.watchdog.trip("operator e-stop", str(req.get("by", "")))
+        elif action is not None:
+            raise CommandRefused(f"unknown watchdog action {action!r} (arm, disarm or estop)")
+        s = self.watchdog.snapshot()
+        return {"state": s.state, "reason": s.reason, "detail": s.detail}
+
+    def api_trigger(self, req: dict[str, Any]) -> dict[str, Any]:
+        action = req.get("action")
+        if action == "fire":
+            if self.trigger_out is not None:
+                return {"fired_ns": self.trigger_out.fire()}
+            if isinstance(self.trigger_src, trigger.SimulatedTrigger):
+                self.trigger_src.fire()
+                return {"fired_ns": self.last_trigger_ns}
+            raise CommandRefused("no trigger output configured (trigger.output in the config)")
+        if action is not None:
+            raise CommandRefused(f"unknown trigger action {action!r} (fire)")
+        return {"count": self.trigger_count, "last_ns": self.last_trigger_ns}
+
+
+def _config_data(cfg: ApplianceConfig) -> dict[str, Any]:
+    data: dict[str, Any] = msgspec.to_builtins(cfg)
+    data.pop("source", None)
+    return data
+
+
+def run(cfg: ApplianceConfig) -> int:
+    """Blocking entry point of ``exolink up``."""
+    sup = Supervisor(cfg)
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        sup.log.info("signal", signal=signal.Signals(signum).name)
+        sup.stop_event.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        sup.start()
+        return sup.run()
+    finally:
+        sup.shutdown()

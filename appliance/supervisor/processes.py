@@ -1,0 +1,215 @@
+"""Node processes: spawn, watch, restart by policy, apply priority, capture output.
+
+Each node is its own OS process (``exolink node run NAME``) so a crash takes only itself down.
+A waiter thread per process blocks in ``wait()``: the exit is known within a millisecond, which
+is what lets the watchdog put the disable frames on the bus right after a ``kill -9``.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import structlog
+from exolink.config import NodeConfig
+
+LOG_LINES = 500
+
+
+@dataclass
+class Exit:
+    node: str
+    code: int | None  # None: killed by a signal
+    signal: str | None
+    deliberate: bool
+
+
+@dataclass
+class NodeProcess:
+    cfg: NodeConfig
+    config_path: str
+    on_exit: Callable[[Exit], None]
+    on_line: Callable[[str, str], None]
+    state: str = "stopped"  # starting | running | backoff | stopped | failed | exited
+    proc: subprocess.Popen[bytes] | None = None
+    started_at: float = 0.0  # monotonic
+    restarts: int = 0
+    last_exit: str = ""
+    next_start: float = 0.0
+    heartbeat_at: float | None = None
+    deliberate_stop: bool = False
+    restart_times: collections.deque[float] = field(default_factory=collections.deque)
+    logs: collections.deque[str] = field(
+        default_factory=lambda: collections.deque(maxlen=LOG_LINES)
+    )
+    lock: threading.RLock = field(default_factory=threading.RLock)
+
+    @property
+    def name(self) -> str:
+        return self.cfg.name
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc is not None and self.proc.poll() is None else None
+
+    def start(self) -> None:
+        with self.lock:
+            if self.pid is not None:
+                return
+            env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
+            cmd = [
+                sys.executable,
+                "-m",
+                "exolink.cli.main",
+                "node",
+                "run",
+                self.name,
+                "-c",
+                self.config_path,
+            ]
+            self.proc = subprocess.Popen(
+                cmd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
+            self.state, self.started_at = "running", time.monotonic()
+            self.heartbeat_at, self.deliberate_stop = None, False
+            apply_priority(self.cfg, self.proc.pid)
+            threading.Thread(
+                target=self._wait, args=(self.proc,), daemon=True, name=f"wait-{self.name}"
+            ).start()
+            threading.Thread(
+                target=self._read, args=(self.proc,), daemon=True, name=f"log-{self.name}"
+            ).start()
+
+    def _wait(self, proc: subprocess.Popen[bytes]) -> None:
+        rc = proc.wait()
+        with self.lock:
+            sig = signal.Signals(-rc).name if rc < 0 else None
+            self.last_exit = sig or f"exit {rc}"
+            deliberate = self.deliberate_stop
+        self.on_exit(Exit(self.name, None if rc < 0 else rc, sig, deliberate))
+
+    def _read(self, proc: subprocess.Popen[bytes]) -> None:
+        assert proc.stdout is not None
+        for raw in proc.stdout:
+            line = raw.decode(errors="replace").rstrip("\n")
+            self.logs.append(line)
+            self.on_line(self.name, line)
+
+    def stop(self, timeout: float = 3.0) -> None:
+        """SIGTERM, then SIGKILL after ``timeout``: a node never outlives a stop request."""
+        with self.lock:
+            proc = self.proc
+            self.deliberate_stop = True
+            self.state = "stopped"
+        if proc is None or proc.poll() is not None:
+            return
+        proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+    def failed_by_policy(self, code: int | None) -> bool:
+        policy = self.cfg.restart.policy
+        return policy == "always" or (policy == "on-failure" and code != 0)
+
+    def schedule_restart(self, now: float) -> bool:
+        """Backoff doubles per restart in the window; past the cap the node is marked failed."""
+        r = self.cfg.restart
+        while self.restart_times and now - self.restart_times[0] > r.window_s:
+            self.restart_times.popleft()
+        if len(self.restart_times) >= r.max_restarts:
+            self.state = "failed"
+            return False
+        delay_ms = min(r.backoff_initial_ms * 2 ** len(self.restart_times), r.backoff_max_ms)
+        self.restart_times.append(now)
+        self.restarts += 1
+        self.state, self.next_start = "backoff", now + delay_ms / 1000
+        return True
+
+    def describe(self) -> dict[str, Any]:
+        pid = self.pid
+        info: dict[str, Any] = {
+            "name": self.name,
+            "plugin": self.cfg.plugin,
+            "critical": self.cfg.critical,
+            "state": self.state,
+            "pid": pid,
+            "uptime_s": round(time.monotonic() - self.started_at, 1) if pid else 0.0,
+            "restarts": self.restarts,
+            "last_exit": self.last_exit,
+            "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
+            if self.heartbeat_at
+            else None,
+        }
+        if pid:
+            info.update(proc_usage(pid))
+        return info
+
+
+def apply_priority(cfg: NodeConfig, pid: int) -> None:
+    """Nice / SCHED_FIFO / affinity as configured; a clear warning where not permitted."""
+    log = structlog.get_logger().bind(node=cfg.name)
+    pr = cfg.priority
+    try:
+        if pr.fifo is not None:
+            os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(pr.fifo))
+        elif pr.nice is not None:
+            os.setpriority(os.PRIO_PROCESS, pid, pr.nice)
+    except PermissionError:
+        log.warning(
+            "priority_not_permitted",
+            fifo=pr.fifo,
+            nice=pr.nice,
+            fix="run the supervisor with CAP_SYS_NICE (the systemd unit grants it)",
+        )
+    except OSError as exc:
+        log.warning("priority_failed", error=str(exc))
+    if pr.cpus:
+        try:
+            os.sched_setaffinity(pid, pr.cpus)
+        except OSError as exc:
+            log.warning("affinity_failed", cpus=pr.cpus, error=str(exc))
+
+
+_CLK = os.sysconf("SC_CLK_TCK")
+_PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def proc_usage(pid: int) -> dict[str, float]:
+    """CPU seconds and resident memory from /proc (no psutil on a 512 MB board)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        with open(f"/proc/{pid}/statm") as f:
+            rss_pages = int(f.read().split()[1])
+    except (OSError, IndexError, ValueError):
+        return {}
+    cpu = (int(fields[11]) + int(fields[12])) / _CLK
+    return {"cpu_s": round(cpu, 2), "rss_mb": round(rss_pages * _PAGE / 2**20, 1)}
+
+
+def relay(log: structlog.typing.FilteringBoundLogger, node: str, line: str) -> None:
+    """A node's output into the supervisor's log: JSON lines pass through, the rest is wrapped."""
+    try:
+        rec = json.loads(line)
+        if not isinstance(rec, dict):
+            raise ValueError
+    except ValueError:
+        log.info("node_output", node=node, line=line)
+        return
+    sys.stderr.write(line + "\n")

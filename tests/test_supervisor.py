@@ -1,0 +1,256 @@
+"""The supervisor across real processes on simulated hardware: the watchdog's disable frames
+are checked by an independent listener on the bus, never by asking the supervisor."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+
+import can
+import pytest
+from conftest import EXOLINK, collect, wait_for
+from exolink import messaging
+from exolink.config import load
+from exolink.protocol import h2
+
+NODES = [
+    {"name": "simulator", "plugin": "simulator"},
+    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+    {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+]
+DISABLED = [h2.JointControl(m, 4, 0, 0) for m in range(1, 7)]
+
+
+class Appliance:
+    def __init__(self, cfg_path, spawn) -> None:  # type: ignore[no-untyped-def]
+        self.cfg = load(cfg_path)
+        self.at = messaging.local_endpoint(self.cfg.zenoh)
+        self.proc = spawn("up", "-c", str(cfg_path), name="up")
+        self.session = None
+        wait_for(lambda: self.cli("status").returncode == 0, timeout=20)
+        wait_for(
+            lambda: all(n["heartbeat_age_s"] is not None for n in self.status()["nodes"]),
+            timeout=20,
+        )
+
+    def cli(self, *args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [*EXOLINK, *args, "--at", self.at, "--timeout", "3"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+
+    def status(self) -> dict:
+        import json
+
+        r = self.cli("status", "--json")
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)
+
+    def node(self, name: str) -> dict:
+        return next(n for n in self.status()["nodes"] if n["name"] == name)
+
+    def arm(self) -> None:
+        r = wait_for(lambda: (x := self.cli("arm")).returncode == 0 and x, timeout=10)
+        assert "armed" in r.stdout  # type: ignore[union-attr]
+
+
+@pytest.fixture
+def app(write_config, spawn):  # type: ignore[no-untyped-def]
+    return Appliance(write_config(nodes=NODES), spawn)
+
+
+def disable_frames(frames: list[can.Message]) -> list[h2.JointControl]:
+    return [
+        f for f in (h2.decode(m) for m in frames) if isinstance(f, h2.JointControl) and f.mode == 4
+    ]
+
+
+def assert_all_disabled(frames: list[can.Message]) -> None:
+    got = disable_frames(frames)
+    assert sorted(set(got)) == DISABLED, got
+
+
+@pytest.mark.parametrize("victim", ["h2_reader", "h2_sender"])
+def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, victim) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert app.cli("send", "position", "r_knee", "30").returncode == 0
+    pid = app.node(victim)["pid"]
+    collect(mbus, 0.1)
+    os.kill(pid, signal.SIGKILL)
+    assert_all_disabled(collect(mbus, 0.5, {70}))
+    st = app.status()
+    assert st["watchdog"]["state"] == "tripped"
+    assert st["watchdog"]["reason"] == "critical node exited"
+    assert f"{victim}: SIGKILL" in st["watchdog"]["detail"]
+    wait_for(
+        lambda: (
+            (n := app.node(victim))["pid"] not in (None, pid) and n["heartbeat_age_s"] is not None
+        ),
+        timeout=20,
+    )
+    assert app.node(victim)["restarts"] == 1
+    # Latched: motion refused until re-armed, then accepted again.
+    r = app.cli("send", "position", "r_knee", "40")
+    assert r.returncode == 5 and "watchdog is tripped (critical node exited)" in r.stderr
+    assert collect(mbus, 0.3, {70}) == []
+    app.arm()
+    assert app.cli("send", "position", "r_knee", "40").returncode == 0
+    wait_for(lambda: any(h2.decode(m).r_knee == 40 for m in collect(mbus, 0.1, {110})), timeout=5)
+
+
+def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    pid = app.node("h2_sender")["pid"]
+    collect(mbus, 0.1)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        frames = collect(mbus, 1.5, {70})
+        assert_all_disabled(frames)
+        wd = app.status()["watchdog"]
+        assert wd["reason"] == "heartbeat late" and "h2_sender: no heartbeat for" in wd["detail"]
+    finally:
+        os.kill(pid, signal.SIGCONT)
+
+
+def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    s = messaging.open_client_session(app.at)
+    try:
+        messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 1.5})
+        assert_all_disabled(collect(mbus, 0.5, {70}))
+        wd = app.status()["watchdog"]
+        assert wd["reason"] == "h2 data silent" and "limit 100 ms" in wd["detail"]
+        r = app.cli("arm")
+        assert r.returncode == 5 and "cannot arm: no H2 data for" in r.stderr
+    finally:
+        s.close()
+    app.arm()  # data is back
+
+
+def test_estop_and_disarm_refuse_motion(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    r = app.cli("send", "position", "l_knee", "20")
+    assert r.returncode == 5 and "watchdog is disarmed" in r.stderr
+    app.arm()
+    collect(mbus, 0.1)
+    r = app.cli("estop")
+    assert r.returncode == 0 and "tripped (operator e-stop" in r.stdout
+    assert_all_disabled(collect(mbus, 0.5, {70}))
+    r = app.cli("send", "stiffness", "l_knee", "20", "50")
+    assert r.returncode == 5 and "operator e-stop" in r.stderr
+    assert (
+        app.cli("send", "disable", "l_knee").returncode == 0
+    )  # making things safer is always allowed
+    app.arm()
+    assert app.cli("send", "position", "l_knee", "20").returncode == 0
+    r = app.cli("disarm")
+    assert r.returncode == 0
+    assert_all_disabled(collect(mbus, 0.5, {70}))
+    assert app.cli("send", "position", "l_knee", "25").returncode == 5
+
+
+def test_motion_frame_while_not_armed_is_answered_with_safe_action(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    collect(mbus, 0.1)
+    mbus.send(h2.encode_joint_control("r_hip", "position", 10))  # a rogue sender
+    assert_all_disabled(collect(mbus, 0.5, {70}))
+    assert app.status()["watchdog"]["violations"] == 1
+
+
+def test_management_commands(app) -> None:  # type: ignore[no-untyped-def]
+    r = app.cli("nodes")
+    assert r.returncode == 0 and "h2_reader*" in r.stdout
+    r = app.cli("restart", "nosuch")
+    assert (
+        r.returncode == 5
+        and "unknown node 'nosuch' (configured: simulator, h2_reader, h2_sender)" in r.stderr
+    )
+    old = app.node("simulator")["pid"]
+    r = app.cli("restart", "simulator")
+    assert r.returncode == 0 and "simulator: running" in r.stdout
+    assert app.node("simulator")["pid"] != old
+    r = app.cli("stop", "simulator")
+    assert "simulator: stopped" in r.stdout
+    assert app.node("simulator")["state"] == "stopped"
+    assert app.cli("start", "simulator").returncode == 0
+    r = app.cli("logs", "h2_reader", "-n", "5")
+    assert r.returncode == 0 and "node_running" in r.stdout
+    r = app.cli("params", "h2_reader")
+    assert '"reduction": 1' in r.stdout
+    r = app.cli("params", "h2_reader", "--set", "reduction", "2")
+    assert r.returncode == 5 and "does not change params at run time" in r.stderr
+    r = app.cli("trigger", "fire")
+    assert r.returncode == 0
+    assert '"count": 1' in app.cli("trigger").stdout
+
+
+def test_stop_of_critical_node_trips(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    collect(mbus, 0.1)
+    assert app.cli("stop", "h2_sender").returncode == 0
+    assert_all_disabled(collect(mbus, 0.5, {70}))
+    assert app.status()["watchdog"]["reason"] == "critical node stopped by operator"
+    r = app.cli("arm")
+    assert r.returncode == 5 and "critical node h2_sender is stopped" in r.stderr
+
+
+def test_restart_cap_marks_node_failed(write_config, spawn, mbus) -> None:  # type: ignore[no-untyped-def]
+    nodes = [
+        *NODES,
+        {
+            "name": "crashy",
+            "plugin": "h2_reader",
+            "restart": {
+                "policy": "on-failure",
+                "max_restarts": 2,
+                "backoff_initial_ms": 50,
+                "window_s": 60,
+            },
+            "params": {"reduction": 1},
+        },
+    ]
+    app = Appliance(write_config(nodes=nodes), spawn)
+    for _ in range(3):
+        pid = wait_for(lambda: app.node("crashy")["pid"], timeout=10)
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda p=pid: app.node("crashy")["pid"] != p, timeout=10)
+    wait_for(lambda: app.node("crashy")["state"] == "failed", timeout=10)
+    assert app.node("crashy")["restarts"] == 2
+
+
+def test_shutdown_sends_safe_action_first(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    collect(mbus, 0.1)
+    app.proc.p.send_signal(signal.SIGTERM)
+    assert_all_disabled(collect(mbus, 1.0, {70}))
+    assert app.proc.p.wait(15) == 0
+
+
+def test_start_sends_safe_action_before_nodes(write_config, spawn, mbus) -> None:  # type: ignore[no-untyped-def]
+    collect(mbus, 0.1)
+    spawn("up", "-c", str(write_config(nodes=NODES)), name="up")
+    frames = wait_for(lambda: collect(mbus, 0.5, {70, 85}), timeout=20)
+    first_six = [h2.decode(m) for m in frames[:6]]  # type: ignore[index]
+    assert first_six == DISABLED  # before the reader's start-stream frame (85)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (
+            "device: x\nnodes:\n  - {name: a, plugin: h2_reader, params: {reduction: 0}}\n",
+            "nodes[0].params.reduction: Expected `int` >= 1",
+        ),
+        ("device: x\ncan: {interface: carrier_pigeon}\n", "can.interface: Expected `str` matching"),
+    ],
+)
+def test_bad_config_starts_nothing(tmp_path, mbus, text: str, expected: str) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    r = subprocess.run(
+        [*EXOLINK, "up", "-c", str(path)], capture_output=True, text=True, timeout=30
+    )
+    assert r.returncode == 3
+    assert f"config error: {path}" in r.stderr and expected.split(":")[0] in r.stderr
+    assert collect(mbus, 0.3) == []
