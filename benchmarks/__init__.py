@@ -1,0 +1,1 @@
+"""The benchmark suite (`make bench`): measures, never asserts. Table on stdout, JSON to a file."""

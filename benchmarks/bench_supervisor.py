@@ -1,0 +1,98 @@
+"""Watchdog reaction times: kill -9 -> first disable frame, SIGSTOP -> trip, crash -> publishing
+again; and the resident memory of the whole appliance."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from typing import Any
+
+from exolink import messaging
+from exolink.protocol import h2
+
+from benchmarks.harness import Appliance, Drained, pct
+
+NODES = [
+    {"name": "simulator", "plugin": "simulator"},
+    {
+        "name": "h2_reader",
+        "plugin": "h2_reader",
+        "critical": True,
+        "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
+    },
+    {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+]
+
+
+def is_disable(m: Any) -> bool:
+    f = h2.decode(m)
+    return isinstance(f, h2.JointControl) and f.mode == 4
+
+
+def run(quick: bool) -> dict[str, Any]:
+    trials = 20
+    app = Appliance(nodes=NODES)
+    bus = Drained(app.group)
+    js_times: list[float] = []
+    lock = threading.Lock()
+
+    def on_js(_s: Any) -> None:
+        with lock:
+            js_times.append(time.time())
+
+    key = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
+    sub = app.session.declare_subscriber(key, on_js)  # type: ignore[union-attr]
+    kill_to_disable, kill_to_publish = [], []
+    try:
+        time.sleep(1)
+        rss = {n["name"]: n.get("rss_mb") for n in app.call("status")["nodes"]}
+        rss["supervisor"] = _rss(app.proc.pid)
+        for _ in range(trials):
+            pid = app.node("h2_reader")["pid"]
+            bus.clear()
+            t0 = time.time()
+            os.kill(pid, signal.SIGKILL)
+            m = bus.wait_for(is_disable, 2)
+            if m is not None:
+                kill_to_disable.append(m.timestamp - t0)
+            end = time.monotonic() + 15
+            while time.monotonic() < end:
+                with lock:
+                    after = [t for t in js_times if t > t0 + 0.02]
+                if after:
+                    kill_to_publish.append(after[0] - t0)
+                    break
+                time.sleep(0.005)
+            time.sleep(0.3)
+        stop_to_trip = []
+        for _ in range(5 if quick else 10):
+            app.arm()
+            pid = app.node("h2_sender")["pid"]
+            bus.clear()
+            t0 = time.time()
+            os.kill(pid, signal.SIGSTOP)
+            m = bus.wait_for(is_disable, 3)
+            os.kill(pid, signal.SIGCONT)
+            if m is not None:
+                stop_to_trip.append(m.timestamp - t0)
+            time.sleep(0.5)
+    finally:
+        sub.undeclare()
+        bus.close()
+        app.close()
+    return {
+        "kill9_to_first_disable_frame_ms": pct(kill_to_disable, 1e3),
+        "kill9_to_restarted_reader_publishing_ms": pct(kill_to_publish, 1e3),
+        "restart_backoff_ms": 50,
+        "sigstop_to_disable_frame_ms": pct(stop_to_trip, 1e3),
+        "heartbeat_deadline_ms": 500,
+        "rss_mb": rss,
+        "rss_total_mb": round(sum(v for v in rss.values() if v), 1),
+    }
+
+
+def _rss(pid: int) -> float:
+    with open(f"/proc/{pid}/statm") as f:
+        return round(int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
