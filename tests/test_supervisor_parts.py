@@ -1,0 +1,91 @@
+"""Supervisor parts that face the kernel or systemd, exercised as far as this kernel allows.
+
+Real: a unix datagram socket standing in for systemd's notify socket, /proc for priorities.
+Not exercised here (no CAN or GPIO in this kernel): netlink bring-up of a CAN link and libgpiod
+edge events; `make test-kernel` runs those in a VM (tests/kernel/).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from exolink.config import NodeConfig, Priority, TriggerConfig
+from exolink.supervisor import canlink, trigger
+from exolink.supervisor.processes import apply_priority, proc_usage
+from exolink.supervisor.systemd import Notifier
+
+
+def test_overlay_check(tmp_path: Path) -> None:
+    status = tmp_path / "status"
+    status.write_bytes(b"okay\x00")
+    canlink.check_overlay(status)
+    status.write_bytes(b"disabled\x00")
+    with pytest.raises(canlink.CanLinkError, match=r"DCAN1 is 'disabled'.*overlay is not applied"):
+        canlink.check_overlay(status)
+    with pytest.raises(canlink.CanLinkError, match="DCAN1 not found in the device tree"):
+        canlink.check_overlay(tmp_path / "missing")
+
+
+def test_missing_interface_names_the_fix() -> None:
+    with pytest.raises(canlink.CanLinkError, match=r"no network interface 'can7'.*c_can_platform"):
+        canlink.health("can7")
+
+
+def test_link_health_bad_states() -> None:
+    assert canlink.LinkHealth("bus-off").bad and canlink.LinkHealth("error-passive").bad
+    assert not canlink.LinkHealth("error-active").bad and not canlink.LinkHealth("up").bad
+
+
+def test_sd_notify_over_a_real_socket(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = str(tmp_path / "notify")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(path)
+    srv.settimeout(1)
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    monkeypatch.setenv("WATCHDOG_USEC", "2000000")
+    n = Notifier()
+    assert n.enabled and n.ping_interval_s == 1.0
+    n.ready()
+    n.ping()
+    assert srv.recv(64) == b"READY=1"
+    assert srv.recv(64) == b"WATCHDOG=1"
+    srv.close()
+
+
+def test_priority_and_usage_applied_to_a_real_process() -> None:
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(5)"])
+    try:
+        apply_priority(
+            NodeConfig(name="x", plugin="h2_reader", priority=Priority(nice=7, cpus=[0])), p.pid
+        )
+        assert os.getpriority(os.PRIO_PROCESS, p.pid) == 7
+        assert os.sched_getaffinity(p.pid) == {0}
+        time.sleep(0.5)  # let the interpreter load
+        usage = proc_usage(p.pid)
+        assert usage["rss_mb"] > 1
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_simulated_trigger_fires_and_periods() -> None:
+    edges: list[trigger.Edge] = []
+    src = trigger.SimulatedTrigger(
+        TriggerConfig(source="simulated", sim_period_s=0.05), edges.append
+    )
+    time.sleep(0.3)
+    src.fire()
+    src.close()
+    assert len(edges) >= 4 and all(e.rising and e.source == "simulated" for e in edges)
+    assert all(abs(e.stamp_ns - time.time_ns()) < 5e9 for e in edges)
+
+
+def test_gpio_trigger_missing_chip_is_a_clear_error() -> None:
+    with pytest.raises(trigger.TriggerError, match="no GPIO chip /dev/gpiochip42"):
+        trigger.GpioTrigger(TriggerConfig(chip="/dev/gpiochip42"), lambda e: None)
