@@ -3,6 +3,7 @@ again; and the resident memory of the whole appliance."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -68,13 +69,15 @@ def run(quick: bool) -> dict[str, Any]:
             time.sleep(0.3)
         stop_to_trip = []
         for _ in range(5 if quick else 10):
+            time.sleep(1.5)  # the killed sender restarts
             app.arm()
             pid = app.node("h2_sender")["pid"]
             bus.clear()
             t0 = time.time()
             os.kill(pid, signal.SIGSTOP)
             m = bus.wait_for(is_disable, 3)
-            os.kill(pid, signal.SIGCONT)
+            with contextlib.suppress(ProcessLookupError):  # the supervisor kills a hung node
+                os.kill(pid, signal.SIGCONT)
             if m is not None:
                 stop_to_trip.append(m.timestamp - t0)
             time.sleep(0.5)

@@ -3,6 +3,7 @@ and helpers to run exolink processes for real (no mocks of buses or sessions).""
 
 from __future__ import annotations
 
+import json
 import os
 import queue
 import random
@@ -17,7 +18,8 @@ from pathlib import Path
 import can
 import pytest
 import yaml
-from exolink.config import bundled
+from exolink import messaging
+from exolink.config import bundled, load
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
 
@@ -159,3 +161,36 @@ def spawn(tmp_path: Path) -> Iterator[Callable[..., Proc]]:
     yield start
     for p in reversed(procs):
         p.stop()
+
+
+class Appliance:
+    def __init__(self, cfg_path, spawn) -> None:  # type: ignore[no-untyped-def]
+        self.cfg = load(cfg_path)
+        self.at = messaging.local_endpoint(self.cfg.zenoh)
+        self.proc = spawn("up", "-c", str(cfg_path), name="up")
+        self.session = None
+        wait_for(lambda: self.cli("status").returncode == 0, timeout=20)
+        wait_for(
+            lambda: all(n["heartbeat_age_s"] is not None for n in self.status()["nodes"]),
+            timeout=20,
+        )
+
+    def cli(self, *args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [*EXOLINK, *args, "--at", self.at, "--timeout", "3"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+
+    def status(self) -> dict:
+        r = self.cli("status", "--json")
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)
+
+    def node(self, name: str) -> dict:
+        return next(n for n in self.status()["nodes"] if n["name"] == name)
+
+    def arm(self) -> None:
+        r = wait_for(lambda: (x := self.cli("arm")).returncode == 0 and x, timeout=10)
+        assert "armed" in r.stdout  # type: ignore[union-attr]

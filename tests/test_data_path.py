@@ -195,20 +195,21 @@ def test_reader_counts_gaps_and_malformed(write_config, spawn, group) -> None:  
     spawn("node", "run", "h2_reader", "-c", str(cfg_path))
     s = messaging.open_client_session(messaging.local_endpoint(cfg.zenoh))
     try:
-        wait_for(
-            lambda: (
-                messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=1)["frames"][
-                    "110"
-                ]
-                > 20
-            ),
-            timeout=15,
-        )
+
+        def frames_seen() -> int:
+            try:
+                return messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=3)[
+                    "frames"
+                ]["110"]
+            except messaging.Unreachable:  # the reader's queryable is not declared yet
+                return 0
+
+        wait_for(lambda: frames_seen() > 20, timeout=20)
         messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 0.2})
         time.sleep(0.4)  # one fault at a time
         messaging.request(s, "exolink/sim/sim/fault", {"fault": "malformed", "duration_s": 0.2})
         time.sleep(1.0)
-        stats = messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=1)
+        stats = messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=3)
         assert stats["missing"]["110"] >= 10  # ~20 periods silent
         assert stats["malformed"] >= 10
         r = messaging.request(s, "exolink/sim/sim/fault", {"fault": "meteor"})

@@ -3,15 +3,15 @@ are checked by an independent listener on the bus, never by asking the superviso
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 
 import can
 import pytest
-from conftest import EXOLINK, collect, wait_for
+from conftest import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging
-from exolink.config import load
 from exolink.protocol import h2
 
 NODES = [
@@ -20,41 +20,6 @@ NODES = [
     {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
 ]
 DISABLED = [h2.JointControl(m, 4, 0, 0) for m in range(1, 7)]
-
-
-class Appliance:
-    def __init__(self, cfg_path, spawn) -> None:  # type: ignore[no-untyped-def]
-        self.cfg = load(cfg_path)
-        self.at = messaging.local_endpoint(self.cfg.zenoh)
-        self.proc = spawn("up", "-c", str(cfg_path), name="up")
-        self.session = None
-        wait_for(lambda: self.cli("status").returncode == 0, timeout=20)
-        wait_for(
-            lambda: all(n["heartbeat_age_s"] is not None for n in self.status()["nodes"]),
-            timeout=20,
-        )
-
-    def cli(self, *args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [*EXOLINK, *args, "--at", self.at, "--timeout", "3"],
-            capture_output=True,
-            text=True,
-            timeout=30,
-        )
-
-    def status(self) -> dict:
-        import json
-
-        r = self.cli("status", "--json")
-        assert r.returncode == 0, r.stderr
-        return json.loads(r.stdout)
-
-    def node(self, name: str) -> dict:
-        return next(n for n in self.status()["nodes"] if n["name"] == name)
-
-    def arm(self) -> None:
-        r = wait_for(lambda: (x := self.cli("arm")).returncode == 0 and x, timeout=10)
-        assert "armed" in r.stdout  # type: ignore[union-attr]
 
 
 @pytest.fixture
@@ -111,8 +76,11 @@ def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore
         assert_all_disabled(frames)
         wd = app.status()["watchdog"]
         assert wd["reason"] == "heartbeat late" and "h2_sender: no heartbeat for" in wd["detail"]
+        # The hung node is killed (its sockets, and any kernel BCM task, close) and restarted.
+        wait_for(lambda: app.node("h2_sender")["pid"] not in (None, pid), timeout=15)
     finally:
-        os.kill(pid, signal.SIGCONT)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
 
 
 def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None:  # type: ignore[no-untyped-def]

@@ -30,7 +30,7 @@ def _add_bus(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from exolink.cli import board, bus_tools, remote
+    from exolink.cli import board, bus_tools, motion, remote
 
     parser = argparse.ArgumentParser(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
@@ -74,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     remote.register(sub)
     remote.register_management(sub)
+    motion.register(sub)
     return parser
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import msgspec
 import structlog
 import yaml
+import zenoh
 from exolink import messaging
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import id_filters, open_bus
@@ -37,6 +38,7 @@ HEALTH_PERIOD_S = 0.2
 STATE_PERIOD_S = 1.0
 TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+PATTERN_TYPE = "exolink_msgs/msg/PatternState"
 
 
 def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
@@ -69,6 +71,9 @@ class Supervisor:
         self._decls: list[Any] = []
         self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
         self.nodes: dict[str, NodeProcess] = {}
+        self.pattern_state: tuple[str, str] = ("stopped", "")
+        self.operators: set[str] = set()
+        self.operator_lost_at: dict[str, float] = {}
 
     # --- start-up ---------------------------------------------------------------------------
 
@@ -89,6 +94,14 @@ class Supervisor:
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE)
         self._serve_api()
         self._watch_heartbeats()
+        self._decls.append(
+            self.msg.subscribe("pattern_state", PATTERN_TYPE, self._on_pattern_state)
+        )
+        self._decls.append(
+            self.session.liveliness().declare_subscriber(
+                self.msg.mgmt("operators", "*"), self._on_operator, history=True
+            )
+        )
         self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
         self.trigger_out = trigger.open_output(cfg.trigger)
         config_path = self._workdir / "appliance.yaml"
@@ -199,7 +212,7 @@ class Supervisor:
                     self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
                     node.start()
                     continue
-                if not node.cfg.critical or node.state != "running" or node.pid is None:
+                if node.state != "running" or node.pid is None:
                     continue
                 hb = node.heartbeat_at
                 late = (
@@ -207,13 +220,43 @@ class Supervisor:
                     if hb is not None
                     else (now - node.started_at > START_GRACE_S)
                 )
-            if late and self.watchdog.armed:
-                detail = (
-                    f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
-                    if hb is not None
-                    else f"{node.name}: no heartbeat {START_GRACE_S:.0f} s after start"
-                )
+            if not late:
+                continue
+            detail = (
+                f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
+                if hb is not None
+                else f"{node.name}: no heartbeat {START_GRACE_S:.0f} s after start"
+            )
+            if node.cfg.critical and self.watchdog.armed:
                 self.watchdog.trip("heartbeat late", detail)
+            # A hung node is killed so its sockets close: a broadcast-manager task it set up in the
+            # kernel would otherwise go on sending. The restart policy brings it back.
+            self.log.error("node_hung_killed", node_name=node.name, detail=detail)
+            node.kill()
+
+    def _on_pattern_state(self, msg: Any, _meta: messaging.Meta) -> None:
+        self.pattern_state = (msg.state, msg.operator)
+
+    def _on_operator(self, sample: Any) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.operators.add(name)
+        else:
+            self.operators.discard(name)
+            self.operator_lost_at.setdefault(name, time.monotonic())
+
+    def _check_operator(self, now: float) -> None:
+        """A pattern started from a laptop stops if that laptop's session is gone (DESIGN)."""
+        state, operator = self.pattern_state
+        if not (self.cfg.watchdog.trip_on_operator_lost and state == "running" and operator):
+            return
+        if operator in self.operators:
+            self.operator_lost_at.pop(operator, None)
+            return
+        lost = self.operator_lost_at.setdefault(operator, now)
+        if (now - lost) * 1000 >= self.cfg.watchdog.operator_lost_ms:
+            self.watchdog.trip("operator lost", f"session {operator} gone while the pattern runs")
+            self.pattern_state = ("stopped", "")
 
     def _check_bus(self) -> None:
         if self.cfg.can.interface != "socketcan":
@@ -260,6 +303,7 @@ class Supervisor:
             now = time.monotonic()
             self.watchdog.check()
             self._check_nodes(now)
+            self._check_operator(now)
             if now >= next_health:
                 next_health = now + HEALTH_PERIOD_S
                 self._check_bus()

@@ -123,6 +123,13 @@ class NodeProcess:
             proc.kill()
             proc.wait()
 
+    def kill(self) -> None:
+        """SIGKILL (a hung node); the exit is handled like a crash, restart policy included."""
+        with self.lock:
+            if self.proc is not None and self.proc.poll() is None:
+                self.proc.kill()
+                self.state = "killed"
+
     def failed_by_policy(self, code: int | None) -> bool:
         policy = self.cfg.restart.policy
         return policy == "always" or (policy == "on-failure" and code != 0)

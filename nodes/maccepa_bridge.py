@@ -1,0 +1,146 @@
+"""MACCEPA bridge [thesis: H2Rros, H2RrosSender]: board frames -> per-board topics, validated
+commands -> frames.
+
+Topics ``maccepa/b<N>/sensors``, ``.../positions``, ``.../controller``. Commands arrive as Zenoh
+queries (``exolink maccepa ...``): gains with controller type, set-point, duty cycle, stop control.
+Set-point and duty move the actuator and need the watchdog armed; gains and stop do not.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Annotated, Any
+
+import can
+import msgspec
+from exolink import messaging
+from exolink.arming import ArmingState
+from exolink.canbus import id_filters, open_bus
+from exolink.messaging import CommandRefused
+from exolink.node import Node
+from exolink.protocol import ProtocolError, maccepa
+
+TYPES = {
+    maccepa.Sensors: ("sensors", "exolink_msgs/msg/MaccepaSensors"),
+    maccepa.Positions: ("positions", "exolink_msgs/msg/MaccepaPositions"),
+    maccepa.Controller: ("controller", "exolink_msgs/msg/MaccepaController"),
+}
+
+
+class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    boards: list[Annotated[int, msgspec.Meta(ge=0, le=9)]] = msgspec.field(
+        default_factory=lambda: [0]
+    )
+    require_armed: bool = True
+
+
+class MaccepaBridge(Node):
+    Params = BridgeParams
+
+    def configure(self) -> None:
+        m = self.ctx.messaging
+        self.bus = open_bus(
+            self.ctx.config.can, filters=id_filters(maccepa.data_ids(self.params.boards))
+        )
+        self.pubs = {
+            (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename)
+            for b in self.params.boards
+            for cls, (topic, typename) in TYPES.items()
+        }
+        self.classes = {cls: messaging.msg_class(t) for cls, (_, t) in TYPES.items()}
+        self.arming = ArmingState(m) if self.params.require_armed else None
+        self.malformed = 0
+        self.lock = threading.Lock()
+        self._q = messaging.serve(self.ctx.session, m.mgmt("maccepa"), self.on_command)
+
+    def build(self, req: dict[str, Any]) -> list[can.Message]:
+        board, kind = req.get("board"), req.get("kind")
+        if board not in self.params.boards:
+            if isinstance(board, int) and not isinstance(board, bool) and 0 <= board <= 9:
+                raise CommandRefused(
+                    f"board {board} is not configured (params.boards: {self.params.boards})"
+                )
+            raise CommandRefused(f"MACCEPA board id {board!r} is outside 0..9")
+        ctl = req.get("controller", "position")
+        try:
+            if kind == "gains":
+                gains = [(g, req[g]) for g in ("kp", "ki", "kd") if req.get(g) is not None]
+                if not gains:
+                    raise CommandRefused("gains needs at least one of kp, ki, kd")
+                return [maccepa.encode_gain(board, g, v, ctl) for g, v in gains]
+            if kind == "stop":
+                return [maccepa.encode_stop(board)]
+            if kind in ("setpoint", "duty"):
+                frame = (
+                    maccepa.encode_setpoint(board, req.get("value"), ctl)
+                    if kind == "setpoint"
+                    else maccepa.encode_duty(board, req.get("value"))
+                )
+                if self.arming is not None and (why := self.arming.check()):
+                    raise CommandRefused(why)
+                return [frame]
+        except ProtocolError as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(f"unknown MACCEPA command {kind!r} (gains, setpoint, duty, stop)")
+
+    def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
+        frames = self.build(req)
+        with self.lock:
+            for f in frames:
+                self.bus.send(f)
+        self.log.info("maccepa_command", request=req)
+        return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
+
+    def handle(self, msg: can.Message) -> None:
+        f = maccepa.decode(msg)
+        pub = self.pubs.get((getattr(f, "board", None), type(f)))
+        if pub is None:
+            self.malformed += 1
+            return
+        ns = int(msg.timestamp * 1e9)
+        cls = self.classes[type(f)]
+        hdr = messaging.header(ns)
+        if isinstance(f, maccepa.Sensors):
+            out = cls(
+                header=hdr,
+                board=f.board,
+                current_ma=f.current,
+                temperature_c=f.temperature,
+                velocity_rpm=f.velocity,
+                load_n=f.load,
+            )
+        elif isinstance(f, maccepa.Positions):
+            out = cls(
+                header=hdr,
+                board=f.board,
+                link_deg=f.link,
+                lever_deg=f.lever,
+                extra_position=f.extra_position,
+                extra_sensor=f.extra_sensor,
+            )
+        else:
+            out = cls(
+                header=hdr,
+                board=f.board,
+                setpoint=f.setpoint,
+                actuation=f.actuation,
+                process_variable=f.process_variable,
+            )
+        pub.publish(out, ns)
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            self.beat()
+            msg = self.bus.recv(timeout=0.05)
+            if msg is not None:
+                self.handle(msg)
+
+    def shutdown(self) -> None:
+        if hasattr(self, "_q"):
+            self._q.undeclare()
+        if getattr(self, "arming", None) is not None:
+            self.arming.close()
+        for p in getattr(self, "pubs", {}).values():
+            p.close()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

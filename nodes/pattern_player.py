@@ -1,0 +1,386 @@
+"""Gait pattern player [thesis: H2patternSender, patternSenderUi]: position set-points (id 70,
+type 1) for the selected joints, one row of the pattern per period.
+
+Speed levels: period = 20 ms x (11 - level), so level 10 sends a set-point every 20 ms (about one
+51-point step per second, the thesis' fastest) and level 1 every 200 ms.
+
+Timing modes:
+- ``thread`` (default): absolute deadlines (deadline k = t0 + k x period, so errors never
+  accumulate), ``time.sleep`` to just before the deadline and a short spin for the rest; run it
+  with SCHED_FIFO priority (config ``priority: {fifo: N}``) on the board.
+- ``periodic``: python-can ``send_periodic``; on SocketCAN that is the kernel's broadcast manager,
+  which then does the timing. BCM sends one sequence of frames sharing one id round-robin, so the
+  selected joints' frames are spread evenly over the period and a sequence may hold at most 256
+  frames (the kernel's limit). A BCM task keeps running in the kernel while its process is alive
+  even if the process hangs: the supervisor therefore SIGKILLs a node whose heartbeat is late,
+  which closes the socket and ends the task.
+
+Nothing is sent while no joint is selected or while the watchdog is not armed; a trip stops the
+pattern (it does not resume by itself).
+"""
+
+from __future__ import annotations
+
+import csv
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import can
+import msgspec
+import numpy as np
+from exolink import messaging
+from exolink.arming import ArmingState
+from exolink.canbus import open_bus
+from exolink.messaging import CommandRefused
+from exolink.node import Node
+from exolink.protocol import ProtocolError, h2
+
+DEFAULT_PATTERN = Path(__file__).with_name("patterns") / "normal_walking.csv"
+STATE_TYPE = "exolink_msgs/msg/PatternState"
+MAX_POINTS = 10_000
+BCM_MAX_FRAMES = 256
+SPIN_S = 0.0003
+
+
+def period_s(level: int) -> float:
+    return 0.020 * (11 - level)
+
+
+class PlayerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    pattern: str = str(DEFAULT_PATTERN)
+    speed: Annotated[int, msgspec.Meta(ge=1, le=10)] = 5
+    selected: list[Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]] = []
+    timing: Literal["thread", "periodic"] = "thread"
+    min_angles: Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)] = msgspec.field(
+        default_factory=lambda: [h2.RANGES[j][0] for j in h2.JOINTS]
+    )
+    max_angles: Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)] = msgspec.field(
+        default_factory=lambda: [h2.RANGES[j][1] for j in h2.JOINTS]
+    )
+    require_armed: bool = True
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """Validated set-points and their frames, built once at load (the tick only sends)."""
+
+    file: str
+    points: list[list[int]]  # [row][joint index 0..5]
+    frames: list[list[can.Message]]  # [row][joint index]
+
+
+def load_pattern(path: str, min_angles: list[int], max_angles: list[int]) -> Pattern:
+    """CSV with a header of joint names (all six), one row per set-point, whole degrees."""
+    p = Path(path)
+    try:
+        with p.open(newline="") as f:
+            rows = list(csv.reader(f))
+    except OSError as exc:
+        raise ProtocolError(f"{path}: cannot read pattern: {exc.strerror or exc}") from None
+    if not rows:
+        raise ProtocolError(f"{path}: empty pattern file")
+    header = [c.strip() for c in rows[0]]
+    if sorted(header) != sorted(h2.JOINTS):
+        raise ProtocolError(
+            f"{path}: header must name the six joints {', '.join(h2.JOINTS)}, got {header}"
+        )
+    order = [header.index(j) for j in h2.JOINTS]
+    body = [r for r in rows[1:] if any(c.strip() for c in r)]
+    if not 2 <= len(body) <= MAX_POINTS:
+        raise ProtocolError(f"{path}: a pattern needs 2..{MAX_POINTS} set-points, got {len(body)}")
+    points, frames = [], []
+    for n, row in enumerate(body, start=2):
+        if len(row) != 6:
+            raise ProtocolError(f"{path}:{n}: expected 6 values, got {len(row)}")
+        try:
+            vals = [int(row[i].strip()) for i in order]
+        except ValueError:
+            raise ProtocolError(f"{path}:{n}: values must be whole degrees, got {row}") from None
+        for j, v in enumerate(vals):
+            if not min_angles[j] <= v <= max_angles[j]:
+                raise ProtocolError(
+                    f"{path}:{n}: {h2.JOINTS[j]} {v} deg is outside the limits {min_angles[j]}..{max_angles[j]}"
+                )
+        try:
+            frames.append(
+                [h2.encode_joint_control(j + 1, "position", v) for j, v in enumerate(vals)]
+            )
+        except ProtocolError as exc:
+            raise ProtocolError(f"{path}:{n}: {exc}") from None
+        points.append(vals)
+    return Pattern(str(p), points, frames)
+
+
+class PatternPlayer(Node):
+    Params = PlayerParams
+
+    def configure(self) -> None:
+        p = self.params
+        self.pattern = load_pattern(p.pattern, p.min_angles, p.max_angles)
+        self.bus = open_bus(self.ctx.config.can, filters=[])
+        self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
+        self.lock = threading.RLock()
+        self.wake = threading.Event()
+        self.state, self.reason, self.index = "stopped", "", 0
+        self.speed = p.speed
+        self.selected = [j in p.selected for j in h2.JOINTS]
+        self.operator = ""
+        self.timing = p.timing
+        self.task: Any = None
+        self.sent = 0
+        self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE)
+        self.State = messaging.msg_class(STATE_TYPE)
+        self._q = messaging.serve(
+            self.ctx.session, self.ctx.messaging.mgmt("pattern"), self.on_command
+        )
+
+    # --- commands -------------------------------------------------------------------------
+
+    def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
+        action = req.get("action", "status")
+        handler = {
+            "start": self._start,
+            "stop": self._stop,
+            "pause": self._pause,
+            "restart": self._restart,
+            "speed": self._speed,
+            "select": self._select,
+            "disable": self._disable,
+            "load": self._load,
+            "status": lambda _r: None,
+        }.get(action)
+        if handler is None:
+            raise CommandRefused(
+                f"unknown pattern action {action!r} (start, stop, pause, restart, speed, select, disable, load, status)"
+            )
+        with self.lock:
+            handler(req)
+            self.wake.set()
+            status = self.status()
+        self._publish()
+        self.log.info("pattern_command", action=action, state=status["state"])
+        return status
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "reason": self.reason,
+            "index": self.index,
+            "length": len(self.pattern.points),
+            "speed": self.speed,
+            "period_ms": round(period_s(self.speed) * 1000, 3),
+            "selected": [j for j, s in zip(h2.JOINTS, self.selected, strict=True) if s],
+            "file": self.pattern.file,
+            "timing": self.timing,
+            "sent": self.sent,
+            "operator": self.operator,
+        }
+
+    def _start(self, req: dict[str, Any]) -> None:
+        if not any(self.selected):
+            raise CommandRefused(
+                "no joint selected: select joints first (pattern select r_hip r_knee ...)"
+            )
+        if self.arming is not None and (why := self.arming.check()):
+            raise CommandRefused(why)
+        if self.timing == "periodic":
+            n = sum(self.selected) * len(self.pattern.points)
+            if n > BCM_MAX_FRAMES:
+                raise CommandRefused(
+                    f"periodic timing needs {n} frames in one sequence; the broadcast manager takes at most "
+                    f"{BCM_MAX_FRAMES}: select fewer joints or use timing 'thread'"
+                )
+        self.operator = str(req.get("operator", ""))
+        self.state, self.reason = "running", ""
+        self._start_periodic()
+
+    def _halt(self, state: str, reason: str = "") -> None:
+        if self.task is not None:
+            self.task.stop()
+            self.task = None
+        self.state, self.reason = state, reason
+
+    def _stop(self, _req: dict[str, Any]) -> None:
+        self._halt("stopped")
+        self.index, self.operator = 0, ""
+
+    def _pause(self, _req: dict[str, Any]) -> None:
+        if self.state != "running":
+            raise CommandRefused(f"cannot pause: pattern is {self.state}")
+        self._halt("paused")
+
+    def _restart(self, _req: dict[str, Any]) -> None:
+        self.index = 0
+        if self.state == "running":
+            self._start_periodic()
+
+    def _speed(self, req: dict[str, Any]) -> None:
+        level = req.get("speed")
+        if isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= 10:
+            raise CommandRefused(f"speed must be a whole level 1..10, got {level!r}")
+        self.speed = level
+        if self.state == "running":
+            self._start_periodic()
+
+    def _joints(self, req: dict[str, Any]) -> list[int]:
+        names = req.get("joints")
+        if not isinstance(names, list) or not names:
+            raise CommandRefused(
+                "give one or more joints (r_hip r_knee r_ankle l_hip l_knee l_ankle)"
+            )
+        try:
+            return [h2.motor_id(n) - 1 for n in names]
+        except ProtocolError as exc:
+            raise CommandRefused(str(exc)) from None
+
+    def _select(self, req: dict[str, Any]) -> None:
+        if self.state != "stopped":
+            raise CommandRefused(
+                f"stop the pattern before changing the selection (it is {self.state})"
+            )
+        idx = self._joints(req)
+        self.selected = [i in idx for i in range(6)]
+
+    def _disable(self, req: dict[str, Any]) -> None:
+        """Type 4 for these joints now, and the pattern stops driving them (safe at any time)."""
+        idx = self._joints(req)
+        for i in idx:
+            self.bus.send(h2.encode_joint_control(i + 1, "disabled"))
+            self.selected[i] = False
+        if self.state == "running":
+            if any(self.selected):
+                self._start_periodic()
+            else:
+                self._halt("stopped", "all driven joints disabled")
+
+    def _load(self, req: dict[str, Any]) -> None:
+        if self.state != "stopped":
+            raise CommandRefused(f"stop the pattern before loading another (it is {self.state})")
+        try:
+            self.pattern = load_pattern(
+                str(req.get("file", "")), self.params.min_angles, self.params.max_angles
+            )
+        except ProtocolError as exc:
+            raise CommandRefused(str(exc)) from None
+        self.index = 0
+
+    # --- sending --------------------------------------------------------------------------
+
+    def _row_frames(self, index: int) -> list[can.Message]:
+        row = self.pattern.frames[index]
+        return [row[j] for j in range(6) if self.selected[j]]
+
+    def _start_periodic(self) -> None:
+        """periodic mode: hand the whole sequence (from the current row) to python-can / the kernel."""
+        if self.timing != "periodic":
+            return
+        if self.task is not None:
+            self.task.stop()
+        n = len(self.pattern.points)
+        seq = [f for k in range(n) for f in self._row_frames((self.index + k) % n)]
+        per_frame = period_s(self.speed) / sum(self.selected)
+        self.task = self.bus.send_periodic(seq, per_frame)
+        self._periodic_t0, self._periodic_i0 = time.monotonic(), self.index
+
+    def _tick(self) -> None:
+        frames = self._row_frames(self.index)
+        for f in frames:
+            self.bus.send(f)
+        self.sent += len(frames)
+        self.index = (self.index + 1) % len(self.pattern.points)
+
+    def _guard(self) -> bool:
+        """False (and the pattern stopped) when the watchdog no longer allows motion."""
+        if self.arming is None:
+            return True
+        why = self.arming.check()
+        if why is None:
+            return True
+        with self.lock:
+            if self.state == "running":
+                self._halt("stopped", why)
+                self.log.warning("pattern_stopped_by_watchdog", reason=why)
+        self._publish()
+        return False
+
+    def run(self, stop: threading.Event) -> None:
+        next_t = time.monotonic()
+        last_state = 0.0
+        while not stop.is_set():
+            self.beat()
+            now = time.monotonic()
+            if now - last_state >= 1.0:
+                last_state = now
+                self._publish()
+            with self.lock:
+                running, period, mode = self.state == "running", period_s(self.speed), self.timing
+            if not running or mode == "periodic":
+                if running and mode == "periodic":
+                    self._guard()
+                    self._track_periodic_index()
+                if self.wake.wait(0.005 if running else 0.05):
+                    self.wake.clear()
+                next_t = time.monotonic()
+                continue
+            if self.wake.is_set():  # a command changed speed or position: re-anchor the schedule
+                self.wake.clear()
+                next_t = max(next_t, time.monotonic())
+            delay = next_t - time.monotonic()
+            if delay > SPIN_S:
+                time.sleep(delay - SPIN_S)
+            while time.monotonic() < next_t:
+                pass
+            if not self._guard():
+                continue
+            with self.lock:
+                if self.state == "running":
+                    self._tick()
+            next_t += period
+            if time.monotonic() - next_t > 5 * period:  # stalled far behind: resync, do not burst
+                next_t = time.monotonic() + period
+
+    def _track_periodic_index(self) -> None:
+        with self.lock:
+            if self.task is None:
+                return
+            elapsed = time.monotonic() - self._periodic_t0
+            rows = int(elapsed / period_s(self.speed))
+            self.index = (self._periodic_i0 + rows) % len(self.pattern.points)
+
+    def _publish(self) -> None:
+        with self.lock:
+            s = self.status()
+        now = time.time_ns()
+        self.pub.publish(
+            self.State(
+                stamp=messaging.stamp(now),
+                state=s["state"],
+                reason=s["reason"],
+                index=s["index"],
+                length=s["length"],
+                speed=s["speed"],
+                period_ms=s["period_ms"],
+                selected=np.array(self.selected, dtype=bool),
+                file=s["file"],
+                operator=s["operator"],
+                timing_mode=s["timing"],
+            ),
+            now,
+        )
+
+    def shutdown(self) -> None:
+        with self.lock:
+            if getattr(self, "task", None) is not None:
+                self.task.stop()
+        for name in ("_q",):
+            if hasattr(self, name):
+                getattr(self, name).undeclare()
+        if getattr(self, "arming", None) is not None:
+            self.arming.close()
+        if hasattr(self, "pub"):
+            self.pub.close()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

@@ -1,0 +1,103 @@
+"""CAN timing monitor [thesis: H2patternReceiver]: how far a periodic CAN id strays from its period.
+
+The thesis judged its pattern sender with a second board; this node does the same from any board on
+the bus, from the frames' kernel receive timestamps. Frames that share an id (all joint-control
+frames are id 70) can be told apart by their first data byte (the motor id).
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import threading
+import time
+from typing import Annotated, Any
+
+import msgspec
+import numpy as np
+from exolink import messaging
+from exolink.canbus import id_filters, open_bus
+from exolink.messaging import CommandRefused
+from exolink.node import Node
+
+HIST_EDGES_US = [0, 10, 20, 50, 100, 200, 500, 1000, 5000]
+MAX_STAMPS = 200_000
+
+
+def deviation_stats(stamps: list[float], expected_s: float | None = None) -> dict[str, Any]:
+    """Period deviations |dt - expected| (expected: the median period when not given)."""
+    if len(stamps) < 3:
+        return {"n": 0, "error": f"too few frames ({len(stamps)})"}
+    dt = np.diff(np.asarray(stamps))
+    exp = float(np.median(dt)) if expected_s is None else expected_s
+    dev = np.abs(dt - exp) * 1e3
+    counts, _ = np.histogram(dev * 1e3, bins=[*HIST_EDGES_US, np.inf])
+    labels = [f"{a}-{b}us" for a, b in itertools.pairwise(HIST_EDGES_US)] + [
+        f">{HIST_EDGES_US[-1]}us"
+    ]
+    return {
+        "n": int(dt.size),
+        "expected_ms": round(exp * 1e3, 4),
+        "mean_period_ms": round(float(dt.mean()) * 1e3, 4),
+        "mean_dev_ms": round(float(dev.mean()), 4),
+        "p99_dev_ms": round(float(np.percentile(dev, 99)), 4),
+        "max_dev_ms": round(float(dev.max()), 4),
+        "histogram": dict(zip(labels, map(int, counts), strict=True)),
+    }
+
+
+class TimingParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    ids: list[Annotated[int, msgspec.Meta(ge=0, le=0x7FF)]] = msgspec.field(
+        default_factory=lambda: [70, 110]
+    )
+
+
+class TimingMonitor(Node):
+    Params = TimingParams
+
+    def configure(self) -> None:
+        self.bus = open_bus(self.ctx.config.can, filters=id_filters(self.params.ids))
+        self.lock = threading.Lock()
+        self.stamps: dict[tuple[int, int | None, int | None], collections.deque[float]] = {}
+        self._q = messaging.serve(
+            self.ctx.session, self.ctx.messaging.mgmt("timing"), self.on_query
+        )
+
+    def _key_stamps(self, fid: int, dlc: int | None, byte0: int | None) -> list[float]:
+        with self.lock:
+            return list(self.stamps.get((fid, dlc, byte0), ()))
+
+    def on_query(self, req: dict[str, Any]) -> dict[str, Any]:
+        fid, byte0, dlc = req.get("id"), req.get("byte0"), req.get("dlc")
+        if fid not in self.params.ids:
+            raise CommandRefused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
+        seconds = float(req.get("seconds", 0))
+        if not 0 <= seconds <= 600:
+            raise CommandRefused("seconds must be 0..600")
+        since = time.time()
+        if seconds:
+            time.sleep(seconds)  # measure fresh frames only
+        stamps = [t for t in self._key_stamps(fid, dlc, byte0) if not seconds or t >= since]
+        exp = req.get("expected_ms")
+        return deviation_stats(stamps, None if exp is None else float(exp) / 1000)
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            self.beat()
+            msg = self.bus.recv(timeout=0.05)
+            if msg is None:
+                continue
+            fid, n = msg.arbitration_id, len(msg.data)
+            b0 = msg.data[0] if msg.data else None
+            with self.lock:
+                for key in ((fid, None, None), (fid, n, None), (fid, None, b0), (fid, n, b0)):
+                    dq = self.stamps.get(key)
+                    if dq is None:
+                        dq = self.stamps[key] = collections.deque(maxlen=MAX_STAMPS)
+                    dq.append(msg.timestamp)
+
+    def shutdown(self) -> None:
+        if hasattr(self, "_q"):
+            self._q.undeclare()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

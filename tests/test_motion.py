@@ -1,0 +1,272 @@
+"""Pattern player, MACCEPA bridge and timing monitor across real processes on simulated
+hardware; every frame claim is checked by an independent listener on the bus."""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import EXOLINK, Appliance, collect, wait_for
+from exolink import messaging
+from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern, period_s
+from exolink.protocol import ProtocolError, h2, maccepa
+
+NODES = [
+    {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
+    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+    {
+        "name": "pattern_player",
+        "plugin": "pattern_player",
+        "critical": True,
+        "params": {"speed": 10, "selected": ["r_hip", "r_knee"]},
+    },
+    {
+        "name": "maccepa_bridge",
+        "plugin": "maccepa_bridge",
+        "critical": True,
+        "params": {"boards": [0]},
+    },
+    {"name": "timing_monitor", "plugin": "timing_monitor", "params": {"ids": [70, 110]}},
+]
+LIMITS = [h2.RANGES[j][0] for j in h2.JOINTS], [h2.RANGES[j][1] for j in h2.JOINTS]
+
+
+@pytest.fixture
+def app(write_config, spawn):  # type: ignore[no-untyped-def]
+    return Appliance(write_config(nodes=NODES, watchdog={"maccepa_boards": [0]}), spawn)
+
+
+def positions(frames) -> list[h2.JointControl]:  # type: ignore[no-untyped-def]
+    return [
+        f for f in (h2.decode(m) for m in frames) if isinstance(f, h2.JointControl) and f.mode == 1
+    ]
+
+
+# --- pattern files ------------------------------------------------------------------------------
+
+
+def test_default_pattern_is_51_points_inside_ranges() -> None:
+    p = load_pattern(str(DEFAULT_PATTERN), *LIMITS)
+    assert len(p.points) == 51
+    for j, name in enumerate(h2.JOINTS):
+        lo, hi = h2.RANGES[name]
+        assert all(lo <= row[j] <= hi for row in p.points)
+    assert max(r[1] for r in p.points) - min(r[1] for r in p.points) > 40  # a knee that swings
+
+
+@pytest.mark.parametrize(
+    ("text", "error"),
+    [
+        ("r_hip,r_knee\n1,2\n", "header must name the six joints"),
+        (
+            "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle\n1,2,3,4,5,6\n",
+            "needs 2..10000 set-points, got 1",
+        ),
+        (
+            "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle\n1,2,3,4,5,6\n1,2,30,4,5,6\n",
+            ":3: r_ankle 30 deg is outside the limits -20..20",
+        ),
+        (
+            "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle\n1,2,3,4,5,6\n1,2.5,3,4,5,6\n",
+            ":3: values must be whole degrees",
+        ),
+        (
+            "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle\n1,2,3,4,5,6\n1,2,3\n",
+            ":3: expected 6 values, got 3",
+        ),
+    ],
+)
+def test_bad_pattern_files(tmp_path: Path, text: str, error: str) -> None:
+    f = tmp_path / "p.csv"
+    f.write_text(text)
+    with pytest.raises(ProtocolError, match=error.replace(".", r"\.")):
+        load_pattern(str(f), *LIMITS)
+
+
+def test_speed_mapping() -> None:
+    assert period_s(10) == pytest.approx(0.020) and period_s(1) == pytest.approx(0.200)
+
+
+# --- pattern on simulated hardware ----------------------------------------------------------
+
+
+def test_pattern_reaches_joints_in_order_at_speed(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    r = app.cli("pattern", "start", "--detach")
+    assert r.returncode == 5 and "watchdog is disarmed" in r.stderr
+    assert positions(collect(mbus, 0.3, {70})) == []
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    frames = collect(mbus, 1.5, {70})
+    sent = positions(frames)
+    assert {f.motor for f in sent} == {1, 2}  # only the selected joints
+    expected = load_pattern(str(DEFAULT_PATTERN), *LIMITS).points
+    hips = [f.setpoint for f in sent if f.motor == 1]
+    start = next(
+        i for i in range(51) if [expected[(i + k) % 51][0] for k in range(10)] == hips[:10]
+    )
+    assert hips == [expected[(start + k) % 51][0] for k in range(len(hips))]  # in order, no gaps
+    t = [m.timestamp for m in frames if getattr(h2.decode(m), "motor", None) == 1]
+    assert np.median(np.diff(t)) == pytest.approx(0.020, abs=0.002)
+    # the simulated right knee follows the pattern
+    angles = [h2.decode(m).r_knee for m in collect(mbus, 1.0, {110})]
+    assert max(angles) - min(angles) > 20  # a 60 deg swing, low-passed by the joint dynamics
+
+
+def test_speed_change_without_restart_and_pause(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    assert app.cli("pattern", "speed", "5").returncode == 0
+    collect(mbus, 0.2)
+    t = [m.timestamp for m in collect(mbus, 1.5, {70}) if getattr(h2.decode(m), "motor", None) == 1]
+    assert np.median(np.diff(t)) == pytest.approx(period_s(5), abs=0.003)
+    r = app.cli("pattern", "speed", "11")
+    assert r.returncode == 5 and "speed must be a whole level 1..10" in r.stderr
+    r = app.cli("pattern", "select", "l_knee")
+    assert r.returncode == 5 and "stop the pattern before changing the selection" in r.stderr
+    assert app.cli("pattern", "pause").returncode == 0
+    collect(mbus, 0.15)
+    assert positions(collect(mbus, 0.4, {70})) == []
+    assert "paused" in app.cli("pattern", "status").stdout
+
+
+def test_disable_sends_type4_and_stops_driving_that_joint(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    collect(mbus, 0.3)
+    assert app.cli("pattern", "disable", "r_knee").returncode == 0
+    frames = positions_or_disable = [
+        f
+        for f in (h2.decode(m) for m in collect(mbus, 0.6, {70}))
+        if isinstance(f, h2.JointControl)
+    ]
+    assert h2.JointControl(2, 4, 0, 0) in positions_or_disable
+    after = frames[frames.index(h2.JointControl(2, 4, 0, 0)) + 1 :]
+    assert after and all(f.motor == 1 for f in after)
+
+
+def test_watchdog_trip_stops_pattern_and_nothing_more_is_sent(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    collect(mbus, 0.3)
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)  # the trip's own frames and anything in flight
+    assert positions(collect(mbus, 1.0, {70})) == []
+    r = app.cli("pattern", "status")
+    assert "stopped (motors not armed" in r.stdout
+    app.arm()  # re-arming does not resume the pattern by itself
+    assert positions(collect(mbus, 0.5, {70})) == []
+
+
+def test_kill9_of_pattern_player_disables_motors(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    import os
+    import signal
+
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    collect(mbus, 0.3)
+    os.kill(app.node("pattern_player")["pid"], signal.SIGKILL)
+    frames = [h2.decode(m) for m in collect(mbus, 0.5, {70, 80 + 0})]
+    assert sorted({f for f in frames if isinstance(f, h2.JointControl) and f.mode == 4}) == [
+        h2.JointControl(m, 4, 0, 0) for m in range(1, 7)
+    ]
+    assert app.status()["watchdog"]["detail"] == "pattern_player: SIGKILL"
+
+
+def test_operator_lost_trips(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    holder = subprocess.Popen(
+        [*EXOLINK, "pattern", "start", "--at", app.at], stdout=subprocess.PIPE, text=True
+    )
+    wait_for(lambda: "running" in app.cli("pattern", "status").stdout, timeout=10)
+    time.sleep(0.5)
+    assert app.status()["watchdog"]["state"] == "armed"  # the operator is present
+    holder.kill()  # the laptop vanishes without a word
+    holder.wait()
+    wait_for(lambda: app.status()["watchdog"]["reason"] == "operator lost", timeout=10)
+    collect(mbus, 0.3)  # frames queued before the trip
+    assert positions(collect(mbus, 0.5, {70})) == []
+
+
+# --- MACCEPA --------------------------------------------------------------------------------
+
+
+def test_maccepa_gains_setpoint_followed_and_invalid_refused(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    r = app.cli("maccepa", "0", "gains", "--kp", "2.5", "--controller", "position")
+    assert r.returncode == 0
+    assert maccepa.decode(collect(mbus, 0.3, {10})[0]) == maccepa.Gain(0, "kp", 2.5, 0)
+    r = app.cli("maccepa", "0", "setpoint", "40")
+    assert r.returncode == 5 and "watchdog is disarmed" in r.stderr
+    app.arm()
+    assert app.cli("maccepa", "0", "setpoint", "40").returncode == 0
+    wait_for(
+        lambda: any(abs(maccepa.decode(m).lever - 40) <= 1 for m in collect(mbus, 0.1, {60})),
+        timeout=5,
+    )
+    # and the bridge publishes what the board reports
+    s = messaging.open_client_session(app.at)
+    got = []
+    key = messaging.topic_key(0, "h2", "maccepa/b0/positions", "exolink_msgs/msg/MaccepaPositions")
+    sub = s.declare_subscriber(
+        key,
+        lambda x: got.append(
+            messaging.deserialize(x.payload.to_bytes(), "exolink_msgs/msg/MaccepaPositions")
+        ),
+    )
+    wait_for(lambda: got, timeout=5)
+    sub.undeclare()
+    s.close()
+    assert abs(got[-1].lever_deg - 40) <= 1
+    collect(mbus, 0.2)
+    for args, err in [
+        (["maccepa", "3", "stop"], "board 3 is not configured"),
+        (["maccepa", "12", "stop"], "board id 12 is outside 0..9"),
+        (["maccepa", "0", "duty", "150"], "duty cycle 150 must be a whole percentage 0..100"),
+        (["maccepa", "0", "gains"], "gains needs at least one of kp, ki, kd"),
+    ]:
+        r = app.cli(*args)
+        assert r.returncode == 5 and err in r.stderr, (args, r.stderr)
+    assert collect(mbus, 0.4, set(maccepa.command_ids(range(10)))) == []
+    # a trip sends stop control to the configured board
+    assert app.cli("estop").returncode == 0
+    stops = [maccepa.decode(m) for m in collect(mbus, 0.5, {80})]
+    assert maccepa.Duty(0, 0, 0) in stops
+
+
+def test_maccepa_watch_plot_line() -> None:
+    from exolink.cli.motion import strip
+
+    line = strip(link=0, lever=60, width=25)
+    assert line.index("L") == 12 and line.index("A") == 18
+    assert "*" in strip(10, 10)
+
+
+# --- timing monitor -------------------------------------------------------------------------
+
+
+def test_timing_monitor_measures_the_pattern(app) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    r = app.cli("timing", "70", "--motor", "1", "--dlc", "6", "--seconds", "2", "--json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    s = json.loads(r.stdout)
+    assert 80 <= s["n"] <= 101
+    assert s["mean_period_ms"] == pytest.approx(20.0, abs=0.5)
+    assert sum(s["histogram"].values()) == s["n"]
+    r = app.cli("timing", "99")
+    assert r.returncode == 5 and "id 99 is not monitored" in r.stderr
+
+
+def test_deviation_stats_on_known_stamps() -> None:
+    from exolink.nodes.timing_monitor import deviation_stats
+
+    stamps = [i * 0.020 for i in range(100)]
+    stamps[50] += 0.001  # one frame 1 ms late: two periods off by 1 ms
+    s = deviation_stats(stamps, 0.020)
+    assert s["n"] == 99 and s["max_dev_ms"] == pytest.approx(1.0, abs=1e-6)
+    assert s["histogram"]["1000-5000us"] == 2 or s["histogram"]["500-1000us"] == 2
+    assert deviation_stats([0.0, 1.0])["n"] == 0
