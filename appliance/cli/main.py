@@ -30,7 +30,7 @@ def _add_bus(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from exolink.cli import board, bus_tools, motion, remote
+    from exolink.cli import board, bus_tools, motion, recordings, remote
 
     parser = argparse.ArgumentParser(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
@@ -75,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     remote.register(sub)
     remote.register_management(sub)
     motion.register(sub)
+    recordings.register(sub)
     return parser
 
 

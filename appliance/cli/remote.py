@@ -386,13 +386,13 @@ def _print_json(data: Any) -> None:
 
 
 def _node_table(nodes: list[dict[str, Any]]) -> str:
-    head = f"{'node':14} {'state':9} {'pid':>7} {'uptime':>8} {'restarts':>8} {'cpu_s':>7} {'rss_mb':>7}  last exit"
+    head = f"{'node':14} {'state':9} {'pid':>7} {'uptime':>8} {'restarts':>8} {'cpu_s':>7} {'rss_mb':>7}  last exit / health"
     rows = [head]
     for n in nodes:
         crit = "*" if n.get("critical") else " "
         rows.append(
             f"{n['name'] + crit:14} {n['state']:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
-            f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')}"
+            f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')} {n.get('health', '')}"
         )
     return "\n".join(rows) + "\n(* critical)\n"
 

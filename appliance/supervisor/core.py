@@ -97,6 +97,8 @@ class Supervisor:
         self._decls.append(
             self.msg.subscribe("pattern_state", PATTERN_TYPE, self._on_pattern_state)
         )
+        diag_key = self.msg.key("nodes/*/diagnostics", DIAGNOSTICS_TYPE)
+        self._decls.append(self.session.declare_subscriber(diag_key, self._on_node_diagnostics))
         self._decls.append(
             self.session.liveliness().declare_subscriber(
                 self.msg.mgmt("operators", "*"), self._on_operator, history=True
@@ -233,6 +235,19 @@ class Supervisor:
             # kernel would otherwise go on sending. The restart policy brings it back.
             self.log.error("node_hung_killed", node_name=node.name, detail=detail)
             node.kill()
+
+    def _on_node_diagnostics(self, sample: Any) -> None:
+        """The worst status a node reports (e.g. the recorder's disk full) shows in `exolink status`."""
+        parts = str(sample.key_expr).split("/")
+        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
+        node = self.nodes.get(name)
+        if node is None:
+            return
+        arr = messaging.deserialize(sample.payload.to_bytes(), DIAGNOSTICS_TYPE)
+        worst = max(arr.status, key=lambda st: st.level, default=None)
+        if worst is not None:
+            level = {0: "ok", 1: "warn", 2: "error"}.get(int(worst.level), "stale")
+            node.health = f"{level}: {worst.message}" if level != "ok" else "ok"
 
     def _on_pattern_state(self, msg: Any, _meta: messaging.Meta) -> None:
         self.pattern_state = (msg.state, msg.operator)

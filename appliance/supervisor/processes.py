@@ -47,6 +47,7 @@ class NodeProcess:
     next_start: float = 0.0
     heartbeat_at: float | None = None
     deliberate_stop: bool = False
+    health: str = ""  # from the node's own diagnostics, if it publishes any
     restart_times: collections.deque[float] = field(default_factory=collections.deque)
     logs: collections.deque[str] = field(
         default_factory=lambda: collections.deque(maxlen=LOG_LINES)
@@ -159,6 +160,7 @@ class NodeProcess:
             "uptime_s": round(time.monotonic() - self.started_at, 1) if pid else 0.0,
             "restarts": self.restarts,
             "last_exit": self.last_exit,
+            "health": self.health,
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,

@@ -1,0 +1,161 @@
+"""Recording commands: control the recorder on the board; read, export, recover and play files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+from datetime import UTC, datetime
+from typing import Any
+
+from exolink.cli.errors import EXIT_CONFIG, fail
+from exolink.cli.remote import _guard, _Leaves, common, remote
+
+
+def _labels(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise argparse.ArgumentTypeError(f"label {item!r} must be KEY=VALUE")
+        out[key] = value
+    return out
+
+
+@_guard
+def cmd_record(args: argparse.Namespace) -> int:
+    body: dict[str, Any] = {"action": args.action}
+    if args.action == "start":
+        body["labels"] = _labels(args.label or [])
+    with remote(args) as r:
+        s = r.call("record", body=body)
+    s.pop("ok", None)
+    if getattr(args, "json", False):
+        sys.stdout.write(json.dumps(s) + "\n")
+    else:
+        err = f" ({s['error']})" if s.get("error") else ""
+        sys.stdout.write(
+            f"{s['state']}{err}  file {s['file'] or '-'}  size {s['size'] / 2**20:.2f} MiB  "
+            f"messages {s['written']}/{s['received']}  dropped {s['dropped']}  files {len(s['files'])}\n"
+        )
+    return 0
+
+
+def _guard_file(func):  # type: ignore[no-untyped-def]
+    def wrapped(args: argparse.Namespace) -> int:
+        from exolink.recording import RecordingError
+
+        try:
+            return int(func(args))
+        except RecordingError as exc:
+            return fail(str(exc), EXIT_CONFIG)
+
+    return wrapped
+
+
+def _iso(ns: int) -> str:
+    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
+
+
+@_guard_file
+def cmd_info(args: argparse.Namespace) -> int:
+    from exolink.recording import info
+
+    i = info(args.file)
+    if args.json:
+        sys.stdout.write(json.dumps({**vars(i), "duration_s": i.duration_s}, indent=2) + "\n")
+        return 0
+    sys.stdout.write(
+        f"file      {i.path}\nstart     {_iso(i.start_ns)}\nduration  {i.duration_s:.3f} s\n"
+        f"messages  {i.messages}\n"
+    )
+    for k, v in i.metadata.get("exolink.labels", {}).items():
+        sys.stdout.write(f"label     {k}={v}\n")
+    stats = i.metadata.get("exolink.stats")
+    if stats:
+        sys.stdout.write(
+            f"recorder  received {stats.get('received')} written {stats.get('written')} dropped {stats.get('dropped')}\n"
+        )
+    sys.stdout.write(
+        f"triggers  {len(i.triggers)}" + "".join(f"\n  {_iso(t)}" for t in i.triggers) + "\n"
+    )
+    for topic, t in sorted(i.topics.items()):
+        sys.stdout.write(f"  {topic:40} {t['type']:40} {t['count']:>8}\n")
+    return 0
+
+
+@_guard_file
+def cmd_export(args: argparse.Namespace) -> int:
+    from exolink.recording import export_csv
+
+    for topic, n in sorted(export_csv(args.file, args.csv).items()):
+        sys.stdout.write(f"{topic:40} {n:>8} rows\n")
+    return 0
+
+
+@_guard_file
+def cmd_recover(args: argparse.Namespace) -> int:
+    from exolink.recording import recover
+
+    out = args.output or args.file.removesuffix(".mcap") + ".recovered.mcap"
+    r = recover(args.file, out)
+    sys.stdout.write(f"recovered {r['messages']} messages into {out}\n")
+    return 0
+
+
+@_guard_file
+@_guard
+def cmd_play(args: argparse.Namespace) -> int:
+    from exolink.recording import play
+
+    topics = (
+        [t if t.startswith("/") else f"/{args.ns}/{t}" for t in args.topics]
+        if args.topics
+        else None
+    )
+    stop = threading.Event()
+    with remote(args) as r:
+        try:
+            n = play(r.session, args.file, args.rate, args.loop, topics, args.domain, stop)
+        except KeyboardInterrupt:
+            stop.set()
+            return 130
+    sys.stdout.write(f"played {n} messages\n")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parent = common()
+    p = sub.add_parser("record", help="start / stop / status of the recorder on the board")
+    s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
+    q = s.add_parser("start", help="start [--label subject=S01 --label session=walk1]")
+    q.add_argument("--label", action="append", metavar="KEY=VALUE")
+    s.add_parser("stop")
+    q = s.add_parser("status")
+    q.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("info", help="topics, counts, duration and triggers of an MCAP file")
+    p.add_argument("file")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("export", help="export an MCAP file to one CSV per topic")
+    p.add_argument("file")
+    p.add_argument("--csv", required=True, metavar="DIR")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("recover", help="rescue a recording cut off by power loss")
+    p.add_argument("file")
+    p.add_argument("-o", "--output")
+    p.set_defaults(func=cmd_recover)
+
+    p = sub.add_parser(
+        "play", parents=[parent], help="republish a recording onto Zenoh with its timing"
+    )
+    p.add_argument("file")
+    p.add_argument("--rate", type=float, default=1.0)
+    p.add_argument("--loop", action="store_true")
+    p.add_argument("--topics", nargs="+")
+    p.set_defaults(func=cmd_play)

@@ -1,0 +1,364 @@
+"""MCAP recorder [thesis: rosbag record and the GUIs' text logs].
+
+Subscribes to every data topic of the appliance (or a configured subset) and writes MCAP files
+with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
+PlotJuggler open them. The Zenoh callback only enqueues; a writer thread writes, so a slow SD card
+never stalls the session. Nothing is lost silently: a full queue counts a drop, and the counters
+go out on diagnostics (which are recorded too) and into each file's ``exolink.stats`` metadata.
+Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs
+at most that much. A full disk stops the recording cleanly with an ERROR diagnostic; earlier files
+are never reopened.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fnmatch
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+import yaml
+from exolink import __version__, messaging
+from exolink.messaging import CommandRefused
+from exolink.node import Node
+
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+QUEUE_MAX = 50_000
+
+
+class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    directory: str = "/var/lib/exolink/recordings"
+    topics: list[str] = msgspec.field(default_factory=lambda: ["**"])  # relative to the namespace
+    exclude: list[str] = msgspec.field(
+        default_factory=lambda: ["*/nodes/*/heartbeat"]
+    )  # fnmatch on topic
+    autostart: bool = False  # field trials: record from boot
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    chunk_size: Annotated[int, msgspec.Meta(ge=4096, le=64 * 2**20)] = 1 * 2**20
+    fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 2.0
+    split_size_mb: Annotated[float, msgspec.Meta(ge=0)] = 1024.0  # 0 = no split by size
+    split_duration_s: Annotated[float, msgspec.Meta(ge=0)] = 3600.0  # 0 = no split by time
+    labels: dict[str, str] = msgspec.field(default_factory=dict)
+
+
+@dataclass
+class Stats:
+    received: int = 0
+    written: int = 0
+    dropped: int = 0
+    files: list[str] = field(default_factory=list)
+    bytes: int = 0
+
+
+class McapFile:
+    """One open MCAP file with its schemas and channels registered on first use."""
+
+    def __init__(self, path: Path, p: RecorderParams, metadata: dict[str, dict[str, str]]) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        comp = {
+            "zstd": CompressionType.ZSTD,
+            "lz4": CompressionType.LZ4,
+            "none": CompressionType.NONE,
+        }
+        self.path = path
+        self.f = path.open("xb")  # never overwrite a recording
+        self.w = Writer(self.f, chunk_size=p.chunk_size, compression=comp[p.compression])
+        self.w.start(profile="ros2", library=f"exolink {__version__}")
+        for name, data in metadata.items():
+            self.w.add_metadata(name, data)
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.opened = time.monotonic()
+
+    def channel(self, topic: str, typename: str) -> int:
+        cid = self.channels.get(topic)
+        if cid is None:
+            sid = self.schemas.get(typename)
+            if sid is None:
+                text, _ = messaging.typestore().generate_msgdef(typename, ros_version=2)
+                sid = self.schemas[typename] = self.w.register_schema(
+                    typename, "ros2msg", text.encode()
+                )
+            cid = self.channels[topic] = self.w.register_channel(f"/{topic}", "cdr", sid)
+        return cid
+
+    def sync(self) -> None:
+        self.w.flush()
+        os.fsync(self.f.fileno())
+
+    def size(self) -> int:
+        return self.f.tell()
+
+    def close(self, stats: dict[str, str]) -> None:
+        self.w.add_metadata("exolink.stats", stats)
+        self.w.finish()
+        self.f.flush()
+        os.fsync(self.f.fileno())
+        self.f.close()
+
+
+class Recorder(Node):
+    Params = RecorderParams
+
+    def configure(self) -> None:
+        self.dir = Path(self.params.directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.q: queue.Queue[tuple[str, str, bytes, int, int, int]] = queue.Queue(QUEUE_MAX)
+        self.lock = threading.Lock()
+        self.stats = Stats()
+        self.state, self.error = "idle", ""
+        self.labels: dict[str, str] = {}
+        self.file: McapFile | None = None
+        self.index = 0
+        self.session_stamp = ""
+        m = self.ctx.messaging
+        self.subs = [
+            self.ctx.session.declare_subscriber(
+                messaging.topic_selector(m.domain_id, m.namespace, t)
+                if t != "**"
+                else f"{m.domain_id}/{m.namespace}/**",
+                self._on_sample,
+            )
+            for t in self.params.topics
+        ]
+        self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS)
+        self._q = messaging.serve(self.ctx.session, m.mgmt("record"), self.on_command)
+        if self.params.autostart:
+            self.start_recording(dict(self.params.labels))
+
+    # --- intake (Zenoh threads) -----------------------------------------------------------
+
+    def _on_sample(self, sample: Any) -> None:
+        if self.state != "recording":
+            return
+        try:
+            topic, typename = messaging.parse_key(str(sample.key_expr))
+        except ValueError:
+            return
+        if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
+            return
+        att = sample.attachment
+        seq, src = (0, 0)
+        if att is not None:
+            with contextlib.suppress(Exception):
+                seq, src, _ = messaging.decode_attachment(att.to_bytes())
+        now = time.time_ns()
+        with self.lock:
+            self.stats.received += 1
+        try:
+            self.q.put_nowait((topic, typename, sample.payload.to_bytes(), now, src or now, seq))
+        except queue.Full:
+            with self.lock:
+                self.stats.dropped += 1
+
+    # --- commands -------------------------------------------------------------------------
+
+    def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
+        action = req.get("action", "status")
+        if action == "start":
+            labels = req.get("labels", {})
+            if not isinstance(labels, dict) or not all(isinstance(v, str) for v in labels.values()):
+                raise CommandRefused("labels must be a mapping of strings (--label subject=S01)")
+            if self.state == "recording":
+                raise CommandRefused(f"already recording to {self.file.path if self.file else '?'}")
+            self.start_recording({**self.params.labels, **labels})
+        elif action == "stop":
+            if self.state != "recording":
+                raise CommandRefused(f"not recording (state {self.state})")
+            self.state = "stopping"
+        elif action != "status":
+            raise CommandRefused(f"unknown record action {action!r} (start, stop, status)")
+        deadline = time.monotonic() + 5
+        while self.state == "stopping" and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return self.status()
+
+    def status(self) -> dict[str, Any]:
+        with self.lock:
+            s = vars(self.stats).copy()
+            s["files"] = list(self.stats.files)
+        f = self.file
+        return {
+            "state": self.state,
+            "error": self.error,
+            "file": str(f.path) if f else None,
+            "size": f.size() if f else 0,
+            "labels": self.labels,
+            "queue": self.q.qsize(),
+            **s,
+        }
+
+    def start_recording(self, labels: dict[str, str]) -> None:
+        with self.lock:
+            self.stats = Stats()  # counters are per recording session
+        while not self.q.empty():  # nothing from an earlier session leaks into this one
+            self.q.get_nowait()
+        self.labels = labels
+        self.index = 0
+        self.session_stamp = time.strftime("%Y%m%d-%H%M%S")
+        self.error = ""
+        self.state = "recording"  # the writer thread opens the first file
+        self.log.info("recording_started", labels=labels)
+
+    # --- writer thread --------------------------------------------------------------------
+
+    def _metadata(self) -> dict[str, dict[str, str]]:
+        cfg = msgspec.to_builtins(self.ctx.config)
+        cfg.pop("source", None)
+        return {
+            "exolink": {
+                "device": self.ctx.config.device,
+                "software_version": __version__,
+                "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "file_index": str(self.index),
+            },
+            "exolink.labels": dict(self.labels),
+            "exolink.config": {"yaml": yaml.safe_dump(cfg, sort_keys=False)},
+        }
+
+    def _open(self) -> None:
+        label = "_".join(f"{v}" for v in self.labels.values())[:40].replace("/", "-")
+        name = "_".join(
+            x for x in (self.ctx.config.device, self.session_stamp, label, f"{self.index:03d}") if x
+        )
+        self.file = McapFile(self.dir / f"{name}.mcap", self.params, self._metadata())
+        with self.lock:
+            self.stats.files.append(str(self.file.path))
+        self.log.info("recording_file", path=str(self.file.path))
+
+    def _close(self) -> None:
+        if self.file is None:
+            return
+        with self.lock:
+            stats = {k: str(v) for k, v in vars(self.stats).items() if k != "files"}
+        f, self.file = self.file, None
+        f.close(stats)
+
+    def _need_split(self) -> bool:
+        f, p = self.file, self.params
+        if f is None:
+            return False
+        by_size = p.split_size_mb and f.size() >= p.split_size_mb * 2**20
+        by_time = p.split_duration_s and time.monotonic() - f.opened >= p.split_duration_s
+        return bool(by_size or by_time)
+
+    def _write(self, item: tuple[str, str, bytes, int, int, int]) -> None:
+        assert self.file is not None
+        topic, typename, data, log_ns, pub_ns, seq = item
+        cid = self.file.channel(topic, typename)
+        self.file.w.add_message(
+            cid, log_time=log_ns, data=data, publish_time=pub_ns, sequence=seq & 0xFFFFFFFF
+        )
+        with self.lock:
+            self.stats.written += 1
+
+    def _fail(self, exc: OSError) -> None:
+        """Disk full or gone: stop cleanly, keep what is on disk, say so loudly."""
+        self.error = (
+            "disk full" if exc.errno == errno.ENOSPC else f"write failed: {exc.strerror or exc}"
+        )
+        self.state = "error"
+        self.log.error(
+            "recording_failed", error=self.error, file=str(self.file.path) if self.file else None
+        )
+        if self.file is not None:
+            with contextlib.suppress(Exception):
+                self.file.f.close()
+            self.file = None
+        while not self.q.empty():  # what can no longer be written is counted, not hidden
+            self.q.get_nowait()
+            with self.lock:
+                self.stats.dropped += 1
+        self._diagnostics()
+
+    def run(self, stop: threading.Event) -> None:
+        next_sync = next_diag = time.monotonic()
+        while not stop.is_set():
+            self.beat()
+            try:
+                if self.state == "recording" and self.file is None:
+                    self._open()
+                try:
+                    item = self.q.get(timeout=0.05)
+                except queue.Empty:
+                    item = None
+                if item is not None and self.file is not None:
+                    self._write(item)
+                    for _ in range(500):  # drain in batches; beat() between batches
+                        try:
+                            self._write(self.q.get_nowait())
+                        except queue.Empty:
+                            break
+                now = time.monotonic()
+                if self.file is not None and now >= next_sync:
+                    next_sync = now + self.params.fsync_interval_s
+                    self.file.sync()
+                if self._need_split():
+                    self._close()
+                    self.index += 1
+                if self.state == "stopping":
+                    time.sleep(0.05)  # callbacks that passed the state check before the stop
+                    while not self.q.empty():
+                        self._write(self.q.get_nowait())
+                    self._close()
+                    self.state = "idle"
+                    self.log.info(
+                        "recording_stopped",
+                        **{k: v for k, v in vars(self.stats).items() if k != "files"},
+                    )
+            except OSError as exc:
+                self._fail(exc)
+            if time.monotonic() >= next_diag:
+                next_diag = time.monotonic() + 1.0
+                self._diagnostics()
+
+    def _diagnostics(self) -> None:
+        store = messaging.typestore().types
+        kv, status = (
+            store["diagnostic_msgs/msg/KeyValue"],
+            store["diagnostic_msgs/msg/DiagnosticStatus"],
+        )
+        s = self.status()
+        level = 2 if self.state == "error" else 1 if s["dropped"] else 0
+        now = time.time_ns()
+        values = {
+            k: s[k] for k in ("state", "file", "size", "received", "written", "dropped", "queue")
+        }
+        self.pub_diag.publish(
+            store[DIAGNOSTICS](
+                header=messaging.header(now),
+                status=[
+                    status(
+                        level=level,
+                        name=f"{self.name}/recording",
+                        message=self.error or self.state,
+                        hardware_id="sd",
+                        values=[kv(key=k, value=str(v)) for k, v in values.items()],
+                    )
+                ],
+            ),
+            now,
+        )
+
+    def shutdown(self) -> None:
+        for s in getattr(self, "subs", []):
+            s.undeclare()
+        if hasattr(self, "_q"):
+            self._q.undeclare()
+        if getattr(self, "file", None) is not None:
+            try:
+                while not self.q.empty():
+                    self._write(self.q.get_nowait())
+                self._close()
+            except OSError as exc:
+                self.log.error("recording_close_failed", error=str(exc))
+        if hasattr(self, "pub_diag"):
+            self.pub_diag.close()

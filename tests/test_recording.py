@@ -1,0 +1,229 @@
+"""Recording on simulated hardware, read back by independent readers: mcap's own reader for the
+container, and rosbags (with the schema stored in the file) for the CDR payloads."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from conftest import EXOLINK, Appliance, wait_for
+from exolink import messaging
+from exolink.recording import RecordingError, export_csv, info
+from mcap.reader import make_reader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+JS_KEY = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
+
+
+def nodes(directory: Path, **params: object) -> list[dict]:
+    return [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader"},
+        {
+            "name": "recorder",
+            "plugin": "recorder",
+            "params": {"directory": str(directory), **params},
+        },
+    ]
+
+
+def rosbags_decode(path: Path, topic: str) -> list[tuple[bytes, object]]:
+    """Independent of exolink: mcap reader + a rosbags typestore built from the file's schema."""
+    out = []
+    with path.open("rb") as f:
+        for schema, channel, m in make_reader(f).iter_messages(topics=[topic]):
+            store = get_typestore(Stores.ROS2_JAZZY)
+            text = schema.data.decode().split("=" * 80)[0]
+            store.register(get_types_from_msg(text, schema.name))
+            out.append((m.data, store.deserialize_cdr(m.data, schema.name)))
+            assert channel.message_encoding == "cdr" and schema.encoding == "ros2msg"
+    return out
+
+
+def recordings(d: Path) -> list[Path]:
+    return sorted(d.glob("*.mcap"))
+
+
+def test_walking_session_recorded_exactly(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir, compression="lz4", chunk_size=65536)), spawn)
+    s = messaging.open_client_session(app.at)
+    published: dict[int, bytes] = {}
+    sub = s.declare_subscriber(
+        JS_KEY,
+        lambda x: published.__setitem__(
+            messaging.decode_attachment(x.attachment.to_bytes())[1], x.payload.to_bytes()
+        ),
+    )
+    try:
+        r = app.cli("record", "start", "--label", "subject=S01", "--label", "session=walk")
+        assert r.returncode == 0, r.stderr
+        assert app.cli("trigger", "fire").returncode == 0
+        time.sleep(3)
+        r = app.cli("record", "stop")
+        assert r.returncode == 0 and "idle" in r.stdout
+    finally:
+        sub.undeclare()
+        s.close()
+    [path] = recordings(rec_dir)
+    rows = rosbags_decode(path, "/h2/joint_states")
+    assert len(rows) > 250
+    stamps = []
+    for data, msg in rows:
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        assert published.get(ns) == data  # byte-identical to what went over Zenoh
+        stamps.append(ns)
+    window = [t for t in published if stamps[0] <= t <= stamps[-1]]
+    assert len(window) == len(rows)  # nothing published in the window is missing
+    i = info(path)
+    assert i.topics["/h2/joint_states"]["count"] == len(rows)
+    assert len(i.triggers) == 1 and stamps[0] <= i.triggers[0] <= stamps[-1]
+    assert i.metadata["exolink.labels"] == {"subject": "S01", "session": "walk"}
+    assert (
+        i.metadata["exolink"]["device"] == "sim"
+        and "device: sim" in i.metadata["exolink.config"]["yaml"]
+    )
+    assert i.metadata["exolink.stats"]["dropped"] == "0"
+    # CSV export matches the decoded values, with time relative to the trigger
+    out = tmp_path / "csv"
+    counts = export_csv(path, out)
+    assert counts["/h2/joint_states"] == len(rows)
+    with (out / "h2__joint_states.csv").open() as f:
+        table = list(csv.DictReader(f))
+    by_time = {round(float(r["time_s"]) * 1e9): r for r in table}
+    for _data, msg in rows[::25]:
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        row = min(by_time.items(), key=lambda kv: abs(kv[0] - ns))[1]
+        assert float(row["r_knee_rad"]) == pytest.approx(msg.position[1])
+        assert float(row["r_knee_deg"]) == pytest.approx(msg.position[1] * 57.29577951308232)
+        expect_rel = (ns - i.triggers[0]) / 1e9
+        assert (row["time_since_trigger_s"] == "") == (ns < i.triggers[0])
+        if ns >= i.triggers[0]:
+            assert float(row["time_since_trigger_s"]) == pytest.approx(expect_rel, abs=1e-6)
+    r = subprocess.run([*EXOLINK, "info", str(path)], capture_output=True, text=True)
+    assert "triggers  1" in r.stdout and "/h2/joint_states" in r.stdout
+
+
+def test_kill9_leaves_a_recoverable_file(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir, fsync_interval_s=0.5, autostart=True)), spawn)
+    time.sleep(3)
+    os.kill(app.node("recorder")["pid"], signal.SIGKILL)
+    killed_at = time.time_ns()
+    time.sleep(0.5)
+    first = recordings(rec_dir)[0]
+    with pytest.raises(RecordingError, match="try `exolink recover`"):
+        info(first)
+    out = tmp_path / "recovered.mcap"
+    r = subprocess.run(
+        [*EXOLINK, "recover", str(first), "-o", str(out)], capture_output=True, text=True
+    )
+    assert r.returncode == 0, r.stderr
+    i = info(out)
+    js = i.topics["/h2/joint_states"]["count"]
+    # everything up to the last fsync (0.5 s) survives: ~100/s for ~3 s, minus at most ~0.6 s
+    assert js >= 200
+    assert i.end_ns <= killed_at
+    assert rosbags_decode(out, "/h2/joint_states")[-1][1].name[0] == "r_hip"
+
+
+@pytest.fixture
+def tiny_disk(tmp_path: Path):  # type: ignore[no-untyped-def]
+    d = tmp_path / "tiny"
+    d.mkdir()
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(d)], capture_output=True, text=True
+    )
+    if r.returncode != 0:
+        pytest.skip(
+            f"cannot mount a small tmpfs here (needs root / CAP_SYS_ADMIN): {r.stderr.strip()}"
+        )
+    yield d
+    subprocess.run(["umount", "-l", str(d)], check=False)
+
+
+def test_disk_full_stops_cleanly_and_keeps_earlier_files(write_config, spawn, tiny_disk) -> None:  # type: ignore[no-untyped-def]
+    params = {
+        "autostart": True,
+        "compression": "none",
+        "split_size_mb": 0.15,
+        "fsync_interval_s": 0.2,
+    }
+    app = Appliance(write_config(nodes=nodes(tiny_disk, **params)), spawn)
+    wait_for(lambda: "disk full" in app.cli("record", "status").stdout, timeout=60)
+    st = app.cli("record", "status", "--json")
+    assert '"state": "error"' in st.stdout
+    files = recordings(tiny_disk)
+    assert len(files) >= 2
+    for f in files[:-1]:  # every finished file is intact
+        assert info(f).topics["/h2/joint_states"]["count"] > 0
+    wait_for(lambda: app.node("recorder")["health"] == "error: disk full", timeout=5)
+    assert app.node("recorder")["state"] == "running"  # the node lives on; nothing else is affected
+    assert "error: disk full" in app.cli("status").stdout
+
+
+def test_play_then_rerecord_gives_identical_messages(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    src_dir, dst_dir = tmp_path / "src", tmp_path / "dst"
+    app = Appliance(write_config(nodes=nodes(src_dir)), spawn)
+    assert app.cli("record", "start").returncode == 0
+    time.sleep(2)
+    assert app.cli("record", "stop").returncode == 0
+    [src] = recordings(src_dir)
+    app.proc.stop()
+    # a second appliance with only a recorder: nothing else publishes joint states there
+    other = Appliance(
+        write_config(
+            nodes=[
+                {"name": "recorder", "plugin": "recorder", "params": {"directory": str(dst_dir)}}
+            ]
+        ),
+        spawn,
+    )
+    assert other.cli("record", "start").returncode == 0
+    r = subprocess.run(
+        [
+            *EXOLINK,
+            "play",
+            str(src),
+            "--rate",
+            "4",
+            "--topics",
+            "joint_states",
+            "foot_switches",
+            "--at",
+            other.at,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    time.sleep(0.5)
+    assert other.cli("record", "stop").returncode == 0
+    [dst] = recordings(dst_dir)
+    for topic in ("/h2/joint_states", "/h2/foot_switches"):
+        a = [d for d, _ in rosbags_decode(src, topic)]
+        b = [d for d, _ in rosbags_decode(dst, topic)]
+        assert a == b and len(a) > 100
+
+
+def test_bad_files_and_commands(tmp_path, write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file")
+    r = subprocess.run([*EXOLINK, "info", str(junk)], capture_output=True, text=True)
+    assert r.returncode == 3 and "not a complete MCAP file" in r.stderr
+    r = subprocess.run(
+        [*EXOLINK, "info", str(tmp_path / "missing.mcap")], capture_output=True, text=True
+    )
+    assert r.returncode == 3 and "no such file" in r.stderr
+    app = Appliance(write_config(nodes=nodes(tmp_path / "rec")), spawn)
+    r = app.cli("record", "stop")
+    assert r.returncode == 5 and "not recording" in r.stderr
+    assert app.cli("record", "start").returncode == 0
+    r = app.cli("record", "start")
+    assert r.returncode == 5 and "already recording" in r.stderr
