@@ -151,12 +151,16 @@ class Recorder(Node):
             with contextlib.suppress(Exception):
                 seq, src, _ = messaging.decode_attachment(att.to_bytes())
         now = time.time_ns()
+        item = (topic, typename, sample.payload.to_bytes(), now, src or now, seq)
+        # Check and enqueue under the lock that stop() takes: once a stop is seen, nothing more
+        # enters the queue, so the final drain writes every message that was counted.
         with self.lock:
+            if self.state != "recording":
+                return
             self.stats.received += 1
-        try:
-            self.q.put_nowait((topic, typename, sample.payload.to_bytes(), now, src or now, seq))
-        except queue.Full:
-            with self.lock:
+            try:
+                self.q.put_nowait(item)
+            except queue.Full:
                 self.stats.dropped += 1
 
     # --- commands -------------------------------------------------------------------------
@@ -173,7 +177,8 @@ class Recorder(Node):
         elif action == "stop":
             if self.state != "recording":
                 raise CommandRefused(f"not recording (state {self.state})")
-            self.state = "stopping"
+            with self.lock:
+                self.state = "stopping"
         elif action != "status":
             raise CommandRefused(f"unknown record action {action!r} (start, stop, status)")
         deadline = time.monotonic() + 5
@@ -284,13 +289,13 @@ class Recorder(Node):
         while not stop.is_set():
             self.beat()
             try:
-                if self.state == "recording" and self.file is None:
-                    self._open()
                 try:
                     item = self.q.get(timeout=0.05)
                 except queue.Empty:
                     item = None
-                if item is not None and self.file is not None:
+                if self.file is None and (item is not None or self.state == "recording"):
+                    self._open()  # only the intake fills the queue, and only while recording
+                if item is not None:
                     self._write(item)
                     for _ in range(500):  # drain in batches; beat() between batches
                         try:
@@ -305,7 +310,6 @@ class Recorder(Node):
                     self._close()
                     self.index += 1
                 if self.state == "stopping":
-                    time.sleep(0.05)  # callbacks that passed the state check before the stop
                     while not self.q.empty():
                         self._write(self.q.get_nowait())
                     self._close()

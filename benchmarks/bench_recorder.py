@@ -1,0 +1,104 @@
+"""Recorder: raw write throughput, bytes per joint-state message, and loss over a long run at
+nominal rates on the simulated appliance."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from exolink import messaging
+from exolink.nodes.recorder import McapFile, RecorderParams
+from exolink.recording import info
+
+from benchmarks.harness import Appliance
+
+JS = "sensor_msgs/msg/JointState"
+
+
+def throughput(n: int, compression: str) -> dict[str, Any]:
+    cls = messaging.msg_class(JS)
+    payloads = []
+    rng = np.random.default_rng(0)
+    for i in range(1000):
+        ns = 1_700_000_000_000_000_000 + i * 10_000_000
+        angles = np.round(rng.normal(0, 20, 6)) * np.pi / 180
+        payloads.append(
+            (
+                ns,
+                messaging.serialize(
+                    cls(
+                        header=messaging.header(ns),
+                        name=["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"],
+                        position=angles,
+                        velocity=np.empty(0),
+                        effort=np.round(rng.normal(0, 3, 6)),
+                    ),
+                    JS,
+                ),
+            )
+        )
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "t.mcap"
+        f = McapFile(path, RecorderParams(compression=compression), {})  # type: ignore[arg-type]
+        cid = f.channel("h2/joint_states", JS)
+        t = time.perf_counter()
+        for i in range(n):
+            ns, data = payloads[i % 1000]
+            f.w.add_message(cid, log_time=ns + i, data=data, publish_time=ns, sequence=i)
+        f.close({})
+        dt = time.perf_counter() - t
+        size = path.stat().st_size
+    return {
+        "messages_per_s": round(n / dt),
+        "bytes_per_joint_state": round(size / n, 1),
+        "cdr_payload_bytes": len(payloads[0][1]),
+    }
+
+
+def long_run(seconds: float) -> dict[str, Any]:
+    d = tempfile.mkdtemp(prefix="exolink-rec-")
+    nodes = [
+        {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
+        {"name": "h2_reader", "plugin": "h2_reader"},
+        {
+            "name": "maccepa_bridge",
+            "plugin": "maccepa_bridge",
+            "params": {"boards": [0], "require_armed": False},
+        },
+        {"name": "recorder", "plugin": "recorder", "params": {"directory": d}},
+    ]
+    app = Appliance(nodes=nodes)
+    try:
+        app.call("record", {"action": "start"})
+        time.sleep(seconds)
+        s = app.call("record", {"action": "stop"})
+        rss = app.node("recorder").get("rss_mb")
+        cpu = app.node("recorder").get("cpu_s")
+    finally:
+        app.close()
+    files = sorted(Path(d).glob("*.mcap"))
+    i = info(files[0])
+    return {
+        "seconds": seconds,
+        "received": s["received"],
+        "written": s["written"],
+        "dropped": s["dropped"],
+        "messages_per_s": round(s["written"] / seconds),
+        "file_mb": round(files[0].stat().st_size / 2**20, 2),
+        "joint_states": i.topics["/h2/joint_states"]["count"],
+        "recorder_rss_mb": rss,
+        "recorder_cpu_s": cpu,
+    }
+
+
+def run(quick: bool) -> dict[str, Any]:
+    n = 20_000 if quick else 200_000
+    return {
+        "write_zstd": throughput(n, "zstd"),
+        "write_lz4": throughput(n, "lz4"),
+        "write_none": throughput(n, "none"),
+        "long_run": long_run(10 if quick else 120),
+    }
