@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
 
-.PHONY: install sim test lint format bench lock dbc clean
+.PHONY: install sim test test-kernel lint format bench lock dbc clean
 
 install: $(STAMP)
 
@@ -25,6 +25,10 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# Kernel-level tests (SocketCAN in User-Mode Linux, gpio-sim in qemu): see tests/kernel/run.sh.
+test-kernel: $(STAMP)
+	bash tests/kernel/run.sh
 
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .

@@ -107,6 +107,33 @@ def header(ns: int, frame_id: str = "") -> Any:
     return msg_class("std_msgs/msg/Header")(stamp=stamp(ns), frame_id=frame_id)
 
 
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+LEVELS = {"ok": 0, "warn": 1, "error": 2}
+
+
+def diagnostics(
+    ns: int, name: str, level: str, message: str, hardware_id: str, values: dict[str, Any]
+) -> Any:
+    """A one-status diagnostic_msgs/DiagnosticArray (what ROS 2 tools show as diagnostics)."""
+    types = typestore().types
+    kv, status = (
+        types["diagnostic_msgs/msg/KeyValue"],
+        types["diagnostic_msgs/msg/DiagnosticStatus"],
+    )
+    return types[DIAGNOSTICS_TYPE](
+        header=header(ns),
+        status=[
+            status(
+                level=LEVELS[level],
+                name=name,
+                message=message,
+                hardware_id=hardware_id,
+                values=[kv(key=k, value=str(v)) for k, v in values.items()],
+            )
+        ],
+    )
+
+
 def stamp_ns(t: Any) -> int:
     return int(t.sec) * 1_000_000_000 + int(t.nanosec)
 

@@ -21,7 +21,7 @@ from exolink.protocol import h2
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
-DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = np.pi / 180.0
 
 
@@ -152,9 +152,6 @@ class H2Reader(Node):
         self.stats.published_foot_switches += 1
 
     def _diagnostics(self) -> None:
-        store = messaging.typestore().types
-        kv = store["diagnostic_msgs/msg/KeyValue"]
-        status = store["diagnostic_msgs/msg/DiagnosticStatus"]
         st = self.stats
         values = {
             **{f"frames_{i}": n for i, n in st.frames.items()},
@@ -166,21 +163,16 @@ class H2Reader(Node):
             "stream_restarts": st.stream_restarts,
         }
         silent = self._silent_for() > 0.1
-        level = 2 if silent else 0  # DiagnosticStatus ERROR / OK
         now = time.time_ns()
-        arr = store[DIAGNOSTICS](
-            header=messaging.header(now),
-            status=[
-                status(
-                    level=level,
-                    name=f"{self.name}/h2_stream",
-                    message="no H2 data" if silent else "streaming",
-                    hardware_id="h2",
-                    values=[kv(key=k, value=str(v)) for k, v in values.items()],
-                )
-            ],
+        msg = messaging.diagnostics(
+            now,
+            f"{self.name}/h2_stream",
+            "error" if silent else "ok",
+            "no H2 data" if silent else "streaming",
+            "h2",
+            values,
         )
-        self.pub_diag.publish(arr, now)
+        self.pub_diag.publish(msg, now)
 
     def _silent_for(self) -> float:
         last = max(self.gaps.last.values(), default=None)

@@ -29,7 +29,7 @@ from exolink import __version__, messaging
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 
-DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 QUEUE_MAX = 50_000
 
 
@@ -325,32 +325,16 @@ class Recorder(Node):
                 self._diagnostics()
 
     def _diagnostics(self) -> None:
-        store = messaging.typestore().types
-        kv, status = (
-            store["diagnostic_msgs/msg/KeyValue"],
-            store["diagnostic_msgs/msg/DiagnosticStatus"],
-        )
         s = self.status()
-        level = 2 if self.state == "error" else 1 if s["dropped"] else 0
+        level = "error" if self.state == "error" else "warn" if s["dropped"] else "ok"
         now = time.time_ns()
         values = {
             k: s[k] for k in ("state", "file", "size", "received", "written", "dropped", "queue")
         }
-        self.pub_diag.publish(
-            store[DIAGNOSTICS](
-                header=messaging.header(now),
-                status=[
-                    status(
-                        level=level,
-                        name=f"{self.name}/recording",
-                        message=self.error or self.state,
-                        hardware_id="sd",
-                        values=[kv(key=k, value=str(v)) for k, v in values.items()],
-                    )
-                ],
-            ),
-            now,
+        msg = messaging.diagnostics(
+            now, f"{self.name}/recording", level, self.error or self.state, "sd", values
         )
+        self.pub_diag.publish(msg, now)
 
     def shutdown(self) -> None:
         for s in getattr(self, "subs", []):

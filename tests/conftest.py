@@ -20,6 +20,7 @@ import pytest
 import yaml
 from exolink import messaging
 from exolink.config import bundled, load
+from exolink.supervisor import canlink
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
 
@@ -123,6 +124,21 @@ def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.
     raise AssertionError(f"condition not met within {timeout} s")
 
 
+def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
+    """Until every named node has declared its liveliness token (it does so after configure())."""
+    s = messaging.open_client_session(endpoint)
+    try:
+
+        def alive() -> bool:
+            replies = s.liveliness().get("exolink/*/nodes/*/alive", timeout=1)
+            seen = {str(r.ok.key_expr).split("/")[3] for r in replies if r.ok is not None}
+            return set(names) <= seen
+
+        wait_for(alive, timeout=timeout)
+    finally:
+        s.close()
+
+
 class Proc:
     """A real exolink process whose stderr is kept for the failure message."""
 
@@ -194,3 +210,82 @@ class Appliance:
     def arm(self) -> None:
         r = wait_for(lambda: (x := self.cli("arm")).returncode == 0 and x, timeout=10)
         assert "armed" in r.stdout  # type: ignore[union-attr]
+
+
+# --- kernel-level fixtures (tests/kernel): a real vcan0 (UML guest), a real gpio-sim chip (qemu) ---
+# On a kernel without them (the plain host) those tests skip with the reason; `make test-kernel`
+# runs them inside the guests (tests/kernel/vmtest.sh), where a missing feature fails instead.
+
+GPIO_SIM = Path("/sys/kernel/config/gpio-sim")
+REQUIRED = os.environ.get("EXOLINK_REQUIRE_KERNEL", "")  # set inside the guests: fail, never skip
+
+
+def _missing(feature: str, why: str) -> None:
+    if feature in REQUIRED:
+        pytest.fail(f"inside the test guest: {why}")
+    pytest.skip(why)
+
+
+def _vcan_possible() -> str | None:
+    from pyroute2 import IPRoute
+    from pyroute2.netlink.exceptions import NetlinkError
+
+    try:
+        with IPRoute() as ip:
+            if ip.link_lookup(ifname="vcan0"):
+                ip.link("del", index=ip.link_lookup(ifname="vcan0")[0])
+            ip.link("add", ifname="vcan0", kind="vcan")
+    except NetlinkError as exc:
+        return f"this kernel has no SocketCAN vcan ({exc}); run `make test-kernel`"
+    return None
+
+
+@pytest.fixture
+def vcan0() -> Iterator[str]:
+    """vcan0 created through netlink and brought up by the supervisor's own bring-up code."""
+    why = _vcan_possible()
+    if why:
+        _missing("can", why)
+    from exolink.config import CanConfig
+
+    canlink.bring_up(CanConfig(interface="socketcan", channel="vcan0"))
+    yield "vcan0"
+    from pyroute2 import IPRoute
+
+    with IPRoute() as ip:
+        idx = ip.link_lookup(ifname="vcan0")
+        if idx:
+            ip.link("del", index=idx[0])
+
+
+class SimChip:
+    """A gpio-sim chip made through configfs; lines are driven through their `pull` attribute."""
+
+    def __init__(self, name: str, lines: int = 8) -> None:
+        self.dir = GPIO_SIM / name
+        (self.dir / "bank0").mkdir(parents=True)
+        (self.dir / "bank0" / "num_lines").write_text(str(lines))
+        (self.dir / "live").write_text("1")
+        self.chip = "/dev/" + (self.dir / "bank0" / "chip_name").read_text().strip()
+        dev = (self.dir / "dev_name").read_text().strip()
+        self.sysfs = Path("/sys/devices/platform") / dev / Path(self.chip).name
+
+    def pull(self, line: int, up: bool) -> None:
+        (self.sysfs / f"sim_gpio{line}" / "pull").write_text("pull-up" if up else "pull-down")
+
+    def value(self, line: int) -> int:
+        return int((self.sysfs / f"sim_gpio{line}" / "value").read_text())
+
+    def close(self) -> None:
+        (self.dir / "live").write_text("0")
+        (self.dir / "bank0").rmdir()
+        self.dir.rmdir()
+
+
+@pytest.fixture
+def gpio_sim() -> Iterator[SimChip]:
+    if not GPIO_SIM.is_dir():
+        _missing("gpio", "this kernel has no gpio-sim (configfs gpio-sim); run `make test-kernel`")
+    chip = SimChip(f"exo{os.getpid()}{int(time.time() * 1000) % 100000}")
+    yield chip
+    chip.close()

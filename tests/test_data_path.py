@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import EXOLINK, collect, wait_for
+from conftest import EXOLINK, collect, wait_alive, wait_for
 from exolink import messaging
 from exolink.config import load
 from exolink.protocol import h2
@@ -75,6 +75,7 @@ def appliance(write_config, spawn):  # type: ignore[no-untyped-def]
     }
     for n in ("h2_reader", "h2_sender"):
         procs[n] = spawn("node", "run", n, "-c", str(cfg_path), name=n)
+    wait_alive(messaging.local_endpoint(cfg.zenoh), list(procs))
     return cfg_path, cfg, procs
 
 

@@ -37,7 +37,7 @@ START_GRACE_S = 20.0
 HEALTH_PERIOD_S = 0.2
 STATE_PERIOD_S = 1.0
 TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
-DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTICS_TYPE = messaging.DIAGNOSTICS_TYPE
 PATTERN_TYPE = "exolink_msgs/msg/PatternState"
 
 
@@ -332,13 +332,8 @@ class Supervisor:
         return 0
 
     def _publish_diagnostics(self) -> None:
-        store = messaging.typestore().types
-        kv, status = (
-            store["diagnostic_msgs/msg/KeyValue"],
-            store["diagnostic_msgs/msg/DiagnosticStatus"],
-        )
         wd = self.watchdog.snapshot()
-        values = {
+        values: dict[str, Any] = {
             "watchdog": wd.state,
             "reason": wd.reason,
             "trips": wd.trips,
@@ -350,22 +345,10 @@ class Supervisor:
                 "txerr": self.health.txerr,
                 "rxerr": self.health.rxerr,
             }
-        level = 0 if wd.state != "tripped" else 2
         now = time.time_ns()
+        level = "error" if wd.state == "tripped" else "ok"
         self.pub_diag.publish(
-            store[DIAGNOSTICS_TYPE](
-                header=messaging.header(now),
-                status=[
-                    status(
-                        level=level,
-                        name="supervisor",
-                        message=wd.state,
-                        hardware_id=self.cfg.device,
-                        values=[kv(key=k, value=str(v)) for k, v in values.items()],
-                    )
-                ],
-            ),
-            now,
+            messaging.diagnostics(now, "supervisor", level, wd.state, self.cfg.device, values), now
         )
 
     # --- shutdown ---------------------------------------------------------------------------

@@ -68,13 +68,14 @@ class GpioTrigger:
         self.thread.start()
 
     def _loop(self) -> None:
-        from gpiod.EdgeEvent import Type
+        from gpiod import EdgeEvent
 
+        rising = EdgeEvent.Type.RISING_EDGE
         while not self.stop.is_set():
             if not self.req.wait_edge_events(timedelta(milliseconds=200)):
                 continue
             for ev in self.req.read_edge_events():
-                self.on_edge(Edge(ev.timestamp_ns, ev.event_type == Type.RISING_EDGE, "gpio"))
+                self.on_edge(Edge(ev.timestamp_ns, ev.event_type == rising, "gpio"))
 
     def close(self) -> None:
         self.stop.set()

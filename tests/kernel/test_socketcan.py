@@ -1,0 +1,151 @@
+"""Real SocketCAN (vcan in the UML guest): kernel filters, netlink bring-up, the appliance on vcan0
+with an independent socketcan listener, and the broadcast manager's timing."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import pytest
+import yaml
+from exolink.canbus import id_filters, open_bus
+from exolink.config import CanConfig, bundled
+from exolink.protocol import h2
+from exolink.supervisor import canlink
+
+pytestmark = pytest.mark.kernel
+EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
+
+
+def listener(channel: str) -> can.BusABC:
+    return can.Bus(interface="socketcan", channel=channel, receive_own_messages=False)
+
+
+def drain(bus: can.BusABC, seconds: float, ids: set[int] | None = None) -> list[can.Message]:
+    out, end = [], time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        m = bus.recv(left)
+        if m is not None and (ids is None or m.arbitration_id in ids):
+            out.append(m)
+    return out
+
+
+def test_bus_factory_kernel_filters(vcan0: str) -> None:
+    bus = open_bus(CanConfig(interface="socketcan", channel=vcan0), filters=id_filters([110]))
+    tx = listener(vcan0)
+    try:
+        for fid in (120, 110, 130, 110):
+            tx.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
+        got = drain(bus, 0.3)
+        assert [m.arbitration_id for m in got] == [110, 110]
+        assert bus._is_filtered  # applied in the kernel, not in python-can
+        assert abs(got[0].timestamp - time.time()) < 5  # kernel timestamps are wall clock
+    finally:
+        bus.shutdown()
+        tx.shutdown()
+
+
+def test_netlink_up_down_and_bitrate_refusal(vcan0: str) -> None:
+    canlink.set_state(vcan0, up=False)
+    assert canlink.health(vcan0).state == "down"
+    canlink.set_state(vcan0, up=True)
+    assert canlink.health(vcan0).state == "up"
+    with pytest.raises(canlink.CanLinkError, match="vcan0 cannot take a bitrate"):
+        canlink.set_bitrate(vcan0, 1_000_000)
+
+
+def write_config(tmp_path: Path, channel: str, nodes: list[dict]) -> Path:
+    data = yaml.safe_load(bundled("sim").read_text())
+    data["can"] = {"interface": "socketcan", "channel": channel, "bring_up": True}
+    data["nodes"] = nodes
+    path = tmp_path / "appliance.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*EXOLINK, *args, "--timeout", "5"], capture_output=True, text=True, timeout=60
+    )
+
+
+def wait_status(pred, timeout: float = 60) -> dict:  # type: ignore[no-untyped-def]
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        r = cli("status", "--json")
+        if r.returncode == 0:
+            s = json.loads(r.stdout)
+            if pred(s):
+                return s
+        time.sleep(0.3)
+    raise AssertionError("status condition not met")
+
+
+def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: Path) -> None:
+    nodes = [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+        {
+            "name": "pattern_player",
+            "plugin": "pattern_player",
+            "critical": True,
+            "params": {
+                "speed": 10,
+                "timing": "periodic",
+                "selected": ["r_hip", "r_knee", "l_hip", "l_knee"],
+            },
+        },
+        {"name": "timing_monitor", "plugin": "timing_monitor", "params": {"ids": [70]}},
+    ]
+    cfg = write_config(tmp_path, vcan0, nodes)
+    log = (tmp_path / "up.log").open("wb")
+    up = subprocess.Popen([*EXOLINK, "up", "-c", str(cfg)], stdout=log, stderr=subprocess.STDOUT)
+    bus = listener(vcan0)
+    try:
+        wait_status(lambda s: all(n["heartbeat_age_s"] is not None for n in s["nodes"]))
+        assert cli("send", "position", "r_knee", "20").returncode == 5  # not armed yet
+        end = time.monotonic() + 20
+        while cli("arm").returncode != 0 and time.monotonic() < end:
+            time.sleep(0.3)
+        # the broadcast manager plays the pattern; the timing monitor measures kernel timestamps
+        assert cli("pattern", "start", "--detach").returncode == 0
+        r = cli("timing", "70", "--motor", "1", "--dlc", "6", "--seconds", "10", "--json")
+        stats = json.loads(r.stdout)
+        print("BCM timing in the UML guest:", json.dumps(stats))
+        (Path(os.environ.get("EXOLINK_KERNEL_RESULTS", tmp_path)) / "bcm-timing.json").write_text(
+            json.dumps(stats)
+        )
+        # behaviour, not a performance bound: the kernel plays the pattern at the speed-10 rate
+        assert stats["n"] > 300 and 18 < stats["mean_period_ms"] < 22
+        # kill -9 of the reader: the watchdog's disable frames, seen by an independent socket
+        pid = next(
+            n["pid"]
+            for n in json.loads(cli("status", "--json").stdout)["nodes"]
+            if n["name"] == "h2_reader"
+        )
+        drain(bus, 0.1)
+        os.kill(pid, signal.SIGKILL)
+        frames = [h2.decode(m) for m in drain(bus, 1.0, {70})]
+        disabled = {f for f in frames if isinstance(f, h2.JointControl) and f.mode == 4}
+        assert disabled == {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)}
+        # and the pattern's kernel task stopped with the trip: no more position frames
+        time.sleep(0.3)
+        drain(bus, 0.1)
+        late = [
+            f
+            for f in (h2.decode(m) for m in drain(bus, 0.5, {70}))
+            if isinstance(f, h2.JointControl) and f.mode == 1
+        ]
+        assert late == []
+    finally:
+        bus.shutdown()
+        up.terminate()
+        up.wait(30)
+        log.close()
