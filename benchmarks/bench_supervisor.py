@@ -23,7 +23,12 @@ NODES = [
         "critical": True,
         "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
     },
-    {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+    {
+        "name": "h2_sender",
+        "plugin": "h2_sender",
+        "critical": True,
+        "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
+    },  # killed per SIGSTOP trial
 ]
 
 

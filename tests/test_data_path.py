@@ -15,6 +15,7 @@ from conftest import EXOLINK, collect, wait_alive, wait_for
 from exolink import messaging
 from exolink.config import load
 from exolink.protocol import h2
+from rosbags.typesys import Stores, get_typestore
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},
@@ -96,21 +97,25 @@ def test_joint_states_reach_another_process_with_sim_values(appliance, tmp_path,
     sub.wait(10)
     samples = read_samples(out)
     assert len(samples) > 200, [p.output() for p in procs.values()]
-    stamps = []
+    stamps, seqs, gids = [], [], set()
     by_ts = {round(m.timestamp * 1e9): h2.decode(m) for m in bus_frames if m.arbitration_id == 110}
     matched = 0
     for payload, att, key in samples:
         # Independent decoder: rosbags' own typestore, not exolink's wrapper.
-        from rosbags.typesys import Stores, get_typestore
-
         msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(
             payload, "sensor_msgs/msg/JointState"
         )
         assert payload[:4] == b"\x00\x01\x00\x00"
-        assert key.startswith("0/h2/joint_states/sensor_msgs::msg::dds_::JointState_/RIHS01_")
-        seq, ts, gid = messaging.decode_attachment(att)
-        assert seq > 0 and len(gid) == 16
+        # key and attachment byte by byte, without exolink's own helpers
+        rihs = get_typestore(Stores.ROS2_JAZZY).hash_rihs01("sensor_msgs/msg/JointState")
+        assert key == f"0/h2/joint_states/sensor_msgs::msg::dds_::JointState_/{rihs}"
         assert len(att) == 33 and att[16] == 16
+        seq = int.from_bytes(att[0:8], "little", signed=True)
+        ts = int.from_bytes(att[8:16], "little", signed=True)
+        gid = att[17:33]
+        assert seq > 0 and len(gid) == 16 and any(gid)
+        gids.add(gid)
+        seqs.append(seq)
         ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         assert ts == ns
         stamps.append(ns)
@@ -120,6 +125,9 @@ def test_joint_states_reach_another_process_with_sim_values(appliance, tmp_path,
             matched += 1
             np.testing.assert_allclose(msg.position, np.radians(list(sent)))
     assert matched > 0.8 * len(samples)
+    assert (
+        len(gids) == 1 and seqs == sorted(seqs) and seqs[-1] - seqs[0] == len(seqs) - 1
+    )  # one publisher, no gaps
     periods = np.diff(stamps) / 1e6
     assert 9.0 < float(np.median(periods)) < 11.0  # 100 Hz from CAN timestamps
 
