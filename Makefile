@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
 
-.PHONY: install sim test test-kernel lint format bench lock dbc clean
+.PHONY: install sim test test-kernel test-image overlays lint format bench lock dbc clean
 
 install: $(STAMP)
 
@@ -29,6 +29,16 @@ test: $(STAMP)
 # Kernel-level tests (SocketCAN in User-Mode Linux, gpio-sim in qemu): see tests/kernel/run.sh.
 test-kernel: $(STAMP)
 	bash tests/kernel/run.sh
+
+# Device-tree overlay and image checks (dtc from Debian's device-tree-compiler).
+overlays: build/overlays/exolink-dcan1.dtbo
+
+build/overlays/%.dtbo: overlays/%.dts
+	@command -v dtc >/dev/null || { apt-get update -qq && apt-get install -y -qq device-tree-compiler; }
+	mkdir -p $(@D) && dtc -@ -q -I dts -O dtb -o $@ $<
+
+test-image: $(STAMP) overlays
+	EXOLINK_REQUIRE_IMAGE=1 $(BIN)/python -m pytest -q -rs tests/image
 
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
