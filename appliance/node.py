@@ -166,6 +166,17 @@ class NodeRunner:
         return code
 
 
+def stop_on_signals(stop: threading.Event, log: Any) -> None:
+    """SIGTERM / SIGINT set ``stop``: every long-running exolink process ends the same clean way."""
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        log.info("signal", signal=signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+
 def run_standalone(cfg: ApplianceConfig, name: str, listen: list[str] | None = None) -> int:
     """``exolink node run``: one node in this process until SIGTERM/SIGINT."""
     from exolink.plugins import find_node_class
@@ -175,12 +186,7 @@ def run_standalone(cfg: ApplianceConfig, name: str, listen: list[str] | None = N
     session = zenoh.open(messaging.session_config(cfg.zenoh, listen=listen)) if listen else None
     runner = NodeRunner(cls, cfg, name, session)
 
-    def on_signal(signum: int, _frame: Any) -> None:
-        runner.log.info("signal", signal=signal.Signals(signum).name)
-        runner.stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop_on_signals(runner.stop, runner.log)
     try:
         return runner.run()
     finally:

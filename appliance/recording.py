@@ -137,8 +137,6 @@ def message_time_ns(msg: Any, log_time: int) -> int:
 
 def flatten(msg: Any, prefix: str = "") -> dict[str, Any]:
     """Scalar columns of a message; JointState gets one rad and one deg column per joint."""
-    from rosbags.typesys.store import Typestore  # noqa: F401  (message classes are dataclasses)
-
     if type(msg).__name__ == "JointState" or getattr(msg, "__msgtype__", "") == JOINT_STATE:
         cols: dict[str, Any] = {}
         for i, name in enumerate(msg.name):

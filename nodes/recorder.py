@@ -122,9 +122,7 @@ class Recorder(Node):
         m = self.ctx.messaging
         self.subs = [
             self.ctx.session.declare_subscriber(
-                messaging.topic_selector(m.domain_id, m.namespace, t)
-                if t != "**"
-                else f"{m.domain_id}/{m.namespace}/**",
+                messaging.topic_selector(m.domain_id, m.namespace, t),
                 self._on_sample,
             )
             for t in self.params.topics

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 from datetime import UTC, datetime
@@ -21,6 +20,7 @@ def bus_config(args: argparse.Namespace) -> CanConfig:
 def cmd_sim(args: argparse.Namespace) -> int:
     from exolink import logs
     from exolink.canbus import id_filters, open_bus
+    from exolink.node import stop_on_signals
     from exolink.nodes.simulator import SimParams, Simulator
 
     log = logs.setup("sim")
@@ -28,8 +28,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     bus = open_bus(bus_config(args), filters=id_filters(Simulator.command_ids(params)))
     sim = Simulator(bus, params)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stop_on_signals(stop, log)
     log.info("sim_running", bus=f"{args.interface}:{bus.channel_info}", maccepa=args.maccepa)
     try:
         sim.run(stop)

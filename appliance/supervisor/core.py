@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import signal
 import tempfile
 import threading
 import time
@@ -25,7 +24,7 @@ from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import id_filters, open_bus
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
 from exolink.messaging import CommandRefused
-from exolink.node import HEARTBEAT_TOPIC, HEARTBEAT_TYPE
+from exolink.node import HEARTBEAT_TOPIC, HEARTBEAT_TYPE, stop_on_signals
 from exolink.protocol import h2
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.processes import Exit, NodeProcess, relay
@@ -490,12 +489,7 @@ def run(cfg: ApplianceConfig) -> int:
     """Blocking entry point of ``exolink up``."""
     sup = Supervisor(cfg)
 
-    def on_signal(signum: int, _frame: Any) -> None:
-        sup.log.info("signal", signal=signal.Signals(signum).name)
-        sup.stop_event.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop_on_signals(sup.stop_event, sup.log)
     try:
         sup.start()
         return sup.run()

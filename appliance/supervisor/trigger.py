@@ -14,7 +14,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import timedelta
 
-import structlog
 from exolink.config import TriggerConfig
 
 
@@ -152,8 +151,4 @@ def open_source(cfg: TriggerConfig, on_edge: OnEdge) -> GpioTrigger | SimulatedT
 def open_output(cfg: TriggerConfig) -> TriggerOutput | None:
     if cfg.output is None:
         return None
-    try:
-        return TriggerOutput(cfg.output.chip, cfg.output.line, cfg.output.pulse_ms)
-    except TriggerError as exc:
-        structlog.get_logger().warning("trigger_output_unavailable", error=str(exc))
-        raise
+    return TriggerOutput(cfg.output.chip, cfg.output.line, cfg.output.pulse_ms)
