@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 import yaml
@@ -20,6 +20,7 @@ PositiveMs = Annotated[int, msgspec.Meta(ge=1, le=600_000)]
 BoardId = Annotated[int, msgspec.Meta(ge=0, le=9)]
 
 SIM_MULTICAST_GROUP = "239.74.163.2"
+T = TypeVar("T", bound=msgspec.Struct)
 
 
 class ConfigError(Exception):
@@ -134,10 +135,12 @@ def _line_of(root: yaml.Node | None, path: str) -> int | None:
     for part in re.findall(r"\.?([^.\[\]]+)|\[(\d+)\]", path):
         key, index = part
         if isinstance(node, yaml.MappingNode) and key:
-            match = next((v for k, v in node.value if getattr(k, "value", None) == key), None)
+            match = next(((k, v) for k, v in node.value if getattr(k, "value", None) == key), None)
             if match is None:
                 break
-            node = match
+            key_node, node = match
+            line = key_node.start_mark.line + 1  # the key's line, also when its value is a block
+            continue
         elif isinstance(node, yaml.SequenceNode) and index:
             i = int(index)
             if i >= len(node.value):
@@ -163,8 +166,8 @@ def _error(source: str, root: yaml.Node | None, exc: msgspec.ValidationError) ->
     return ConfigError(f"{where}: {path or '(top level)'}: {reason}")
 
 
-def parse(text: str, source: str = "<memory>") -> ApplianceConfig:
-    """Parse and validate a config document, including each node's params against its plugin."""
+def decode_yaml(text: str, source: str, cls: type[T]) -> tuple[T, yaml.Node | None]:
+    """Any of exolink's YAML files into its typed struct, with file:line:path errors."""
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
         data = yaml.safe_load(text)
@@ -180,11 +183,17 @@ def parse(text: str, source: str = "<memory>") -> ApplianceConfig:
         raise ConfigError(
             f"{source}: expected a mapping at the top level, got {type(data).__name__}"
         )
-    data["source"] = source
+    if "source" in cls.__struct_fields__:  # type: ignore[attr-defined]
+        data["source"] = source
     try:
-        cfg = msgspec.convert(data, ApplianceConfig)
+        return msgspec.convert(data, cls), root
     except msgspec.ValidationError as exc:
         raise _error(source, root, exc) from None
+
+
+def parse(text: str, source: str = "<memory>") -> ApplianceConfig:
+    """Parse and validate a config document, including each node's params against its plugin."""
+    cfg, root = decode_yaml(text, source, ApplianceConfig)
     _check_nodes(cfg, root)
     return cfg
 

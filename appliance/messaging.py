@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from exolink.config import ApplianceConfig, ZenohConfig
+from exolink.config import ApplianceConfig, ConfigError, ZenohConfig
 
 MSG_DIR = Path(__file__).with_name("msgs")
 ATTACHMENT = struct.Struct("<qqB16s")
@@ -153,7 +153,10 @@ def session_config(
     clients of it: measured with Zenoh 1.10, a router does not forward between two peers that
     cannot reach each other directly, and nodes should not open ports of their own.
     """
-    cfg = zenoh.Config.from_file(zcfg.config_file) if zcfg.config_file else zenoh.Config()
+    try:
+        cfg = zenoh.Config.from_file(zcfg.config_file) if zcfg.config_file else zenoh.Config()
+    except zenoh.ZError as exc:
+        raise ConfigError(f"{zcfg.config_file}: not a valid Zenoh config: {exc}") from None
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(zcfg.multicast_scouting))
     cfg.insert_json5("scouting/delay", "0")
@@ -197,9 +200,12 @@ def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
     return open_session(zcfg, f"listening on {', '.join(cfg.zenoh.listen)}")
 
 
-def open_client_session(endpoint: str) -> zenoh.Session:
-    """A laptop tool's session to one appliance."""
-    zcfg = session_config(ZenohConfig(listen=[]), connect=[endpoint], mode="client")
+def open_client_session(endpoint: str, config_file: str | None = None) -> zenoh.Session:
+    """A laptop tool's session to one appliance (config_file: the board's login, if it has one)."""
+    if config_file and not os.path.isfile(config_file):
+        raise ConfigError(f"{config_file}: Zenoh config file not found")
+    base = ZenohConfig(listen=[], config_file=config_file)
+    zcfg = session_config(base, connect=[endpoint], mode="client")
     return open_session(zcfg, f"no appliance answers at {endpoint}")
 
 

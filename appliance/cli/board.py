@@ -53,3 +53,15 @@ def cmd_up(args: argparse.Namespace) -> int:
         cfg = simulated(cfg)
     logs.setup("supervisor")
     return run(cfg)
+
+
+def cmd_board_setup(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from exolink import boardsetup, logs
+
+    logs.setup("board-setup")
+    boot = Path(args.boot)
+    settings = boardsetup.load_settings(boot / boardsetup.SETTINGS_FILE)
+    boardsetup.apply(settings, boot, Path(args.root))
+    return 0

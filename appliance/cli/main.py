@@ -49,6 +49,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file")
     p.set_defaults(func=board.cmd_config)
 
+    p = sub.add_parser(
+        "board-setup", help="apply the card's exolink-settings.yaml to the board (at boot)"
+    )
+    p.add_argument("--boot", default="/boot/firmware", help="where the card's FAT partition is")
+    p.add_argument("--root", default="/", help="root to write into (a scratch dir for checks)")
+    p.set_defaults(func=board.cmd_board_setup)
+
     p = sub.add_parser("node", help="run one node standalone")
     nsub = p.add_subparsers(dest="node_cmd", required=True)
     q = nsub.add_parser("run", help="run NAME from the config in this process")

@@ -28,7 +28,7 @@ class Remote:
         self.at = args.at
         self.timeout = args.timeout
         self.domain, self.ns = args.domain, args.ns
-        self.session = messaging.open_client_session(self.at)
+        self.session = messaging.open_client_session(self.at, args.zenoh_config)
         self._device = args.device
 
     @property
@@ -313,6 +313,12 @@ def common() -> argparse.ArgumentParser:
         "--device",
         default=os.environ.get("EXOLINK_DEVICE"),
         help="device name when several appliances answer (env EXOLINK_DEVICE)",
+    )
+    g.add_argument(
+        "--zenoh-config",
+        default=os.environ.get("EXOLINK_ZENOH_CONFIG"),
+        help="Zenoh login for a board that requires one: the card's exolink-laptop.json5 "
+        "(env EXOLINK_ZENOH_CONFIG)",
     )
     g.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for an answer")
     g.add_argument("--domain", type=int, default=0, help="ROS domain id of data topics")

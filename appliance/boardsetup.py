@@ -1,0 +1,345 @@
+"""Board setup from the card: turns the one file users edit on the boot partition into /etc.
+
+A lab engineer flashes a card on a laptop, edits ``exolink-settings.yaml`` on its FAT partition
+(the only part every OS can write) and boots. ``exolink-setup.service`` runs this before the
+network and the supervisor on every boot, so editing the file later and rebooting also works. It
+renders files (pure, tested on the host against a scratch root) and then runs the few commands
+that only make sense on the live board (hostname, passwords, SSH host keys, growing the root
+partition), only when the root is ``/``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import ipaddress
+import json
+import os
+import re
+import secrets
+import socket
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import msgspec
+import structlog
+from exolink.config import ConfigError, DeviceName, decode_yaml, load
+
+log = structlog.get_logger("exolink.boardsetup")
+
+SETTINGS_FILE = "exolink-settings.yaml"
+LAPTOP_FILE = "exolink-laptop.json5"
+FIRST_BOOT_DONE = "var/lib/exolink/first-boot.done"
+LOGIN_USER = "exo"
+SERVICE_GROUP = "exolink"
+ZENOH_USERS = "etc/exolink/zenoh-users.txt"
+
+Country = Annotated[str, msgspec.Meta(pattern=r"^[A-Z]{2}$")]
+Host = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9.:-]{1,253}$")]
+
+
+class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+    pass
+
+
+class Ethernet(_Strict):
+    address: str = "dhcp"  # "dhcp" or CIDR, e.g. 192.168.10.2/24
+    gateway: str = ""
+    dns: list[Host] = msgspec.field(default_factory=list)
+
+
+class Wifi(_Strict):
+    country: Country = "DE"
+    ssid: Annotated[str, msgspec.Meta(max_length=32)] = ""
+    password: str = ""
+
+
+class ZenohAuth(_Strict):
+    user: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{0,32}$")] = "lab"
+    password: str = ""
+
+
+class Ssh(_Strict):
+    authorized_keys: list[str] = msgspec.field(default_factory=list)
+    password: str = ""
+
+
+class BoardSettings(_Strict):
+    device: DeviceName
+    ethernet: Ethernet = msgspec.field(default_factory=Ethernet)
+    wifi: Wifi = msgspec.field(default_factory=Wifi)
+    time_servers: list[Host] = msgspec.field(default_factory=lambda: ["pool.ntp.org"])
+    zenoh: ZenohAuth = msgspec.field(default_factory=ZenohAuth)
+    ssh: Ssh = msgspec.field(default_factory=Ssh)
+    simulate: bool = False
+
+
+def load_settings(path: Path) -> BoardSettings:
+    """Parse and check the card's settings; every error names the file, line and key."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")  # Windows editors add a BOM
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: settings file not found") from None
+    settings, _ = decode_yaml(text, str(path), BoardSettings)
+    _check(settings, str(path))
+    return settings
+
+
+def _check(s: BoardSettings, source: str) -> None:
+    """What the schema cannot say: addresses that parse, a Wi-Fi password WPA accepts."""
+    eth = s.ethernet
+    if eth.address != "dhcp":
+        try:
+            ipaddress.ip_interface(eth.address)
+        except ValueError:
+            raise ConfigError(
+                f"{source}: ethernet.address: expected 'dhcp' or an address with prefix "
+                f"like 192.168.10.2/24, got {eth.address!r}"
+            ) from None
+        if "/" not in eth.address:
+            raise ConfigError(f"{source}: ethernet.address: {eth.address!r} needs a /prefix")
+    if eth.gateway:
+        try:
+            ipaddress.ip_address(eth.gateway)
+        except ValueError:
+            raise ConfigError(
+                f"{source}: ethernet.gateway: not an IP address: {eth.gateway!r}"
+            ) from None
+    if s.wifi.ssid and not 8 <= len(s.wifi.password) <= 63:
+        raise ConfigError(f"{source}: wifi.password: WPA2 needs 8 to 63 characters")
+    for i, key in enumerate(s.ssh.authorized_keys):
+        if not re.match(r"^(ssh-|ecdsa-|sk-)\S+ \S+", key):
+            raise ConfigError(
+                f"{source}: ssh.authorized_keys[{i}]: not an OpenSSH public key line "
+                "(expected 'ssh-ed25519 AAAA... comment')"
+            )
+
+
+@dataclass
+class Plan:
+    """What applying the settings does to the root and the boot partition."""
+
+    files: dict[str, tuple[str, int]] = field(default_factory=dict)  # path -> (text, mode)
+    remove: list[str] = field(default_factory=list)
+    boot_files: dict[str, str] = field(default_factory=dict)  # written back to the boot partition
+    first_boot: bool = False  # also regenerate SSH host keys and grow the root partition
+
+
+def _network(s: BoardSettings) -> dict[str, str]:
+    """systemd-networkd: DHCP or static on Ethernet, DHCP on Wi-Fi, mDNS (<device>.local) on both.
+
+    Link-local addressing stays on, so a laptop on a direct cable reaches the board without DHCP.
+    """
+    eth = s.ethernet
+    lines = ["[Match]", "Name=eth* en*", "", "[Network]"]
+    if eth.address == "dhcp":
+        lines.append("DHCP=yes")
+    else:
+        lines.append(f"Address={eth.address}")
+        if eth.gateway:
+            lines.append(f"Gateway={eth.gateway}")
+    lines += [f"DNS={d}" for d in eth.dns]
+    lines += ["LinkLocalAddressing=ipv4", "MulticastDNS=yes", ""]
+    out = {"etc/systemd/network/10-exolink-ethernet.network": "\n".join(lines)}
+    if s.simulate:  # the simulated CAN bus (udp multicast) stays on this board
+        out["etc/systemd/network/05-exolink-sim-lo.network"] = (
+            "[Match]\nName=lo\n\n[Route]\nDestination=224.0.0.0/4\n"
+        )
+    if s.wifi.ssid:
+        out["etc/systemd/network/20-exolink-wifi.network"] = (
+            "[Match]\nName=wl*\n\n[Network]\nDHCP=yes\nMulticastDNS=yes\n"
+        )
+    return out
+
+
+def _wpa(s: BoardSettings) -> str:
+    """The PSK is derived here (PBKDF2, as wpa_passphrase does): no quoting rules, no plain text."""
+    psk = hashlib.pbkdf2_hmac("sha1", s.wifi.password.encode(), s.wifi.ssid.encode(), 4096, 32)
+    return (
+        "ctrl_interface=DIR=/run/wpa_supplicant GROUP=netdev\n"
+        f"country={s.wifi.country}\n"
+        "network={\n"
+        f"    ssid={s.wifi.ssid.encode().hex()}\n"
+        f"    psk={psk.hex()}\n"
+        "}\n"
+    )
+
+
+def _zenoh_password(s: BoardSettings, root: Path) -> str:
+    """The card's password, else the one made up on an earlier boot, else a new random one."""
+    if s.zenoh.password:
+        return s.zenoh.password
+    users = root / ZENOH_USERS
+    if users.exists():
+        for line in users.read_text().splitlines():
+            user, _, password = line.partition(":")
+            if user == s.zenoh.user and password:
+                return password
+    return secrets.token_urlsafe(12)
+
+
+def _zenoh(s: BoardSettings, root: Path, plan: Plan) -> None:
+    """Router, nodes and laptops all present user/password; the router checks the dictionary.
+
+    An empty user switches authentication off (a closed lab network), which the log says.
+    """
+    if not s.zenoh.user:
+        plan.files["etc/exolink/zenoh.json5"] = ("{}\n", 0o640)
+        plan.remove.append(ZENOH_USERS)
+        log.warning("zenoh authentication is off", why="zenoh.user is empty in the settings")
+        return
+    password = _zenoh_password(s, root)
+    auth = {"user": s.zenoh.user, "password": password}
+    board = {"transport": {"auth": {"usrpwd": {**auth, "dictionary_file": "/" + ZENOH_USERS}}}}
+    plan.files["etc/exolink/zenoh.json5"] = (json.dumps(board, indent=2) + "\n", 0o640)
+    plan.files[ZENOH_USERS] = (f"{s.zenoh.user}:{password}\n", 0o640)
+    laptop = {"transport": {"auth": {"usrpwd": auth}}}
+    plan.boot_files[LAPTOP_FILE] = (
+        f"// Zenoh login for {s.device}: on the laptop, "
+        f"exolink --zenoh-config {LAPTOP_FILE} --at tcp/{s.device}.local:7447 status\n"
+        + json.dumps(laptop, indent=2)
+        + "\n"
+    )
+
+
+def _device_in_config(text: str, device: str) -> str:
+    """Replace the top-level ``device:`` value, keeping the file's comments and layout."""
+    new, n = re.subn(r"(?m)^device:[ \t]*[^#\n]*?([ \t]*(#.*)?)$", rf"device: {device}\1", text)
+    if n != 1:
+        raise ConfigError("appliance.yaml: expected exactly one top-level 'device:' line")
+    return new
+
+
+def plan(s: BoardSettings, root: Path) -> Plan:
+    p = Plan()
+    p.files["etc/hostname"] = (f"{s.device}\n", 0o644)
+    p.files["etc/hosts"] = (
+        f"127.0.0.1\tlocalhost\n127.0.1.1\t{s.device}\n::1\tlocalhost ip6-localhost ip6-loopback\n",
+        0o644,
+    )
+    for path, text in _network(s).items():
+        p.files[path] = (text, 0o644)
+    if not s.wifi.ssid:
+        p.remove.append("etc/systemd/network/20-exolink-wifi.network")
+    if not s.simulate:
+        p.remove.append("etc/systemd/network/05-exolink-sim-lo.network")
+    wpa = "etc/wpa_supplicant/wpa_supplicant-wlan0.conf"
+    if s.wifi.ssid:
+        p.files[wpa] = (_wpa(s), 0o600)
+    else:
+        p.remove.append(wpa)
+    servers = " ".join(s.time_servers)
+    p.files["etc/systemd/timesyncd.conf.d/exolink.conf"] = (f"[Time]\nNTP={servers}\n", 0o644)
+    _zenoh(s, root, p)
+    args = "--sim" if s.simulate else ""
+    p.files["etc/default/exolink"] = (f"EXOLINK_UP_ARGS={args}\n", 0o644)
+    appliance = root / "etc/exolink/appliance.yaml"
+    if appliance.exists():
+        p.files["etc/exolink/appliance.yaml"] = (
+            _device_in_config(appliance.read_text(), s.device),
+            0o640,
+        )
+    home = f"home/{LOGIN_USER}/.ssh/authorized_keys"
+    p.files[home] = ("".join(k.strip() + "\n" for k in s.ssh.authorized_keys), 0o600)
+    p.first_boot = not (root / FIRST_BOOT_DONE).exists()
+    return p
+
+
+def _write(root: Path, rel: str, text: str, mode: int) -> None:
+    """Atomic (write, fsync, rename): the board is switched off by pulling its power."""
+    path = root / rel
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.chmod(tmp, mode)
+    os.replace(tmp, path)
+
+
+def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:
+    """Render and write everything; on the live board (root ``/``) also run the commands."""
+    p = plan(settings, root)
+    for rel, (text, mode) in p.files.items():
+        _write(root, rel, text, mode)
+    for rel in p.remove:
+        (root / rel).unlink(missing_ok=True)
+    for name, text in p.boot_files.items():
+        if not (boot / name).exists() or (boot / name).read_text() != text:
+            _write(boot, name, text, 0o600)
+    if (root / "etc/exolink/appliance.yaml").exists():
+        load(root / "etc/exolink/appliance.yaml")  # a device name that breaks it fails here
+    if root == Path("/"):
+        _run_live(settings, p)
+    log.info(
+        "board settings applied",
+        device=settings.device,
+        wifi=bool(settings.wifi.ssid),
+        ethernet=settings.ethernet.address,
+        zenoh_auth=bool(settings.zenoh.user),
+        simulate=settings.simulate,
+        files=len(p.files),
+    )
+    return p
+
+
+def _run_live(settings: BoardSettings, p: Plan) -> None:
+    socket.sethostname(settings.device)
+    _own("/etc/exolink/zenoh.json5", "/etc/exolink/zenoh-users.txt", "/etc/exolink/appliance.yaml")
+    home = Path(f"/home/{LOGIN_USER}/.ssh")
+    subprocess.run(["chown", "-R", f"{LOGIN_USER}:{LOGIN_USER}", str(home)], check=True)
+    if settings.ssh.password:  # on stdin, never in argv
+        subprocess.run(
+            ["chpasswd"], input=f"{LOGIN_USER}:{settings.ssh.password}\n", text=True, check=True
+        )
+    if p.first_boot:
+        first_boot()
+
+
+def _own(*paths: str) -> None:
+    """Secrets readable by the supervisor's group, nobody else."""
+    for path in paths:
+        if os.path.exists(path):
+            subprocess.run(["chown", f"root:{SERVICE_GROUP}", path], check=True)
+
+
+def first_boot() -> None:
+    """Once per card: new SSH host keys (no two boards share them), root partition grown to the card."""
+    for key in Path("/etc/ssh").glob("ssh_host_*"):
+        key.unlink()
+    subprocess.run(["ssh-keygen", "-A"], check=True, capture_output=True)
+    log.info("ssh host keys generated")
+    _grow_root()
+    _write(Path("/"), FIRST_BOOT_DONE, "", 0o644)
+
+
+def _grow_root() -> None:
+    """The image is small; the card is not. Grow partition 2 and ext4 online (MBR: no repart)."""
+    src = subprocess.run(
+        ["findmnt", "-no", "SOURCE", "/"], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    m = re.match(r"^(/dev/(?:mmcblk\d+|[sv]d[a-z]))p?(\d+)$", src)
+    if not m:
+        log.warning("root partition not grown", why=f"unrecognised root device {src}")
+        return
+    disk, part = m.groups()
+    r = subprocess.run(
+        ["sfdisk", "--force", "--no-reread", "--no-tell-kernel", "-N", part, disk],
+        input=", +\n",
+        capture_output=True,
+        text=True,
+    )
+    if r.returncode != 0:
+        log.warning("root partition not grown", why=r.stderr.strip()[-200:])
+        return
+    subprocess.run(["partx", "-u", disk], check=False, capture_output=True)
+    r = subprocess.run(["resize2fs", src], capture_output=True, text=True)
+    size = subprocess.run(["df", "-h", "--output=size", "/"], capture_output=True, text=True)
+    log.info(
+        "root filesystem grown",
+        device=src,
+        ok=r.returncode == 0,
+        size=size.stdout.split()[-1] if size.stdout else "?",
+    )
