@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
 
-.PHONY: install sim test test-kernel test-image overlays lint format bench lock dbc clean
+.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench lock dbc clean
 
 install: $(STAMP)
 
@@ -38,7 +38,19 @@ build/overlays/%.dtbo: overlays/%.dts
 	mkdir -p $(@D) && dtc -@ -q -I dts -O dtb -o $@ $<
 
 test-image: $(STAMP) overlays
-	EXOLINK_REQUIRE_IMAGE=1 $(BIN)/python -m pytest -q -rs tests/image
+	EXOLINK_REQUIRE_IMAGE=1 $(BIN)/python -m pytest -q -rs tests/image/test_overlay.py tests/image/test_recipe.py
+
+# The flashable SD-card image (root, ~20 min here): build/image/exolink-bbb-<version>.img.xz.
+image: $(STAMP) overlays
+	bash image/build.sh
+
+# Pin the Debian package set of the last build (commit image/debian.lock).
+image-lock:
+	cp "$$(ls -t build/image/exolink-bbb-*.packages | head -1)" image/debian.lock
+
+# Checks of the built image: layout, boot files, units, and a qemu boot to a running supervisor.
+test-image-built: $(STAMP)
+	EXOLINK_REQUIRE_IMAGE=1 $(BIN)/python -m pytest -q -rs -p no:cacheprovider tests/image/test_built_image.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .

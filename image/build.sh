@@ -1,0 +1,108 @@
+#!/usr/bin/env bash
+# `make image`: the flashable SD-card image for the BeagleBone Black, built on an x86_64 host.
+#   Debian trixie armhf root (mmdebstrap + qemu-user binfmt) with Debian's armmp kernel, the
+#   BeagleBone dtb merged with our overlay, U-Boot (u-boot-omap), exolink in /opt/exolink,
+#   the units from services/. No loop devices: the partitions are made as files and placed with dd.
+# Output: build/image/exolink-bbb-<version>.img.xz (+ .packages / .python manifests, .sha256).
+# Needs root (mmdebstrap --mode=root, binfmt_misc, a tmpfs); CI-able, no kernel CAN/GPIO needed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+. image/image.conf
+
+VERSION=$(sed -n 's/^version = "\(.*\)"/\1/p' pyproject.toml)
+OUT=${OUT:-$PWD/build/image}
+WORK=$OUT/work
+NAME=exolink-bbb-$VERSION
+T0=$(date +%s)
+step() { printf '\n==> [%4ds] %s\n' $(($(date +%s) - T0)) "$*"; }
+
+step "host tools"
+need=()
+for t in mmdebstrap:mmdebstrap qemu-arm-static:qemu-user-static update-binfmts:binfmt-support \
+  arch-test:arch-test fdtoverlay:device-tree-compiler mcopy:mtools mkfs.vfat:dosfstools \
+  sfdisk:fdisk mkfs.ext4:e2fsprogs xz:xz-utils; do
+  command -v "${t%%:*}" >/dev/null || need+=("${t#*:}")
+done
+if [ ${#need[@]} -gt 0 ]; then
+  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}"
+fi
+mountpoint -q /proc/sys/fs/binfmt_misc || mount -t binfmt_misc binfmt_misc /proc/sys/fs/binfmt_misc
+update-binfmts --enable qemu-arm 2>/dev/null || true
+arch-test armhf >/dev/null || { echo "armhf binaries do not run here (qemu-user binfmt)" >&2; exit 1; }
+
+# Everything in a tmpfs: initramfs tools under qemu-user miss the block drivers when readdir runs
+# on the host's ext4 (32-bit readdir overflow), and the build is faster there.
+mkdir -p "$WORK"
+cleanup() { umount -R "$WORK" 2>/dev/null || true; }
+trap cleanup EXIT
+cleanup
+mount -t tmpfs -o size=${TMPFS_SIZE} tmpfs "$WORK"
+export TMPDIR=$WORK/tmp && mkdir -p "$TMPDIR"
+
+step "overlay and wheels (host side: the armhf root lacks the host's CA)"
+make -s overlays
+W=$WORK/wheels && mkdir -p "$W"
+PIP=${PIP:-.venv/bin/python -m pip}
+$PIP wheel -q --no-deps -w "$W" .
+$PIP download -q --no-deps --only-binary=:all: --python-version "$PY_VERSION" \
+  --implementation cp --abi "cp${PY_VERSION/./}" --abi abi3 \
+  --platform manylinux_2_17_armv7l --platform manylinux2014_armv7l \
+  -r <(grep -v -E '^(msgspec|msgpack)==' image/python-requirements.txt) -d "$W"
+$PIP download -q --no-deps --no-binary=:all: -d "$W" \
+  $(grep -E '^(msgspec|msgpack)==' image/python-requirements.txt)
+$PIP download -q --no-deps --only-binary=:all: -r image/build-requirements.txt -d "$W"
+ls "$W"
+
+step "Debian $SUITE armhf base root (mmdebstrap under qemu-user; the long step, cached)"
+# With image/debian.lock (from `make image-lock`), the listed packages are pinned to its versions
+# and every difference in the full installed set is printed after the build.
+pkgs=$(grep -v -E '^\s*(#|$)' image/debian-packages.txt | while read -r p; do
+  v=$(sed -n "s/^$p=//p" image/debian.lock 2>/dev/null || true); echo "$p${v:+=$v}"; done | paste -sd,)
+key=$(cat image/debian-packages.txt image/hooks/essential.sh image/image.conf \
+  $(ls image/debian.lock 2>/dev/null) | sha256sum | cut -c1-16)
+BASE=$OUT/cache/base-$key.tar
+if [ -f "$BASE" ]; then
+  echo "reusing $BASE"
+else
+  mkdir -p "$OUT/cache" && rm -f "$OUT"/cache/base-*.tar
+  mmdebstrap --mode=root --arch=armhf --variant=apt --components=main --include="$pkgs" \
+    --aptopt='Acquire::Retries "3"' --dpkgopt='path-exclude=/usr/share/man/*' \
+    --dpkgopt='path-exclude=/usr/share/locale/*' --dpkgopt='path-exclude=/usr/share/doc/*' \
+    --dpkgopt='path-include=/usr/share/doc/*/copyright' \
+    --essential-hook="image/hooks/essential.sh \"\$1\"" \
+    "$SUITE" "$WORK/base.tar" "deb $MIRROR $SUITE main" \
+    ${SECURITY_MIRROR:+"deb $SECURITY_MIRROR $SUITE-security main"}
+  mv "$WORK/base.tar" "$BASE"
+fi
+
+step "exolink, units, users, boot files (image/hooks/customize.sh in the armhf root)"
+R=$WORK/rootfs && mkdir -p "$R"
+tar -C "$R" --xattrs --xattrs-include='*' -xpf "$BASE"
+mount -t proc proc "$R/proc" && mount -t sysfs sys "$R/sys" && mount --rbind /dev "$R/dev"
+EXOLINK_SRC=$PWD image/hooks/customize.sh "$R" "$W" "$VERSION"
+umount -R "$R/proc" "$R/sys" "$R/dev" 2>/dev/null || umount -lR "$R/dev"
+
+step "manifests"
+chroot "$R" dpkg-query -W -f '${Package}=${Version}\n' | sort > "$OUT/$NAME.packages"
+chroot "$R" /opt/exolink/bin/python -m pip list --format=freeze > "$OUT/$NAME.python"
+wc -l "$OUT/$NAME.packages" "$OUT/$NAME.python"
+if [ -f image/debian.lock ]; then
+  if diff -u image/debian.lock "$OUT/$NAME.packages" > "$OUT/$NAME.lockdiff"; then
+    echo "all $(wc -l < image/debian.lock) Debian packages match image/debian.lock"
+  else
+    echo "WARNING: installed packages differ from image/debian.lock:"; grep '^[-+][^-+]' "$OUT/$NAME.lockdiff" | head -40
+  fi
+fi
+
+step "disk image (partition table, U-Boot raw at 128 KiB / 384 KiB, FAT boot, ext4 root)"
+image/assemble.sh "$R" "$OUT/$NAME.img"
+
+step "compress"
+rm -f "$OUT/$NAME.img.xz"
+xz -T0 -6 -k -f "$OUT/$NAME.img"
+(cd "$OUT" && sha256sum "$NAME.img.xz" > "$NAME.img.xz.sha256")
+step "done: $OUT/$NAME.img.xz"
+ls -l "$OUT/$NAME.img" "$OUT/$NAME.img.xz"
+printf 'image %s: %s raw (%s used), %s compressed, built in %ds\n' "$NAME" \
+  "$(du -h --apparent-size "$OUT/$NAME.img" | cut -f1)" "$(du -h "$OUT/$NAME.img" | cut -f1)" \
+  "$(du -h "$OUT/$NAME.img.xz" | cut -f1)" $(($(date +%s) - T0))

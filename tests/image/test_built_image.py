@@ -1,0 +1,387 @@
+"""The built SD-card image (`make image`, then `make test-image-built`): what the AM335x boot chain
+reads, what the root filesystem holds, and a boot of that root under qemu-system-arm (-M virt, the
+same armmp kernel and initrd) up to a supervisor that a laptop-side `exolink status` reaches through
+the card's generated Zenoh login.
+
+Not verifiable here (no BeagleBone): the boot ROM loading MLO, U-Boot reading extlinux.conf, the
+merged dtb on real pins, c_can on DCAN1, omap_wdt; the qemu boot skips U-Boot and uses qemu's
+own device tree.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.image, pytest.mark.slow]
+REPO = Path(__file__).resolve().parents[2]
+CONF = dict(re.findall(r"(?m)^([A-Z_]+)=([^\s$]+)$", (REPO / "image/image.conf").read_text()))
+MIB = 1 << 20
+
+
+def _unavailable(why: str) -> None:
+    if os.environ.get("EXOLINK_REQUIRE_IMAGE"):
+        pytest.fail(why)
+    pytest.skip(f"{why}; run `make image test-image-built`")
+
+
+@pytest.fixture(scope="module")
+def image() -> Path:
+    if not (os.environ.get("EXOLINK_IMAGE") or os.environ.get("EXOLINK_REQUIRE_IMAGE")):
+        pytest.skip("checks of a built image run with `make test-image-built`")
+    found = sorted(
+        (REPO / "build/image").glob("exolink-bbb-*.img"), key=lambda p: p.stat().st_mtime
+    )
+    if os.environ.get("EXOLINK_IMAGE"):
+        found = [Path(os.environ["EXOLINK_IMAGE"])]
+    if not found:
+        _unavailable("no built image in build/image")
+    for tool in ("sfdisk", "mcopy", "debugfs", "fdtget"):
+        if not shutil.which(tool):
+            _unavailable(f"{tool} is not installed")
+    return found[-1]
+
+
+def partitions(img: Path) -> list[dict]:
+    out = subprocess.run(["sfdisk", "--json", str(img)], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)["partitiontable"]["partitions"]  # type: ignore[no-any-return]
+
+
+@pytest.fixture(scope="module")
+def fat(image: Path) -> str:
+    """mtools' image@@offset spec of the FAT boot partition."""
+    return f"{image}@@{int(CONF['BOOT_START_MIB']) * MIB}"
+
+
+@pytest.fixture(scope="module")
+def rootfs(image: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The ext4 root partition dumped to a folder (debugfs: no loop device, no mount)."""
+    p2 = partitions(image)[1]
+    d = tmp_path_factory.mktemp("root")
+    part = d / "root.ext4"
+    with open(image, "rb") as src, open(part, "wb") as dst:
+        src.seek(p2["start"] * 512)
+        left = p2["size"] * 512
+        while left:
+            chunk = src.read(min(left, 16 * MIB))
+            dst.write(chunk)
+            left -= len(chunk)
+    out = d / "fs"
+    out.mkdir()
+    subprocess.run(["debugfs", "-R", f"rdump / {out}", str(part)], check=True, capture_output=True)
+    part.unlink()
+    return out
+
+
+def mcat(fat: str, name: str) -> bytes:
+    return subprocess.run(["mtype", "-i", fat, f"::{name}"], capture_output=True, check=True).stdout
+
+
+# --- layout and boot files ------------------------------------------------------------------
+
+
+def test_partition_table_is_what_u_boot_and_the_kernel_expect(image: Path) -> None:
+    table = json.loads(
+        subprocess.run(
+            ["sfdisk", "--json", str(image)], capture_output=True, text=True, check=True
+        ).stdout
+    )["partitiontable"]
+    assert table["label"] == "dos" and table["id"] == CONF["DISK_ID"]
+    boot, root = table["partitions"]
+    assert boot["start"] == int(CONF["BOOT_START_MIB"]) * 2048
+    assert boot["type"] == "c" and boot.get("bootable") is True
+    assert root["type"] == "83" and root["start"] == boot["start"] + boot["size"]
+
+
+def test_mlo_and_u_boot_sit_at_the_raw_offsets(image: Path, rootfs: Path) -> None:
+    raw = image.read_bytes()[: 4 * MIB]
+    mlo = (rootfs / "usr/lib/exolink/u-boot/MLO").read_bytes()
+    uboot = (rootfs / "usr/lib/exolink/u-boot/u-boot.img").read_bytes()
+    assert raw[128 * 1024 : 128 * 1024 + len(mlo)] == mlo
+    assert b"CHSETTINGS" in mlo[:512]  # the TOC the boot ROM's raw mode looks for
+    assert raw[384 * 1024 : 384 * 1024 + len(uboot)] == uboot
+    assert 384 * 1024 + len(uboot) < int(CONF["BOOT_START_MIB"]) * MIB  # clear of partition 1
+
+
+def test_boot_partition_has_kernel_initrd_merged_dtb_and_extlinux(fat: str, tmp_path: Path) -> None:
+    listing = subprocess.run(
+        ["mdir", "-/", "-b", "-i", fat, "::"], capture_output=True, text=True, check=True
+    ).stdout
+    for name in (
+        "vmlinuz",
+        "initrd.img",
+        "am335x-boneblack-exolink.dtb",
+        "extlinux/extlinux.conf",
+        "overlays/exolink-dcan1.dtbo",
+        "exolink-settings.yaml",
+    ):
+        assert f"::/{name}" in listing, name
+    conf = mcat(fat, "extlinux/extlinux.conf").decode()
+    assert "fdt /am335x-boneblack-exolink.dtb" in conf
+    assert f"root=PARTUUID={CONF['ROOT_PARTUUID']}" in conf
+    dtb = tmp_path / "merged.dtb"
+    dtb.write_bytes(mcat(fat, "am335x-boneblack-exolink.dtb"))
+    dcan1 = "/ocp/interconnect@48000000/segment@100000/target-module@d0000/can@0"
+    status = subprocess.run(
+        ["fdtget", str(dtb), dcan1, "status"], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert status == "okay"
+
+
+def cpio_names(data: bytes) -> list[str]:
+    """Names in an initramfs: concatenated newc archives, the last one maybe zstd-compressed."""
+    names, off = [], 0
+    while off + 110 <= len(data):
+        if data[off : off + 4] == b"\x28\xb5\x2f\xfd":  # zstd frame: the main archive
+            rest = subprocess.run(
+                ["zstd", "-dc"], input=data[off:], capture_output=True, check=True
+            )
+            return names + cpio_names(rest.stdout)
+        if data[off : off + 6] not in (b"070701", b"070702"):
+            break
+        fields = [int(data[off + 6 + 8 * i : off + 14 + 8 * i], 16) for i in range(13)]
+        filesize, namesize = fields[6], fields[11]
+        name = data[off + 110 : off + 110 + namesize - 1].decode()
+        off = (off + 110 + namesize + 3) & ~3
+        off = (off + filesize + 3) & ~3
+        if name == "TRAILER!!!":
+            while off < len(data) and data[off] == 0:
+                off += 1
+        else:
+            names.append(name)
+    return names
+
+
+def test_initrd_carries_the_drivers_to_find_the_root(fat: str) -> None:
+    names = "\n".join(cpio_names(mcat(fat, "initrd.img")))
+    # MMC core and mmc_block are built into armmp; these are modules:
+    for mod in ("ext4.ko", "sdhci-omap.ko", "omap_hsmmc.ko", "omap_wdt.ko", "virtio_blk.ko"):
+        assert re.search(rf"/{re.escape(mod)}(\.xz|\.zst)?$", names, re.M), mod
+
+
+# --- root filesystem --------------------------------------------------------------------------
+
+
+def test_root_has_exolink_units_enabled_and_fstab(rootfs: Path) -> None:
+    wants = rootfs / "etc/systemd/system/multi-user.target.wants"
+    assert (wants / "exolink.service").is_symlink()
+    assert (rootfs / "etc/systemd/system/sysinit.target.wants/exolink-setup.service").is_symlink()
+    for unit in ("systemd-networkd.service", "systemd-timesyncd.service", "ssh.service"):
+        assert (wants / unit).is_symlink() or list(rootfs.glob(f"etc/systemd/system/*/{unit}")), (
+            unit
+        )
+    fstab = (rootfs / "etc/fstab").read_text()
+    assert f"PARTUUID={CONF['ROOT_PARTUUID']}" in fstab and "/boot/firmware vfat" in fstab
+    assert not list((rootfs / "etc/ssh").glob("ssh_host_*")), "host keys must be made per card"
+    assert (rootfs / "etc/machine-id").read_text() == "uninitialized\n"
+    wd = (rootfs / "etc/systemd/system.conf.d/exolink-watchdog.conf").read_text()
+    assert "RuntimeWatchdogSec=" in wd
+    assert "Storage=persistent" in (rootfs / "etc/systemd/journald.conf.d/exolink.conf").read_text()
+
+
+def chroot(rootfs: Path, *cmd: str) -> subprocess.CompletedProcess[str]:
+    """Runs an armhf program of the image through qemu-user binfmt."""
+    return subprocess.run(["chroot", str(rootfs), *cmd], capture_output=True, text=True)
+
+
+def test_units_pass_systemd_analyze_verify(rootfs: Path) -> None:
+    if os.geteuid() != 0:
+        _unavailable("chroot needs root")
+    dev = rootfs / "dev"
+    subprocess.run(["mount", "--bind", "/dev", str(dev)], check=True)
+    try:
+        r = _verify(rootfs)
+    finally:
+        subprocess.run(["umount", str(dev)], check=True)
+    assert r.returncode == 0, r.stderr
+    ours = [line for line in r.stderr.splitlines() if "exolink" in line]
+    assert not ours, ours
+
+
+def _verify(rootfs: Path) -> subprocess.CompletedProcess[str]:
+    return chroot(
+        rootfs,
+        "systemd-analyze",
+        "verify",
+        "--man=no",
+        "/etc/systemd/system/exolink.service",
+        "/etc/systemd/system/exolink-setup.service",
+    )
+
+
+def test_python_stack_in_the_image(rootfs: Path) -> None:
+    if os.geteuid() != 0:
+        _unavailable("chroot needs root")
+    code = (
+        "import gpiod, zenoh, can, msgspec, mcap, structlog, rosbags, yaml\n"
+        "from importlib.metadata import version as v\n"
+        "assert hasattr(gpiod, 'request_lines'), 'libgpiod v2 bindings'\n"
+        "print(v('gpiod'), v('eclipse-zenoh'), v('python-can'), v('exolink'))\n"
+    )
+    r = chroot(rootfs, "/opt/exolink/bin/python", "-c", code)
+    assert r.returncode == 0, r.stderr
+    gpiod_version = r.stdout.split()[0]
+    assert int(gpiod_version.split(".")[0]) >= 2
+    r = chroot(rootfs, "/opt/exolink/bin/exolink", "config", "/etc/exolink/appliance.yaml")
+    assert r.returncode == 0, r.stderr
+
+
+# --- boot smoke test -------------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Console:
+    """qemu's serial console, read in a thread, with the time each line arrived."""
+
+    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+        self.proc, self.t0, self.lines = proc, time.monotonic(), []  # type: list[tuple[float, str]]
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for raw in self.proc.stdout:
+            self.lines.append((time.monotonic() - self.t0, raw.decode(errors="replace").rstrip()))
+
+    def wait_for(self, pattern: str, timeout: float) -> float:
+        rx, deadline, seen = re.compile(pattern), time.monotonic() + timeout, 0
+        while time.monotonic() < deadline:
+            for t, line in self.lines[seen:]:
+                if rx.search(line):
+                    return t
+            seen = len(self.lines)
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        tail = "\n".join(line for _, line in self.lines[-40:])
+        raise AssertionError(f"{pattern!r} not seen on the console; last lines:\n{tail}")
+
+
+@pytest.fixture(scope="module")
+def booted(image: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
+    if not shutil.which("qemu-system-arm"):
+        _unavailable("qemu-system-arm is not installed")
+    d = tmp_path_factory.mktemp("boot")
+    img = d / "card.img"
+    subprocess.run(["cp", "--sparse=always", str(image), str(img)], check=True)
+    os.truncate(img, img.stat().st_size + 256 * MIB)  # a "bigger card": the first boot grows p2
+    fat = f"{img}@@{int(CONF['BOOT_START_MIB']) * MIB}"
+    settings = mcat(fat, "exolink-settings.yaml").decode()
+    settings = settings.replace("simulate: false", "simulate: true")
+    (d / "exolink-settings.yaml").write_text(settings)
+    subprocess.run(["mcopy", "-o", "-i", fat, str(d / "exolink-settings.yaml"), "::/"], check=True)
+    for name in ("vmlinuz", "initrd.img"):
+        (d / name).write_bytes(mcat(fat, name))
+    port = _free_port()
+    append = (
+        f"root=PARTUUID={CONF['ROOT_PARTUUID']} rootwait console=ttyAMA0 "
+        "systemd.journald.forward_to_console=1 systemd.show_status=1"
+    )
+    cmd = [
+        "qemu-system-arm",
+        "-M",
+        "virt",
+        "-cpu",
+        "cortex-a15",
+        "-smp",
+        "2",
+        "-m",
+        "512",
+        "-nographic",
+        "-no-reboot",
+        "-kernel",
+        str(d / "vmlinuz"),
+        "-initrd",
+        str(d / "initrd.img"),
+        "-append",
+        append,
+        "-drive",
+        f"file={img},format=raw,if=none,id=card",
+        "-device",
+        "virtio-blk-device,drive=card",
+        "-netdev",
+        f"user,id=net,hostfwd=tcp:127.0.0.1:{port}-:7447",
+        "-device",
+        "virtio-net-device,netdev=net",
+    ]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+    )
+    console = Console(proc)
+    try:
+        yield {"console": console, "port": port, "fat": fat, "dir": d}
+    finally:
+        proc.kill()
+        proc.wait()
+        log = REPO / "build/image/boot-console.log"
+        log.write_text("\n".join(f"{t:7.1f} {s}" for t, s in console.lines) + "\n")
+
+
+def _beating(node: dict) -> bool:
+    return node["state"] == "running" and node["heartbeat_age_s"] is not None
+
+
+@pytest.mark.timeout(1500)
+def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -> None:
+    c: Console = booted["console"]
+    report: dict[str, float] = {}
+    report["setup_done_s"] = c.wait_for(r"Finished exolink-setup\.service", 600)
+    report["supervisor_ready_s"] = c.wait_for(r"Started exolink\.service", 600)
+    finished = c.wait_for(r"Startup finished in", 600)
+    line = next(s for t, s in c.lines if t == finished and "Startup finished" in s)
+    report["systemd_startup_line"] = line.split("Startup finished in", 1)[1].strip()  # type: ignore[assignment]
+    c.wait_for(r"root filesystem grown", 60)
+    c.wait_for(r"ssh host keys generated", 60)
+
+    laptop = booted["dir"] / "exolink-laptop.json5"
+    laptop.write_bytes(mcat(booted["fat"], "exolink-laptop.json5"))
+    cmd = [
+        sys.executable,
+        "-m",
+        "exolink.cli.main",
+        "status",
+        "--json",
+        "--timeout",
+        "10",
+        "--at",
+        f"tcp/127.0.0.1:{booted['port']}",
+        "--zenoh-config",
+        str(laptop),
+    ]
+    deadline, status, last = time.monotonic() + 600, None, ""
+    while time.monotonic() < deadline:
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode == 0:
+            status = json.loads(r.stdout)
+            if all(_beating(n) for n in status["nodes"]):
+                break
+        last = r.stderr or r.stdout
+        time.sleep(5)
+    assert status is not None, last
+    report["all_nodes_alive_s"] = time.monotonic() - c.t0
+    assert status["device"] == "exo-01"
+    assert status["bus"]["interface"] == "udp_multicast"
+    names = {n["name"] for n in status["nodes"]}
+    assert {"simulator", "h2_reader", "h2_sender", "pattern_player", "recorder"} <= names
+    assert all(_beating(n) for n in status["nodes"]), status["nodes"]
+    # Without the login the board refuses the laptop.
+    anon = [a for a in cmd if a not in ("--zenoh-config", str(laptop))]
+    assert subprocess.run(anon, capture_output=True, text=True).returncode == 4
+    out = REPO / "build/image/boot-report.json"
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    sys.stderr.write(f"boot report: {json.dumps(report)}\n")

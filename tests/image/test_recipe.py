@@ -1,0 +1,50 @@
+"""The image recipe's own consistency, on the host in `make test` (the build itself is
+`make image`; its result is checked by test_built_image.py)."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+# exolink's runtime dependencies that the image takes from Debian, not PyPI.
+FROM_DEBIAN = {
+    "gpiod": "python3-libgpiod",
+    "pyyaml": "python3-yaml",
+    "zstandard": "python3-zstandard",
+}
+
+
+def pins(path: Path) -> dict[str, str]:
+    lines = path.read_text().splitlines()
+    found = (re.match(r"^([A-Za-z0-9_.-]+)==(\S+)", line) for line in lines)
+    return {m.group(1).lower().replace("_", "-"): m.group(2) for m in found if m}
+
+
+def test_image_python_pins_match_the_lock() -> None:
+    lock = pins(REPO / "requirements.lock")
+    image = pins(REPO / "image/python-requirements.txt")
+    assert image, "no pins read"
+    assert {name: v for name, v in image.items() if lock.get(name) != v} == {}
+
+
+def test_every_runtime_dependency_has_a_source_in_the_image() -> None:
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    deps = {re.split(r"[\[<>=~ ]", d, maxsplit=1)[0].lower() for d in project["dependencies"]}
+    debian = (REPO / "image/debian-packages.txt").read_text().split()
+    image = pins(REPO / "image/python-requirements.txt")
+    missing = [d for d in deps if d not in image and FROM_DEBIAN.get(d, "?") not in debian]
+    assert missing == []
+
+
+def test_units_install_where_systemd_reads_them() -> None:
+    etc = REPO / "services/etc"
+    assert (etc / "systemd/system/exolink.service").exists()
+    unit = (etc / "systemd/system/exolink.service").read_text()
+    assert "Type=notify" in unit and "WatchdogSec=" in unit and "Restart=always" in unit
+    assert "/etc/exolink/appliance.yaml" in unit
+    assert (
+        "RuntimeWatchdogSec=" in (etc / "systemd/system.conf.d/exolink-watchdog.conf").read_text()
+    )
