@@ -24,7 +24,7 @@ from typing import Annotated
 
 import msgspec
 import structlog
-from exolink.config import ConfigError, DeviceName, decode_yaml, load
+from exolink.config import ConfigError, DeviceName, decode_yaml, parse
 
 log = structlog.get_logger("exolink.boardsetup")
 
@@ -236,10 +236,9 @@ def plan(s: BoardSettings, root: Path) -> Plan:
     p.files["etc/default/exolink"] = (f"EXOLINK_UP_ARGS={args}\n", 0o644)
     appliance = root / "etc/exolink/appliance.yaml"
     if appliance.exists():
-        p.files["etc/exolink/appliance.yaml"] = (
-            _device_in_config(appliance.read_text(), s.device),
-            0o640,
-        )
+        text = _device_in_config(appliance.read_text(), s.device)
+        parse(text, str(appliance))  # checked before anything is written
+        p.files["etc/exolink/appliance.yaml"] = (text, 0o640)
     home = f"home/{LOGIN_USER}/.ssh/authorized_keys"
     p.files[home] = ("".join(k.strip() + "\n" for k in s.ssh.authorized_keys), 0o600)
     p.first_boot = not (root / FIRST_BOOT_DONE).exists()
@@ -269,8 +268,6 @@ def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:
     for name, text in p.boot_files.items():
         if not (boot / name).exists() or (boot / name).read_text() != text:
             _write(boot, name, text, 0o600)
-    if (root / "etc/exolink/appliance.yaml").exists():
-        load(root / "etc/exolink/appliance.yaml")  # a device name that breaks it fails here
     if root == Path("/"):
         _run_live(settings, p)
     log.info(

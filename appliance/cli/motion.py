@@ -12,7 +12,7 @@ from typing import Any
 
 from exolink import messaging
 from exolink.cli.errors import EXIT_UNREACHABLE, fail
-from exolink.cli.remote import _guard, _Leaves, _number, common, remote
+from exolink.cli.remote import _guard, _Leaves, _number, common, hold, remote
 
 # --- pattern ----------------------------------------------------------------------------------
 
@@ -144,11 +144,7 @@ def _watch(args: argparse.Namespace) -> int:
             f"maccepa/b{args.board}/positions", "exolink_msgs/msg/MaccepaPositions", on
         )
         try:
-            end = time.monotonic() + (args.seconds or 1e12)
-            while time.monotonic() < end:
-                time.sleep(0.2)
-        except KeyboardInterrupt:
-            pass
+            hold(args.seconds)
         finally:
             sub.undeclare()
     return 0

@@ -441,6 +441,16 @@ def cmd_control(args: argparse.Namespace) -> int:
     return 0
 
 
+def hold(seconds: float = 0) -> None:
+    """Keep a subscription open for ``seconds`` (0: until Ctrl-C); Ctrl-C is a normal end."""
+    end = time.monotonic() + (seconds or float("inf"))
+    try:
+        while time.monotonic() < end:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+
+
 @_guard
 def cmd_logs(args: argparse.Namespace) -> int:
     with remote(args) as r:
@@ -457,10 +467,7 @@ def cmd_logs(args: argparse.Namespace) -> int:
             ),
         )
         try:
-            while True:
-                time.sleep(1)
-        except KeyboardInterrupt:
-            pass
+            hold()
         finally:
             sub.undeclare()
     return 0

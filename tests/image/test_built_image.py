@@ -53,9 +53,9 @@ def image() -> Path:
     return found[-1]
 
 
-def partitions(img: Path) -> list[dict]:
+def partition_table(img: Path) -> dict:
     out = subprocess.run(["sfdisk", "--json", str(img)], capture_output=True, text=True, check=True)
-    return json.loads(out.stdout)["partitiontable"]["partitions"]  # type: ignore[no-any-return]
+    return json.loads(out.stdout)["partitiontable"]  # type: ignore[no-any-return]
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def fat(image: Path) -> str:
 @pytest.fixture(scope="module")
 def rootfs(image: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The ext4 root partition dumped to a folder (debugfs: no loop device, no mount)."""
-    p2 = partitions(image)[1]
+    p2 = partition_table(image)["partitions"][1]
     d = tmp_path_factory.mktemp("root")
     part = d / "root.ext4"
     with open(image, "rb") as src, open(part, "wb") as dst:
@@ -92,11 +92,7 @@ def mcat(fat: str, name: str) -> bytes:
 
 
 def test_partition_table_is_what_u_boot_and_the_kernel_expect(image: Path) -> None:
-    table = json.loads(
-        subprocess.run(
-            ["sfdisk", "--json", str(image)], capture_output=True, text=True, check=True
-        ).stdout
-    )["partitiontable"]
+    table = partition_table(image)
     assert table["label"] == "dos" and table["id"] == CONF["DISK_ID"]
     boot, root = table["partitions"]
     assert boot["start"] == int(CONF["BOOT_START_MIB"]) * 2048
