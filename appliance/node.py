@@ -8,6 +8,7 @@ dead to the watchdog even while the process is alive.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -167,12 +168,27 @@ class NodeRunner:
 
 
 def stop_on_signals(stop: threading.Event, log: Any) -> None:
-    """SIGTERM / SIGINT set ``stop``: every long-running exolink process ends the same clean way."""
+    """SIGTERM / SIGINT set ``stop``: every long-running exolink process ends the same clean way.
+
+    The handler only writes the signal number to a pipe; a thread logs it and sets ``stop``.
+    Handlers run on the main thread between bytecodes: one calling ``stop.set()`` (or a logger)
+    while that thread was inside ``stop.wait()`` holding the same lock deadlocked, and a
+    supervisor ignored SIGTERM for good.
+    """
+    r, w = os.pipe()
+    os.set_blocking(w, False)
 
     def on_signal(signum: int, _frame: Any) -> None:
-        log.info("signal", signal=signal.Signals(signum).name)
-        stop.set()
+        with contextlib.suppress(BlockingIOError):  # a full pipe already holds a stop request
+            os.write(w, bytes([signum]))
 
+    def relay() -> None:
+        while data := os.read(r, 64):
+            for signum in data:
+                log.info("signal", signal=signal.Signals(signum).name)
+            stop.set()
+
+    threading.Thread(target=relay, daemon=True, name="signals").start()
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
 

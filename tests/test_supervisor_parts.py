@@ -89,3 +89,38 @@ def test_simulated_trigger_fires_and_periods() -> None:
 def test_gpio_trigger_missing_chip_is_a_clear_error() -> None:
     with pytest.raises(trigger.TriggerError, match="no GPIO chip /dev/gpiochip42"):
         trigger.GpioTrigger(TriggerConfig(chip="/dev/gpiochip42"), lambda e: None)
+
+
+SIGNAL_STORM = """
+import os, signal, sys, threading
+import structlog
+from exolink.node import stop_on_signals
+
+stop, got = threading.Event(), threading.Event()
+stop_on_signals(stop, structlog.get_logger())
+
+def pester() -> None:
+    for _ in range(int(sys.argv[1])):
+        os.kill(os.getpid(), signal.SIGTERM)
+        if not got.wait(5):
+            os._exit(3)  # the main thread never saw the stop: it is stuck
+        got.clear()
+    os._exit(0)
+
+threading.Thread(target=pester, daemon=True).start()
+while True:  # busy polling: most of the time inside wait(), holding its lock
+    if stop.wait(0):
+        stop.clear()
+        got.set()
+"""
+
+
+def test_sigterm_while_waiting_on_the_stop_event_never_deadlocks() -> None:
+    # Seen on a laptop: `exolink up` logged SIGTERM and then hung for good. The handler ran
+    # Event.set() while the interrupted main thread held that Event's lock inside wait().
+    r = subprocess.run(
+        [sys.executable, "-c", SIGNAL_STORM, "400"], capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0, f"exit {r.returncode}: the process stopped reacting to SIGTERM"
+    assert r.stdout.count("signal=SIGTERM") == 400, r.stdout[-500:]
+
