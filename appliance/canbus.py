@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     import can
 
 STD_MASK = 0x7FF
+IP_MULTICAST_ALL = 49  # linux/in.h; Python's socket module does not export it
 
 
 class CanOpenError(RuntimeError):
@@ -42,9 +43,23 @@ def open_bus(
     if filters is not None:
         kwargs["can_filters"] = filters
     try:
-        return can.Bus(**kwargs)
+        bus = can.Bus(**kwargs)
     except (OSError, can.CanError, ValueError) as exc:
         raise CanOpenError(_explain(cfg, exc)) from exc
+    if cfg.interface == "udp_multicast":
+        _own_group_only(bus)
+    return bus
+
+
+def _own_group_only(bus: can.BusABC) -> None:
+    """python-can binds its multicast socket to 0.0.0.0:port, and Linux then delivers every group
+    joined anywhere on the host: a second simulated appliance (or a test) on another group would
+    see this bus's frames. IP_MULTICAST_ALL=0 keeps to the groups this socket joined."""
+    import socket
+
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)  # python-can internals
+    if isinstance(sock, socket.socket) and sock.family == socket.AF_INET:
+        sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
 
 
 def _explain(cfg: CanConfig, exc: Exception) -> str:

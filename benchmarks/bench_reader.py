@@ -9,8 +9,9 @@ import sys
 import time
 from typing import Any
 
-import can
 from exolink import messaging
+from exolink.canbus import open_bus
+from exolink.config import CanConfig
 from exolink.protocol import h2
 
 from benchmarks.harness import EXOLINK, Appliance, free_port, group, pct
@@ -97,7 +98,7 @@ def max_rate(quick: bool) -> dict[str, Any]:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    bus = can.Bus(interface="udp_multicast", channel=g)
+    bus = open_bus(CanConfig(interface="udp_multicast", channel=g))
     results = []
     try:
         time.sleep(2)

@@ -20,7 +20,8 @@ import can
 import numpy as np
 import yaml
 from exolink import messaging
-from exolink.config import bundled
+from exolink.canbus import open_bus
+from exolink.config import CanConfig, bundled
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
 
@@ -53,7 +54,7 @@ class Drained:
     """A listener bus read by a thread, so a busy benchmark loop never overflows its socket."""
 
     def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="udp_multicast", channel=channel, receive_own_messages=False)
+        self.bus = open_bus(CanConfig(interface="udp_multicast", channel=channel))
         self.q: queue.Queue[can.Message] = queue.Queue()
         self.stop = threading.Event()
         self.t = threading.Thread(target=self._drain, daemon=True)

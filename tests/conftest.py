@@ -19,7 +19,8 @@ import can
 import pytest
 import yaml
 from exolink import messaging
-from exolink.config import bundled, load
+from exolink.canbus import open_bus
+from exolink.config import CanConfig, bundled, load
 from exolink.supervisor import canlink
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
@@ -97,7 +98,7 @@ class DrainedBus:
 @pytest.fixture
 def mbus(group: str) -> Iterator[DrainedBus]:
     """An independent listener on the test's udp_multicast bus."""
-    bus = DrainedBus(can.Bus(interface="udp_multicast", channel=group, receive_own_messages=False))
+    bus = DrainedBus(open_bus(CanConfig(interface="udp_multicast", channel=group)))
     yield bus
     bus.shutdown()
 

@@ -124,3 +124,23 @@ def test_sigterm_while_waiting_on_the_stop_event_never_deadlocks() -> None:
     assert r.returncode == 0, f"exit {r.returncode}: the process stopped reacting to SIGTERM"
     assert r.stdout.count("signal=SIGTERM") == 400, r.stdout[-500:]
 
+
+def test_simulated_buses_on_different_groups_do_not_hear_each_other(group: str) -> None:
+    # Found when a leftover `exolink up --sim` on the default group made a test's bus see
+    # foreign disable frames: Linux hands a 0.0.0.0-bound socket every group joined on the host.
+    import can
+    from exolink.canbus import open_bus
+    from exolink.config import CanConfig
+
+    other = "239.74.0.1" if group != "239.74.0.1" else "239.74.0.2"
+    a, a2, b = (
+        open_bus(CanConfig(interface="udp_multicast", channel=g)) for g in (group, group, other)
+    )
+    try:
+        a.send(can.Message(arbitration_id=0x46, data=bytes(8), is_extended_id=False))
+        got = a2.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x46
+        assert b.recv(0.5) is None
+    finally:
+        for bus in (a, a2, b):
+            bus.shutdown()
