@@ -71,6 +71,9 @@ class ZenohConfig(_Strict):
 
 class WatchdogConfig(_Strict):
     heartbeat_deadline_ms: PositiveMs = 500
+    # A (re)started node must send its first heartbeat within this. Only availability rides on
+    # it, not safety: arming needs every critical node's heartbeat, and a restart already tripped.
+    start_grace_ms: PositiveMs = 20_000
     h2_silence_ms: PositiveMs = 100
     safe_action: Literal["disable", "stop"] = "disable"
     maccepa_boards: list[BoardId] = msgspec.field(default_factory=list)

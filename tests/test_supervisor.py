@@ -187,6 +187,29 @@ def test_restart_cap_marks_node_failed(write_config, spawn, mbus) -> None:  # ty
     assert app.node("crashy")["restarts"] == 2
 
 
+def test_node_without_first_heartbeat_is_killed_after_start_grace(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path, monkeypatch
+) -> None:
+    # A node stuck before its first heartbeat (a plugin hanging in setup, a card too slow to
+    # import): its interpreter is stalled by a sitecustomize that sleeps when argv names it.
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import sys, time\nif 'slowpoke' in sys.argv:\n    time.sleep(3600)\n"
+    )
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    )
+    nodes = [*NODES, {"name": "slowpoke", "plugin": "h2_reader", "params": {"reduction": 1}}]
+    cfg = write_config(nodes=nodes, watchdog={"start_grace_ms": 2000})
+    app = Appliance(cfg, spawn, wait_nodes=False)
+    first = wait_for(lambda: app.node("slowpoke")["pid"], timeout=10)
+    wait_for(lambda: app.node("slowpoke")["restarts"] >= 1, timeout=20)
+    assert app.node("slowpoke")["pid"] != first
+    assert app.node("slowpoke")["heartbeat_age_s"] is None
+    assert "slowpoke: no heartbeat 2 s after start" in app.proc.output()
+
+
 def test_shutdown_sends_safe_action_first(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
     collect(mbus, 0.1)

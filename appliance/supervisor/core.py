@@ -32,7 +32,6 @@ from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
 TICK_S = 0.01
-START_GRACE_S = 20.0
 HEALTH_PERIOD_S = 0.2
 STATE_PERIOD_S = 1.0
 TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
@@ -160,8 +159,13 @@ class Supervisor:
         except (ValueError, IndexError):
             return
         node = self.nodes.get(name)
-        if node is not None and node.pid is not None:
-            node.heartbeat_at = time.monotonic()
+        if node is None or node.pid is None:
+            return
+        now = time.monotonic()
+        if node.heartbeat_at is None:
+            node.start_s = now - node.started_at
+            self.log.info("node_up", node_name=name, start_s=round(node.start_s, 2))
+        node.heartbeat_at = now
 
     def _on_edge(self, edge: trigger.Edge) -> None:
         self.trigger_count += 1
@@ -207,6 +211,7 @@ class Supervisor:
 
     def _check_nodes(self, now: float) -> None:
         deadline = self.cfg.watchdog.heartbeat_deadline_ms / 1000
+        grace = self.cfg.watchdog.start_grace_ms / 1000
         for node in self.nodes.values():
             with node.lock:
                 if node.state == "backoff" and now >= node.next_start:
@@ -216,17 +221,13 @@ class Supervisor:
                 if node.state != "running" or node.pid is None:
                     continue
                 hb = node.heartbeat_at
-                late = (
-                    (now - hb > deadline)
-                    if hb is not None
-                    else (now - node.started_at > START_GRACE_S)
-                )
+                late = (now - hb > deadline) if hb is not None else (now - node.started_at > grace)
             if not late:
                 continue
             detail = (
                 f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
                 if hb is not None
-                else f"{node.name}: no heartbeat {START_GRACE_S:.0f} s after start"
+                else f"{node.name}: no heartbeat {grace:g} s after start"
             )
             if node.cfg.critical and self.watchdog.armed:
                 self.watchdog.trip("heartbeat late", detail)

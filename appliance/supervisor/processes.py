@@ -46,6 +46,7 @@ class NodeProcess:
     last_exit: str = ""
     next_start: float = 0.0
     heartbeat_at: float | None = None
+    start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
     deliberate_stop: bool = False
     health: str = ""  # from the node's own diagnostics, if it publishes any
     restart_times: collections.deque[float] = field(default_factory=collections.deque)
@@ -85,7 +86,7 @@ class NodeProcess:
                 start_new_session=True,
             )
             self.state, self.started_at = "running", time.monotonic()
-            self.heartbeat_at, self.deliberate_stop = None, False
+            self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
             apply_priority(self.cfg, self.proc.pid)
             threading.Thread(
                 target=self._wait, args=(self.proc,), daemon=True, name=f"wait-{self.name}"
@@ -164,6 +165,7 @@ class NodeProcess:
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,
+            "start_s": None if self.start_s is None else round(self.start_s, 2),
         }
         if pid:
             info.update(proc_usage(pid))
