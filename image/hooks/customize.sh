@@ -50,7 +50,12 @@ PARTUUID=$BOOT_PARTUUID  /boot/firmware vfat   defaults,noatime,fmask=0177,dmask
 FSTAB
 ch exolink config /etc/exolink/appliance.yaml > /dev/null
 ch systemctl enable exolink.service exolink-setup.service systemd-networkd.service \
-  systemd-resolved.service systemd-timesyncd.service ssh.service wpa_supplicant@wlan0.service
+  systemd-resolved.service systemd-timesyncd.service ssh.service
+# Wi-Fi starts when a USB adapter's wlan0 appears (also plugged in later), never at boot: enabled
+# for multi-user.target it made boot wait 90 s for a device the BeagleBone Black does not have.
+install -d "$R/etc/systemd/system/sys-subsystem-net-devices-wlan0.device.wants"
+ln -sfn /usr/lib/systemd/system/wpa_supplicant@.service \
+  "$R/etc/systemd/system/sys-subsystem-net-devices-wlan0.device.wants/wpa_supplicant@wlan0.service"
 ch systemctl mask getty@tty1.service  # no display; the serial console (ttyO0) keeps its getty
 
 say "identity: new machine-id and SSH host keys on each card's first boot"

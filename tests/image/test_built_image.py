@@ -23,6 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import yaml
 
 pytestmark = [pytest.mark.image, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[2]
@@ -177,6 +178,11 @@ def test_root_has_exolink_units_enabled_and_fstab(rootfs: Path) -> None:
         assert (wants / unit).is_symlink() or list(rootfs.glob(f"etc/systemd/system/*/{unit}")), (
             unit
         )
+    # Wi-Fi hangs off the adapter's device unit: a board without one must not wait for it.
+    wlan = rootfs / "etc/systemd/system/sys-subsystem-net-devices-wlan0.device.wants"
+    target = os.readlink(wlan / "wpa_supplicant@wlan0.service")
+    assert (rootfs / target.lstrip("/")).is_file(), target
+    assert not (wants / "wpa_supplicant@wlan0.service").exists()
     fstab = (rootfs / "etc/fstab").read_text()
     assert f"PARTUUID={CONF['ROOT_PARTUUID']}" in fstab and "/boot/firmware vfat" in fstab
     assert not list((rootfs / "etc/ssh").glob("ssh_host_*")), "host keys must be made per card"
@@ -268,6 +274,26 @@ class Console:
         raise AssertionError(f"{pattern!r} not seen on the console; last lines:\n{tail}")
 
 
+def _relax_for_tcg(img: Path, d: Path) -> None:
+    """Software emulation runs the armhf userland far slower than the board (measured: nodes
+    missed the 500 ms heartbeat deadline by a few ms), so the card under test gets wider
+    watchdog timings in its /etc/exolink/appliance.yaml, as a lab engineer would edit it.
+    Written with debugfs at the partition's byte offset: no loop device."""
+    spec = f"{img}?offset={partition_table(img)['partitions'][1]['start'] * 512}"
+    path = "/etc/exolink/appliance.yaml"
+    r = subprocess.run(["debugfs", "-R", f"cat {path}", spec], capture_output=True, text=True)
+    cfg = yaml.safe_load(r.stdout)
+    cfg["watchdog"].update(start_grace_ms=900_000, heartbeat_deadline_ms=5_000)
+    local = d / "appliance.yaml"
+    local.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    cmds = f"rm {path}\nwrite {local} {path}\nsif {path} mode 0100640\n"
+    subprocess.run(
+        ["debugfs", "-w", "-f", "-", spec], input=cmds, text=True, check=True, capture_output=True
+    )
+    r = subprocess.run(["debugfs", "-R", f"cat {path}", spec], capture_output=True, text=True)
+    assert yaml.safe_load(r.stdout)["watchdog"]["start_grace_ms"] == 900_000
+
+
 @pytest.fixture(scope="module")
 def booted(image: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
     if not shutil.which("qemu-system-arm"):
@@ -283,6 +309,7 @@ def booted(image: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[di
     subprocess.run(["mcopy", "-o", "-i", fat, str(d / "exolink-settings.yaml"), "::/"], check=True)
     for name in ("vmlinuz", "initrd.img"):
         (d / name).write_bytes(mcat(fat, name))
+    _relax_for_tcg(img, d)
     port = _free_port()
     append = (
         f"root=PARTUUID={CONF['ROOT_PARTUUID']} rootwait console=ttyAMA0 "
@@ -369,7 +396,8 @@ def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -
         last = r.stderr or r.stdout
         time.sleep(5)
     assert status is not None, last
-    report["all_nodes_alive_s"] = time.monotonic() - c.t0
+    report["all_nodes_alive_s"] = round(time.monotonic() - c.t0, 1)
+    report["node_start_s"] = {n["name"]: n["start_s"] for n in status["nodes"]}  # type: ignore[assignment]
     assert status["device"] == "exo-01"
     assert status["bus"]["interface"] == "udp_multicast"
     names = {n["name"] for n in status["nodes"]}
