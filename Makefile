@@ -50,6 +50,8 @@ image-lock:
 
 # Checks of the built image: layout, boot files, units, and a qemu boot to a running supervisor.
 test-image-built: $(STAMP)
+	bash image/need.sh qemu-system-arm:qemu-system-arm sfdisk:fdisk mcopy:mtools debugfs:e2fsprogs \
+	  fdtget:device-tree-compiler
 	EXOLINK_REQUIRE_IMAGE=1 $(BIN)/python -m pytest -q -rs -p no:cacheprovider tests/image/test_built_image.py
 
 lint: $(STAMP)

@@ -17,15 +17,9 @@ T0=$(date +%s)
 step() { printf '\n==> [%4ds] %s\n' $(($(date +%s) - T0)) "$*"; }
 
 step "host tools"
-need=()
-for t in mmdebstrap:mmdebstrap qemu-arm-static:qemu-user-static update-binfmts:binfmt-support \
-  arch-test:arch-test fdtoverlay:device-tree-compiler mcopy:mtools mkfs.vfat:dosfstools \
-  sfdisk:fdisk mkfs.ext4:e2fsprogs xz:xz-utils; do
-  command -v "${t%%:*}" >/dev/null || need+=("${t#*:}")
-done
-if [ ${#need[@]} -gt 0 ]; then
-  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}"
-fi
+bash image/need.sh mmdebstrap:mmdebstrap qemu-arm-static:qemu-user-static \
+  update-binfmts:binfmt-support arch-test:arch-test fdtoverlay:device-tree-compiler mcopy:mtools \
+  mkfs.vfat:dosfstools sfdisk:fdisk mkfs.ext4:e2fsprogs xz:xz-utils
 mountpoint -q /proc/sys/fs/binfmt_misc || mount -t binfmt_misc binfmt_misc /proc/sys/fs/binfmt_misc
 update-binfmts --enable qemu-arm 2>/dev/null || true
 arch-test armhf >/dev/null || { echo "armhf binaries do not run here (qemu-user binfmt)" >&2; exit 1; }

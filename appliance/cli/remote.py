@@ -396,8 +396,9 @@ def _node_table(nodes: list[dict[str, Any]]) -> str:
     rows = [head]
     for n in nodes:
         crit = "*" if n.get("critical") else " "
+        state = n["state"] if n.get("enabled", True) else "disabled"
         rows.append(
-            f"{n['name'] + crit:14} {n['state']:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
+            f"{n['name'] + crit:14} {state:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
             f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')} {n.get('health', '')}"
         )
     return "\n".join(rows) + "\n(* critical)\n"
