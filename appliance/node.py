@@ -64,6 +64,10 @@ class Node:
     def beat(self) -> None:
         self._last_beat = time.monotonic()
 
+    @property
+    def last_beat(self) -> float:
+        return self._last_beat
+
     def healthy(self) -> bool:
         return time.monotonic() - self._last_beat < self.stall_s
 
@@ -122,8 +126,18 @@ class NodeRunner:
         cls = messaging.msg_class(HEARTBEAT_TYPE)
         pid = os.getpid()
         next_t = time.monotonic()
+        stalled_since: float | None = None  # the journal says which loop went quiet, how long
         while not self.stop.is_set():
-            if self.node.healthy():
+            before = self.node.last_beat
+            healthy = self.node.healthy()
+            if not healthy and stalled_since is None:
+                stalled_since = before
+                self.log.warning("loop_stalled", limit_s=self.node.stall_s)
+            elif healthy and stalled_since is not None:
+                stalled_s = self.node.last_beat - stalled_since
+                self.log.warning("loop_recovered", stalled_s=round(stalled_s, 2))
+                stalled_since = None
+            if healthy:
                 self._count += 1
                 now = time.time_ns()
                 pub.publish(cls(messaging.stamp(now), self.name, self._count, pid, "running"), now)

@@ -28,6 +28,7 @@ import yaml
 from exolink import __version__, messaging
 from exolink.messaging import CommandRefused
 from exolink.node import Node
+from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 QUEUE_MAX = 50_000
@@ -58,11 +59,13 @@ class Stats:
 
 
 class McapFile:
-    """One open MCAP file with its schemas and channels registered on first use."""
+    """One open MCAP file with its schemas and channels registered on first use.
+
+    Nothing here may import: the writer loop opens files, and an import on it (mcap and its
+    compressors took seconds under emulation) stalls its heartbeat until the supervisor kills it.
+    """
 
     def __init__(self, path: Path, p: RecorderParams, metadata: dict[str, dict[str, str]]) -> None:
-        from mcap.writer import CompressionType, Writer
-
         comp = {
             "zstd": CompressionType.ZSTD,
             "lz4": CompressionType.LZ4,

@@ -4,9 +4,11 @@ container, and rosbags (with the schema stored in the file) for the CDR payloads
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -230,3 +232,51 @@ def test_bad_files_and_commands(tmp_path, write_config, spawn) -> None:  # type:
     assert app.cli("record", "start").returncode == 0
     r = app.cli("record", "start")
     assert r.returncode == 5 and "already recording" in r.stderr
+
+
+COLD_RECORDER = """
+import json, sys, threading, time
+from exolink.config import load
+from exolink.node import NodeRunner
+from exolink.nodes.recorder import Recorder
+
+class Watched(Recorder):
+    def configure(self):
+        super().configure()
+        self.after_configure = set(sys.modules)
+
+runner = NodeRunner(Watched, load(sys.argv[1]), "recorder")
+t = threading.Thread(target=runner.run)
+t.start()
+def recorded():
+    stats = getattr(runner.node, "stats", None)  # set by configure, on the runner's thread
+    return stats is not None and stats.files and stats.written > 50
+
+deadline = time.monotonic() + 30
+while time.monotonic() < deadline and not recorded():
+    time.sleep(0.05)
+runner.stop.set()
+t.join(10)
+print(json.dumps({"written": runner.node.stats.written,
+                  "imported": sorted(set(sys.modules) - runner.node.after_configure)}))
+"""
+
+
+def test_recorder_imports_nothing_once_running(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The writer loop must not stall: under emulation the board's recorder imported mcap and
+    its compressors on opening the first file, went silent for seconds and was killed on every
+    restart. A cold process (nothing imported yet) records and the loop imports no module."""
+    rec_dir = tmp_path / "rec"
+    node_list = nodes(rec_dir, autostart=True)
+    node_list[-1]["enabled"] = False  # the supervisor knows it; this test runs it cold, itself
+    cfg = write_config(nodes=node_list)
+    app = Appliance(cfg, spawn, wait_nodes=False)
+    wait_for(lambda: app.node("h2_reader")["heartbeat_age_s"] is not None, timeout=20)
+    r = subprocess.run(
+        [sys.executable, "-c", COLD_RECORDER, str(cfg)], capture_output=True, text=True, timeout=60
+    )
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["written"] > 50, r.stderr
+    assert out["imported"] == [], out["imported"]
+    assert len(recordings(rec_dir)) == 1
