@@ -210,6 +210,39 @@ def test_node_without_first_heartbeat_is_killed_after_start_grace(  # type: igno
     assert "slowpoke: no heartbeat 2 s after start" in app.proc.output()
 
 
+def test_configured_priority_comes_with_the_first_heartbeat(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path, monkeypatch
+) -> None:
+    """A node imports at plain priority: a SCHED_FIFO node importing for seconds on one core
+    would starve the supervisor (seen under emulation: systemd killed it). The stall here is a
+    sitecustomize that sleeps 3 s when argv names the node."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import sys, time\nif 'latecomer' in sys.argv:\n    time.sleep(3)\n"
+    )
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    )
+    late = {"name": "latecomer", "plugin": "h2_reader", "priority": {"nice": 7}}
+    ours = os.getpriority(os.PRIO_PROCESS, 0)
+    with contextlib.suppress(PermissionError):  # as root: a supervisor that outranks its nodes
+        os.setpriority(os.PRIO_PROCESS, 0, -3)  # as the systemd unit's Nice= makes it
+    try:
+        app = Appliance(write_config(nodes=[*NODES, late]), spawn, wait_nodes=False)
+    finally:
+        os.setpriority(os.PRIO_PROCESS, 0, ours)
+    pid = wait_for(lambda: app.node("latecomer")["pid"], timeout=10)
+    plain = max(0, os.getpriority(os.PRIO_PROCESS, app.proc.p.pid))
+    assert app.node("latecomer")["heartbeat_age_s"] is None
+    assert os.getpriority(os.PRIO_PROCESS, pid) == plain  # type: ignore[arg-type]
+    wait_for(lambda: app.node("latecomer")["heartbeat_age_s"] is not None, timeout=30)
+    tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    assert len(tids) > 1  # Zenoh's threads and the heartbeat's
+    assert {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {7}
+    assert "priority_not_permitted" not in app.proc.output()
+
+
 def test_shutdown_sends_safe_action_first(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
     collect(mbus, 0.1)

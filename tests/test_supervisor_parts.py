@@ -58,15 +58,21 @@ def test_sd_notify_over_a_real_socket(tmp_path: Path, monkeypatch: pytest.Monkey
     srv.close()
 
 
+THREADED = "import threading, time\nfor _ in range(3): threading.Thread(target=time.sleep, args=(5,)).start()\nprint(flush=True)\ntime.sleep(5)"
+
+
 def test_priority_and_usage_applied_to_a_real_process() -> None:
-    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(5)"])
+    """On every thread: a running node already has Zenoh's threads when its priority comes."""
+    p = subprocess.Popen([sys.executable, "-c", THREADED], stdout=subprocess.PIPE)
     try:
+        assert p.stdout is not None and p.stdout.readline() == b"\n"  # its threads are running
         apply_priority(
             NodeConfig(name="x", plugin="h2_reader", priority=Priority(nice=7, cpus=[0])), p.pid
         )
-        assert os.getpriority(os.PRIO_PROCESS, p.pid) == 7
-        assert os.sched_getaffinity(p.pid) == {0}
-        time.sleep(0.5)  # let the interpreter load
+        tids = [int(t) for t in os.listdir(f"/proc/{p.pid}/task")]
+        assert len(tids) == 4
+        assert {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {7}
+        assert {frozenset(os.sched_getaffinity(t)) for t in tids} == {frozenset({0})}
         usage = proc_usage(p.pid)
         assert usage["rss_mb"] > 1
     finally:

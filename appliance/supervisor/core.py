@@ -27,7 +27,7 @@ from exolink.messaging import CommandRefused
 from exolink.node import HEARTBEAT_TOPIC, HEARTBEAT_TYPE, stop_on_signals
 from exolink.protocol import h2
 from exolink.supervisor import canlink, trigger
-from exolink.supervisor.processes import Exit, NodeProcess, relay
+from exolink.supervisor.processes import Exit, NodeProcess, apply_priority, relay
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
@@ -159,11 +159,13 @@ class Supervisor:
         except (ValueError, IndexError):
             return
         node = self.nodes.get(name)
-        if node is None or node.pid is None:
+        pid = None if node is None else node.pid
+        if node is None or pid is None:
             return
         now = time.monotonic()
         if node.heartbeat_at is None:
             node.start_s = now - node.started_at
+            apply_priority(node.cfg, pid)  # only now: see plain_priority
             self.log.info("node_up", node_name=name, start_s=round(node.start_s, 2))
         node.heartbeat_at = now
 

@@ -8,6 +8,7 @@ is what lets the watchdog put the disable frames on the bus right after a ``kill
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 import os
 import signal
@@ -87,7 +88,7 @@ class NodeProcess:
             )
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
-            apply_priority(self.cfg, self.proc.pid)
+            plain_priority(self.proc.pid)
             threading.Thread(
                 target=self._wait, args=(self.proc,), daemon=True, name=f"wait-{self.name}"
             ).start()
@@ -156,6 +157,7 @@ class NodeProcess:
             "name": self.name,
             "plugin": self.cfg.plugin,
             "critical": self.cfg.critical,
+            "enabled": self.cfg.enabled,
             "state": self.state,
             "pid": pid,
             "uptime_s": round(time.monotonic() - self.started_at, 1) if pid else 0.0,
@@ -172,15 +174,34 @@ class NodeProcess:
         return info
 
 
+def plain_priority(pid: int) -> None:
+    """A node imports and configures at plain priority; its configured one comes with its first
+    heartbeat. Under emulation a SCHED_FIFO node importing for seconds starved the supervisor
+    until systemd's watchdog killed it; on the board's single core that would be the same."""
+    with contextlib.suppress(OSError):  # already lower (a niced supervisor): leave it
+        os.setpriority(os.PRIO_PROCESS, pid, max(0, os.getpriority(os.PRIO_PROCESS, 0)))
+
+
+def _threads(pid: int) -> list[int]:
+    """Scheduling is per thread in Linux; a running node has Zenoh's threads besides its own."""
+    try:
+        return sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except OSError:
+        return [pid]
+
+
 def apply_priority(cfg: NodeConfig, pid: int) -> None:
-    """Nice / SCHED_FIFO / affinity as configured; a clear warning where not permitted."""
+    """Nice / SCHED_FIFO / affinity as configured, on every thread of the node; a clear warning
+    where not permitted."""
     log = structlog.get_logger().bind(node=cfg.name)
     pr = cfg.priority
+    tids = _threads(pid)
     try:
-        if pr.fifo is not None:
-            os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(pr.fifo))
-        elif pr.nice is not None:
-            os.setpriority(os.PRIO_PROCESS, pid, pr.nice)
+        for tid in tids:
+            if pr.fifo is not None:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(pr.fifo))
+            elif pr.nice is not None:
+                os.setpriority(os.PRIO_PROCESS, tid, pr.nice)
     except PermissionError:
         log.warning(
             "priority_not_permitted",
@@ -188,11 +209,16 @@ def apply_priority(cfg: NodeConfig, pid: int) -> None:
             nice=pr.nice,
             fix="run the supervisor with CAP_SYS_NICE (the systemd unit grants it)",
         )
+    except ProcessLookupError:
+        pass  # a thread ended meanwhile
     except OSError as exc:
         log.warning("priority_failed", error=str(exc))
     if pr.cpus:
         try:
-            os.sched_setaffinity(pid, pr.cpus)
+            for tid in tids:
+                os.sched_setaffinity(tid, pr.cpus)
+        except ProcessLookupError:
+            pass
         except OSError as exc:
             log.warning("affinity_failed", cpus=pr.cpus, error=str(exc))
 
