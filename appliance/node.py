@@ -160,6 +160,7 @@ class NodeRunner:
         self._decls.append(
             messaging.serve(self.session, self.msg.mgmt("nodes", self.name, "params"), self._params)
         )
+        self.node.beat()  # the loop's stall clock starts now, not at construction
         hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         hb.start()
         self.log.info("node_running", pid=os.getpid())

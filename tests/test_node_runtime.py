@@ -1,0 +1,66 @@
+"""The node runtime in-process on a real (peer, no network) Zenoh session: when a node's loop
+counts as stalled, and what the journal says about it."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+from exolink import config, messaging
+from exolink.node import Node, NodeRunner
+from structlog.testing import capture_logs
+
+
+class SlowStart(Node):
+    """Configure longer than stall_s (an A8 core opening buses), then a loop whose first beat
+    comes within stall_s of its start but not of the node's construction."""
+
+    def configure(self) -> None:
+        time.sleep(self.stall_s * 2)
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.wait(self.stall_s * 0.4):
+            self.beat()
+
+
+class StallsOnce(Node):
+    """A loop that goes quiet for 0.8 s once, then beats again."""
+
+    def run(self, stop: threading.Event) -> None:
+        self.beat()
+        time.sleep(0.8)
+        while not stop.wait(0.05):
+            self.beat()
+
+
+@pytest.fixture
+def session() -> Iterator[zenoh.Session]:
+    cfg = config.parse(config.bundled("sim").read_text())
+    s = zenoh.open(messaging.session_config(cfg.zenoh))
+    yield s
+    s.close()
+
+
+def run_for(cls: type[Node], session: zenoh.Session, seconds: float) -> list[dict]:
+    cfg = config.parse(config.bundled("sim").read_text())
+    with capture_logs() as logs:
+        runner = NodeRunner(cls, cfg, "h2_reader", session)  # any configured name
+        t = threading.Thread(target=runner.run)
+        t.start()
+        time.sleep(seconds)
+        runner.stop.set()
+        t.join(5)
+    return [e for e in logs if e["event"] in ("loop_stalled", "loop_recovered")]
+
+
+def test_slow_configure_is_not_a_stalled_loop(session: zenoh.Session) -> None:
+    assert run_for(SlowStart, session, 1.5) == []
+
+
+def test_a_stalled_loop_is_logged_with_its_length(session: zenoh.Session) -> None:
+    events = run_for(StallsOnce, session, 1.5)
+    assert [e["event"] for e in events] == ["loop_stalled", "loop_recovered"]
+    assert events[1]["stalled_s"] >= 0.8
