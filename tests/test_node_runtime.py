@@ -15,14 +15,14 @@ from structlog.testing import capture_logs
 
 
 class SlowStart(Node):
-    """Configure longer than stall_s (an A8 core opening buses), then a loop whose first beat
-    comes within stall_s of its start but not of the node's construction."""
+    """Configure longer than stall_s (an A8 core opening buses), then a loop that beats."""
 
     def configure(self) -> None:
         time.sleep(self.stall_s * 2)
 
     def run(self, stop: threading.Event) -> None:
-        while not stop.wait(self.stall_s * 0.4):
+        self.healthy_when_run_started = self.healthy()
+        while not stop.wait(0.05):
             self.beat()
 
 
@@ -44,7 +44,7 @@ def session() -> Iterator[zenoh.Session]:
     s.close()
 
 
-def run_for(cls: type[Node], session: zenoh.Session, seconds: float) -> list[dict]:
+def run_for(cls: type[Node], session: zenoh.Session, seconds: float) -> tuple[Node, list[dict]]:
     cfg = config.parse(config.bundled("sim").read_text())
     with capture_logs() as logs:
         runner = NodeRunner(cls, cfg, "h2_reader", session)  # any configured name
@@ -53,14 +53,16 @@ def run_for(cls: type[Node], session: zenoh.Session, seconds: float) -> list[dic
         time.sleep(seconds)
         runner.stop.set()
         t.join(5)
-    return [e for e in logs if e["event"] in ("loop_stalled", "loop_recovered")]
+    return runner.node, [e for e in logs if e["event"] in ("loop_stalled", "loop_recovered")]
 
 
 def test_slow_configure_is_not_a_stalled_loop(session: zenoh.Session) -> None:
-    assert run_for(SlowStart, session, 1.5) == []
+    node, events = run_for(SlowStart, session, 1.5)
+    assert node.healthy_when_run_started  # type: ignore[attr-defined]
+    assert events == []
 
 
 def test_a_stalled_loop_is_logged_with_its_length(session: zenoh.Session) -> None:
-    events = run_for(StallsOnce, session, 1.5)
+    _, events = run_for(StallsOnce, session, 1.5)
     assert [e["event"] for e in events] == ["loop_stalled", "loop_recovered"]
     assert events[1]["stalled_s"] >= 0.8
