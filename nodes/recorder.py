@@ -32,6 +32,9 @@ from mcap.writer import CompressionType, Writer  # here, not on first file: see 
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 QUEUE_MAX = 50_000
+# Drain the queue in slices of wall time, not of messages, with beat() between them: sharing one
+# core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
+DRAIN_SLICE_S = 0.05
 
 
 class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -298,7 +301,8 @@ class Recorder(Node):
                     self._open()  # only the intake fills the queue, and only while recording
                 if item is not None:
                     self._write(item)
-                    for _ in range(500):  # drain in batches; beat() between batches
+                    until = time.monotonic() + DRAIN_SLICE_S
+                    while time.monotonic() < until:
                         try:
                             self._write(self.q.get_nowait())
                         except queue.Empty:
