@@ -35,6 +35,9 @@ QUEUE_MAX = 50_000
 # Drain the queue in slices of wall time, not of messages, with beat() between them: sharing one
 # core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
+# A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
+# file: the reply then says "stopping", which is true, instead of the CLI timing out.
+STOP_REPLY_S = 2.0
 
 
 class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -113,6 +116,9 @@ class McapFile:
 
 class Recorder(Node):
     Params = RecorderParams
+    # SD cards pause writes for a second or more while they erase; fsync in the writer loop waits
+    # them out. That is a slow card, not a hung recorder: the queue holds minutes of data.
+    stall_s = 5.0
 
     def configure(self) -> None:
         self.dir = Path(self.params.directory)
@@ -125,6 +131,9 @@ class Recorder(Node):
         self.file: McapFile | None = None
         self.index = 0
         self.session_stamp = ""
+        cfg = msgspec.to_builtins(self.ctx.config)
+        cfg.pop("source", None)
+        self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
         m = self.ctx.messaging
         self.subs = [
             self.ctx.session.declare_subscriber(
@@ -185,7 +194,7 @@ class Recorder(Node):
                 self.state = "stopping"
         elif action != "status":
             raise CommandRefused(f"unknown record action {action!r} (start, stop, status)")
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + STOP_REPLY_S
         while self.state == "stopping" and time.monotonic() < deadline:
             time.sleep(0.01)
         return self.status()
@@ -220,8 +229,6 @@ class Recorder(Node):
     # --- writer thread --------------------------------------------------------------------
 
     def _metadata(self) -> dict[str, dict[str, str]]:
-        cfg = msgspec.to_builtins(self.ctx.config)
-        cfg.pop("source", None)
         return {
             "exolink": {
                 "device": self.ctx.config.device,
@@ -230,7 +237,7 @@ class Recorder(Node):
                 "file_index": str(self.index),
             },
             "exolink.labels": dict(self.labels),
-            "exolink.config": {"yaml": yaml.safe_dump(cfg, sort_keys=False)},
+            "exolink.config": {"yaml": self.config_yaml},
         }
 
     def _open(self) -> None:

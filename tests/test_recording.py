@@ -137,6 +137,42 @@ def test_kill9_leaves_a_recoverable_file(write_config, spawn, tmp_path) -> None:
     assert rosbags_decode(out, "/h2/joint_states")[-1][1].name[0] == "r_hip"
 
 
+def test_slow_card_does_not_get_the_recorder_killed(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path, monkeypatch
+) -> None:
+    """SD cards pause for seconds while they erase blocks; the writer loop blocks in fsync then.
+    Such a pause cannot be made on this machine's disk, so the recorder process gets one: a
+    sitecustomize makes each os.fsync sleep 2 s first. The recorder must keep beating (it is
+    not hung) and keep every message."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import os, sys, time\n"
+        "if 'recorder' in sys.argv:\n"
+        "    _fsync = os.fsync\n"
+        "    def fsync(fd):\n"
+        "        time.sleep(2.0)\n"
+        "        _fsync(fd)\n"
+        "    os.fsync = fsync\n"
+    )
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    )
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir, fsync_interval_s=0.5, autostart=True)), spawn)
+    time.sleep(7)  # three slow syncs at least
+    r = app.cli("record", "stop")  # replies "stopping" while the card closes the file
+    assert r.returncode == 0 and ("idle" in r.stdout or "stopping" in r.stdout), r
+    wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+    rec = app.node("recorder")
+    assert rec["restarts"] == 0 and rec["state"] == "running", rec
+    assert "node_hung_killed" not in app.proc.output()
+    [path] = recordings(rec_dir)
+    st = info(path).metadata["exolink.stats"]
+    assert st["dropped"] == "0" and st["received"] == st["written"]
+    assert info(path).topics["/h2/joint_states"]["count"] > 400
+
+
 @pytest.fixture
 def tiny_disk(tmp_path: Path):  # type: ignore[no-untyped-def]
     d = tmp_path / "tiny"
