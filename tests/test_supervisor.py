@@ -243,6 +243,31 @@ def test_configured_priority_comes_with_the_first_heartbeat(  # type: ignore[no-
     assert "priority_not_permitted" not in app.proc.output()
 
 
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (  # socketcan does not exist in this kernel; on the board: the overlay is missing
+            "can: {interface: socketcan, channel: nocan0, bring_up: true, require_overlay: false}",
+            "no network interface 'nocan0'",
+        ),
+        (
+            "can: {interface: virtual, channel: t6}\n"
+            "trigger: {source: gpio, chip: /dev/gpiochip97, line: 7}",
+            "no GPIO chip /dev/gpiochip97",
+        ),
+    ],
+)
+def test_missing_hardware_exits_6_not_3(tmp_path, text: str, expected: str) -> None:  # type: ignore[no-untyped-def]
+    """systemd retries exit 6 (a driver may still be probing at boot) and not 3 (bad config)."""
+    path = tmp_path / "board.yaml"
+    path.write_text(f"device: x\n{text}\n")
+    r = subprocess.run(
+        [*EXOLINK, "up", "-c", str(path)], capture_output=True, text=True, timeout=30
+    )
+    assert r.returncode == 6, r.stderr
+    assert expected in r.stderr and "Traceback" not in r.stderr
+
+
 def test_shutdown_sends_safe_action_first(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
     collect(mbus, 0.1)

@@ -7,6 +7,9 @@ import sys
 from collections.abc import Callable
 
 EXIT_USAGE, EXIT_CONFIG, EXIT_UNREACHABLE, EXIT_REFUSED = 2, 3, 4, 5
+# Apart from a bad config: CAN or GPIO missing may pass (a driver still probing at boot), so
+# systemd restarts on it; a bad config never fixes itself, so systemd must not (exolink.service).
+EXIT_HARDWARE = 6
 
 
 def fail(message: str, code: int) -> int:
@@ -30,7 +33,7 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
     except PluginError as exc:
         return fail(str(exc), EXIT_CONFIG)
     except (CanOpenError, CanLinkError, TriggerError) as exc:
-        return fail(str(exc), EXIT_CONFIG)
+        return fail(str(exc), EXIT_HARDWARE)
     except Unreachable as exc:
         return fail(f"appliance unreachable: {exc}", EXIT_UNREACHABLE)
     except ProtocolError as exc:

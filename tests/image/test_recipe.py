@@ -48,3 +48,15 @@ def test_units_install_where_systemd_reads_them() -> None:
     assert (
         "RuntimeWatchdogSec=" in (etc / "systemd/system.conf.d/exolink-watchdog.conf").read_text()
     )
+
+
+def test_unit_retries_missing_hardware_but_not_a_bad_config() -> None:
+    """A bad config never fixes itself: restarting it would hit the start limit and reboot the
+    board every few minutes. The codes are the CLI's own (tests/test_supervisor.py runs them)."""
+    from exolink.cli.errors import EXIT_CONFIG, EXIT_HARDWARE
+
+    unit = (REPO / "services/etc/systemd/system/exolink.service").read_text()
+    [line] = [x for x in unit.splitlines() if x.startswith("RestartPreventExitStatus=")]
+    prevented = {int(c) for c in line.split("=", 1)[1].split()}
+    assert EXIT_CONFIG in prevented and EXIT_HARDWARE not in prevented
+    assert "ExecStartPre" not in unit  # its exit status would not count as the main process's
