@@ -124,6 +124,7 @@ class Plan:
     remove: list[str] = field(default_factory=list)
     boot_files: dict[str, str] = field(default_factory=dict)  # written back to the boot partition
     first_boot: bool = False  # also regenerate SSH host keys and grow the root partition
+    problems: list[str] = field(default_factory=list)  # applied anyway, logged as errors
 
 
 def _network(s: BoardSettings) -> dict[str, str]:
@@ -236,9 +237,16 @@ def plan(s: BoardSettings, root: Path) -> Plan:
     p.files["etc/default/exolink"] = (f"EXOLINK_UP_ARGS={args}\n", 0o644)
     appliance = root / "etc/exolink/appliance.yaml"
     if appliance.exists():
-        text = _device_in_config(appliance.read_text(), s.device)
-        parse(text, str(appliance))  # checked before anything is written
-        p.files["etc/exolink/appliance.yaml"] = (text, 0o640)
+        # A broken appliance.yaml (a hand edit over ssh) is left as it is and does not hold back
+        # the network and SSH settings: they are how the engineer reaches the board to fix it.
+        # The supervisor refuses the file with its line (exit 3) and systemd leaves it stopped.
+        try:
+            text = _device_in_config(appliance.read_text(), s.device)
+            parse(text, str(appliance))
+        except ConfigError as exc:
+            p.problems.append(f"{exc} (left unchanged; device name applied on the next boot)")
+        else:
+            p.files["etc/exolink/appliance.yaml"] = (text, 0o640)
     home = f"home/{LOGIN_USER}/.ssh/authorized_keys"
     p.files[home] = ("".join(k.strip() + "\n" for k in s.ssh.authorized_keys), 0o600)
     p.first_boot = not (root / FIRST_BOOT_DONE).exists()
@@ -270,6 +278,8 @@ def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:
             _write(boot, name, text, 0o600)
     if root == Path("/"):
         _run_live(settings, p)
+    for problem in p.problems:
+        log.error("appliance config not updated", problem=problem)
     log.info(
         "board settings applied",
         device=settings.device,

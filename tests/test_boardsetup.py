@@ -87,6 +87,25 @@ def test_device_name_goes_into_appliance_yaml_keeping_comments(card: tuple[Path,
     assert "127.0.1.1\texo-07" in (root / "etc/hosts").read_text()
 
 
+def test_broken_appliance_yaml_is_left_alone_and_the_board_stays_reachable(
+    card: tuple[Path, Path],
+) -> None:
+    """A hand edit broke the config: the supervisor will refuse it (exit 3, unit stays stopped),
+    but network and SSH settings must still apply, or nobody can log in to fix it."""
+    boot, root = card
+    path = root / "etc/exolink/appliance.yaml"
+    broken = path.read_text().replace("heartbeat_deadline_ms: 500", "heartbeat_deadline_ms: -5")
+    path.write_text(broken)
+    edit(boot, device="exo-07")
+    plan = apply(boot, root)
+    assert path.read_text() == broken
+    [problem] = plan.problems
+    assert "watchdog.heartbeat_deadline_ms" in problem and "left unchanged" in problem
+    assert (root / "etc/hostname").read_text() == "exo-07\n"
+    assert (root / "etc/systemd/network/10-exolink-ethernet.network").exists()
+    assert (root / "home/exo/.ssh/authorized_keys").exists()
+
+
 def test_static_address_and_wifi(card: tuple[Path, Path]) -> None:
     boot, root = card
     edit(
