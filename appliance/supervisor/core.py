@@ -159,8 +159,7 @@ class Supervisor:
         except (ValueError, IndexError):
             return
         node = self.nodes.get(name)
-        pid = None if node is None else node.pid
-        if node is None or pid is None:
+        if node is None or (pid := node.pid) is None:
             return
         now = time.monotonic()
         if node.heartbeat_at is None:

@@ -198,10 +198,11 @@ def apply_priority(cfg: NodeConfig, pid: int) -> None:
     tids = _threads(pid)
     try:
         for tid in tids:
-            if pr.fifo is not None:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(pr.fifo))
-            elif pr.nice is not None:
-                os.setpriority(os.PRIO_PROCESS, tid, pr.nice)
+            with contextlib.suppress(ProcessLookupError):  # ended meanwhile: skip it, not the rest
+                if pr.fifo is not None:
+                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(pr.fifo))
+                elif pr.nice is not None:
+                    os.setpriority(os.PRIO_PROCESS, tid, pr.nice)
     except PermissionError:
         log.warning(
             "priority_not_permitted",
@@ -209,16 +210,13 @@ def apply_priority(cfg: NodeConfig, pid: int) -> None:
             nice=pr.nice,
             fix="run the supervisor with CAP_SYS_NICE (the systemd unit grants it)",
         )
-    except ProcessLookupError:
-        pass  # a thread ended meanwhile
     except OSError as exc:
         log.warning("priority_failed", error=str(exc))
     if pr.cpus:
         try:
             for tid in tids:
-                os.sched_setaffinity(tid, pr.cpus)
-        except ProcessLookupError:
-            pass
+                with contextlib.suppress(ProcessLookupError):
+                    os.sched_setaffinity(tid, pr.cpus)
         except OSError as exc:
             log.warning("affinity_failed", cpus=pr.cpus, error=str(exc))
 
