@@ -96,6 +96,23 @@ class DrainedBus:
 
 
 @pytest.fixture
+def in_node(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[[str, str], None]:
+    """Run code at interpreter start in the processes whose argv names a node (a sitecustomize
+    on PYTHONPATH, inherited by the supervisor and its nodes): how the tests make a node slow
+    to start or its disk slow, which cannot be made for real here."""
+
+    def install(node: str, code: str) -> None:
+        site = tmp_path / "site"
+        site.mkdir(exist_ok=True)
+        body = "".join(f"    {line}\n" for line in code.strip().splitlines())
+        (site / "sitecustomize.py").write_text(f"import sys\nif {node!r} in sys.argv:\n{body}")
+        path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+        monkeypatch.setenv("PYTHONPATH", path)
+
+    return install
+
+
+@pytest.fixture
 def mbus(group: str) -> Iterator[DrainedBus]:
     """An independent listener on the test's udp_multicast bus."""
     bus = DrainedBus(open_bus(CanConfig(interface="udp_multicast", channel=group)))

@@ -138,25 +138,22 @@ def test_kill9_leaves_a_recoverable_file(write_config, spawn, tmp_path) -> None:
 
 
 def test_slow_card_does_not_get_the_recorder_killed(  # type: ignore[no-untyped-def]
-    write_config, spawn, tmp_path, monkeypatch
+    write_config, spawn, tmp_path, in_node
 ) -> None:
     """SD cards pause for seconds while they erase blocks; the writer loop blocks in fsync then.
     Such a pause cannot be made on this machine's disk, so the recorder process gets one: a
     sitecustomize makes each os.fsync sleep 2 s first. The recorder must keep beating (it is
     not hung) and keep every message."""
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "sitecustomize.py").write_text(
-        "import os, sys, time\n"
-        "if 'recorder' in sys.argv:\n"
-        "    _fsync = os.fsync\n"
-        "    def fsync(fd):\n"
-        "        time.sleep(2.0)\n"
-        "        _fsync(fd)\n"
-        "    os.fsync = fsync\n"
-    )
-    monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    in_node(
+        "recorder",
+        """
+import os, time
+_fsync = os.fsync
+def fsync(fd):
+    time.sleep(2.0)
+    _fsync(fd)
+os.fsync = fsync
+""",
     )
     rec_dir = tmp_path / "rec"
     app = Appliance(write_config(nodes=nodes(rec_dir, fsync_interval_s=0.5, autostart=True)), spawn)

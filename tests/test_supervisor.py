@@ -188,18 +188,11 @@ def test_restart_cap_marks_node_failed(write_config, spawn, mbus) -> None:  # ty
 
 
 def test_node_without_first_heartbeat_is_killed_after_start_grace(  # type: ignore[no-untyped-def]
-    write_config, spawn, tmp_path, monkeypatch
+    write_config, spawn, in_node
 ) -> None:
     # A node stuck before its first heartbeat (a plugin hanging in setup, a card too slow to
     # import): its interpreter is stalled by a sitecustomize that sleeps when argv names it.
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "sitecustomize.py").write_text(
-        "import sys, time\nif 'slowpoke' in sys.argv:\n    time.sleep(3600)\n"
-    )
-    monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
-    )
+    in_node("slowpoke", "import time; time.sleep(3600)")
     nodes = [*NODES, {"name": "slowpoke", "plugin": "h2_reader", "params": {"reduction": 1}}]
     cfg = write_config(nodes=nodes, watchdog={"start_grace_ms": 2000})
     app = Appliance(cfg, spawn, wait_nodes=False)
@@ -211,19 +204,12 @@ def test_node_without_first_heartbeat_is_killed_after_start_grace(  # type: igno
 
 
 def test_configured_priority_comes_with_the_first_heartbeat(  # type: ignore[no-untyped-def]
-    write_config, spawn, tmp_path, monkeypatch
+    write_config, spawn, in_node
 ) -> None:
     """A node imports at plain priority: a SCHED_FIFO node importing for seconds on one core
     would starve the supervisor (seen under emulation: systemd killed it). The stall here is a
     sitecustomize that sleeps 3 s when argv names the node."""
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "sitecustomize.py").write_text(
-        "import sys, time\nif 'latecomer' in sys.argv:\n    time.sleep(3)\n"
-    )
-    monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
-    )
+    in_node("latecomer", "import time; time.sleep(3)")
     late = {"name": "latecomer", "plugin": "h2_reader", "priority": {"nice": 7}}
     ours = os.getpriority(os.PRIO_PROCESS, 0)
     with contextlib.suppress(PermissionError):  # as root: a supervisor that outranks its nodes
