@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from exolink import messaging
@@ -89,6 +90,17 @@ def run(quick: bool) -> dict[str, Any]:
             if m is not None:
                 stop_to_trip.append(m.timestamp - t0)
             time.sleep(0.5)
+        silence_to_trip = []
+        for _ in range(5 if quick else 10):
+            time.sleep(1.5)  # the simulator streams again
+            app.arm()
+            bus.clear()
+            time.sleep(0.05)  # a few angle frames queued: the last one marks the silence start
+            app.call("sim/fault", {"fault": "silent", "duration_s": 1.0})
+            m = bus.wait_for(_disable_after_silence(last := [0.0]), 3)
+            if m is not None and last[0]:
+                silence_to_trip.append(m.timestamp - last[0])
+        read_lag = app.call("status")["watchdog"]["read_lag_max_ms"]
     finally:
         sub.undeclare()
         bus.close()
@@ -99,10 +111,27 @@ def run(quick: bool) -> dict[str, Any]:
         "restart_backoff_ms": 50,
         "sigstop_to_disable_frame_ms": pct(stop_to_trip, 1e3),
         "heartbeat_deadline_ms": 500,
+        # last joint-angle frame on the bus -> first disable frame (limit 100 ms + detection)
+        "h2_silence_to_disable_frame_ms": pct(silence_to_trip, 1e3),
+        "h2_silence_limit_ms": 100,
+        # arrival -> read by the watchdog, worst over the whole run: margin a busy CPU eats
+        "watchdog_read_lag_max_ms": read_lag,
         "cold_start_to_first_heartbeat_s": cold_start,
         "rss_mb": rss,
         "rss_total_mb": round(sum(v for v in rss.values() if v), 1),
     }
+
+
+def _disable_after_silence(last: list[float]) -> Callable[[Any], bool]:
+    """Matches the first disable frame, keeping the last angle frame's timestamp before it."""
+
+    def pred(m: Any) -> bool:
+        if m.arbitration_id == h2.JOINT_ANGLES:
+            last[0] = m.timestamp
+            return False
+        return is_disable(m)
+
+    return pred
 
 
 def _rss(pid: int) -> float:

@@ -418,7 +418,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         else ""
     )
     sys.stdout.write(
-        f"device   {s['device']}\nwatchdog {wd['state'].upper()}{why}  trips={wd['trips']}\n"
+        f"device   {s['device']}\nwatchdog {wd['state'].upper()}{why}  trips={wd['trips']}"
+        f"  read lag max {wd.get('read_lag_max_ms', '?')} ms\n"
         f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n" + _node_table(s["nodes"])

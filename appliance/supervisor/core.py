@@ -407,6 +407,7 @@ class Supervisor:
                 "trips": wd.trips,
                 "frames_sent": wd.frames_sent,
                 "violations": wd.violations,
+                "read_lag_max_ms": wd.read_lag_max_ms,
             },
             "bus": {
                 "interface": self.cfg.can.interface,

@@ -5,6 +5,14 @@ and the disable frames. Any trip sends the safe action at once and again shortly
 lost on a lossy bus must not leave a joint powered), latches, and refuses motion until an
 operator re-arms. It also listens to the bus itself: H2 data silence while armed trips it, and
 a motion frame seen while not armed is answered with the safe action again.
+
+Both bus checks go by when a frame reached the socket (its kernel timestamp), not by when this
+process got round to reading it: a supervisor busy for 150 ms (an import, a CLI call, a slow card)
+finds the frames queued and must not call that silence, while a real 150 ms gap between two
+angle frames trips even if both are read late. A frame already on the bus before the trip is not
+a violation either (the safe action went out after it). Should the reader itself stall past
+``STALL_BACKSTOP_S`` beyond the limit, the periodic check trips anyway: silence it cannot rule
+out counts as silence.
 """
 
 from __future__ import annotations
@@ -20,6 +28,8 @@ from exolink.config import WatchdogConfig
 from exolink.protocol import h2, maccepa
 
 REPEAT_AFTER_S = (0.05, 0.25)
+STALL_BACKSTOP_S = 0.5
+IDLE_POLL_S = 0.1
 MOTION_MODES = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 
 
@@ -36,6 +46,7 @@ class WatchdogState:
     trips: int
     frames_sent: int
     violations: int
+    read_lag_max_ms: float = 0.0  # frame arrival -> read by the watchdog: its margin to the limit
 
 
 Publish = Callable[[WatchdogState], None]
@@ -53,7 +64,10 @@ class Watchdog:
         ]
         self._s = WatchdogState("disarmed", "startup", "", time.time_ns(), 0, 0, 0)
         self._repeats: list[float] = []
-        self.last_h2: float | None = None  # monotonic time of the last H2 angle frame
+        self.last_h2: float | None = None  # monotonic arrival of the last H2 angle frame
+        self._last_arrival = 0.0  # arrivals never go backwards (FIFO socket, clock steps clamped)
+        self._armed_at: float | None = None  # monotonic; None while not armed
+        self._left_armed_at = time.monotonic()
         self.first_trip_ns: int | None = None
         self._stop = threading.Event()
         self._rx = threading.Thread(target=self._listen, daemon=True, name="watchdog-rx")
@@ -92,6 +106,7 @@ class Watchdog:
         now = time.monotonic()
         with self.lock:
             first = self._s.state != "tripped"
+            self._leave_armed(now)
             if first:
                 self._s.state, self._s.reason, self._s.detail = "tripped", reason, detail
                 self._s.since_ns = time.time_ns()
@@ -109,56 +124,103 @@ class Watchdog:
         with self.lock:
             self._s.state, self._s.reason, self._s.detail = "armed", "operator", ""
             self._s.since_ns = time.time_ns()
+            self._armed_at = time.monotonic()
         self.log.warning("watchdog_armed")
         self.publish(self.snapshot())
 
     def disarm(self, reason: str = "operator") -> None:
         self.send_safe_action()
         with self.lock:
+            self._leave_armed(time.monotonic())
             self._s.state, self._s.reason, self._s.detail = "disarmed", reason, ""
             self._s.since_ns = time.time_ns()
         self.log.info("watchdog_disarmed", reason=reason)
         self.publish(self.snapshot())
 
+    def _leave_armed(self, now: float) -> None:
+        if self._armed_at is not None:
+            self._armed_at, self._left_armed_at = None, now
+
     def h2_silent_for(self) -> float | None:
         return None if self.last_h2 is None else time.monotonic() - self.last_h2
 
     def check(self) -> None:
-        """Periodic: repeat the safe action after a trip; H2 silence while armed."""
+        """Periodic: repeat the safe action after a trip; the backstop for a stalled reader."""
         now = time.monotonic()
         with self.lock:
             due = [t for t in self._repeats if t <= now]
             self._repeats = [t for t in self._repeats if t > now]
         if due:
             self.send_safe_action()
-        if self.armed:
-            silent = self.h2_silent_for()
-            limit = self.cfg.h2_silence_ms / 1000
-            if silent is None or silent > limit:
-                shown = "never received" if silent is None else f"{silent * 1000:.0f} ms"
-                self.trip(
-                    "h2 data silent",
-                    f"no joint-angle frame for {shown} (limit {self.cfg.h2_silence_ms} ms)",
-                )
+        silent = self.h2_silent_for()
+        backstop = self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S
+        if self.armed and silent is not None and silent > backstop:
+            self.trip(
+                "h2 data silent",
+                f"watchdog bus reader stalled: no joint-angle frame read for {silent * 1000:.0f} ms "
+                f"(limit {self.cfg.h2_silence_ms} ms)",
+            )
+
+    def _arrival(self, msg: can.Message) -> float:
+        """When the frame reached the socket, on the monotonic clock. Its timestamp is wall time
+        (kernel SO_TIMESTAMP on SocketCAN and udp_multicast); the age is clamped so a clock step
+        while frames wait cannot put an arrival in the future or before the previous one."""
+        age = max(0.0, time.time() - msg.timestamp) if msg.timestamp else 0.0
+        self._last_arrival = max(self._last_arrival, time.monotonic() - age)
+        return self._last_arrival
+
+    def _check_silence(self, at: float) -> None:
+        """Silence while armed up to ``at``: a frame's arrival, or now when the socket was found
+        empty (every frame that came before ``at`` has then been read)."""
+        armed_at = self._armed_at
+        if not self.armed or armed_at is None:
+            return
+        since = armed_at if self.last_h2 is None else max(self.last_h2, armed_at)
+        silent, limit = at - since, self.cfg.h2_silence_ms / 1000
+        if silent > limit:
+            self.trip(
+                "h2 data silent",
+                f"no joint-angle frame for {silent * 1000:.0f} ms (limit {self.cfg.h2_silence_ms} ms)",
+            )
+
+    def _was_armed_at(self, t: float) -> bool:
+        armed_at = self._armed_at
+        if armed_at is not None:  # armed now: unarmed only between the last exit and this arm
+            return not self._left_armed_at <= t < armed_at
+        return t < self._left_armed_at
 
     def _listen(self) -> None:
+        limit = self.cfg.h2_silence_ms / 1000
         while not self._stop.is_set():
+            silent = self.h2_silent_for()
+            timeout = IDLE_POLL_S if silent is None or not self.armed else limit - silent
             try:
-                msg = self.bus.recv(timeout=0.1)
+                msg = self.bus.recv(timeout=min(IDLE_POLL_S, max(0.002, timeout)))
             except can.CanError as exc:
                 self.log.error("watchdog_rx_error", error=str(exc))
                 time.sleep(0.1)
                 continue
-            if msg is None:
+            if msg is None:  # the socket was empty for the whole timeout
+                self._check_silence(time.monotonic())
                 continue
+            at = self._arrival(msg)
+            lag_ms = (time.monotonic() - at) * 1000
+            if lag_ms > self._s.read_lag_max_ms:
+                with self.lock:
+                    self._s.read_lag_max_ms = round(lag_ms, 2)
+            self._check_silence(at)
             if msg.arbitration_id == h2.JOINT_ANGLES:
-                self.last_h2 = time.monotonic()
-            elif msg.arbitration_id == h2.JOINT_CONTROL and not self.armed:
+                self.last_h2 = at
+            elif msg.arbitration_id == h2.JOINT_CONTROL and not self._was_armed_at(at):
                 frame = h2.decode(msg)
                 if isinstance(frame, h2.JointControl) and frame.mode in MOTION_MODES:
                     with self.lock:
                         self._s.violations += 1
-                    self.log.error("motion_frame_while_not_armed", frame=msg.data.hex())
+                    self.log.error(
+                        "motion_frame_while_not_armed",
+                        frame=msg.data.hex(),
+                        after_ms=round((at - self._left_armed_at) * 1000, 1),
+                    )
                     self.send_safe_action()
 
     def close(self) -> None:

@@ -64,6 +64,11 @@ def write_config(tmp_path: Path, channel: str, nodes: list[dict]) -> Path:
     data = yaml.safe_load(bundled("sim").read_text())
     data["can"] = {"interface": "socketcan", "channel": channel, "bring_up": True}
     data["nodes"] = nodes
+    # The UML guest is one virtual CPU on a shared CI host: with the host busy, the whole guest
+    # (the simulated H2 board included) was seen to stop for 143 ms, a real silence on vcan0 that
+    # trips the 100 ms limit; node starts took 20 s. Wider limits here, as a lab engineer would
+    # set them for a slow machine; silence detection itself is tested on the host (test_watchdog).
+    data["watchdog"].update(h2_silence_ms=1000, heartbeat_deadline_ms=2000, start_grace_ms=60_000)
     path = tmp_path / "appliance.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -112,10 +117,12 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
         wait_status(lambda s: all(n["heartbeat_age_s"] is not None for n in s["nodes"]))
         assert cli("send", "position", "r_knee", "20").returncode == 5  # not armed yet
         end = time.monotonic() + 20
-        while cli("arm").returncode != 0 and time.monotonic() < end:
+        while (armed := cli("arm")).returncode != 0 and time.monotonic() < end:
             time.sleep(0.3)
+        assert armed.returncode == 0, armed.stderr
         # the broadcast manager plays the pattern; the timing monitor measures kernel timestamps
-        assert cli("pattern", "start", "--detach").returncode == 0
+        started = cli("pattern", "start", "--detach")
+        assert started.returncode == 0, started.stderr
         r = cli("timing", "70", "--motor", "1", "--dlc", "6", "--seconds", "10", "--json")
         stats = json.loads(r.stdout)
         print("BCM timing in the UML guest:", json.dumps(stats))

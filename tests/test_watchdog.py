@@ -1,0 +1,157 @@
+"""The watchdog's own bus checks, in-process on a real python-can virtual bus.
+
+What cannot be made on demand here is a scheduler stall of the supervisor's reader thread: a gate
+in front of ``recv`` stands in for it (frames keep queueing in the real bus meanwhile, as they do in
+a SocketCAN socket while the reader waits for the CPU). Everything else is the real Watchdog.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import can
+import pytest
+from exolink.config import WatchdogConfig
+from exolink.protocol import h2
+from exolink.supervisor.watchdog import Watchdog, WatchdogState
+
+ANGLES = h2.encode(h2.JointAngles(76, 94, 0, 76, 93, 11))
+
+
+class StalledReader(can.BusABC):
+    """A real virtual bus whose reader can be held, like a thread that gets no CPU."""
+
+    def __init__(self, channel: str) -> None:
+        self.inner = can.Bus(interface="virtual", channel=channel)
+        self.running, self.parked = threading.Event(), threading.Event()
+        self.running.set()
+        super().__init__(channel=channel)
+
+    def hold(self) -> None:
+        """Returns once the reader is held (not inside a recv that could still read)."""
+        self.running.clear()
+        assert self.parked.wait(2), "the watchdog's reader never came back to recv"
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self.running.is_set():
+            self.parked.set()
+            self.running.wait()
+            self.parked.clear()
+        return self.inner.recv(timeout), False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.inner.send(msg, timeout)
+
+    def shutdown(self) -> None:
+        self.inner.shutdown()
+        super().shutdown()
+
+
+class H2Board:
+    """Joint angles at 100 Hz from another thread, pausable."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.sending = threading.Event()
+        self.sending.set()
+        self.stop = threading.Event()
+        self.t = threading.Thread(target=self._run, daemon=True)
+        self.t.start()
+
+    def _run(self) -> None:
+        while not self.stop.wait(0.01):
+            if self.sending.is_set():
+                self.bus.send(ANGLES)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.t.join()
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Watchdog, StalledReader, H2Board]]:
+    channel = f"wd-{request.node.name}"
+    board = H2Board(channel)
+    reader = StalledReader(channel)
+    states: list[WatchdogState] = []
+    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, states.append)
+    wd.start()
+    try:
+        end = time.monotonic() + 5
+        while wd.h2_silent_for() is None and time.monotonic() < end:
+            time.sleep(0.01)
+        wd.arm([])
+        yield wd, reader, board
+    finally:
+        wd.close()
+        reader.shutdown()
+        board.close()
+
+
+def settle(wd: Watchdog, seconds: float) -> None:
+    """Let the reader catch up, running the supervisor's periodic check meanwhile."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        wd.check()
+        time.sleep(0.01)
+
+
+def test_a_late_reader_is_not_h2_silence(rig) -> None:  # type: ignore[no-untyped-def]
+    wd, reader, _board = rig
+    reader.hold()  # the supervisor busy for 300 ms; the board keeps sending
+    time.sleep(0.3)
+    reader.running.set()
+    settle(wd, 0.3)
+    assert wd.snapshot().state == "armed", wd.snapshot()
+
+
+def test_a_real_gap_trips_even_when_read_late(rig) -> None:  # type: ignore[no-untyped-def]
+    wd, reader, board = rig
+    reader.hold()
+    board.sending.clear()  # the board is silent for 250 ms while nobody reads
+    time.sleep(0.25)
+    board.sending.set()
+    time.sleep(0.1)
+    reader.running.set()  # only queued frames, the newest fresh, show the gap
+    settle(wd, 0.3)
+    s = wd.snapshot()
+    assert (s.state, s.reason) == ("tripped", "h2 data silent"), s
+    gap_ms = int(s.detail.split("for ")[1].split(" ms")[0])
+    assert 150 < gap_ms < 1000, s.detail
+
+
+def test_silence_trips_with_the_reader_running(rig) -> None:  # type: ignore[no-untyped-def]
+    wd, _reader, board = rig
+    board.sending.clear()
+    settle(wd, 0.5)
+    s = wd.snapshot()
+    assert (s.state, s.reason) == ("tripped", "h2 data silent") and "limit 100 ms" in s.detail
+
+
+def test_a_stalled_reader_trips_the_backstop(rig) -> None:  # type: ignore[no-untyped-def]
+    wd, reader, _board = rig
+    reader.hold()  # the reader never comes back: silence it cannot rule out
+    try:
+        settle(wd, 1.0)
+        s = wd.snapshot()
+        assert (s.state, s.reason) == ("tripped", "h2 data silent"), s
+        assert "watchdog bus reader stalled" in s.detail
+    finally:
+        reader.running.set()
+
+
+def test_motion_frame_on_the_bus_before_the_trip_is_no_violation(rig) -> None:  # type: ignore[no-untyped-def]
+    wd, reader, board = rig
+    reader.hold()
+    board.bus.send(h2.encode_joint_control("r_knee", "position", 20))  # while armed
+    time.sleep(0.02)
+    wd.trip("operator e-stop")
+    reader.running.set()
+    settle(wd, 0.2)
+    assert wd.snapshot().violations == 0
+    board.bus.send(h2.encode_joint_control("r_knee", "position", 20))  # after the trip: rogue
+    settle(wd, 0.2)
+    assert wd.snapshot().violations == 1
