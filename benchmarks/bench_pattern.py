@@ -12,7 +12,9 @@ import multiprocessing
 import time
 from typing import Any
 
-from benchmarks.harness import Appliance
+from exolink.protocol import h2
+
+from benchmarks.harness import Appliance, Drained, pct
 
 
 def _burn(stop: Any) -> None:
@@ -54,6 +56,7 @@ def measure(timing: str, loaded: bool, seconds: float) -> dict[str, Any]:
         app.call("pattern", {"action": "start"})
         time.sleep(0.5)
         s = messaging_request(app, seconds)
+        s["trip_to_last_position_frame_ms"] = pct(trip_trials(app, 3 if seconds < 30 else 10), 1e3)
     finally:
         stop.set()
         for b in burners:
@@ -61,6 +64,30 @@ def measure(timing: str, loaded: bool, seconds: float) -> dict[str, Any]:
         app.close()
     s.pop("ok", None)
     return s
+
+
+def trip_trials(app: Appliance, n: int) -> list[float]:
+    """E-stop while the pattern plays: first disable frame -> last position frame after it."""
+    bus, out = Drained(app.group), []
+    try:
+        for _ in range(n):
+            app.arm()
+            app.call("pattern", {"action": "start"})
+            time.sleep(0.3)
+            bus.clear()
+            app.call("watchdog", {"action": "estop"})
+            frames = [(m.timestamp, h2.decode(m)) for m in bus.collect(0.5)]
+            disabled = [t for t, f in frames if isinstance(f, h2.JointControl) and f.mode == 4]
+            if disabled:
+                late = [
+                    t
+                    for t, f in frames
+                    if isinstance(f, h2.JointControl) and f.mode == 1 and t > disabled[0]
+                ]
+                out.append(max(late, default=disabled[0]) - disabled[0])
+    finally:
+        bus.close()
+    return out
 
 
 def messaging_request(app: Appliance, seconds: float) -> dict[str, Any]:
@@ -83,6 +110,13 @@ def run(quick: bool) -> dict[str, Any]:
             s = measure(timing, loaded, seconds)
             out[f"{timing}_{'loaded' if loaded else 'idle'}"] = {
                 k: s.get(k)
-                for k in ("n", "mean_period_ms", "mean_dev_ms", "p99_dev_ms", "max_dev_ms")
+                for k in (
+                    "n",
+                    "mean_period_ms",
+                    "mean_dev_ms",
+                    "p99_dev_ms",
+                    "max_dev_ms",
+                    "trip_to_last_position_frame_ms",
+                )
             }
     return out

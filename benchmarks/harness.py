@@ -77,6 +77,15 @@ class Drained:
                 return m
         return None
 
+    def collect(self, seconds: float) -> list[can.Message]:
+        out, end = [], time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            try:
+                out.append(self.q.get(timeout=left))
+            except queue.Empty:
+                break
+        return out
+
     def clear(self) -> None:
         while not self.q.empty():
             self.q.get_nowait()

@@ -17,6 +17,13 @@ Timing modes:
 
 Nothing is sent while no joint is selected or while the watchdog is not armed; a trip stops the
 pattern (it does not resume by itself).
+
+The player also watches the bus for a disable or stop (type 4/5) of a joint it drives, from any
+sender: the watchdog's safe action, ``exolink send disable``, a hand-held stop. Its next set-point
+would switch that joint back on, so the pattern stops at once. It is also the fast path for a trip:
+the safe action is on the bus before the trip's state reaches Zenoh, and in periodic mode the
+kernel keeps sending until this process deletes its task. The Zenoh arming state stays the path
+that refuses a start.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ import msgspec
 import numpy as np
 from exolink import messaging
 from exolink.arming import ArmingState
-from exolink.canbus import open_bus
+from exolink.canbus import id_filters, open_bus
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
@@ -43,6 +50,7 @@ STATE_TYPE = "exolink_msgs/msg/PatternState"
 MAX_POINTS = 10_000
 BCM_MAX_FRAMES = 256
 SPIN_S = 0.0003
+SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 
 
 def period_s(level: int) -> float:
@@ -120,7 +128,7 @@ class PatternPlayer(Node):
     def configure(self) -> None:
         p = self.params
         self.pattern = load_pattern(p.pattern, p.min_angles, p.max_angles)
-        self.bus = open_bus(self.ctx.config.can, filters=[])
+        self.bus = open_bus(self.ctx.config.can, filters=id_filters([h2.JOINT_CONTROL]))
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
         self.lock = threading.RLock()
         self.wake = threading.Event()
@@ -248,8 +256,8 @@ class PatternPlayer(Node):
         """Type 4 for these joints now, and the pattern stops driving them (safe at any time)."""
         idx = self._joints(req)
         for i in idx:
+            self.selected[i] = False  # first: our own frame must not look like someone else's
             self.bus.send(h2.encode_joint_control(i + 1, "disabled"))
-            self.selected[i] = False
         if self.state == "running":
             if any(self.selected):
                 self._start_periodic()
@@ -306,7 +314,36 @@ class PatternPlayer(Node):
         self._publish()
         return False
 
+    def _watch_bus(self, stop: threading.Event) -> None:
+        """A type 4/5 frame for a driven joint stops the pattern (see the module docstring)."""
+        while not stop.is_set():
+            try:
+                msg = self.bus.recv(0.1)
+            except can.CanError as exc:
+                self.log.error("bus_watch_error", error=str(exc))
+                stop.wait(0.1)
+                continue
+            frame = None if msg is None else h2.decode(msg)
+            if not isinstance(frame, h2.JointControl) or frame.mode not in SAFE_MODES:
+                continue
+            with self.lock:
+                joint = frame.motor - 1
+                if self.state == "stopped" or not 0 <= joint < 6 or not self.selected[joint]:
+                    continue
+                why = f"{h2.JOINTS[joint]} {h2.MODE_NAMES[frame.mode]} by a frame on the bus"
+                self._halt("stopped", why)
+            self.log.warning("pattern_stopped_by_bus", reason=why)
+            self._publish()
+
     def run(self, stop: threading.Event) -> None:
+        watch = threading.Thread(target=self._watch_bus, args=(stop,), daemon=True, name="watch")
+        watch.start()
+        try:
+            self._play(stop)
+        finally:
+            watch.join(1)
+
+    def _play(self, stop: threading.Event) -> None:
         next_t = time.monotonic()
         last_state = 0.0
         while not stop.is_set():
