@@ -48,12 +48,15 @@ $PIP download -q --no-deps --only-binary=:all: -r image/build-requirements.txt -
 ls "$W"
 
 step "Debian $SUITE armhf base root (mmdebstrap under qemu-user; the long step, cached)"
-# With image/debian.lock (from `make image-lock`), the listed packages are pinned to its versions
-# and every difference in the full installed set is printed after the build.
+# With image/debian.lock (from `make image-lock`) every package is pinned to its locked version
+# (hooks/setup.sh; dependencies too), and the build stops if the installed set differs from it.
+# ACCEPT_LOCK_DRIFT=1 builds from the mirror's current versions instead, to make a new lock.
+LOCK=image/debian.lock
+[ "${ACCEPT_LOCK_DRIFT:-}" = 1 ] || [ ! -f "$LOCK" ] && LOCK=/dev/null
 pkgs=$(grep -v -E '^\s*(#|$)' image/debian-packages.txt | while read -r p; do
-  v=$(sed -n "s/^$p=//p" image/debian.lock 2>/dev/null || true); echo "$p${v:+=$v}"; done | paste -sd,)
-key=$(cat image/debian-packages.txt image/hooks/essential.sh image/image.conf \
-  $(ls image/debian.lock 2>/dev/null) | sha256sum | cut -c1-16)
+  v=$(sed -n "s/^$p=//p" "$LOCK" 2>/dev/null || true); echo "$p${v:+=$v}"; done | paste -sd,)
+key=$(cat image/debian-packages.txt image/hooks/setup.sh image/hooks/essential.sh image/image.conf \
+  "$LOCK" | sha256sum | cut -c1-16)
 BASE=$OUT/cache/base-$key.tar
 if [ -f "$BASE" ]; then
   echo "reusing $BASE"
@@ -63,6 +66,7 @@ else
     --aptopt='Acquire::Retries "3"' --dpkgopt='path-exclude=/usr/share/man/*' \
     --dpkgopt='path-exclude=/usr/share/locale/*' --dpkgopt='path-exclude=/usr/share/doc/*' \
     --dpkgopt='path-include=/usr/share/doc/*/copyright' \
+    --setup-hook="image/hooks/setup.sh \"\$1\" $LOCK" \
     --essential-hook="image/hooks/essential.sh \"\$1\"" \
     "$SUITE" "$WORK/base.tar" "deb $MIRROR $SUITE main" \
     ${SECURITY_MIRROR:+"deb $SECURITY_MIRROR $SUITE-security main"}
@@ -84,7 +88,13 @@ if [ -f image/debian.lock ]; then
   if diff -u image/debian.lock "$OUT/$NAME.packages" > "$OUT/$NAME.lockdiff"; then
     echo "all $(wc -l < image/debian.lock) Debian packages match image/debian.lock"
   else
-    echo "WARNING: installed packages differ from image/debian.lock:"; grep '^[-+][^-+]' "$OUT/$NAME.lockdiff" | head -40
+    echo "installed packages differ from image/debian.lock (- locked, + installed):" >&2
+    grep '^[-+][^-+]' "$OUT/$NAME.lockdiff" | head -40 >&2
+    if [ "$LOCK" != /dev/null ]; then
+      echo "stopping: the build does not match its lock. Review the list; to move to the mirror's" \
+        "versions, rebuild with ACCEPT_LOCK_DRIFT=1 and run 'make image-lock'." >&2
+      exit 1
+    fi
   fi
 fi
 

@@ -75,3 +75,5 @@ ch env DEBIAN_FRONTEND=noninteractive apt-get purge -y -qq build-essential pytho
 ch env DEBIAN_FRONTEND=noninteractive apt-get autoremove --purge -y -qq >/dev/null
 ch apt-get clean
 rm -rf "$R"/var/lib/apt/lists/* "$R"/var/cache/* "$R"/tmp/* "$R"/root/.cache
+# The build's pins (hooks/setup.sh) would hold the board back from Debian's security fixes.
+rm -f "$R/etc/apt/preferences.d/exolink-lock"

@@ -195,6 +195,24 @@ def test_root_has_exolink_units_enabled_and_fstab(rootfs: Path) -> None:
     assert "Storage=persistent" in (rootfs / "etc/systemd/journald.conf.d/exolink.conf").read_text()
 
 
+def installed_packages(rootfs: Path) -> dict[str, str]:
+    stanzas = (rootfs / "var/lib/dpkg/status").read_text().split("\n\n")
+    fields = [dict(re.findall(r"^([A-Za-z-]+): (.*)$", st, re.M)) for st in stanzas if st.strip()]
+    return {f["Package"]: f["Version"] for f in fields if f.get("Status") == "install ok installed"}
+
+
+def test_root_holds_exactly_the_locked_debian_packages_and_no_build_pins(rootfs: Path) -> None:
+    """The image is the lock (read from the card's own dpkg database), and the build's apt pins are
+    gone so the board's `apt upgrade` still takes Debian's fixes."""
+    lines = (REPO / "image/debian.lock").read_text().split()
+    lock = dict(line.split("=", 1) for line in lines)
+    installed = installed_packages(rootfs)
+    assert len(installed) > 100
+    assert {p: (lock.get(p), v) for p, v in installed.items() if lock.get(p) != v} == {}
+    assert sorted(lock.keys() - installed.keys()) == []
+    assert not (rootfs / "etc/apt/preferences.d/exolink-lock").exists()
+
+
 def chroot(rootfs: Path, *cmd: str) -> subprocess.CompletedProcess[str]:
     """Runs an armhf program of the image through qemu-user binfmt."""
     return subprocess.run(["chroot", str(rootfs), *cmd], capture_output=True, text=True)

@@ -39,6 +39,25 @@ def test_every_runtime_dependency_has_a_source_in_the_image() -> None:
     assert missing == []
 
 
+def debian_lock() -> dict[str, str]:
+    lines = (REPO / "image/debian.lock").read_text().splitlines()
+    bad = [line for line in lines if not re.fullmatch(r"[a-z0-9][a-z0-9+.-]*=\S+", line)]
+    assert bad == [], "not name=version"
+    return dict(line.split("=", 1) for line in lines)
+
+
+def test_debian_lock_pins_what_the_image_keeps() -> None:
+    """Every package the recipe asks for and keeps has a locked version (the build-only ones are
+    purged before the manifest is taken), and the pinned Python GPIO binding is libgpiod v2."""
+    lock = debian_lock()
+    customize = (REPO / "image/hooks/customize.sh").read_text()
+    [purge] = re.findall(r"apt-get purge -y -qq ([^>]+)>", customize)
+    wanted = set(re.sub(r"#.*", "", (REPO / "image/debian-packages.txt").read_text()).split())
+    assert sorted(wanted - set(purge.split()) - lock.keys()) == []
+    assert lock["python3-libgpiod"].split(".")[0] == "2"
+    assert "linux-image-armmp" in lock and "u-boot-omap" in lock
+
+
 def test_units_install_where_systemd_reads_them() -> None:
     etc = REPO / "services/etc"
     assert (etc / "systemd/system/exolink.service").exists()
