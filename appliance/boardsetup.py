@@ -254,7 +254,12 @@ def plan(s: BoardSettings, root: Path) -> Plan:
 
 
 def _write(root: Path, rel: str, text: str, mode: int) -> None:
-    """Atomic (write, fsync, rename): the board is switched off by pulling its power."""
+    """Atomic and on the card when it returns: the board is switched off by pulling its power.
+
+    On vfat a rename writes the new directory entry with no size and no first cluster until the
+    inode is written back, so the renamed file and its directory are synced again; without that a
+    card pulled within ~30 s held no file, or an empty one (tests/kernel/test_fat_writes.py).
+    """
     path = root / rel
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
@@ -264,6 +269,12 @@ def _write(root: Path, rel: str, text: str, mode: int) -> None:
         os.fsync(f.fileno())
     os.chmod(tmp, mode)
     os.replace(tmp, path)
+    for synced in (path, path.parent):
+        fd = os.open(synced, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:

@@ -10,7 +10,8 @@
 #   vmtest.sh uml  WORKDIR CMD    # User-Mode Linux: CAN only (no GPIOLIB in Debian's UML), near-native
 #
 # Env: VMDIR (default ~/.cache/exolink-vmtest), VM_KERNEL_SUITE (trixie-backports), VM_MEM, VM_CPUS,
-#      VM_TIMEOUT (s), VM_ACCEL (tcg; kvm does NOT work on PVM-type /dev/kvm hosts).
+#      VM_TIMEOUT (s), VM_ACCEL (tcg; kvm does NOT work on PVM-type /dev/kvm hosts),
+#      VM_UML_DISK (a host file the UML guest sees as /dev/ubdb, with vfat loadable).
 set -euo pipefail
 SELF=$(realpath "$0")
 VMDIR=${VMDIR:-$HOME/.cache/exolink-vmtest}
@@ -25,6 +26,8 @@ setup() {
   command -v depmod >/dev/null || need+=(kmod)
   command -v ip >/dev/null || need+=(iproute2)
   command -v cpio >/dev/null || need+=(cpio)
+  command -v mtype >/dev/null || need+=(mtools)
+  command -v mkfs.vfat >/dev/null || need+=(dosfstools)
   if [ ${#need[@]} -gt 0 ]; then
     apt-get update -qq
     DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
@@ -104,7 +107,8 @@ guest() {   # PID 1 inside either guest
   [ "$K" = uml ] && mount -t tmpfs tmpfs /run
   if [ "$K" = uml ]; then mount -t hostfs -o "$W" none "$W"; else
     mkdir -p /lib/modules && ln -s "$M/lib/modules/$(uname -r)" /lib/modules/; fi   # plain modprobe works (qemu)
-  for m in $CAN_MODS $([ "$K" = qemu ] && echo configfs gpio-sim); do modprobe -d "$M" "$m"; done
+  for m in $CAN_MODS $([ "$K" = qemu ] && echo configfs gpio-sim) \
+      $([ "$K" = uml ] && echo vfat nls_cp437 nls_iso8859-1); do modprobe -d "$M" "$m"; done
   mountpoint -q /sys/kernel/config || mount -t configfs none /sys/kernel/config 2>/dev/null || true
   ip link set lo up; hostname "vmtest-$K"
   cd "$W"; bash "$W/.vmtest/cmd" </dev/null; local rc=$?
@@ -125,7 +129,7 @@ run() {
       -fsdev local,id=w,path="$W",security_model=none,multidevs=remap -device virtio-9p-pci,fsdev=w,mount_tag=work </dev/null || true
   else
     timeout "${VM_TIMEOUT:-1800}" /usr/bin/linux.uml mem="${VM_MEM:-1G}" root=/dev/root rootfstype=hostfs \
-      rootflags=/ ro con=null con0=null,fd:1 quiet $args vmt.mods="$VMDIR/uml" init=/bin/bash -- "$SELF" __guest </dev/null || true
+      rootflags=/ ro con=null con0=null,fd:1 quiet ${VM_UML_DISK:+ubdb=$VM_UML_DISK} $args vmt.mods="$VMDIR/uml" init=/bin/bash -- "$SELF" __guest </dev/null || true
   fi
   [ -s "$W/.vmtest/rc" ] || { echo "vmtest: guest gave no exit code (crash/timeout)" >&2; return 125; }
   return "$(cat "$W/.vmtest/rc")"
