@@ -231,7 +231,7 @@ class Appliance:
         assert "armed" in r.stdout  # type: ignore[union-attr]
 
 
-# --- kernel-level fixtures (tests/kernel): a real vcan0 (UML guest), a real gpio-sim chip (qemu) ---
+# --- kernel-level fixtures (tests/kernel): real vcan0 and vfat card (UML guest), gpio-sim (qemu) ---
 # On a kernel without them (the plain host) those tests skip with the reason; `make test-kernel`
 # runs them inside the guests (tests/kernel/vmtest.sh), where a missing feature fails instead.
 
@@ -308,3 +308,29 @@ def gpio_sim() -> Iterator[SimChip]:
     chip = SimChip(f"exo{os.getpid()}{int(time.time() * 1000) % 100000}")
     yield chip
     chip.close()
+
+
+@pytest.fixture
+def fat_boot(tmp_path: Path) -> Iterator[Path]:
+    """A fresh vfat on /dev/ubdb (UML guest; its backing file is $EXOLINK_FAT_CARD), mounted like
+    the board's /boot/firmware, with periodic writeback off so only explicit syncs reach it."""
+    if not os.environ.get("EXOLINK_FAT_CARD") or not Path("/dev/ubdb").exists():
+        _missing("fat", "no FAT card disk (/dev/ubdb); run `make test-kernel`")
+    subprocess.run(["mkfs.vfat", "-n", "EXOLINK", "/dev/ubdb"], check=True, capture_output=True)
+    mnt = tmp_path / "boot"
+    mnt.mkdir()
+    subprocess.run(
+        ["mount", "-t", "vfat", "-o", "fmask=0177,dmask=0077", "/dev/ubdb", str(mnt)], check=True
+    )
+    vm = Path("/proc/sys/vm")
+    saved = {
+        k: (vm / k).read_text() for k in ("dirty_writeback_centisecs", "dirty_expire_centisecs")
+    }
+    (vm / "dirty_writeback_centisecs").write_text("0")
+    (vm / "dirty_expire_centisecs").write_text("360000")
+    try:
+        yield mnt
+    finally:
+        for k, v in saved.items():
+            (vm / k).write_text(v)
+        subprocess.run(["umount", str(mnt)], check=True)

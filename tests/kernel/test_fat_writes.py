@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -19,36 +18,6 @@ from exolink import boardsetup
 pytestmark = pytest.mark.kernel
 
 CARD = os.environ.get("EXOLINK_FAT_CARD", "")  # the backing file of /dev/ubdb (tests/kernel/run.sh)
-
-
-def _missing(why: str) -> None:
-    if "fat" in os.environ.get("EXOLINK_REQUIRE_KERNEL", ""):
-        pytest.fail(f"inside the test guest: {why}")
-    pytest.skip(why)
-
-
-@pytest.fixture
-def fat_boot(tmp_path: Path) -> Iterator[Path]:
-    if not CARD or not Path("/dev/ubdb").exists():
-        _missing("no FAT card disk (/dev/ubdb); run `make test-kernel`")
-    subprocess.run(["mkfs.vfat", "-n", "EXOLINK", "/dev/ubdb"], check=True, capture_output=True)
-    mnt = tmp_path / "boot"
-    mnt.mkdir()
-    subprocess.run(
-        ["mount", "-t", "vfat", "-o", "fmask=0177,dmask=0077", "/dev/ubdb", str(mnt)], check=True
-    )
-    vm = Path("/proc/sys/vm")
-    saved = {
-        k: (vm / k).read_text() for k in ("dirty_writeback_centisecs", "dirty_expire_centisecs")
-    }
-    (vm / "dirty_writeback_centisecs").write_text("0")
-    (vm / "dirty_expire_centisecs").write_text("360000")
-    try:
-        yield mnt
-    finally:
-        for k, v in saved.items():
-            (vm / k).write_text(v)
-        subprocess.run(["umount", str(mnt)], check=True)
 
 
 def _card_after_power_cut(tmp_path: Path) -> Path:
