@@ -7,6 +7,7 @@ import json
 import os
 import queue
 import random
+import re
 import socket
 import subprocess
 import sys
@@ -24,6 +25,7 @@ from exolink.config import CanConfig, bundled, load
 from exolink.supervisor import canlink
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
+REPO = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -334,3 +336,15 @@ def fat_boot(tmp_path: Path) -> Iterator[Path]:
         for k, v in saved.items():
             (vm / k).write_text(v)
         subprocess.run(["umount", str(mnt)], check=True)
+
+
+# --- image fixtures (tests/image): the recipe checks on the host and the built-image checks ---
+
+
+@pytest.fixture
+def debian_lock() -> dict[str, str]:
+    """image/debian.lock as package -> version; a malformed line fails here, not as a wrong pin."""
+    lines = (REPO / "image/debian.lock").read_text().splitlines()
+    bad = [line for line in lines if not re.fullmatch(r"[a-z0-9][a-z0-9+.-]*=\S+", line)]
+    assert bad == [], "not name=version"
+    return dict(line.split("=", 1) for line in lines)
