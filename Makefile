@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
 
-.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench lock dbc clean
+.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench lock dbc msgs clean
 
 install: $(STAMP)
 
@@ -71,6 +71,10 @@ lock:
 
 dbc: $(STAMP)
 	$(BIN)/python -m exolink.protocol.make_dbc
+
+# Regenerate appliance/msgs/type_hashes.json after editing a .msg file (checked by the tests).
+msgs: $(STAMP)
+	$(BIN)/python -c 'from exolink import messaging; print(messaging.write_hash_table(), "types")'
 
 clean:
 	rm -rf $(VENV) build *.egg-info bench-results.json

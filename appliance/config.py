@@ -6,7 +6,9 @@ and what was expected, so a lab engineer can fix the card's config without readi
 
 from __future__ import annotations
 
+import os
 import re
+from collections.abc import Collection
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -103,6 +105,9 @@ class NodeConfig(_Strict, kw_only=True):
     enabled: bool = True
     restart: RestartPolicy = RestartPolicy()
     priority: Priority = Priority()
+    # This node's liveness deadline (default: watchdog.heartbeat_deadline_ms). Motion nodes beat
+    # every cycle and get a short one: a hung set-point loop is caught within it.
+    heartbeat_deadline_ms: PositiveMs | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
@@ -194,14 +199,23 @@ def decode_yaml(text: str, source: str, cls: type[T]) -> tuple[T, yaml.Node | No
         raise _error(source, root, exc) from None
 
 
-def parse(text: str, source: str = "<memory>") -> ApplianceConfig:
-    """Parse and validate a config document, including each node's params against its plugin."""
+def parse(
+    text: str, source: str = "<memory>", check: Collection[str] | None = None
+) -> ApplianceConfig:
+    """Parse and validate a config document, and each node's params against its plugin.
+
+    ``check`` names the nodes whose params are validated (None: all). Validating a node imports
+    its plugin, so a node process checks only itself and does not load every other node's
+    dependencies; the supervisor checks all of them in a throwaway child (``check_all_apart``).
+    """
     cfg, root = decode_yaml(text, source, ApplianceConfig)
-    _check_nodes(cfg, root)
+    _check_nodes(cfg, root, check)
     return cfg
 
 
-def _check_nodes(cfg: ApplianceConfig, root: yaml.Node | None) -> None:
+def _check_nodes(
+    cfg: ApplianceConfig, root: yaml.Node | None, check: Collection[str] | None = None
+) -> None:
     from exolink.plugins import PluginError, find_node_class
 
     seen: set[str] = set()
@@ -210,6 +224,8 @@ def _check_nodes(cfg: ApplianceConfig, root: yaml.Node | None) -> None:
             line = _line_of(root, f"nodes[{i}].name")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
         seen.add(node.name)
+        if check is not None and node.name not in check:
+            continue
         try:
             cls = find_node_class(node.plugin)
         except PluginError as exc:
@@ -228,8 +244,9 @@ def _prefixed(exc: msgspec.ValidationError, prefix: str) -> msgspec.ValidationEr
     return msgspec.ValidationError(text)
 
 
-def load(path: str | Path) -> ApplianceConfig:
-    """Load the appliance config; any problem is a ConfigError naming file, line and path."""
+def load(path: str | Path, check: Collection[str] | None = None) -> ApplianceConfig:
+    """Load the appliance config; any problem is a ConfigError naming file, line and path.
+    ``check``: as in ``parse``."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -237,7 +254,34 @@ def load(path: str | Path) -> ApplianceConfig:
         raise ConfigError(f"{p}: config file not found") from None
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from None
-    return parse(text, str(p))
+    return parse(text, str(p), check)
+
+
+def check_all_apart(path: str | Path) -> None:
+    """Every node's params validated in a forked child that imports every plugin and exits, so
+    the supervisor refuses a bad config before it starts anything without keeping numpy, mcap
+    and every third-party plugin's imports in its own memory for the life of the board.
+    Call before any thread is started (fork)."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child: report and leave without running the parent's cleanup
+        os.close(r)
+        code = 0
+        try:
+            load(path)
+        except ConfigError as exc:
+            os.write(w, str(exc).encode())
+            code = 3
+        except BaseException as exc:  # anything else (a plugin failing to import) also refuses
+            os.write(w, f"{path}: cannot validate node params: {exc}".encode())
+            code = 3
+        os._exit(code)
+    os.close(w)
+    with os.fdopen(r, "rb") as f:
+        message = f.read().decode(errors="replace")
+    _, status = os.waitpid(pid, 0)
+    if status != 0:
+        raise ConfigError(message or f"{path}: params check died (wait status {status})")
 
 
 def node_params(cfg: ApplianceConfig, name: str) -> Any:

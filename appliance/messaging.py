@@ -25,6 +25,9 @@ import zenoh
 from exolink.config import ApplianceConfig, ConfigError, ZenohConfig
 
 MSG_DIR = Path(__file__).with_name("msgs")
+# Every type's RIHS01 hash, written by `make msgs` and checked against rosbags by the tests: a
+# key needs the hash, and rosbags' typestore costs ~140 ms of imports (seconds on the board).
+TYPE_HASHES = MSG_DIR / "type_hashes.json"
 ATTACHMENT = struct.Struct("<qqB16s")
 DEFAULT_QUERY_TIMEOUT_S = 2.0
 CLIENT_CONNECT_TIMEOUT_MS = 3000
@@ -67,8 +70,26 @@ def dds_name(typename: str) -> str:
 
 
 @cache
+def _hash_table() -> dict[str, str]:
+    try:
+        table: dict[str, str] = json.loads(TYPE_HASHES.read_text())
+    except FileNotFoundError:
+        return {}
+    return table
+
+
+@cache
 def type_hash(typename: str) -> str:
-    return str(typestore().hash_rihs01(typename))
+    """From the table when it has the type (no rosbags import), else computed by rosbags."""
+    return _hash_table().get(typename) or str(typestore().hash_rihs01(typename))
+
+
+def write_hash_table() -> int:
+    """``make msgs``: the table for every type in the typestore (after editing a .msg file)."""
+    store = typestore()
+    table = {name: str(store.hash_rihs01(name)) for name in sorted(store.types)}
+    TYPE_HASHES.write_text(json.dumps(table, indent=0, sort_keys=True) + "\n")
+    return len(table)
 
 
 def topic_key(domain_id: int, namespace: str, topic: str, typename: str) -> str:
@@ -241,18 +262,25 @@ def decode_attachment(raw: bytes) -> tuple[int, int, bytes]:
 
 
 class Publisher:
-    """A typed publisher: node code hands it message objects, never bytes or keys."""
+    """A typed publisher: node code hands it message objects (or, from an ``exolink.cdr``
+    template, their CDR bytes), never keys or attachments."""
 
-    def __init__(self, session: zenoh.Session, key: str, typename: str) -> None:
+    def __init__(self, session: zenoh.Session, key: str, typename: str, raw: bool = False) -> None:
         self.key, self.typename = key, typename
         self._pub = session.declare_publisher(key)
         self._gid = os.urandom(16)
         self._seq = 0
-        self._ser = prepare(typename).serialize_cdr
+        # A raw publisher never serializes: rosbags (and numpy) stay out of its process.
+        self._ser = None if raw else prepare(typename).serialize_cdr
         self._lock = threading.Lock()
 
     def publish(self, msg: Any, source_ns: int | None = None) -> None:
-        payload = bytes(self._ser(msg, self.typename))
+        if self._ser is None:
+            raise TypeError(f"{self.key}: raw publisher, use put() with CDR bytes")
+        self.put(bytes(self._ser(msg, self.typename)), source_ns)
+
+    def put(self, payload: bytes, source_ns: int | None = None) -> None:
+        """CDR bytes (with their encapsulation header) of one message of this type."""
         with self._lock:
             self._seq += 1
             att = ATTACHMENT.pack(self._seq, source_ns or time.time_ns(), 16, self._gid)
@@ -274,8 +302,8 @@ class Messaging:
     def key(self, topic: str, typename: str) -> str:
         return topic_key(self.domain_id, self.namespace, topic, typename)
 
-    def publisher(self, topic: str, typename: str) -> Publisher:
-        return Publisher(self.session, self.key(topic, typename), typename)
+    def publisher(self, topic: str, typename: str, raw: bool = False) -> Publisher:
+        return Publisher(self.session, self.key(topic, typename), typename, raw)
 
     def subscribe(
         self, topic: str, typename: str, callback: Callable[[Any, Meta], None]

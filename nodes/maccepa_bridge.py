@@ -15,7 +15,7 @@ import can
 import msgspec
 from exolink import messaging
 from exolink.arming import ArmingState
-from exolink.canbus import id_filters, open_bus
+from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, maccepa
@@ -39,9 +39,8 @@ class MaccepaBridge(Node):
 
     def configure(self) -> None:
         m = self.ctx.messaging
-        self.bus = open_bus(
-            self.ctx.config.can, filters=id_filters(maccepa.data_ids(self.params.boards))
-        )
+        self.reader = open_reader(self.ctx.config.can, maccepa.data_ids(self.params.boards))
+        self.bus = self.reader.bus
         self.pubs = {
             (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename)
             for b in self.params.boards
@@ -131,9 +130,8 @@ class MaccepaBridge(Node):
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             self.beat()
-            msg = self.bus.recv(timeout=0.05)
-            if msg is not None:
-                self.handle(msg)
+            for frame in self.reader.read(0.05):
+                self.handle(frame)
 
     def shutdown(self) -> None:
         if hasattr(self, "_q"):

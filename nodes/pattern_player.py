@@ -40,7 +40,7 @@ import msgspec
 import numpy as np
 from exolink import messaging
 from exolink.arming import ArmingState
-from exolink.canbus import id_filters, open_bus
+from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
@@ -50,6 +50,9 @@ STATE_TYPE = "exolink_msgs/msg/PatternState"
 MAX_POINTS = 10_000
 BCM_MAX_FRAMES = 256
 SPIN_S = 0.0003
+# A motion node: its loop beats at least this often, running or idle, so the supervisor can hold
+# it to a short liveness deadline (heartbeat_deadline_ms: 50 in the shipped configs).
+BEAT_S = 0.02
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 
 
@@ -124,11 +127,13 @@ def load_pattern(path: str, min_angles: list[int], max_angles: list[int]) -> Pat
 
 class PatternPlayer(Node):
     Params = PlayerParams
+    stall_s = 2 * BEAT_S  # the heartbeat thread must not vouch for a loop hung longer than this
 
     def configure(self) -> None:
         p = self.params
         self.pattern = load_pattern(p.pattern, p.min_angles, p.max_angles)
-        self.bus = open_bus(self.ctx.config.can, filters=id_filters([h2.JOINT_CONTROL]))
+        self.reader = open_reader(self.ctx.config.can, [h2.JOINT_CONTROL])
+        self.bus = self.reader.bus
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
         self.lock = threading.RLock()
         self.wake = threading.Event()
@@ -318,22 +323,25 @@ class PatternPlayer(Node):
         """A type 4/5 frame for a driven joint stops the pattern (see the module docstring)."""
         while not stop.is_set():
             try:
-                msg = self.bus.recv(0.1)
-            except can.CanError as exc:
+                frames = self.reader.read(0.1)
+            except (can.CanError, OSError) as exc:
                 self.log.error("bus_watch_error", error=str(exc))
                 stop.wait(0.1)
                 continue
-            frame = None if msg is None else h2.decode(msg)
-            if not isinstance(frame, h2.JointControl) or frame.mode not in SAFE_MODES:
-                continue
-            with self.lock:
-                joint = frame.motor - 1
-                if self.state == "stopped" or not 0 <= joint < 6 or not self.selected[joint]:
-                    continue
-                why = f"{h2.JOINTS[joint]} {h2.MODE_NAMES[frame.mode]} by a frame on the bus"
-                self._halt("stopped", why)
-            self.log.warning("pattern_stopped_by_bus", reason=why)
-            self._publish()
+            for msg in frames:
+                self._on_joint_control(h2.decode(msg))
+
+    def _on_joint_control(self, frame: object) -> None:
+        if not isinstance(frame, h2.JointControl) or frame.mode not in SAFE_MODES:
+            return
+        with self.lock:
+            joint = frame.motor - 1
+            if self.state == "stopped" or not 0 <= joint < 6 or not self.selected[joint]:
+                return
+            why = f"{h2.JOINTS[joint]} {h2.MODE_NAMES[frame.mode]} by a frame on the bus"
+            self._halt("stopped", why)
+        self.log.warning("pattern_stopped_by_bus", reason=why)
+        self._publish()
 
     def run(self, stop: threading.Event) -> None:
         watch = threading.Thread(target=self._watch_bus, args=(stop,), daemon=True, name="watch")
@@ -358,16 +366,16 @@ class PatternPlayer(Node):
                 if running and mode == "periodic":
                     self._guard()
                     self._track_periodic_index()
-                if self.wake.wait(0.005 if running else 0.05):
+                if self.wake.wait(0.005 if running else BEAT_S):
                     self.wake.clear()
                 next_t = time.monotonic()
                 continue
             if self.wake.is_set():  # a command changed speed or position: re-anchor the schedule
                 self.wake.clear()
                 next_t = max(next_t, time.monotonic())
-            delay = next_t - time.monotonic()
-            if delay > SPIN_S:
-                time.sleep(delay - SPIN_S)
+            while (delay := next_t - time.monotonic()) > SPIN_S:  # slow speeds: 200 ms periods
+                time.sleep(min(delay - SPIN_S, BEAT_S))
+                self.beat()
             while time.monotonic() < next_t:
                 pass
             if not self._guard():

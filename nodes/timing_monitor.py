@@ -16,7 +16,7 @@ from typing import Annotated, Any
 import msgspec
 import numpy as np
 from exolink import messaging
-from exolink.canbus import id_filters, open_bus
+from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 
@@ -56,7 +56,8 @@ class TimingMonitor(Node):
     Params = TimingParams
 
     def configure(self) -> None:
-        self.bus = open_bus(self.ctx.config.can, filters=id_filters(self.params.ids))
+        self.reader = open_reader(self.ctx.config.can, self.params.ids)
+        self.bus = self.reader.bus
         self.lock = threading.Lock()
         self.stamps: dict[tuple[int, int | None, int | None], collections.deque[float]] = {}
         self._q = messaging.serve(
@@ -84,17 +85,15 @@ class TimingMonitor(Node):
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             self.beat()
-            msg = self.bus.recv(timeout=0.05)
-            if msg is None:
-                continue
-            fid, n = msg.arbitration_id, len(msg.data)
-            b0 = msg.data[0] if msg.data else None
-            with self.lock:
-                for key in ((fid, None, None), (fid, n, None), (fid, None, b0), (fid, n, b0)):
-                    dq = self.stamps.get(key)
-                    if dq is None:
-                        dq = self.stamps[key] = collections.deque(maxlen=MAX_STAMPS)
-                    dq.append(msg.timestamp)
+            for msg in self.reader.read(0.05):
+                fid, n = msg.arbitration_id, len(msg.data)
+                b0 = msg.data[0] if msg.data else None
+                with self.lock:
+                    for key in ((fid, None, None), (fid, n, None), (fid, None, b0), (fid, n, b0)):
+                        dq = self.stamps.get(key)
+                        if dq is None:
+                            dq = self.stamps[key] = collections.deque(maxlen=MAX_STAMPS)
+                        dq.append(msg.timestamp)
 
     def shutdown(self) -> None:
         if hasattr(self, "_q"):

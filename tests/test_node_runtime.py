@@ -10,7 +10,8 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 from exolink import config, messaging
-from exolink.node import Node, NodeRunner
+from exolink.node import Node
+from exolink.runtime import NodeRunner
 from structlog.testing import capture_logs
 
 

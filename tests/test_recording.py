@@ -270,7 +270,7 @@ def test_bad_files_and_commands(tmp_path, write_config, spawn) -> None:  # type:
 COLD_RECORDER = """
 import json, sys, threading, time
 from exolink.config import load
-from exolink.node import NodeRunner
+from exolink.runtime import NodeRunner
 from exolink.nodes.recorder import Recorder
 
 class Watched(Recorder):

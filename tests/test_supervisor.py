@@ -83,6 +83,31 @@ def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore
             os.kill(pid, signal.SIGCONT)
 
 
+def test_forged_heartbeats_do_not_keep_a_stopped_node_alive(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    """Issue 19 (1): anyone on the Zenoh port published junk on h2_sender's heartbeat key while the
+    node was SIGSTOPped, and the watchdog stayed armed. Liveness now comes over the node's own pipe."""
+    app.arm()
+    pid = app.node("h2_sender")["pid"]
+    s = messaging.open_client_session(app.at)
+    key = messaging.topic_key(0, "h2", "nodes/h2_sender/heartbeat", "exolink_msgs/msg/Heartbeat")
+    pub = s.declare_publisher(key)
+    collect(mbus, 0.1)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        frames = []
+        for _ in range(60):  # 1.2 s of forgeries at 50 Hz, faster than any deadline
+            pub.put(b"garbage")
+            frames += collect(mbus, 0.02, {70})
+        assert_all_disabled(frames)
+        wd = app.status()["watchdog"]
+        assert wd["reason"] == "heartbeat late" and "h2_sender: no heartbeat for" in wd["detail"]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+        pub.undeclare()
+        s.close()
+
+
 def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
     s = messaging.open_client_session(app.at)

@@ -100,7 +100,7 @@ def test_gpio_trigger_missing_chip_is_a_clear_error() -> None:
 SIGNAL_STORM = """
 import os, signal, sys, threading
 import structlog
-from exolink.node import stop_on_signals
+from exolink.runtime import stop_on_signals
 
 stop, got = threading.Event(), threading.Event()
 stop_on_signals(stop, structlog.get_logger())

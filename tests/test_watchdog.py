@@ -13,7 +13,8 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from exolink.config import WatchdogConfig
+from exolink.canbus import FrameReader
+from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
 
@@ -77,7 +78,10 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Watchdog, StalledReade
     board = H2Board(channel)
     reader = StalledReader(channel)
     states: list[WatchdogState] = []
-    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, states.append)
+    frames = FrameReader(
+        reader, CanConfig(interface="virtual"), [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
+    )
+    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), frames, states.append)
     wd.start()
     try:
         end = time.monotonic() + 5
@@ -155,3 +159,30 @@ def test_motion_frame_on_the_bus_before_the_trip_is_no_violation(rig) -> None:  
     board.bus.send(h2.encode_joint_control("r_knee", "position", 20))  # after the trip: rogue
     settle(wd, 0.2)
     assert wd.snapshot().violations == 1
+
+
+def test_malformed_angle_frames_do_not_mask_h2_silence(rig) -> None:  # type: ignore[no-untyped-def]
+    """Issue 19 (2): junk id-110 frames of DLC 2 at 100 Hz while the H2 is silent held the watchdog
+    ARMED (it checked the id, not the frame's shape). They are counted and not H2 data."""
+    wd, _reader, board = rig
+    board.sending.clear()
+    junk = can.Message(arbitration_id=h2.JOINT_ANGLES, data=b"\x01\x02", is_extended_id=False)
+    end = time.monotonic() + 0.5
+    while time.monotonic() < end:
+        board.bus.send(junk)
+        wd.check()
+        time.sleep(0.01)
+    s = wd.snapshot()
+    assert (s.state, s.reason) == ("tripped", "h2 data silent"), s
+    assert s.malformed.get(f"{h2.JOINT_ANGLES} bad length", 0) >= 10, s.malformed
+
+
+def test_unreadable_joint_control_while_disarmed_gets_the_safe_action(rig) -> None:  # type: ignore[no-untyped-def]
+    wd, _reader, board = rig
+    wd.trip("operator e-stop")
+    settle(wd, 0.3)  # the trip's own repeats are done
+    sent = wd.snapshot().frames_sent
+    board.bus.send(can.Message(arbitration_id=h2.JOINT_CONTROL, data=b"\x01", is_extended_id=False))
+    settle(wd, 0.2)
+    s = wd.snapshot()
+    assert s.frames_sent > sent and s.malformed.get(f"{h2.JOINT_CONTROL} bad length") == 1, s

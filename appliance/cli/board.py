@@ -26,9 +26,9 @@ def cmd_config(args: argparse.Namespace) -> int:
 def cmd_node_run(args: argparse.Namespace) -> int:
     from exolink import logs
     from exolink.config import load
-    from exolink.node import run_standalone
+    from exolink.runtime import run_standalone
 
-    cfg = load(config_path(args))
+    cfg = load(config_path(args), check=[args.name])
     logs.setup(args.name)
     return run_standalone(cfg, args.name, args.listen)
 
@@ -44,11 +44,12 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 def cmd_up(args: argparse.Namespace) -> int:
     """The supervisor. A bad config starts nothing and exits non-zero (the caller sees why)."""
     from exolink import logs
-    from exolink.config import bundled, load
+    from exolink.config import bundled, check_all_apart, load
     from exolink.supervisor.core import run, simulated
 
     path = args.config or (str(bundled("sim")) if args.sim else DEFAULT_CONFIG)
-    cfg = load(path)
+    cfg = load(path, check=())
+    check_all_apart(path)  # every node's params, without their imports staying in this process
     if args.sim:
         cfg = simulated(cfg)
     logs.setup("supervisor")

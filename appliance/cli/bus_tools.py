@@ -20,8 +20,8 @@ def bus_config(args: argparse.Namespace) -> CanConfig:
 def cmd_sim(args: argparse.Namespace) -> int:
     from exolink import logs
     from exolink.canbus import id_filters, open_bus
-    from exolink.node import stop_on_signals
     from exolink.nodes.simulator import SimParams, Simulator
+    from exolink.runtime import stop_on_signals
 
     log = logs.setup("sim")
     params = SimParams(maccepa_boards=args.maccepa)

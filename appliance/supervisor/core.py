@@ -19,13 +19,13 @@ import msgspec
 import structlog
 import yaml
 import zenoh
-from exolink import messaging
+from exolink import liveness, messaging
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
-from exolink.canbus import id_filters, open_bus
+from exolink.canbus import open_reader
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
 from exolink.messaging import CommandRefused
-from exolink.node import HEARTBEAT_TOPIC, HEARTBEAT_TYPE, stop_on_signals
 from exolink.protocol import h2
+from exolink.runtime import stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.processes import Exit, NodeProcess, apply_priority, relay
 from exolink.supervisor.systemd import Notifier
@@ -82,16 +82,16 @@ class Supervisor:
                 canlink.check_overlay()
             if cfg.can.bring_up:
                 canlink.bring_up(cfg.can)
-        self.bus = open_bus(cfg.can, filters=id_filters([h2.JOINT_ANGLES, h2.JOINT_CONTROL]))
+        self.reader = open_reader(cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL])
+        self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg)
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
-        self.watchdog = Watchdog(cfg.watchdog, self.bus, self._publish_watchdog)
+        self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog)
         self.watchdog.start()  # safe action before anything else can move
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE)
         self._serve_api()
-        self._watch_heartbeats()
         self._decls.append(
             self.msg.subscribe("pattern_state", PATTERN_TYPE, self._on_pattern_state)
         )
@@ -152,21 +152,12 @@ class Supervisor:
         ):  # a closed session at shutdown must not kill the reader thread
             self.session.put(self.msg.mgmt("log", name), line.encode())
 
-    def _on_heartbeat(self, sample: Any) -> None:
-        parts = str(sample.key_expr).split("/")
-        try:
-            name = parts[parts.index("nodes") + 1]
-        except (ValueError, IndexError):
-            return
-        node = self.nodes.get(name)
-        if node is None or (pid := node.pid) is None:
-            return
-        now = time.monotonic()
-        if node.heartbeat_at is None:
-            node.start_s = now - node.started_at
+    def _node_up(self, node: NodeProcess, now: float) -> None:
+        """A spawn's first liveness beat: it imported and configured, its loop runs."""
+        node.start_s = now - node.started_at
+        if (pid := node.pid) is not None:
             apply_priority(node.cfg, pid)  # only now: see plain_priority
-            self.log.info("node_up", node_name=name, start_s=round(node.start_s, 2))
-        node.heartbeat_at = now
+        self.log.info("node_up", node_name=node.name, start_s=round(node.start_s, 2))
 
     def _on_edge(self, edge: trigger.Edge) -> None:
         self.trigger_count += 1
@@ -204,16 +195,13 @@ class Supervisor:
             )
         )
 
-    def _watch_heartbeats(self) -> None:
-        key = self.msg.key(f"nodes/*/{HEARTBEAT_TOPIC}", HEARTBEAT_TYPE)
-        self._decls.append(self.session.declare_subscriber(key, self._on_heartbeat))
-
     # --- periodic checks --------------------------------------------------------------------
 
     def _check_nodes(self, now: float) -> None:
-        deadline = self.cfg.watchdog.heartbeat_deadline_ms / 1000
         grace = self.cfg.watchdog.start_grace_ms / 1000
+        beating = liveness.with_beats(n.channel for n in self.nodes.values() if n.channel)
         for node in self.nodes.values():
+            deadline = self.deadline_s(node.cfg)
             with node.lock:
                 if node.state == "backoff" and now >= node.next_start:
                     self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
@@ -221,6 +209,8 @@ class Supervisor:
                     continue
                 if node.state != "running" or node.pid is None:
                     continue
+                if node.channel in beating and node.poll_liveness(now):
+                    self._node_up(node, now)
                 hb = node.heartbeat_at
                 late = (now - hb > deadline) if hb is not None else (now - node.started_at > grace)
             if not late:
@@ -290,16 +280,19 @@ class Supervisor:
                 f"can {h.state}", f"{self.cfg.can.channel} tx errors {h.txerr}, rx errors {h.rxerr}"
             )
 
+    def deadline_s(self, ncfg: NodeConfig) -> float:
+        ms = ncfg.heartbeat_deadline_ms or self.cfg.watchdog.heartbeat_deadline_ms
+        return ms / 1000
+
     def arm_blockers(self) -> list[str]:
         out = []
         now = time.monotonic()
-        deadline = self.cfg.watchdog.heartbeat_deadline_ms / 1000
         for n in self.nodes.values():
             if not (n.cfg.critical and n.cfg.enabled):
                 continue
             if n.state != "running":
                 out.append(f"critical node {n.name} is {n.state}")
-            elif n.heartbeat_at is None or now - n.heartbeat_at > deadline:
+            elif n.heartbeat_at is None or now - n.heartbeat_at > self.deadline_s(n.cfg):
                 out.append(f"critical node {n.name} has no recent heartbeat")
         silent = self.watchdog.h2_silent_for()
         limit = self.cfg.watchdog.h2_silence_ms / 1000
@@ -408,6 +401,8 @@ class Supervisor:
                 "frames_sent": wd.frames_sent,
                 "violations": wd.violations,
                 "read_lag_max_ms": wd.read_lag_max_ms,
+                "malformed": wd.malformed,
+                "socket_dropped": wd.socket_dropped,
             },
             "bus": {
                 "interface": self.cfg.can.interface,

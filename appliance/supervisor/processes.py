@@ -1,6 +1,6 @@
 """Node processes: spawn, watch, restart by policy, apply priority, capture output.
 
-Each node is its own OS process (``exolink node run NAME``) so a crash takes only itself down.
+Each node is its own OS process (``python -m exolink.runtime NAME``) so a crash takes only itself down.
 A waiter thread per process blocks in ``wait()``: the exit is known within a millisecond, which
 is what lets the watchdog put the disable frames on the bus right after a ``kill -9``.
 """
@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import structlog
+from exolink import liveness
 from exolink.config import NodeConfig
 
 LOG_LINES = 500
@@ -55,6 +56,7 @@ class NodeProcess:
         default_factory=lambda: collections.deque(maxlen=LOG_LINES)
     )
     lock: threading.RLock = field(default_factory=threading.RLock)
+    channel: liveness.Channel | None = None  # this spawn's liveness pipe
 
     @property
     def name(self) -> str:
@@ -68,24 +70,25 @@ class NodeProcess:
         with self.lock:
             if self.pid is not None:
                 return
-            env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
-            cmd = [
-                sys.executable,
-                "-m",
-                "exolink.cli.main",
-                "node",
-                "run",
-                self.name,
-                "-c",
-                self.config_path,
-            ]
+            if self.channel is not None:
+                self.channel.close()
+            self.channel = liveness.Channel()
+            env = {
+                **os.environ,
+                "EXOLINK_LOG_JSON": "1",
+                "PYTHONUNBUFFERED": "1",
+                liveness.ENV: str(self.channel.child_fd),
+            }
+            cmd = [sys.executable, "-m", "exolink.runtime", self.name, "-c", self.config_path]
             self.proc = subprocess.Popen(
                 cmd,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 env=env,
                 start_new_session=True,
+                pass_fds=(self.channel.child_fd,),
             )
+            self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
             plain_priority(self.proc.pid)
@@ -132,6 +135,15 @@ class NodeProcess:
             if self.proc is not None and self.proc.poll() is None:
                 self.proc.kill()
                 self.state = "killed"
+
+    def poll_liveness(self, now: float) -> bool:
+        """Takes the beats that arrived since the last tick; True on this spawn's first one."""
+        t = self.channel.drain(now) if self.channel is not None else None
+        if t is None or self.pid is None:
+            return False
+        first = self.heartbeat_at is None
+        self.heartbeat_at = t
+        return first
 
     def failed_by_policy(self, code: int | None) -> bool:
         policy = self.cfg.restart.policy

@@ -13,6 +13,11 @@ angle frames trips even if both are read late. A frame already on the bus before
 a violation either (the safe action went out after it). Should the reader itself stall past
 ``STALL_BACKSTOP_S`` beyond the limit, the periodic check trips anyway: silence it cannot rule
 out counts as silence.
+
+Only a frame that matches the DBC contract counts: an id-110 frame of the wrong length (or an
+extended / remote frame with that id) is not H2 data and does not hold off the silence trip; a
+malformed id-70 frame is judged by what it could still do. Malformed frames are counted by id
+and reason (``malformed`` in status), never fatal.
 """
 
 from __future__ import annotations
@@ -20,10 +25,11 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import can
 import structlog
+from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
 from exolink.protocol import h2, maccepa
 
@@ -47,15 +53,18 @@ class WatchdogState:
     frames_sent: int
     violations: int
     read_lag_max_ms: float = 0.0  # frame arrival -> read by the watchdog: its margin to the limit
+    malformed: dict[str, int] = field(default_factory=dict)  # "110 bad length" -> count
+    socket_dropped: int = 0  # frames the kernel dropped from the watchdog's full receive buffer
 
 
 Publish = Callable[[WatchdogState], None]
 
 
 class Watchdog:
-    def __init__(self, cfg: WatchdogConfig, bus: can.BusABC, publish: Publish) -> None:
+    def __init__(self, cfg: WatchdogConfig, reader: FrameReader, publish: Publish) -> None:
         self.cfg = cfg
-        self.bus = bus
+        self.reader = reader
+        self.bus = reader.bus
         self.publish = publish
         self.log = structlog.get_logger().bind(node="watchdog")
         self.lock = threading.RLock()
@@ -80,7 +89,8 @@ class Watchdog:
 
     def snapshot(self) -> WatchdogState:
         with self.lock:
-            return WatchdogState(**vars(self._s))
+            self._s.socket_dropped = self.reader.dropped
+            return WatchdogState(**{**vars(self._s), "malformed": dict(self._s.malformed)})
 
     @property
     def armed(self) -> bool:
@@ -161,7 +171,7 @@ class Watchdog:
                 f"(limit {self.cfg.h2_silence_ms} ms)",
             )
 
-    def _arrival(self, msg: can.Message) -> float:
+    def _arrival(self, msg: Frame) -> float:
         """When the frame reached the socket, on the monotonic clock. Its timestamp is wall time
         (kernel SO_TIMESTAMP on SocketCAN and udp_multicast); the age is clamped so a clock step
         while frames wait cannot put an arrival in the future or before the previous one."""
@@ -195,33 +205,58 @@ class Watchdog:
             silent = self.h2_silent_for()
             timeout = IDLE_POLL_S if silent is None or not self.armed else limit - silent
             try:
-                msg = self.bus.recv(timeout=min(IDLE_POLL_S, max(0.002, timeout)))
-            except can.CanError as exc:
+                frames = self.reader.read(min(IDLE_POLL_S, max(0.002, timeout)))
+            except (can.CanError, OSError) as exc:
                 self.log.error("watchdog_rx_error", error=str(exc))
                 time.sleep(0.1)
                 continue
-            if msg is None:  # the socket was empty for the whole timeout
+            if not frames:  # the socket was empty for the whole timeout
                 self._check_silence(time.monotonic())
                 continue
-            at = self._arrival(msg)
-            lag_ms = (time.monotonic() - at) * 1000
-            if lag_ms > self._s.read_lag_max_ms:
-                with self.lock:
-                    self._s.read_lag_max_ms = round(lag_ms, 2)
-            self._check_silence(at)
-            if msg.arbitration_id == h2.JOINT_ANGLES:
-                self.last_h2 = at
-            elif msg.arbitration_id == h2.JOINT_CONTROL and not self._was_armed_at(at):
-                frame = h2.decode(msg)
-                if isinstance(frame, h2.JointControl) and frame.mode in MOTION_MODES:
-                    with self.lock:
-                        self._s.violations += 1
-                    self.log.error(
-                        "motion_frame_while_not_armed",
-                        frame=msg.data.hex(),
-                        after_ms=round((at - self._left_armed_at) * 1000, 1),
-                    )
-                    self.send_safe_action()
+            for msg in frames:
+                self._judge(msg)
+
+    def _judge(self, msg: Frame) -> None:
+        at = self._arrival(msg)
+        lag_ms = (time.monotonic() - at) * 1000
+        if lag_ms > self._s.read_lag_max_ms:
+            with self.lock:
+                self._s.read_lag_max_ms = round(lag_ms, 2)
+        self._check_silence(at)
+        frame = h2.decode(msg)
+        if isinstance(frame, h2.Unknown):
+            self._malformed(msg, frame.reason)
+            if msg.arbitration_id != h2.JOINT_CONTROL or self._was_armed_at(at):
+                return
+            # A joint-control frame the contract cannot read may still move a motor: answered.
+            self.log.error("unreadable_joint_control_while_not_armed", frame=msg.data.hex())
+            self.send_safe_action()
+            return
+        if isinstance(frame, h2.JointAngles):
+            self.last_h2 = at
+        elif (
+            isinstance(frame, h2.JointControl)
+            and frame.mode in MOTION_MODES
+            and not self._was_armed_at(at)
+        ):
+            with self.lock:
+                self._s.violations += 1
+            self.log.error(
+                "motion_frame_while_not_armed",
+                frame=msg.data.hex(),
+                after_ms=round((at - self._left_armed_at) * 1000, 1),
+            )
+            self.send_safe_action()
+
+    def _malformed(self, msg: Frame, reason: str) -> None:
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            reason = "not a standard data frame"
+        key = f"{msg.arbitration_id} {reason}"
+        with self.lock:
+            n = self._s.malformed.get(key, 0) + 1
+            self._s.malformed[key] = n
+        if n == 1 or n % 1000 == 0:  # a flood of junk must not flood the journal too
+            self.log.warning("malformed_frame", id=msg.arbitration_id, reason=reason, count=n)
 
     def close(self) -> None:
         self._stop.set()

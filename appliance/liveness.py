@@ -1,0 +1,99 @@
+"""Proof of life that only the node's own process can give: a pipe from each node to the
+supervisor, created at spawn, never the network.
+
+Anyone who reaches the Zenoh port can publish on a heartbeat key, so a Zenoh heartbeat proves
+nothing (a forged one kept a SIGSTOPped node "running" and the watchdog armed). The write end of
+this pipe exists only in the node process (inherited at spawn, its number in ``EXOLINK_LIVENESS_FD``).
+Each beat is the node's CLOCK_MONOTONIC time as 8 bytes: one write below PIPE_BUF, atomic, so
+the supervisor reads whole records and knows when the node last beat, not when it got round to
+reading. The supervisor drains every pipe on its periodic tick: a beat costs the node one
+non-blocking write and wakes nobody.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import struct
+import time
+from collections.abc import Iterable
+
+ENV = "EXOLINK_LIVENESS_FD"
+_RECORD = struct.Struct("=d")
+MIN_INTERVAL_S = 0.01  # a loop beating faster than this writes once per interval
+
+
+class Channel:
+    """The supervisor's end for one spawn of one node."""
+
+    def __init__(self) -> None:
+        self._r, self.child_fd = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self._tail = b""
+
+    def fileno(self) -> int:
+        return self._r
+
+    def spawned(self) -> None:
+        """After the child has its copy: the parent must not hold the write end open."""
+        os.close(self.child_fd)
+        self.child_fd = -1
+
+    def drain(self, now: float) -> float | None:
+        """The newest beat's time since the last drain (None: no beat), never in the future."""
+        data = self._tail
+        with contextlib.suppress(BlockingIOError, OSError):
+            while chunk := os.read(self._r, 65536):
+                data += chunk
+                if len(chunk) < 65536:
+                    break
+        whole = len(data) - len(data) % _RECORD.size
+        self._tail = data[whole:]
+        if not whole:
+            return None
+        (t,) = _RECORD.unpack_from(data, whole - _RECORD.size)
+        return min(t, now)
+
+    def close(self) -> None:
+        for fd in (self._r, self.child_fd):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._r = self.child_fd = -1
+
+
+def with_beats(channels: Iterable[Channel]) -> set[Channel]:
+    """The channels holding unread beats: one select per supervisor tick, not a read per node."""
+    live = [c for c in channels if c.fileno() >= 0]
+    if not live:
+        return set()
+    return set(select.select(live, (), (), 0)[0])
+
+
+class Beater:
+    """The node's end. Without a supervisor (a node run by hand, a test) it does nothing."""
+
+    def __init__(self, fd: int | None) -> None:
+        self.fd = fd
+        self._last = 0.0
+
+    @classmethod
+    def from_env(cls) -> Beater:
+        raw = os.environ.pop(ENV, None)  # not inherited further (a child of the node)
+        if raw is None:
+            return cls(None)
+        fd = int(raw)
+        os.set_blocking(fd, False)
+        os.set_inheritable(fd, False)
+        return cls(fd)
+
+    def beat(self, now: float | None = None) -> None:
+        if self.fd is None:
+            return
+        t = time.monotonic() if now is None else now
+        if t - self._last < MIN_INTERVAL_S:
+            return
+        self._last = t
+        # A full pipe (supervisor stalled) or a gone one (supervisor dead): nothing to do here.
+        with contextlib.suppress(BlockingIOError, BrokenPipeError, OSError):
+            os.write(self.fd, _RECORD.pack(t))

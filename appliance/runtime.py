@@ -1,0 +1,180 @@
+"""The node runtime: one node in one OS process, as the supervisor spawns it.
+
+``python -m exolink.runtime NAME -c FILE`` is what the supervisor runs for each node: it imports
+only that node's plugin and validates only its params (not every plugin's, which would load
+numpy, mcap and zstandard into every node). The same ``NodeRunner`` runs a node in-process in
+tests, or standalone (``exolink node run NAME``). It gives every node a Zenoh session, a liveliness
+token and a heartbeat that stops when the node's own loop stops calling ``beat()``, so a wedged
+loop looks dead to the watchdog even while the process is alive.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import msgspec
+import structlog
+import zenoh
+from exolink import cdr, liveness, messaging
+from exolink.config import ApplianceConfig
+from exolink.node import HEARTBEAT_PERIOD_S, HEARTBEAT_TOPIC, HEARTBEAT_TYPE, Node, NodeContext
+
+TELEMETRY_EVERY = 10
+
+
+class NodeRunner:
+    """Everything around a node: session, liveliness, heartbeat, params queryable, signals."""
+
+    def __init__(
+        self, cls: type[Node], cfg: ApplianceConfig, name: str, session: zenoh.Session | None = None
+    ) -> None:
+        from exolink.config import node_params
+
+        self.cfg = cfg
+        self.name = name
+        self.stop = threading.Event()
+        self._own_session = session is None
+        self.session = session or messaging.open_node_session(cfg)
+        self.msg = messaging.Messaging(self.session, cfg)
+        log = structlog.get_logger().bind(node=name)
+        ctx = NodeContext(name, cfg, self.session, self.msg, log)
+        self.node = cls(ctx, node_params(cfg, name))
+        self.node.liveness = liveness.Beater.from_env()
+        self.log = log
+        self._decls: list[Any] = []
+        self._count = 0
+
+    def _heartbeat(self) -> None:
+        pub = self.msg.publisher(f"nodes/{self.name}/{HEARTBEAT_TOPIC}", HEARTBEAT_TYPE, raw=True)
+        beat = cdr.HeartbeatCdr(self.name, os.getpid())
+        next_t = time.monotonic()
+        stalled_since: float | None = None  # the journal says which loop went quiet, how long
+        while not self.stop.is_set():
+            before = self.node.last_beat
+            healthy = self.node.healthy()
+            if not healthy and stalled_since is None:
+                stalled_since = before
+                self.log.warning("loop_stalled", limit_s=self.node.stall_s)
+            elif healthy and stalled_since is not None:
+                stalled_s = self.node.last_beat - stalled_since
+                self.log.warning("loop_recovered", stalled_s=round(stalled_s, 2))
+                stalled_since = None
+            if healthy:  # proof of life: only the loop's own beats within stall_s count
+                self.node.liveness.beat()
+                self._count += 1
+                if self._count % TELEMETRY_EVERY == 1:  # on Zenoh: for people, not the watchdog
+                    now = time.time_ns()
+                    pub.put(beat.encode(now, self._count), now)
+            next_t += HEARTBEAT_PERIOD_S
+            self.stop.wait(max(0.0, next_t - time.monotonic()))
+        pub.close()
+
+    def _params(self, req: dict[str, Any]) -> dict[str, Any]:
+        if "set" in req:
+            key, value = req["set"].get("key"), req["set"].get("value")
+            return {"key": key, "value": self.node.set_param(str(key), value)}
+        return {"params": msgspec.to_builtins(self.node.params)}
+
+    def run(self) -> int:
+        """Blocking: configure, run, shut down. Returns the process exit code."""
+        self.node.configure()
+        self._decls.append(
+            self.session.liveliness().declare_token(self.msg.mgmt("nodes", self.name, "alive"))
+        )
+        self._decls.append(
+            messaging.serve(self.session, self.msg.mgmt("nodes", self.name, "params"), self._params)
+        )
+        self.node.beat()  # the loop's stall clock starts now, not at construction
+        hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
+        hb.start()
+        self.log.info("node_running", pid=os.getpid())
+        code = 0
+        try:
+            self.node.run(self.stop)
+        except Exception:
+            self.log.exception("node_failed")
+            code = 1
+        finally:
+            self.stop.set()
+            self.node.shutdown()
+            hb.join(1.0)
+            for d in self._decls:
+                d.undeclare()
+            if self._own_session:
+                self.session.close()
+            self.log.info("node_stopped", code=code)
+        return code
+
+
+def stop_on_signals(stop: threading.Event, log: Any) -> None:
+    """SIGTERM / SIGINT set ``stop``: every long-running exolink process ends the same clean way.
+
+    The handler only writes the signal number to a pipe; a thread logs it and sets ``stop``.
+    Handlers run on the main thread between bytecodes: one calling ``stop.set()`` (or a logger)
+    while that thread was inside ``stop.wait()`` holding the same lock deadlocked, and a
+    supervisor ignored SIGTERM for good.
+    """
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        with contextlib.suppress(BlockingIOError):  # a full pipe already holds a stop request
+            os.write(w, bytes([signum]))
+
+    def relay() -> None:
+        while data := os.read(r, 64):
+            for signum in data:
+                log.info("signal", signal=signal.Signals(signum).name)
+            stop.set()
+
+    threading.Thread(target=relay, daemon=True, name="signals").start()
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+
+def run_standalone(cfg: ApplianceConfig, name: str, listen: list[str] | None = None) -> int:
+    """One node in this process until SIGTERM/SIGINT (``exolink node run``, and supervised)."""
+    from exolink.plugins import find_node_class
+
+    node_cfg = cfg.node(name)
+    cls = find_node_class(node_cfg.plugin)
+    session = zenoh.open(messaging.session_config(cfg.zenoh, listen=listen)) if listen else None
+    runner = NodeRunner(cls, cfg, name, session)
+
+    stop_on_signals(runner.stop, runner.log)
+    try:
+        return runner.run()
+    finally:
+        if session is not None:
+            session.close()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m exolink.runtime NAME -c FILE``: the process the supervisor spawns per node."""
+    p = argparse.ArgumentParser(prog="python -m exolink.runtime", description=__doc__)
+    p.add_argument("name")
+    p.add_argument("--config", "-c", required=True)
+    p.add_argument("--listen", action="append", help="also listen on a Zenoh endpoint")
+    args = p.parse_args(argv)
+    from exolink import logs
+    from exolink.cli.errors import run_guarded
+    from exolink.config import load
+
+    def run(a: argparse.Namespace) -> int:
+        cfg = load(a.config, check=[a.name])  # this node's params only: its plugin alone loads
+        logs.setup(a.name)
+        return run_standalone(cfg, a.name, a.listen)
+
+    return run_guarded(run, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,68 @@
+"""What each process loads: a node imports its own plugin and what that plugin uses, nothing
+of the other nodes; the supervisor loads no plugin at all (their params are checked in a child
+that exits). On one Cortex-A8 core every import is seconds of start time and megabytes kept."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+from conftest import Appliance, wait_for
+from exolink.plugins import available
+
+# Nodes whose every dependency is light: no rosbags (generic CDR) and hence no numpy.
+LEAN = {"h2_reader"}
+HEAVY = ("numpy", "rosbags", "mcap", "zstandard")
+
+
+def _dump_modules(tmp_path: Path, monkeypatch) -> Path:  # type: ignore[no-untyped-def]
+    """A sitecustomize (real interpreter start, no mock) that writes each exolink process's
+    sys.modules at exit to out/<first argument after the module>.json."""
+    site, out = tmp_path / "site", tmp_path / "modules"
+    site.mkdir()
+    out.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import atexit, json, sys\n"
+        "def _dump():\n"
+        "    args = [a for a in sys.argv[1:] if not a.startswith('-')]\n"
+        "    name = args[0] if args else 'unknown'\n"
+        f"    with open({str(out)!r} + '/' + name + '.json', 'w') as f:\n"
+        "        json.dump(sorted(sys.modules), f)\n"
+        "atexit.register(_dump)\n"
+    )
+    monkeypatch.setenv("PYTHONPATH", str(site))
+    return out
+
+
+def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    out = _dump_modules(tmp_path, monkeypatch)
+    cfg = write_config()
+    plugin_modules = {v.split(":")[0] for v in available().values()}
+    names = [n["name"] for n in yaml.safe_load(cfg.read_text())["nodes"]]
+    app = Appliance(cfg, spawn)
+    assert {n["name"] for n in app.status()["nodes"]} == set(names)
+    app.proc.stop()
+    wait_for(lambda: all((out / f"{n}.json").exists() for n in names), timeout=15)
+
+    for name in names:
+        loaded = set(json.loads((out / f"{name}.json").read_text()))
+        own = {m for m in plugin_modules if m in loaded}
+        assert len(own) == 1, f"{name} imported plugins {sorted(own)}"
+        if name in LEAN:
+            heavy = sorted(m for m in loaded if m.split(".")[0] in HEAVY)
+            assert not heavy, f"{name} imported {heavy[:5]}"
+    # The supervisor (`exolink up`, dumped as "up") validated every plugin's params, in a child.
+    sup = set(json.loads((out / "up.json").read_text()))
+    assert not (plugin_modules & sup), sorted(plugin_modules & sup)
+
+
+def test_a_bad_param_of_any_node_still_starts_nothing(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    data = yaml.safe_load(write_config().read_text())
+    data["nodes"][-1]["params"]["nosuch"] = 1  # the last node's: checked in the child
+    path = write_config(nodes=data["nodes"])
+    proc = spawn("up", "-c", str(path), name="up")
+    assert proc.p.wait(30) == 3
+    out = proc.output()
+    assert "nosuch" in out and "nodes[6].params" in out, out
+    assert "node_running" not in out
