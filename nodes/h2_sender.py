@@ -24,6 +24,9 @@ from exolink.protocol import ProtocolError, h2
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 MOTION = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 Angles = Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)]
+Caps = Annotated[
+    list[Annotated[int, msgspec.Meta(ge=0, le=127)]], msgspec.Meta(min_length=6, max_length=6)
+]
 
 
 class SenderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -32,6 +35,10 @@ class SenderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     max_angles: Angles = msgspec.field(default_factory=lambda: [h2.RANGES[j][1] for j in h2.JOINTS])
     send_limits_on_start: bool = True
     require_armed: bool = True
+    # Per joint: the largest |set-point| accepted in torque mode and stiffness in stiffness mode.
+    # The protocol allows 127 and 100; a lab sets what its motors and its patients tolerate.
+    torque_cap: Caps = msgspec.field(default_factory=lambda: [127] * 6)
+    stiffness_cap: Caps = msgspec.field(default_factory=lambda: [100] * 6)
 
 
 def command_key(msg: messaging.Messaging) -> str:
@@ -54,6 +61,8 @@ class H2Sender(Node):
         for j, lo, hi in zip(h2.JOINTS, p.min_angles, p.max_angles, strict=True):
             if lo > hi:
                 raise ValueError(f"{self.name} params: {j} min {lo} > max {hi}")
+        # What the H2 enforces now: the configured limits, until an operator sends stricter ones.
+        self.h2_min, self.h2_max = list(p.min_angles), list(p.max_angles)
         self.bus = open_bus(self.ctx.config.can, filters=[])
         self.lock = threading.Lock()
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
@@ -99,17 +108,33 @@ class H2Sender(Node):
             return [h2.encode_joint_control(m, mode) for m in range(1, 7)]
         motor = h2.motor_id(joint)  # type: ignore[arg-type]
         msg = h2.encode_joint_control(motor, mode, req.get("setpoint", 0), req.get("stiffness", 0))
+        name, i = h2.JOINTS[motor - 1], motor - 1
+        sp = int(req.get("setpoint", 0))
         if mode in (h2.MODES["position"], h2.MODES["stiffness"]):
-            lo, hi = self.params.min_angles[motor - 1], self.params.max_angles[motor - 1]
-            sp = int(req.get("setpoint", 0))
+            lo, hi = self.limits(i)
             if not lo <= sp <= hi:
                 raise CommandRefused(
-                    f"{h2.JOINTS[motor - 1]} set-point {sp} deg is outside the configured "
-                    f"limits {lo}..{hi}"
+                    f"{name} set-point {sp} deg is outside the limits {lo}..{hi} "
+                    "(the stricter of the configured ones and the last sent to the H2)"
                 )
+        if mode == h2.MODES["torque"] and abs(sp) > self.params.torque_cap[i]:
+            raise CommandRefused(
+                f"{name} torque {sp} is above its cap {self.params.torque_cap[i]} (torque_cap)"
+            )
+        stiffness = int(req.get("stiffness", 0))
+        if mode == h2.MODES["stiffness"] and stiffness > self.params.stiffness_cap[i]:
+            raise CommandRefused(
+                f"{name} stiffness {stiffness} is above its cap {self.params.stiffness_cap[i]}"
+                " (stiffness_cap)"
+            )
         if mode in MOTION and self.arming is not None and (why := self.arming.check()):
             raise CommandRefused(why)
         return [msg]
+
+    def limits(self, i: int) -> tuple[int, int]:
+        """Joint i's accepted set-points: the stricter of the configured and the sent limits."""
+        p = self.params
+        return max(p.min_angles[i], self.h2_min[i]), min(p.max_angles[i], self.h2_max[i])
 
     def _limits(self, req: dict[str, Any]) -> list[can.Message]:
         frames = []
@@ -118,6 +143,18 @@ class H2Sender(Node):
                 frames.append(h2.encode_accepted_angles(kind, req[kind]))
         if not frames:
             raise CommandRefused("limits needs 'min' and/or 'max' (six angles in degrees)")
+        new_min = [int(v) for v in h2.decode(frames[0])] if "min" in req else self.h2_min
+        new_max = [int(v) for v in h2.decode(frames[-1])] if "max" in req else self.h2_max
+        p = self.params
+        for j, lo, hi, cmin, cmax in zip(
+            h2.JOINTS, new_min, new_max, p.min_angles, p.max_angles, strict=True
+        ):
+            if lo >= hi:
+                raise CommandRefused(f"{j}: min {lo} must be below max {hi}")
+            if lo < cmin or hi > cmax:
+                raise CommandRefused(
+                    f"{j}: limits {lo}..{hi} reach outside the configured {cmin}..{cmax}"
+                )
         return frames
 
     def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
@@ -130,6 +167,11 @@ class H2Sender(Node):
         self._send(frames)
         for f in frames:
             self._record(f)
+            lim = h2.decode(f)
+            if isinstance(lim, h2.MinAngles):
+                self.h2_min = list(lim)
+            elif isinstance(lim, h2.MaxAngles):
+                self.h2_max = list(lim)
         self.log.info("command_sent", request=req, frames=len(frames))
         return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
 

@@ -50,6 +50,7 @@ STATE_TYPE = "exolink_msgs/msg/PatternState"
 MAX_POINTS = 10_000
 BCM_MAX_FRAMES = 256
 SPIN_S = 0.0003
+MAX_UPLOAD = 1 << 20
 # A motion node: its loop beats at least this often, running or idle, so the supervisor can hold
 # it to a short liveness deadline (heartbeat_deadline_ms: 50 in the shipped configs).
 BEAT_S = 0.02
@@ -62,6 +63,8 @@ def period_s(level: int) -> float:
 
 class PlayerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     pattern: str = str(DEFAULT_PATTERN)
+    # `pattern load NAME` reads only files in here (or content the operator uploads).
+    patterns_dir: str = str(DEFAULT_PATTERN.parent)
     speed: Annotated[int, msgspec.Meta(ge=1, le=10)] = 5
     selected: list[Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]] = []
     timing: Literal["thread", "periodic"] = "thread"
@@ -84,20 +87,36 @@ class Pattern:
 
 
 def load_pattern(path: str, min_angles: list[int], max_angles: list[int]) -> Pattern:
-    """CSV with a header of joint names (all six), one row per set-point, whole degrees."""
-    p = Path(path)
+    """A pattern file the board's own config names (the start-up pattern)."""
     try:
-        with p.open(newline="") as f:
-            rows = list(csv.reader(f))
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
     except OSError as exc:
         raise ProtocolError(f"{path}: cannot read pattern: {exc.strerror or exc}") from None
+    return parse_pattern(text, path, min_angles, max_angles)
+
+
+def pattern_in(directory: str, name: str) -> str:
+    """A file name inside the patterns directory; anything else (a path out of it, a link out of
+    it) is refused: a network request must not make the board read /etc/shadow."""
+    base = Path(directory).resolve()
+    if not name or "/" in name or name in (".", ".."):
+        raise ProtocolError(f"pattern name {name!r}: give a file name in {base}, not a path")
+    target = (base / name).resolve()
+    if target.parent != base or not target.is_file():
+        raise ProtocolError(f"no pattern {name!r} in {base}")
+    return str(target)
+
+
+def parse_pattern(text: str, source: str, min_angles: list[int], max_angles: list[int]) -> Pattern:
+    """CSV with a header of joint names (all six), one row per set-point, whole degrees.
+    Errors name the line and what is wrong, never the content (it may not be a pattern)."""
+    path = source
+    rows = list(csv.reader(text.splitlines()))
     if not rows:
         raise ProtocolError(f"{path}: empty pattern file")
     header = [c.strip() for c in rows[0]]
     if sorted(header) != sorted(h2.JOINTS):
-        raise ProtocolError(
-            f"{path}: header must name the six joints {', '.join(h2.JOINTS)}, got {header}"
-        )
+        raise ProtocolError(f"{path}:1: header must name the six joints {', '.join(h2.JOINTS)}")
     order = [header.index(j) for j in h2.JOINTS]
     body = [r for r in rows[1:] if any(c.strip() for c in r)]
     if not 2 <= len(body) <= MAX_POINTS:
@@ -109,7 +128,7 @@ def load_pattern(path: str, min_angles: list[int], max_angles: list[int]) -> Pat
         try:
             vals = [int(row[i].strip()) for i in order]
         except ValueError:
-            raise ProtocolError(f"{path}:{n}: values must be whole degrees, got {row}") from None
+            raise ProtocolError(f"{path}:{n}: values must be whole degrees") from None
         for j, v in enumerate(vals):
             if not min_angles[j] <= v <= max_angles[j]:
                 raise ProtocolError(
@@ -122,7 +141,7 @@ def load_pattern(path: str, min_angles: list[int], max_angles: list[int]) -> Pat
         except ProtocolError as exc:
             raise ProtocolError(f"{path}:{n}: {exc}") from None
         points.append(vals)
-    return Pattern(str(p), points, frames)
+    return Pattern(source, points, frames)
 
 
 class PatternPlayer(Node):
@@ -272,10 +291,16 @@ class PatternPlayer(Node):
     def _load(self, req: dict[str, Any]) -> None:
         if self.state != "stopped":
             raise CommandRefused(f"stop the pattern before loading another (it is {self.state})")
+        p = self.params
         try:
-            self.pattern = load_pattern(
-                str(req.get("file", "")), self.params.min_angles, self.params.max_angles
-            )
+            if "content" in req:  # uploaded by the operator's CLI from the laptop
+                content, name = req["content"], str(req.get("name", "uploaded"))
+                if not isinstance(content, str) or len(content) > MAX_UPLOAD:
+                    raise ProtocolError(f"{name}: content must be CSV text under {MAX_UPLOAD} B")
+                self.pattern = parse_pattern(content, name, p.min_angles, p.max_angles)
+            else:
+                path = pattern_in(p.patterns_dir, str(req.get("file", "")))
+                self.pattern = load_pattern(path, p.min_angles, p.max_angles)
         except ProtocolError as exc:
             raise CommandRefused(str(exc)) from None
         self.index = 0

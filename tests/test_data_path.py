@@ -23,7 +23,12 @@ NODES = [
     {
         "name": "h2_sender",
         "plugin": "h2_sender",
-        "params": {"require_armed": False, "max_angles": [90, 80, 15, 90, 80, 15]},
+        "params": {
+            "require_armed": False,
+            "max_angles": [90, 80, 15, 90, 80, 15],
+            "torque_cap": [20, 20, 10, 20, 20, 10],
+            "stiffness_cap": [50, 50, 50, 50, 50, 50],
+        },
     },
 ]
 
@@ -141,12 +146,24 @@ def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> N
     wait_for(lambda: any(h2.decode(m).r_knee == 30 for m in collect(mbus, 0.1, {110})), timeout=5)
 
     refusals = [
-        (["send", "position", "r_knee", "85"], "outside the configured limits 0..80"),
+        (["send", "position", "r_knee", "85"], "outside the limits 0..80"),
         (["send", "position", "r_knee", "101"], "outside 0..100"),
         (["send", "position", "r_elbow", "10"], "unknown joint 'r_elbow'"),
         (["send", "stiffness", "l_knee", "10", "120"], "120 is outside 0..100"),
         (["send", "limits", "--max", "0,0,30,0,0,0"], "MaxAngles.r_ankle: 30 is outside -20..20"),
         (["send", "torque", "all", "3"], "'all' joints is only for disabled or stopped"),
+        # Issue 19 (4): limits that hold.
+        (
+            ["send", "limits", "--min=50,50,0,0,0,0", "--max=10,10,15,90,80,15"],
+            "min 50 must be below max 10",
+        ),
+        (
+            ["send", "limits", "--max=95,80,15,90,80,15"],
+            "r_hip: limits -20..95 reach outside the configured -20..90",
+        ),
+        (["send", "torque", "r_knee", "21"], "r_knee torque 21 is above its cap 20"),
+        (["send", "torque", "r_ankle", "-11"], "r_ankle torque -11 is above its cap 10"),
+        (["send", "stiffness", "l_knee", "10", "60"], "l_knee stiffness 60 is above its cap 50"),
     ]
     for args, expected in refusals:
         r = cli(cfg, *args)
@@ -158,6 +175,11 @@ def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> N
     assert r.returncode == 0, r.stderr
     frames = collect(mbus, 0.5, {70})
     assert sorted(h2.decode(f).motor for f in frames) == [1, 2, 3, 4, 5, 6]
+    # Stricter limits sent to the H2 bind the sender too (configured r_knee max is 80).
+    assert cli(cfg, "send", "limits", "--max", "90,60,15,90,80,15").returncode == 0
+    r = cli(cfg, "send", "position", "r_knee", "70")
+    assert r.returncode == 5 and "outside the limits 0..60" in r.stderr, r.stderr
+    assert cli(cfg, "send", "torque", "r_knee", "20").returncode == 0  # at the cap: allowed
 
 
 def test_cli_echo_topics_hz(appliance, mbus) -> None:  # type: ignore[no-untyped-def]

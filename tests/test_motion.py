@@ -288,3 +288,27 @@ def test_deviation_stats_on_known_stamps() -> None:
     assert s["n"] == 99 and s["max_dev_ms"] == pytest.approx(1.0, abs=1e-6)
     assert s["histogram"]["1000-5000us"] == 2 or s["histogram"]["500-1000us"] == 2
     assert deviation_stats([0.0, 1.0])["n"] == 0
+
+
+def test_pattern_load_reads_only_the_patterns_dir_and_never_echoes_content(app, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Issue 19 (4): `pattern load /etc/shadow` read the file and echoed its first line."""
+    secret = tmp_path / "secret.csv"
+    secret.write_text("root:$y$SECRETHASH:19000:0:99999:7:::\n")
+    s = messaging.open_client_session(app.at)  # the request as anyone on the network sends it
+    try:
+        for target in ("/etc/shadow", "../../../../etc/passwd", "nosuch.csv"):
+            body = {"action": "load", "file": target}
+            r = messaging.request(s, messaging.mgmt_key("sim", "pattern"), body)
+            assert not r["ok"] and "pattern" in r["error"], (target, r)
+            assert "root" not in r["error"], r
+    finally:
+        s.close()
+    r = app.cli("pattern", "load", str(secret))  # uploaded content that is not a pattern
+    assert r.returncode == 5 and "secret.csv:1: header must name the six joints" in r.stderr
+    assert "SECRET" not in r.stderr and "root" not in r.stderr
+    good = tmp_path / "two.csv"
+    good.write_text("r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle\n1,2,3,4,5,6\n2,3,4,5,6,7\n")
+    r = app.cli("pattern", "load", str(good))
+    assert r.returncode == 0, r.stderr
+    r = app.cli("pattern", "load", "normal_walking.csv")  # the board's own, by name
+    assert r.returncode == 0, r.stderr

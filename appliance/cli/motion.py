@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import Any
 
 from exolink import messaging
@@ -33,8 +34,13 @@ def cmd_pattern(args: argparse.Namespace) -> int:
         body["speed"] = args.level
     elif action in ("select", "disable"):
         body["joints"] = args.joints
-    elif action == "load":
-        body["file"] = args.file
+    elif action == "load":  # a file on this laptop is uploaded; a bare name is the board's
+        local = Path(args.file)
+        if local.is_file():
+            body["content"] = local.read_text(encoding="utf-8", errors="replace")
+            body["name"] = local.name
+        else:
+            body["file"] = args.file
     with remote(args) as r:
         if action != "start" or args.detach:
             sys.stdout.write(_show(r.call("pattern", body=body)) + "\n")
@@ -194,7 +200,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     for name in ("select", "disable"):
         q = s.add_parser(name, help=f"{name} JOINT...")
         q.add_argument("joints", nargs="+")
-    q = s.add_parser("load", help="load FILE (a CSV path on the board)")
+    q = s.add_parser(
+        "load",
+        help="load FILE: a CSV on this laptop (uploaded) or a name in the board's patterns_dir",
+    )
     q.add_argument("file")
     p.set_defaults(func=cmd_pattern)
 
