@@ -53,6 +53,8 @@ def open_bus(
         raise CanOpenError(_explain(cfg, exc)) from exc
     if cfg.interface == "udp_multicast":
         _own_group_only(bus)
+        if filters is not None:
+            _udp_kernel_filter(bus, filters)
     return bus
 
 
@@ -63,6 +65,66 @@ def _own_group_only(bus: can.BusABC) -> None:
     sock = getattr(getattr(bus, "_multicast", None), "_socket", None)  # python-can internals
     if isinstance(sock, socket.socket) and sock.family == socket.AF_INET:
         sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+
+
+# python-can's udp_multicast datagram is msgpack of a dict in pack_message's fixed key order:
+# fixmap(11), "timestamp" (fixstr 9) + float64, "arbitration_id" (fixstr 14) + the id as a
+# fixint, uint8 or uint16. Offsets below are from the UDP header, where a socket filter starts.
+_UDP_HDR = 8
+_MAP11, _STR14 = 0x8B, 0xAE
+_AT_KEY, _AT_ID = _UDP_HDR + 20, _UDP_HDR + 35
+_BPF_LDB, _BPF_LDH, _BPF_JA, _BPF_JEQ, _BPF_JGE, _BPF_RET = 0x30, 0x28, 0x05, 0x15, 0x35, 0x06
+SO_ATTACH_FILTER = 26
+
+
+def _udp_kernel_filter(bus: can.BusABC, filters: list[dict[str, int | bool]]) -> None:
+    """The kernel filter SocketCAN has, for the simulated bus: a classic BPF socket filter that
+    reads the id out of python-can's datagram and drops other ids before they wake the process.
+    On the sim bus every process would otherwise wake for, and decode, every frame of every node.
+    A datagram not laid out as expected passes (python-can's own filter still applies)."""
+    import ctypes
+
+    ids = [int(f["can_id"]) for f in filters]
+    if any(f.get("extended") or int(f.get("can_mask", 0)) != STD_MASK for f in filters):
+        return  # only exact standard ids are compiled; python-can filters the rest
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)  # python-can internals
+    if not isinstance(sock, socket.socket):
+        return
+    program = _bpf_ids(ids)
+    buf = ctypes.create_string_buffer(program)
+    fprog = struct.pack("HL", len(program) // 8, ctypes.addressof(buf))
+    sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
+
+
+def _bpf_ids(ids: list[int]) -> bytes:
+    """accept (the whole datagram) if its id is in ``ids`` or its layout is not the expected
+    one, else drop. Jump offsets are counted from the next instruction."""
+    n = len(ids)
+    # index: 0 ldb[0]  1 jeq map11  2 ldb[key]  3 jeq str14  4 ldb[id]  5 jge 0x80  6 ja CHK
+    #        7 jeq 0xcc  8 ldb[id+1]  9 ja CHK  10 jeq 0xcd  11 ldh[id+1]  12.. CHK  then drop, accept
+    chk, drop = 12, 12 + n
+    acc = drop + 1
+
+    def j(at: int, target: int) -> int:
+        return target - at - 1
+
+    ins = [
+        (_BPF_LDB, 0, 0, _UDP_HDR),
+        (_BPF_JEQ, 0, j(1, acc), _MAP11),
+        (_BPF_LDB, 0, 0, _AT_KEY),
+        (_BPF_JEQ, 0, j(3, acc), _STR14),
+        (_BPF_LDB, 0, 0, _AT_ID),
+        (_BPF_JGE, j(5, 7), 0, 0x80),
+        (_BPF_JA, 0, 0, j(6, chk)),
+        (_BPF_JEQ, 0, j(7, 10), 0xCC),
+        (_BPF_LDB, 0, 0, _AT_ID + 1),
+        (_BPF_JA, 0, 0, j(9, chk)),
+        (_BPF_JEQ, 0, j(10, acc), 0xCD),
+        (_BPF_LDH, 0, 0, _AT_ID + 1),
+    ]
+    ins += [(_BPF_JEQ, j(chk + i, acc), 0, fid) for i, fid in enumerate(ids)]
+    ins += [(_BPF_RET, 0, 0, 0), (_BPF_RET, 0, 0, 0xFFFFFFFF)]
+    return b"".join(struct.pack("=HBBI", *i) for i in ins)
 
 
 def _explain(cfg: CanConfig, exc: Exception) -> str:
