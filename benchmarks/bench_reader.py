@@ -14,8 +14,9 @@ from exolink.canbus import open_bus
 from exolink.config import CanConfig
 from exolink.protocol import h2
 
-from benchmarks.harness import EXOLINK, Appliance, free_port, group, pct
+from benchmarks.harness import Appliance, cpu_s, free_port, group, pct, pss_mb
 
+RUNTIME = [sys.executable, "-m", "exolink.runtime"]
 LATENCY_SUBSCRIBER = r"""
 import sys, time
 from exolink import messaging
@@ -37,23 +38,25 @@ def latency_and_cpu(seconds: float) -> dict[str, Any]:
     app = Appliance()
     try:
         time.sleep(1)
-        before = app.node("h2_reader")
+        pid = app.node("h2_reader")["pid"]
+        before = cpu_s(pid)
         out = subprocess.run(
             [sys.executable, "-c", LATENCY_SUBSCRIBER, app.at, str(seconds)],
             capture_output=True,
             text=True,
             timeout=seconds + 30,
         )
-        after = app.node("h2_reader")
+        cpu = cpu_s(pid) - before
         lat = [int(x) for x in out.stdout.split()]
         frames = 300 * seconds
-        cpu = after["cpu_s"] - before["cpu_s"]
+        nodes = app.call("status")["nodes"]
         return {
             "e2e_latency_ms": pct(lat, 1e-6),
             "joint_states_received": len(lat),
             "reader_cpu_per_frame_us": round(cpu / frames * 1e6, 1),
             "reader_cpu_percent_at_100hz": round(cpu / seconds * 100, 1),
-            "rss_mb": {n["name"]: n.get("rss_mb") for n in app.call("status")["nodes"]},
+            "rss_mb": {n["name"]: n.get("rss_mb") for n in nodes},
+            "pss_mb": {n["name"]: pss_mb(n["pid"]) for n in nodes if n.get("pid")},
         }
     finally:
         app.close()
@@ -94,7 +97,7 @@ def max_rate(quick: bool) -> dict[str, Any]:
     with open(path, "w") as f:
         yaml.safe_dump(data, f)
     proc = subprocess.Popen(
-        [*EXOLINK, "node", "run", "h2_reader", "-c", path, "--listen", f"tcp/127.0.0.1:{port}"],
+        [*RUNTIME, "h2_reader", "-c", path, "--listen", f"tcp/127.0.0.1:{port}"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -112,6 +115,7 @@ def max_rate(quick: bool) -> dict[str, Any]:
             before = messaging.request(s, "exolink/sim/nodes/h2_reader/stats")[
                 "published_joint_states"
             ]
+            cpu0 = cpu_s(proc.pid)
             n = int(rate * 2)
             period = 1.0 / rate
             start = time.perf_counter()
@@ -131,6 +135,8 @@ def max_rate(quick: bool) -> dict[str, Any]:
                     "frames_per_s": rate * 3,
                     "sent": n,
                     "published": after - before,
+                    # the reader alone (its own process, no other node): CPU per CAN frame
+                    "cpu_per_frame_us": round((cpu_s(proc.pid) - cpu0) / (n * 3) * 1e6, 1),
                 }
             )
         s.close()
@@ -141,6 +147,7 @@ def max_rate(quick: bool) -> dict[str, Any]:
     ok = [r["frames_per_s"] for r in results if r["published"] == r["sent"]]
     return {
         "steps": results,
+        "alone_cpu_per_frame_us_at_100hz": results[0]["cpu_per_frame_us"],
         "max_zero_loss_frames_per_s": max(ok) if ok else 0,
         "note": "udp_multicast itself drops frames near 10k/s; vcan figures come with the kernel tests",
     }

@@ -14,7 +14,7 @@ from typing import Any
 from exolink import messaging
 from exolink.protocol import h2
 
-from benchmarks.harness import Appliance, Drained, pct
+from benchmarks.harness import Appliance, Drained, pct, pss_mb
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},
@@ -30,6 +30,13 @@ NODES = [
         "critical": True,
         "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
     },  # killed per SIGSTOP trial
+    {
+        "name": "pattern_player",
+        "plugin": "pattern_player",
+        "critical": True,
+        "heartbeat_deadline_ms": 50,  # a motion node, as in the shipped configs
+        "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
+    },
 ]
 
 
@@ -59,6 +66,8 @@ def run(quick: bool) -> dict[str, Any]:
         # All nodes spawned at once share the cores: spawn-to-first-heartbeat vs the start grace.
         cold_start = {n["name"]: n.get("start_s") for n in nodes}
         rss["supervisor"] = _rss(app.proc.pid)
+        pss = {n["name"]: pss_mb(n["pid"]) for n in nodes if n.get("pid")}
+        pss["supervisor"] = pss_mb(app.proc.pid)
         for _ in range(trials):
             pid = app.node("h2_reader")["pid"]
             bus.clear()
@@ -90,6 +99,7 @@ def run(quick: bool) -> dict[str, Any]:
             if m is not None:
                 stop_to_trip.append(m.timestamp - t0)
             time.sleep(0.5)
+        motion_stop_to_trip = _sigstop_trials(app, bus, "pattern_player", 10 if quick else 30)
         silence_to_trip = []
         for _ in range(5 if quick else 10):
             time.sleep(1.5)  # the simulator streams again
@@ -111,6 +121,10 @@ def run(quick: bool) -> dict[str, Any]:
         "restart_backoff_ms": 50,
         "sigstop_to_disable_frame_ms": pct(stop_to_trip, 1e3),
         "heartbeat_deadline_ms": 500,
+        # a motion node (liveness every cycle over its own pipe, 50 ms deadline): SIGSTOP -> the
+        # first disable frame seen by an independent listener on the bus
+        "sigstop_motion_node_to_disable_frame_ms": pct(motion_stop_to_trip, 1e3),
+        "motion_node_deadline_ms": 50,
         # last joint-angle frame on the bus -> first disable frame (limit 100 ms + detection)
         "h2_silence_to_disable_frame_ms": pct(silence_to_trip, 1e3),
         "h2_silence_limit_ms": 100,
@@ -119,7 +133,29 @@ def run(quick: bool) -> dict[str, Any]:
         "cold_start_to_first_heartbeat_s": cold_start,
         "rss_mb": rss,
         "rss_total_mb": round(sum(v for v in rss.values() if v), 1),
+        "pss_mb": pss,
+        "pss_total_mb": round(sum(v for v in pss.values() if v), 1),
     }
+
+
+def _sigstop_trials(app: Appliance, bus: Drained, node: str, trials: int) -> list[float]:
+    out = []
+    for _ in range(trials):
+        end = time.monotonic() + 10
+        while app.node(node)["heartbeat_age_s"] is None and time.monotonic() < end:
+            time.sleep(0.05)  # the killed node is back
+        app.arm()
+        pid = app.node(node)["pid"]
+        bus.clear()
+        t0 = time.time()
+        os.kill(pid, signal.SIGSTOP)
+        m = bus.wait_for(is_disable, 3)
+        with contextlib.suppress(ProcessLookupError):  # the supervisor kills a hung node
+            os.kill(pid, signal.SIGCONT)
+        if m is not None:
+            out.append(m.timestamp - t0)
+        time.sleep(0.3)
+    return out
 
 
 def _disable_after_silence(last: list[float]) -> Callable[[Any], bool]:

@@ -40,6 +40,32 @@ def pct(values: list[float] | np.ndarray, scale: float = 1.0, digits: int = 3) -
     }
 
 
+def pss_mb(pid: int) -> float | None:
+    """Proportional set size: shared pages split among the processes that map them, so the
+    appliance's total is what it really takes of the board's 512 MB."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        return None
+    return None
+
+
+def cpu_s(pid: int) -> float:
+    """On-CPU time of every thread, in ns precision (schedstat): tick-sampled utime/stime alias
+    with a 100 Hz loop woken at the tick rate and misreport it by a factor of two either way."""
+    total = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+                total += int(f.read().split()[0])
+        except OSError:
+            continue
+    return total / 1e9
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
