@@ -191,12 +191,35 @@ def decode_yaml(text: str, source: str, cls: type[T]) -> tuple[T, yaml.Node | No
         raise ConfigError(
             f"{source}: expected a mapping at the top level, got {type(data).__name__}"
         )
+    _no_duplicate_keys(root, source)
     if "source" in cls.__struct_fields__:  # type: ignore[attr-defined]
         data["source"] = source
     try:
         return msgspec.convert(data, cls), root
     except msgspec.ValidationError as exc:
         raise _error(source, root, exc) from None
+
+
+def _no_duplicate_keys(node: yaml.Node | None, source: str) -> None:
+    """PyYAML keeps the last of two equal keys without a word: an edit that adds a second
+    ``heartbeat_deadline_ms`` further down would silently win. Refused, with both lines."""
+    stack = [node] if node is not None else []
+    while stack:
+        n = stack.pop()
+        if isinstance(n, yaml.MappingNode):
+            seen: dict[str, int] = {}
+            for k, v in n.value:
+                key = getattr(k, "value", None)
+                if isinstance(key, str):
+                    if key in seen:
+                        raise ConfigError(
+                            f"{source}:{k.start_mark.line + 1}: duplicate key {key!r} "
+                            f"(first at line {seen[key]})"
+                        )
+                    seen[key] = k.start_mark.line + 1
+                stack.append(v)
+        elif isinstance(n, yaml.SequenceNode):
+            stack.extend(n.value)
 
 
 def parse(

@@ -101,3 +101,9 @@ def test_missing_required_key() -> None:
 def test_top_level_not_a_mapping() -> None:
     with pytest.raises(ConfigError, match="expected a mapping"):
         parse("- a\n- b\n", "a.yaml")
+
+
+def test_duplicate_keys_are_errors_with_both_lines() -> None:
+    text = bundled("sim").read_text() + "watchdog:\n  h2_silence_ms: 5000\n"
+    with pytest.raises(ConfigError, match=r":\d+: duplicate key 'watchdog' \(first at line \d+\)"):
+        parse(text, "appliance.yaml")

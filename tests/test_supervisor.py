@@ -173,6 +173,18 @@ def test_management_commands(app) -> None:  # type: ignore[no-untyped-def]
     assert '"reduction": 1' in r.stdout
     r = app.cli("params", "h2_reader", "--set", "reduction", "2")
     assert r.returncode == 5 and "does not change params at run time" in r.stderr
+    r = app.cli("params", "nosuch")
+    assert r.returncode == 5 and "no node nosuch (nodes: simulator, h2_reader" in r.stderr, r.stderr
+    echo = subprocess.Popen(
+        [*EXOLINK, "echo", "joint_states", "--json", "--at", app.at],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert echo.stdout is not None
+    echo.stdout.readline()  # `exolink echo joint_states | head -1`
+    echo.stdout.close()
+    assert echo.wait(10) == 0
+    assert b"BrokenPipe" not in echo.stderr.read()  # type: ignore[union-attr]
     r = app.cli("trigger", "fire")
     assert r.returncode == 0
     assert '"count": 1' in app.cli("trigger").stdout

@@ -152,8 +152,13 @@ def cmd_echo(args: argparse.Namespace) -> int:
         _topic, _typename, msg = _decode_sample(sample)
         data = to_builtin(msg)
         line = json.dumps(data) if args.json else _pretty(data)
-        sys.stdout.write(line + ("\n" if args.json else "\n---\n"))
-        sys.stdout.flush()
+        try:
+            sys.stdout.write(line + ("\n" if args.json else "\n---\n"))
+            sys.stdout.flush()
+        except BrokenPipeError:  # `exolink echo ... | head -1`: the reader is gone, so are we
+            done.set()
+            _quiet_stdout()
+            return
         count[0] += 1
         if args.count and count[0] >= args.count:
             done.set()
@@ -171,6 +176,12 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 )
         sub.undeclare()
     return 0
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush does not raise again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
 
 
 def _pretty(data: Any, indent: int = 0) -> str:
@@ -492,6 +503,9 @@ def cmd_watchdog(args: argparse.Namespace) -> int:
 @_guard
 def cmd_params(args: argparse.Namespace) -> int:
     with remote(args) as r:
+        names = [n["name"] for n in r.call("status")["nodes"]]
+        if args.node not in names:
+            return fail(f"no node {args.node} (nodes: {', '.join(names)})", EXIT_REFUSED)
         if args.set:
             key, raw = args.set
             try:
