@@ -27,6 +27,7 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = math.pi / 180.0
+_RANGES = [h2.RANGES[j] for j in h2.JOINTS]
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -49,6 +50,7 @@ class ReaderStats:
     without_torque: int = 0
     stream_restarts: int = 0
     socket_dropped: int = 0  # frames the kernel dropped from this node's full receive buffer
+    out_of_range: int = 0  # angle frames with a joint outside its mechanical range (a fault)
 
 
 class GapCounter:
@@ -83,6 +85,7 @@ class H2Reader(Node):
             self.ctx.session, m.mgmt("nodes", self.name, "stats"), lambda _req: asdict(self.stats)
         )
         self.js = cdr.JointStateCdr(h2.JOINTS)
+        self._reported_out_of_range = 0
         self.fs = cdr.FootSwitchesCdr()
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
@@ -115,6 +118,8 @@ class H2Reader(Node):
         st.frames[fid] += 1
         st.missing[fid] += self.gaps.missed(fid, ts)
         if isinstance(frame, h2.JointAngles):
+            if not all(lo <= a <= hi for a, (lo, hi) in zip(frame, _RANGES, strict=True)):
+                st.out_of_range += 1  # still published: the diagnostics say it is a fault
             if self._pending is not None:  # the torque frame of the last cycle never came
                 st.without_torque += 1
                 if self._selected():
@@ -152,14 +157,21 @@ class H2Reader(Node):
             "published_joint_states": st.published_joint_states,
             "stream_restarts": st.stream_restarts,
             "socket_dropped": st.socket_dropped,
+            "out_of_range": st.out_of_range,
         }
         silent = self._silent_for() > 0.1
+        fault = st.out_of_range > self._reported_out_of_range
+        self._reported_out_of_range = st.out_of_range
         now = time.time_ns()
         payload = cdr.diagnostics(
             now,
             f"{self.name}/h2_stream",
-            messaging.LEVELS["error" if silent else "ok"],
-            "no H2 data" if silent else "streaming",
+            messaging.LEVELS["error" if silent or fault else "ok"],
+            "no H2 data"
+            if silent
+            else "joint angle outside its mechanical range"
+            if fault
+            else "streaming",
             "h2",
             values,
         )

@@ -9,10 +9,12 @@ import sys
 import time
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 from conftest import EXOLINK, collect, wait_alive, wait_for
 from exolink import messaging
+from exolink.canbus import open_bus
 from exolink.config import load
 from exolink.protocol import h2
 from rosbags.typesys import Stores, get_typestore
@@ -35,6 +37,7 @@ NODES = [
 SUBSCRIBER = r"""
 import sys, time, zenoh
 from exolink import messaging
+from exolink.canbus import open_bus
 from exolink.config import load
 cfg = load(sys.argv[1])
 s = messaging.open_client_session(messaging.local_endpoint(cfg.zenoh))
@@ -243,6 +246,18 @@ def test_reader_counts_gaps_and_malformed(write_config, spawn, group) -> None:  
         stats = messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=3)
         assert stats["missing"]["110"] >= 10  # ~20 periods silent
         assert stats["malformed"] >= 10
+        # Issue 19: an angle outside the joint's mechanical range (r_ankle 90, range -20..20)
+        # is counted as a fault, not passed off as a plain angle.
+        bus = open_bus(cfg.can)
+        bus.send(
+            can.Message(
+                arbitration_id=110, data=bytes([10, 20, 90, 10, 20, 0]), is_extended_id=False
+            )
+        )
+        bus.shutdown()
+        wait_for(
+            lambda: messaging.request(s, "exolink/sim/nodes/h2_reader/stats")["out_of_range"] >= 1
+        )
         r = messaging.request(s, "exolink/sim/sim/fault", {"fault": "meteor"})
         assert r == {
             "ok": False,
