@@ -68,6 +68,8 @@ def run(quick: bool) -> dict[str, Any]:
         rss["supervisor"] = _rss(app.proc.pid)
         pss = {n["name"]: pss_mb(n["pid"]) for n in nodes if n.get("pid")}
         pss["supervisor"] = pss_mb(app.proc.pid)
+        if zygote := app.call("status").get("zygote_pid"):
+            pss["zygote"] = pss_mb(zygote)  # the pre-imported runtime the nodes fork from
         for _ in range(trials):
             pid = app.node("h2_reader")["pid"]
             bus.clear()

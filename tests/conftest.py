@@ -110,6 +110,7 @@ def in_node(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[[str, s
         (site / "sitecustomize.py").write_text(f"import sys\nif {node!r} in sys.argv:\n{body}")
         path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
         monkeypatch.setenv("PYTHONPATH", path)
+        monkeypatch.setenv("EXOLINK_SPAWN", "exec")  # hooks run at interpreter start: no fork
 
     return install
 

@@ -41,7 +41,14 @@ def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, mo
     plugin_modules = {v.split(":")[0] for v in available().values()}
     names = [n["name"] for n in yaml.safe_load(cfg.read_text())["nodes"]]
     app = Appliance(cfg, spawn)
-    assert {n["name"] for n in app.status()["nodes"]} == set(names)
+    st = app.status()
+    assert {n["name"] for n in st["nodes"]} == set(names)
+    # Forked from the zygote (its cmdline), re-parented to the supervisor that waits for them.
+    assert st["zygote_pid"]
+    for n in st["nodes"]:
+        stat = Path(f"/proc/{n['pid']}/stat").read_text()
+        assert int(stat.rsplit(")", 1)[1].split()[1]) == st["pid"], n
+        assert b"exolink.zygote" in Path(f"/proc/{n['pid']}/cmdline").read_bytes(), n
     app.proc.stop()
     wait_for(lambda: all((out / f"{n}.json").exists() for n in names), timeout=15)
 

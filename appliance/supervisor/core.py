@@ -8,6 +8,7 @@ Stop order is the reverse with the safe action first.
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 import tempfile
 import threading
@@ -27,7 +28,7 @@ from exolink.messaging import CommandRefused
 from exolink.protocol import h2
 from exolink.runtime import stop_on_signals
 from exolink.supervisor import canlink, trigger
-from exolink.supervisor.processes import Exit, NodeProcess, apply_priority, relay
+from exolink.supervisor.processes import Exit, NodeProcess, Zygote, apply_priority, relay
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
@@ -104,10 +105,12 @@ class Supervisor:
         )
         self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
         self.trigger_out = trigger.open_output(cfg.trigger)
+        self.zygote = self._start_zygote()
         config_path = self._workdir / "appliance.yaml"
         config_path.write_text(yaml.safe_dump(_config_data(cfg), sort_keys=False))
         for ncfg in cfg.nodes:
             node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
+            node.zygote = self.zygote
             self.nodes[ncfg.name] = node
             if ncfg.enabled:
                 node.start()
@@ -119,6 +122,17 @@ class Supervisor:
             bus=f"{cfg.can.interface}:{cfg.can.channel}",
         )
         self.notifier.ready()
+
+    def _start_zygote(self) -> Zygote | None:
+        """Nodes fork from a pre-imported runtime (fast restarts, shared pages) unless
+        EXOLINK_SPAWN=exec asks for a fresh interpreter per node (tests that hook its start)."""
+        if os.environ.get("EXOLINK_SPAWN") == "exec":
+            return None
+        try:
+            return Zygote()
+        except OSError as exc:
+            self.log.warning("zygote_unavailable", error=str(exc), fallback="exec")
+            return None
 
     # --- events from other threads ----------------------------------------------------------
 
@@ -358,6 +372,8 @@ class Supervisor:
             t.start()
         for t in threads:
             t.join()
+        if getattr(self, "zygote", None) is not None:
+            self.zygote.close()
         for src in (getattr(self, "trigger_src", None), getattr(self, "trigger_out", None)):
             if src is not None:
                 src.close()
@@ -392,6 +408,8 @@ class Supervisor:
         silent = self.watchdog.h2_silent_for()
         return {
             "device": self.cfg.device,
+            "pid": os.getpid(),
+            "zygote_pid": self.zygote.proc.pid if self.zygote is not None else None,
             "watchdog": {
                 "state": wd.state,
                 "reason": wd.reason,

@@ -12,6 +12,7 @@ import contextlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -57,6 +58,7 @@ class NodeProcess:
     )
     lock: threading.RLock = field(default_factory=threading.RLock)
     channel: liveness.Channel | None = None  # this spawn's liveness pipe
+    zygote: Zygote | None = None  # forks the node from a pre-imported runtime; else exec
 
     @property
     def name(self) -> str:
@@ -73,21 +75,8 @@ class NodeProcess:
             if self.channel is not None:
                 self.channel.close()
             self.channel = liveness.Channel()
-            env = {
-                **os.environ,
-                "EXOLINK_LOG_JSON": "1",
-                "PYTHONUNBUFFERED": "1",
-                liveness.ENV: str(self.channel.child_fd),
-            }
-            cmd = [sys.executable, "-m", "exolink.runtime", self.name, "-c", self.config_path]
-            self.proc = subprocess.Popen(
-                cmd,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                env=env,
-                start_new_session=True,
-                pass_fds=(self.channel.child_fd,),
-            )
+            env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
+            self.proc = self._spawn(env)
             self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
@@ -99,7 +88,24 @@ class NodeProcess:
                 target=self._read, args=(self.proc,), daemon=True, name=f"log-{self.name}"
             ).start()
 
-    def _wait(self, proc: subprocess.Popen[bytes]) -> None:
+    def _spawn(self, env: dict[str, str]) -> subprocess.Popen[bytes] | Forked:
+        assert self.channel is not None
+        if self.zygote is not None:
+            try:
+                return self.zygote.spawn(self.name, self.config_path, env, self.channel.child_fd)
+            except (OSError, RuntimeError) as exc:  # a start is worth more than a fast one
+                structlog.get_logger().warning("zygote_failed", node=self.name, error=str(exc))
+        cmd = [sys.executable, "-m", "exolink.runtime", self.name, "-c", self.config_path]
+        return subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env={**env, liveness.ENV: str(self.channel.child_fd)},
+            start_new_session=True,
+            pass_fds=(self.channel.child_fd,),
+        )
+
+    def _wait(self, proc: subprocess.Popen[bytes] | Forked) -> None:
         rc = proc.wait()
         with self.lock:
             sig = signal.Signals(-rc).name if rc < 0 else None
@@ -107,7 +113,7 @@ class NodeProcess:
             deliberate = self.deliberate_stop
         self.on_exit(Exit(self.name, None if rc < 0 else rc, sig, deliberate))
 
-    def _read(self, proc: subprocess.Popen[bytes]) -> None:
+    def _read(self, proc: subprocess.Popen[bytes] | Forked) -> None:
         assert proc.stdout is not None
         for raw in proc.stdout:
             line = raw.decode(errors="replace").rstrip("\n")
@@ -184,6 +190,97 @@ class NodeProcess:
         if pid:
             info.update(proc_usage(pid))
         return info
+
+
+class Forked:
+    """A node forked by the zygote and re-parented to this process: the part of Popen's
+    interface the supervisor uses. One thread reaps it; everyone else reads the result."""
+
+    def __init__(self, pid: int, stdout_fd: int) -> None:
+        self.pid = pid
+        self.stdout = os.fdopen(stdout_fd, "rb")
+        self.returncode: int | None = None
+        self._done = threading.Event()
+        threading.Thread(target=self._reap, daemon=True, name=f"reap-{pid}").start()
+
+    def _reap(self) -> None:
+        try:
+            _, status = os.waitpid(self.pid, 0)
+            self.returncode = os.waitstatus_to_exitcode(status)
+        except ChildProcessError:  # not re-parented to us: nothing to wait with
+            self.returncode = -signal.SIGKILL
+        self._done.set()
+
+    def poll(self) -> int | None:
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if not self._done.wait(timeout):
+            raise subprocess.TimeoutExpired(f"node pid {self.pid}", timeout or 0)
+        assert self.returncode is not None
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+PR_SET_CHILD_SUBREAPER = 36
+
+
+class Zygote:
+    """The supervisor's end of ``exolink.zygote``: one request at a time, a node pid back."""
+
+    def __init__(self) -> None:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:  # orphaned nodes come to us
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
+        self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "exolink.zygote", str(theirs.fileno())],
+            pass_fds=(theirs.fileno(),),
+            start_new_session=True,
+        )
+        theirs.close()
+        plain_priority(self.proc.pid)  # its forks must not inherit the supervisor's nice
+        self._sock.settimeout(ZYGOTE_TIMEOUT_S)
+        self._lock = threading.Lock()
+
+    def spawn(self, name: str, config: str, env: dict[str, str], live_fd: int) -> Forked:
+        r, w = os.pipe2(os.O_CLOEXEC)
+        try:
+            req = json.dumps({"name": name, "config": config, "env": env}).encode()
+            with self._lock:
+                socket.send_fds(self._sock, [req], [w, live_fd])
+                reply = json.loads(self._sock.recv(4096) or b"{}")
+        except (OSError, ValueError) as exc:
+            os.close(r)
+            raise RuntimeError(f"zygote: {exc}") from None
+        finally:
+            os.close(w)
+        if "pid" not in reply:
+            os.close(r)
+            raise RuntimeError(f"zygote: {reply.get('error', 'no reply')}")
+        return Forked(int(reply["pid"]), r)
+
+    def close(self) -> None:
+        self._sock.close()  # the zygote sees EOF and exits
+        try:
+            self.proc.wait(3)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+ZYGOTE_TIMEOUT_S = 10.0
 
 
 def plain_priority(pid: int) -> None:
