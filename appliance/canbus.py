@@ -181,7 +181,9 @@ class FrameReader:
     def __init__(self, bus: can.BusABC, cfg: CanConfig, ids: Iterable[int] | None) -> None:
         self.bus = bus
         self.ids = frozenset(ids) if ids is not None else None
-        self.dropped = 0
+        # None where the kernel cannot tell: on the sim bus, datagrams our socket filter rejects
+        # are counted in the same sk_drops as an overflowing queue.
+        self.dropped: int | None = 0
         self.malformed = 0
         if cfg.interface == "socketcan":
             self._sock: socket.socket = bus.socket  # type: ignore[attr-defined]
@@ -189,6 +191,8 @@ class FrameReader:
         elif cfg.interface == "udp_multicast":
             self._sock = bus._multicast._socket  # type: ignore[attr-defined]  # python-can internals
             self._parse = self._parse_udp
+            if ids is not None:
+                self.dropped = None
             import msgpack
 
             self._unpackb = msgpack.unpackb
@@ -229,7 +233,8 @@ class FrameReader:
             for level, kind, cdata in anc:
                 if level == socket.SOL_SOCKET:
                     if kind == SO_RXQ_OVFL and len(cdata) >= 4:
-                        self.dropped = _U32.unpack_from(cdata)[0]
+                        if self.dropped is not None:
+                            self.dropped = _U32.unpack_from(cdata)[0]
                     elif len(cdata) >= _TIMESPEC.size:  # SO_TIMESTAMPNS, set by python-can
                         sec, ns = _TIMESPEC.unpack_from(cdata)
                         ts = sec + ns * 1e-9

@@ -49,7 +49,7 @@ class ReaderStats:
     published_foot_switches: int = 0
     without_torque: int = 0
     stream_restarts: int = 0
-    socket_dropped: int = 0  # frames the kernel dropped from this node's full receive buffer
+    socket_dropped: int | None = 0  # kernel drops from a full receive buffer (None: not known)
     out_of_range: int = 0  # angle frames with a joint outside its mechanical range (a fault)
 
 

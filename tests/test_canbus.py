@@ -49,7 +49,8 @@ def test_reader_batches_frames_with_kernel_timestamps(group: str) -> None:
         frames = reader.read(0.5)
         assert len(frames) == 20  # one wake-up, one batch
         assert all(t0 - 0.01 < f.timestamp < time.time() for f in frames)
-        assert frames[0].data == b"\x01" * 6 and reader.dropped == 0
+        assert frames[0].data == b"\x01" * 6
+        assert reader.dropped is None  # filtered datagrams count as drops on UDP: not reported
     finally:
         reader.bus.shutdown()
         tx.shutdown()

@@ -15,7 +15,7 @@ import can
 import pytest
 from exolink.canbus import FrameReader
 from exolink.config import CanConfig, WatchdogConfig
-from exolink.protocol import h2
+from exolink.protocol import h2, maccepa
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
 
 ANGLES = h2.encode(h2.JointAngles(76, 94, 0, 76, 93, 11))
@@ -177,12 +177,17 @@ def test_malformed_angle_frames_do_not_mask_h2_silence(rig) -> None:  # type: ig
     assert s.malformed.get(f"{h2.JOINT_ANGLES} bad length", 0) >= 10, s.malformed
 
 
-def test_unreadable_joint_control_while_disarmed_gets_the_safe_action(rig) -> None:  # type: ignore[no-untyped-def]
+def test_maccepa_traffic_on_id_70_is_neither_malformed_nor_answered(rig) -> None:  # type: ignore[no-untyped-def]
+    """MACCEPA board 0's controller frame shares id 70 (8 bytes): answering it with the safe action
+    (which includes "stop control" to board 0) fed back into itself on the sim bus."""
     wd, _reader, board = rig
     wd.trip("operator e-stop")
     settle(wd, 0.3)  # the trip's own repeats are done
     sent = wd.snapshot().frames_sent
+    controller_b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
+    assert isinstance(maccepa.decode(controller_b0), maccepa.Controller)
+    board.bus.send(controller_b0)
     board.bus.send(can.Message(arbitration_id=h2.JOINT_CONTROL, data=b"\x01", is_extended_id=False))
-    settle(wd, 0.2)
+    settle(wd, 0.3)
     s = wd.snapshot()
-    assert s.frames_sent > sent and s.malformed.get(f"{h2.JOINT_CONTROL} bad length") == 1, s
+    assert s.frames_sent == sent and s.malformed == {f"{h2.JOINT_CONTROL} bad length": 1}, s

@@ -432,7 +432,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"device   {s['device']}\nwatchdog {wd['state'].upper()}{why}  trips={wd['trips']}"
         f"  read lag max {wd.get('read_lag_max_ms', '?')} ms"
         f"  malformed {sum(wd.get('malformed', {}).values())}"
-        f"  socket drops {wd.get('socket_dropped', '?')}\n"
+        f"  socket drops {'n/a' if wd.get('socket_dropped') is None else wd['socket_dropped']}\n"
         f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n" + _node_table(s["nodes"])

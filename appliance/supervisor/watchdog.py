@@ -15,9 +15,9 @@ a violation either (the safe action went out after it). Should the reader itself
 out counts as silence.
 
 Only a frame that matches the DBC contract counts: an id-110 frame of the wrong length (or an
-extended / remote frame with that id) is not H2 data and does not hold off the silence trip; a
-malformed id-70 frame is judged by what it could still do. Malformed frames are counted by id
-and reason (``malformed`` in status), never fatal.
+extended / remote frame with that id) is not H2 data and does not hold off the silence trip.
+Frames neither contract can read are counted by id and reason (``malformed`` in status), never
+fatal; an id-70 frame of 8 bytes is MACCEPA board 0's and is left alone.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ class WatchdogState:
     violations: int
     read_lag_max_ms: float = 0.0  # frame arrival -> read by the watchdog: its margin to the limit
     malformed: dict[str, int] = field(default_factory=dict)  # "110 bad length" -> count
-    socket_dropped: int = 0  # frames the kernel dropped from the watchdog's full receive buffer
+    socket_dropped: int | None = 0  # kernel drops from a full receive buffer (None: not known)
 
 
 Publish = Callable[[WatchdogState], None]
@@ -225,12 +225,10 @@ class Watchdog:
         self._check_silence(at)
         frame = h2.decode(msg)
         if isinstance(frame, h2.Unknown):
-            self._malformed(msg, frame.reason)
-            if msg.arbitration_id != h2.JOINT_CONTROL or self._was_armed_at(at):
-                return
-            # A joint-control frame the contract cannot read may still move a motor: answered.
-            self.log.error("unreadable_joint_control_while_not_armed", frame=msg.data.hex())
-            self.send_safe_action()
+            # Id 70 of length 8 is MACCEPA board 0's controller frame (protocol/README.md): the
+            # other contract's traffic, not a malformed H2 frame, and no motion of the H2.
+            if isinstance(maccepa.decode(msg), maccepa.Unknown):
+                self._malformed(msg, frame.reason)
             return
         if isinstance(frame, h2.JointAngles):
             self.last_h2 = at
