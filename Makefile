@@ -5,6 +5,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
+# Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
+APT_WAIT := -o DPkg::Lock::Timeout=600
 
 .PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench lock dbc clean
 
@@ -13,7 +15,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV) || { \
 	  echo "python venv missing: installing python3-venv"; \
-	  apt-get update -qq && apt-get install -y -qq python3-venv && $(PY) -m venv $(VENV); }
+	  apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq python3-venv && $(PY) -m venv $(VENV); }
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -c requirements.lock -e '.[dev]'
 	rm -f $(VENV)/.installed-* && touch $@
@@ -34,7 +36,7 @@ test-kernel: $(STAMP)
 overlays: build/overlays/exolink-dcan1.dtbo
 
 build/overlays/%.dtbo: overlays/%.dts
-	@command -v dtc >/dev/null || { apt-get update -qq && apt-get install -y -qq device-tree-compiler; }
+	@command -v dtc >/dev/null || { apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq device-tree-compiler; }
 	mkdir -p $(@D) && dtc -@ -q -I dts -O dtb -o $@ $<
 
 test-image: $(STAMP) overlays
