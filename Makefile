@@ -8,7 +8,7 @@ PYTEST_ARGS ?=
 # Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
 APT_WAIT := -o DPkg::Lock::Timeout=600
 
-.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench lock dbc clean
+.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench bench-board lock dbc clean
 
 install: $(STAMP)
 
@@ -64,6 +64,15 @@ format: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks --out bench-results.json
+
+# Board proxy: a copy of the built card (make image) running this checkout's code under
+# qemu-system-arm (TCG) with the nominal load, then the same natively; ~6 min when the image exists.
+# Table on stdout, JSON in build/bench-board.json (BENCH_BOARD_ARGS=--help for the options).
+BENCH_BOARD_ARGS ?=
+bench-board: $(STAMP)
+	bash image/need.sh qemu-system-arm:qemu-system-arm sfdisk:fdisk mcopy:mtools \
+	  debugfs:e2fsprogs ssh:openssh-client ssh-keygen:openssh-client taskset:util-linux
+	$(BIN)/python -m benchmarks.board $(BENCH_BOARD_ARGS)
 
 # Regenerate the pinned set after editing dependencies in pyproject.toml.
 lock:
