@@ -38,7 +38,7 @@ def table(result: dict[str, Any]) -> str:
     gp, np_ = _procs(g), _procs(n)
     lines = [
         f"exolink {result['checkout']['describe']} ({result['checkout']['commit'][:12]}), "
-        f"{result['seconds']:g} s window, nominal load "
+        f"{result['seconds']:g} s window, {result['timings']} watchdog timings, nominal load "
         "(H2 100 Hz + MACCEPA board 0 simulated on CPU 1, pattern speed 10 armed, recorder on, "
         "timing monitor on, 1 laptop subscriber)",
         "",
@@ -159,7 +159,19 @@ def main() -> int:
         default=600_000,
         help="watchdog.start_grace_ms (the only timing changed from stock: imports under TCG)",
     )
-    p.add_argument("--boot-timeout", type=float, default=1800.0)
+    p.add_argument(
+        "--timings",
+        choices=["stock", "relaxed"],
+        default="stock",
+        help="watchdog timings: stock (board.yaml, systemd WatchdogSec 5 s) or relaxed "
+        "(heartbeat deadline 5 s, WatchdogSec 60 s: for CPU shares when stock cannot settle)",
+    )
+    p.add_argument("--boot-timeout", type=float, default=900.0)
+    p.add_argument(
+        "--journal-console",
+        action="store_true",
+        help="forward the guest's journal to the serial console (debugging; costs guest CPU)",
+    )
     args = p.parse_args()
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     t0 = time.monotonic()
@@ -167,6 +179,7 @@ def main() -> int:
         "schema": 1,
         "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "seconds": args.seconds,
+        "timings": args.timings,
         "checkout": cardlib.checkout_info(REPO),
         "host": {
             "cpus": os.cpu_count(),
@@ -178,10 +191,17 @@ def main() -> int:
     if args.only != "native":
         image = cardlib.find_image(REPO, args.image)
         result["guest"] = runs.run_guest(
-            REPO, image, Path(args.work), args.seconds, args.start_grace_ms, args.boot_timeout
+            REPO,
+            image,
+            Path(args.work),
+            args.seconds,
+            args.start_grace_ms,
+            args.boot_timeout,
+            args.timings,
+            args.journal_console,
         )
     if args.only != "guest":
-        result["native"] = runs.run_native(REPO, args.seconds, args.start_grace_ms)
+        result["native"] = runs.run_native(REPO, args.seconds, args.start_grace_ms, args.timings)
     result["run_s"] = round(time.monotonic() - t0, 1)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

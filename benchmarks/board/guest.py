@@ -32,15 +32,20 @@ def free_port() -> int:
 class Console:
     """qemu's serial console, read in a thread, each line with seconds since qemu started."""
 
-    def __init__(self, proc: subprocess.Popen[bytes], t0: float) -> None:
-        self.proc, self.t0 = proc, t0
+    def __init__(self, proc: subprocess.Popen[bytes], t0: float, path: Path) -> None:
+        self.proc, self.t0, self.path = proc, t0, path
         self.lines: list[tuple[float, str]] = []
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self) -> None:
+        """Also written as it comes, so a boot can be followed (tail -f) while the bench runs."""
         assert self.proc.stdout is not None
-        for raw in self.proc.stdout:
-            self.lines.append((time.monotonic() - self.t0, raw.decode(errors="replace").rstrip()))
+        with open(self.path, "w") as f:
+            for raw in self.proc.stdout:
+                t, line = time.monotonic() - self.t0, raw.decode(errors="replace").rstrip()
+                self.lines.append((t, line))
+                f.write(f"{t:7.1f} {line}\n")
+                f.flush()
 
     def first(self, pattern: str) -> float | None:
         rx = re.compile(pattern)
@@ -50,12 +55,9 @@ class Console:
         rx = re.compile(pattern)
         return [f"{t:7.1f} {line}" for t, line in list(self.lines) if rx.search(line)]
 
-    def save(self, path: Path) -> None:
-        path.write_text("\n".join(f"{t:7.1f} {s}" for t, s in list(self.lines)) + "\n")
-
 
 class Guest:
-    def __init__(self, card: Card, work: Path, ssh_key: Path) -> None:
+    def __init__(self, card: Card, work: Path, ssh_key: Path, journal_console: bool) -> None:
         self.card, self.work, self.ssh_key = card, work, ssh_key
         self.zenoh_port, self.ssh_port = free_port(), free_port()
         for name in ("vmlinuz", "initrd.img"):
@@ -103,7 +105,7 @@ class Guest:
         self.proc = subprocess.Popen(
             self.cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
         )
-        self.console = Console(self.proc, self.t0)
+        self.console = Console(self.proc, self.t0, self.work / "console.log")
         log.info("qemu started", zenoh_port=self.zenoh_port, ssh_port=self.ssh_port)
         return self.console
 

@@ -62,7 +62,14 @@ def _run_load(
 
 
 def run_guest(
-    repo: Path, image: Path, work: Path, seconds: float, start_grace_ms: int, boot_timeout: float
+    repo: Path,
+    image: Path,
+    work: Path,
+    seconds: float,
+    start_grace_ms: int,
+    boot_timeout: float,
+    timings: str,
+    journal_console: bool = False,
 ) -> dict[str, Any]:
     result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": []}
     wheel = cardlib.build_wheel(repo, work / "wheel")
@@ -73,19 +80,25 @@ def run_guest(
     subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(key)], check=True)
     password = secrets.token_urlsafe(12)
     card, cfg = cardlib.prepare(
-        image, work, wheel, key.with_suffix(".pub").read_text().strip(), password, start_grace_ms
+        image,
+        work,
+        wheel,
+        key.with_suffix(".pub").read_text().strip(),
+        password,
+        start_grace_ms,
+        timings,
     )
     result["config"] = cfg
     laptop_cfg = work / "exolink-laptop.json5"
     login = {"transport": {"auth": {"usrpwd": {"user": "lab", "password": password}}}}
     laptop_cfg.write_text(json.dumps(login) + "\n")
-    guest = Guest(card, work, key)
+    guest = Guest(card, work, key, journal_console)
     result["qemu_command"] = " ".join(guest.cmd)
     console = guest.start()
     laptop = None
     try:
         laptop = _connect(guest.at, str(laptop_cfg), boot_timeout, guest.alive)
-        status, ok = laptop.wait_beating(boot_timeout)
+        status, ok = laptop.wait_beating(boot_timeout, scenario.enabled_nodes(cfg))
         boot_s = time.monotonic() - guest.t0
         if status is None:
             result["error"] = f"the supervisor never answered within {boot_timeout:g} s"
@@ -116,7 +129,6 @@ def run_guest(
         if laptop is not None:
             laptop.close()
         guest.stop()
-        console.save(work / "console.log")
         result["console_log"] = str(work / "console.log")
 
 
@@ -155,7 +167,7 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def run_native(repo: Path, seconds: float, start_grace_ms: int) -> dict[str, Any]:
+def run_native(repo: Path, seconds: float, start_grace_ms: int, timings: str) -> dict[str, Any]:
     """The same config and load on this host: udp_multicast (no vcan module here), the
     supervisor under ``taskset -c 0``, the simulator node on CPU 1."""
     from benchmarks.harness import group
@@ -170,7 +182,7 @@ def run_native(repo: Path, seconds: float, start_grace_ms: int) -> dict[str, Any
         "require_overlay": False,
     }
     base = yaml.safe_load(bundled("board").read_text())
-    cfg = scenario.bench_config(base, can, start_grace_ms)
+    cfg = scenario.bench_config(base, can, start_grace_ms, timings)
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     for n in cfg["nodes"]:
         if n["plugin"] == "recorder":
@@ -195,7 +207,7 @@ def run_native(repo: Path, seconds: float, start_grace_ms: int) -> dict[str, Any
     laptop = None
     try:
         laptop = _connect(f"tcp/127.0.0.1:{port}", None, 60, lambda: proc.poll() is None)
-        status, ok = laptop.wait_beating(120)
+        status, ok = laptop.wait_beating(120, scenario.enabled_nodes(cfg))
         if status is None:
             result["error"] = "the supervisor never answered within 120 s"
             return result
