@@ -97,6 +97,7 @@ def table(result: dict[str, Any]) -> str:
     row("joint_states seq missed", *pair("window", "joint_states", "seq_missed"))
     row("h2_reader missing frames", *pair("derived", "h2_reader_missing"))
     row("vcan0 rx/tx dropped", _vcan_drops(g), "n/a (no vcan)")
+    row("pattern running at window start", *pair("pattern_running_at_start"))
     row("pattern frames sent", *pair("derived", "pattern_sent"))
     row("pattern state at end", *pair("derived", "pattern_state_end"))
     row("pattern timing id70 motor1 mean dev ms", *pair("window", "timing", "mean_dev_ms"))

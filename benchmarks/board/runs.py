@@ -46,9 +46,22 @@ def _connect(at: str, zenoh_config: str | None, timeout: float, alive: Any) -> s
 def _run_load(
     laptop: scenario.Laptop, probe_cmd: list[str], seconds: float, stdin: Any
 ) -> dict[str, Any]:
-    """Arm, the pattern held, settle, then the window measured by the probe and the laptop."""
+    """Arm, the pattern held, settle, then the window measured by the probe and the laptop.
+
+    A pattern that is not running when the window would start (refused arm, or a trip while
+    settling) is recorded and tried once more, so the window carries the load if it can."""
     out: dict[str, Any] = {"operator": laptop.arm_and_start_pattern()}
     time.sleep(SETTLE_S)
+    if not _pattern_running(laptop):
+        out["first_attempt"] = {
+            **out["operator"],
+            "held_pattern_cli": laptop.stop_pattern(),
+            "status": _safe_status(laptop),
+        }
+        log.warning("pattern not running before the window: arming once more")
+        out["operator"] = laptop.arm_and_start_pattern()
+        time.sleep(SETTLE_S)
+    out["pattern_running_at_start"] = _pattern_running(laptop)
     log.info("measuring", seconds=seconds)
     probe = subprocess.Popen(probe_cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
     try:
@@ -59,6 +72,21 @@ def _run_load(
     out["held_pattern_cli"] = laptop.stop_pattern()
     out["derived"] = scenario.derived(out["window"])
     return out
+
+
+def _pattern_running(laptop: scenario.Laptop) -> bool:
+    try:
+        return bool(laptop.call("pattern", body={"action": "status"}).get("state") == "running")
+    except messaging.Unreachable:
+        return False
+
+
+def _safe_status(laptop: scenario.Laptop) -> dict[str, Any]:
+    try:
+        st = laptop.call("status", timeout=15)
+    except messaging.Unreachable as exc:
+        return {"error": str(exc)}
+    return {"watchdog": st.get("watchdog"), "bus": st.get("bus")}
 
 
 def run_guest(
