@@ -115,6 +115,13 @@ def table(result: dict[str, Any]) -> str:
     )
     row("node restarts in window", _restarts(g), _restarts(n))
     row("cold start to all beating (s)", *pair("boot", "all_nodes_beating_s"))
+    for run in (g, n):
+        cpu0 = idle(run, "cpu0")
+        if isinstance(cpu0, int | float) and cpu0 < 5:
+            lines.append(
+                f"note ({run['kind']}): CPU 0 saturated ({cpu0}% idle): the %cpu column is the "
+                "scheduler's split of a full CPU, not what each process would use"
+            )
     if g.get("qemu_command"):
         lines += ["", "qemu: " + g["qemu_command"]]
     for run in (g, n):
@@ -173,7 +180,11 @@ def main() -> int:
         action="store_true",
         help="forward the guest's journal to the serial console (debugging; costs guest CPU)",
     )
+    p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
+    if args.show:
+        print(table(json.loads(Path(args.show).read_text())))
+        return 0
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     t0 = time.monotonic()
     result: dict[str, Any] = {
