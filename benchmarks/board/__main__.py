@@ -115,6 +115,7 @@ def table(result: dict[str, Any]) -> str:
     )
     row("node restarts in window", _restarts(g), _restarts(n))
     row("cold start to all beating (s)", *pair("boot", "all_nodes_beating_s"))
+    row("supervisor restarts by systemd", get(g, "supervisor_restarts_by_systemd_at_end"), "n/a")
     for run in (g, n):
         cpu0 = idle(run, "cpu0")
         if isinstance(cpu0, int | float) and cpu0 < 5:

@@ -29,7 +29,9 @@ log = structlog.get_logger("bench-board")
 PROBE = Path(__file__).with_name("probe.py")
 DEVICE = "exo-01"
 SETTLE_S = 10.0
-LOG_PATTERNS = r"loop_stalled|node_hung_killed|node_exited|watchdog_trip|tripped"
+LOG_PATTERNS = (
+    r"loop_stalled|node_hung_killed|node_exited|watchdog_trip|tripped|Watchdog timeout|Failed with"
+)
 
 
 def _connect(at: str, zenoh_config: str | None, timeout: float, alive: Any) -> scenario.Laptop:
@@ -141,10 +143,12 @@ def run_guest(
             "node_start_s": {n["name"]: n["start_s"] for n in status["nodes"]},
         }
         installed = guest.ssh("cat /run/exolink-bench-installed; nproc; uname -r")
+        restarts = guest.ssh("systemctl show -p NRestarts --value exolink.service")
+        result["boot"]["supervisor_restarts_by_systemd"] = restarts.stdout.strip() or None
         result["installed"] = installed.stdout.strip() or installed.stderr.strip()
         if result["wheel"]["sha256"] not in result["installed"]:
             result["notes"].append("the checkout's wheel is NOT what the guest installed")
-        log.info("all nodes beating", boot_s=round(boot_s, 1))
+        log.info("nodes", all_beating=ok, boot_s=round(boot_s, 1))
         time.sleep(SETTLE_S)
         probe_cmd = guest.ssh_cmd(
             f"taskset -c 1 python3 - --unit exolink.service --seconds {seconds:g} --channel vcan0"
@@ -152,6 +156,8 @@ def run_guest(
         with open(PROBE) as stdin:
             result |= _run_load(laptop, probe_cmd, seconds, stdin)
         result["logs"] = _guest_logs(guest, result)
+        restarts = guest.ssh("systemctl show -p NRestarts --value exolink.service")
+        result["supervisor_restarts_by_systemd_at_end"] = restarts.stdout.strip() or None
         return result
     finally:
         if laptop is not None:
