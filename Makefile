@@ -5,15 +5,17 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
+# Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
+APT_WAIT := -o DPkg::Lock::Timeout=600
 
-.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench lock dbc msgs clean
+.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench bench-board lock dbc msgs clean
 
 install: $(STAMP)
 
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV) || { \
 	  echo "python venv missing: installing python3-venv"; \
-	  apt-get update -qq && apt-get install -y -qq python3-venv && $(PY) -m venv $(VENV); }
+	  apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq python3-venv && $(PY) -m venv $(VENV); }
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -c requirements.lock -e '.[dev]'
 	rm -f $(VENV)/.installed-* && touch $@
@@ -34,7 +36,7 @@ test-kernel: $(STAMP)
 overlays: build/overlays/exolink-dcan1.dtbo
 
 build/overlays/%.dtbo: overlays/%.dts
-	@command -v dtc >/dev/null || { apt-get update -qq && apt-get install -y -qq device-tree-compiler; }
+	@command -v dtc >/dev/null || { apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq device-tree-compiler; }
 	mkdir -p $(@D) && dtc -@ -q -I dts -O dtb -o $@ $<
 
 test-image: $(STAMP) overlays
@@ -62,6 +64,15 @@ format: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks --out bench-results.json
+
+# Board proxy: a copy of the built card (make image) running this checkout's code under
+# qemu-system-arm (TCG) with the nominal load, then the same natively; ~6 min when the image exists.
+# Table on stdout, JSON in build/bench-board.json (BENCH_BOARD_ARGS=--help for the options).
+BENCH_BOARD_ARGS ?=
+bench-board: $(STAMP)
+	bash image/need.sh qemu-system-arm:qemu-system-arm sfdisk:fdisk mcopy:mtools \
+	  debugfs:e2fsprogs ssh:openssh-client ssh-keygen:openssh-client taskset:util-linux
+	$(BIN)/python -m benchmarks.board $(BENCH_BOARD_ARGS)
 
 # Regenerate the pinned set after editing dependencies in pyproject.toml.
 lock:

@@ -29,8 +29,8 @@ setup() {
   command -v mtype >/dev/null || need+=(mtools)
   command -v mkfs.vfat >/dev/null || need+=(dosfstools)
   if [ ${#need[@]} -gt 0 ]; then
-    apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+    apt-get -o DPkg::Lock::Timeout=600 update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 install -y -qq --no-install-recommends "${need[@]}" >/dev/null
   fi
   # UML: modules ship with modules.dep under /usr/lib/uml/modules/<ver>; give modprobe -d a lib/modules view
   local uv; uv=$(ls /usr/lib/uml/modules | head -1)

@@ -1,0 +1,234 @@
+"""``make bench-board``: the built SD card under qemu-system-arm as a (slow) board proxy.
+
+``python -m benchmarks.board [--image IMG] [--seconds 60] [--out build/bench-board.json]``
+boots a copy of the card running the checkout's exolink (its wheel is installed on the copy at
+boot), puts the nominal load on it and measures 60 s; then the same on this host (native) for the
+ratio. Prints a table; writes everything, including the exact qemu command line, as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from benchmarks.board import card as cardlib
+from benchmarks.board import runs
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _cell(v: Any, fmt: str = "{}") -> str:
+    return "n/a" if v is None else fmt.format(v)
+
+
+def _procs(run: dict[str, Any]) -> dict[str, Any]:
+    return dict(run.get("window", {}).get("probe", {}).get("processes", {}))
+
+
+def table(result: dict[str, Any]) -> str:
+    g, n = result.get("guest", {}), result.get("native", {})
+    gp, np_ = _procs(g), _procs(n)
+    lines = [
+        f"exolink {result['checkout']['describe']} ({result['checkout']['commit'][:12]}), "
+        f"{result['seconds']:g} s window, {result['timings']} watchdog timings, nominal load "
+        "(H2 100 Hz + MACCEPA board 0 simulated on CPU 1, pattern speed 10 armed, recorder on, "
+        "timing monitor on, 1 laptop subscriber)",
+        "",
+        f"{'process':16} {'cpus':>5} {'guest %cpu':>10} {'guest PSS':>10} "
+        f"{'native %cpu':>11} {'native PSS':>10} {'ratio':>6}",
+    ]
+    for name in sorted(set(gp) | set(np_), key=lambda x: (x != "supervisor", x)):
+        a, b = gp.get(name, {}), np_.get(name, {})
+        ratio = (
+            f"{a['cpu_pct'] / b['cpu_pct']:.0f}x"
+            if a.get("cpu_pct") and b.get("cpu_pct")
+            else "n/a"
+        )
+        cpus = ",".join(a.get("cpus_allowed") or b.get("cpus_allowed") or ["?"])
+        lines.append(
+            f"{name:16} {cpus:>5} {_cell(a.get('cpu_pct'), '{:.1f}'):>10} "
+            f"{_cell(a.get('pss_mb'), '{:.1f} MB'):>10} {_cell(b.get('cpu_pct'), '{:.1f}'):>11} "
+            f"{_cell(b.get('pss_mb'), '{:.1f} MB'):>10} {ratio:>6}"
+            + (
+                f"  ({a.get('error') or b.get('error')})"
+                if a.get("error") or b.get("error")
+                else ""
+            )
+        )
+    lines.append("")
+
+    def row(label: str, gv: Any, nv: Any) -> None:
+        lines.append(f"{label:34} {_cell(gv):>22} {_cell(nv):>22}")
+
+    row("", "guest (qemu TCG, vcan0)", "native (x86, udp_mcast)")
+
+    def get(run: dict[str, Any], *path: str) -> Any:
+        cur: Any = run
+        for p in path:
+            if not isinstance(cur, dict) or p not in cur:
+                return None
+            cur = cur[p]
+        return cur
+
+    def pair(*path: str) -> tuple[Any, Any]:
+        return get(g, *path), get(n, *path)
+
+    def idle(run: dict[str, Any], cpu: str) -> Any:
+        return get(run, "window", "probe", "idle_pct", cpu)
+
+    row("CPU 0 idle %", idle(g, "cpu0"), idle(n, "cpu0"))
+    row("CPU 1 idle % (simulator's)", idle(g, "cpu1"), idle(n, "cpu1"))
+    sums = []
+    for procs in (gp, np_):
+        v = [p["cpu_pct"] for k, p in procs.items() if k != "simulator" and "cpu_pct" in p]
+        sums.append(round(sum(v), 1) if v else None)
+    row("appliance %cpu on CPU 0 (sum)", *sums)
+    row("joint_states rate on laptop (Hz)", *pair("window", "joint_states", "rate_hz"))
+    row("joint_states min/s", *pair("window", "joint_states", "per_second_min"))
+    row("joint_states max gap (ms)", *pair("window", "joint_states", "max_gap_ms"))
+    row("joint_states seq missed", *pair("window", "joint_states", "seq_missed"))
+    row("h2_reader missing frames", *pair("derived", "h2_reader_missing"))
+    row("vcan0 rx/tx dropped", _vcan_drops(g), "n/a (no vcan)")
+    row("pattern running at window start", *pair("pattern_running_at_start"))
+    row("pattern frames sent", *pair("derived", "pattern_sent"))
+    row("pattern state at end", *pair("derived", "pattern_state_end"))
+    row("pattern timing id70 motor1 mean dev ms", *pair("window", "timing", "mean_dev_ms"))
+    row("pattern timing p99 dev ms", *pair("window", "timing", "p99_dev_ms"))
+    row("pattern timing max dev ms", *pair("window", "timing", "max_dev_ms"))
+    row("pattern timing mean period ms", *pair("window", "timing", "mean_period_ms"))
+    row("watchdog trips in window", *pair("derived", "watchdog_trips_in_window"))
+    row("watchdog state at end", *pair("derived", "watchdog_state_end"))
+    row("watchdog reason", *pair("derived", "watchdog_reason_end"))
+    row("read_lag_max_ms (since start)", *pair("derived", "read_lag_max_ms"))
+    row("recorder written / dropped", _rec(g), _rec(n))
+    row(
+        "loop_stalled in window",
+        *(get(g, "logs", "window_loop_stalled"), get(n, "logs", "since_arm_loop_stalled")),
+    )
+    row("node restarts in window", _restarts(g), _restarts(n))
+    row("cold start to all beating (s)", *pair("boot", "all_nodes_beating_s"))
+    row("supervisor restarts by systemd", get(g, "supervisor_restarts_by_systemd_at_end"), "n/a")
+    for run in (g, n):
+        cpu0 = idle(run, "cpu0")
+        if isinstance(cpu0, int | float) and cpu0 < 5:
+            lines.append(
+                f"note ({run['kind']}): CPU 0 saturated ({cpu0}% idle): the %cpu column is the "
+                "scheduler's split of a full CPU, not what each process would use"
+            )
+    if g.get("qemu_command"):
+        lines += ["", "qemu: " + g["qemu_command"]]
+    for run in (g, n):
+        for note in run.get("notes", []):
+            lines.append(f"note ({run['kind']}): {note}")
+        if run.get("error"):
+            lines.append(f"ERROR ({run['kind']}): {run['error']}")
+    return "\n".join(lines)
+
+
+def _vcan_drops(run: dict[str, Any]) -> str | None:
+    d = run.get("window", {}).get("probe", {}).get("link_delta")
+    if not d:
+        return None
+    return f"{d.get('rx_dropped')}/{d.get('tx_dropped')} of {d.get('rx_packets')} rx"
+
+
+def _rec(run: dict[str, Any]) -> str | None:
+    d = run.get("derived", {})
+    if "recorder_written" not in d:
+        return None
+    return f"{d['recorder_written']} / {d.get('recorder_dropped')}"
+
+
+def _restarts(run: dict[str, Any]) -> str | None:
+    r = run.get("derived", {}).get("node_restarts_in_window")
+    if r is None:
+        return None
+    bad = {k: v for k, v in r.items() if v}
+    return json.dumps(bad) if bad else "0"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.board", description=__doc__)
+    p.add_argument("--image", help="raw image (default: newest build/image/exolink-bbb-*.img)")
+    p.add_argument("--seconds", type=float, default=60.0, help="measurement window")
+    p.add_argument("--out", default=str(REPO / "build/bench-board.json"))
+    p.add_argument("--work", default=str(REPO / "build/bench-board"), help="card copy, logs")
+    p.add_argument("--only", choices=["guest", "native"])
+    p.add_argument(
+        "--start-grace-ms",
+        type=int,
+        default=600_000,
+        help="watchdog.start_grace_ms (the only timing changed from stock: imports under TCG)",
+    )
+    p.add_argument(
+        "--timings",
+        choices=["stock", "relaxed"],
+        default="stock",
+        help="watchdog timings: stock (board.yaml, systemd WatchdogSec 5 s) or relaxed "
+        "(heartbeat deadline 5 s, WatchdogSec 60 s: for CPU shares when stock cannot settle)",
+    )
+    p.add_argument("--boot-timeout", type=float, default=900.0)
+    p.add_argument(
+        "--journal-console",
+        action="store_true",
+        help="forward the guest's journal to the serial console (debugging; costs guest CPU)",
+    )
+    p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
+    args = p.parse_args()
+    if args.show:
+        print(table(json.loads(Path(args.show).read_text())))
+        return 0
+    structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
+    t0 = time.monotonic()
+    result: dict[str, Any] = {
+        "schema": 1,
+        "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "seconds": args.seconds,
+        "timings": args.timings,
+        "checkout": cardlib.checkout_info(REPO),
+        "host": {
+            "cpus": os.cpu_count(),
+            "arch": platform.machine(),
+            "python": platform.python_version(),
+            "load1": round(os.getloadavg()[0], 2),
+        },
+    }
+    if args.only != "native":
+        image = cardlib.find_image(REPO, args.image)
+        result["guest"] = runs.run_guest(
+            REPO,
+            image,
+            Path(args.work),
+            args.seconds,
+            args.start_grace_ms,
+            args.boot_timeout,
+            args.timings,
+            args.journal_console,
+        )
+    if args.only != "guest":
+        result["native"] = runs.run_native(REPO, args.seconds, args.start_grace_ms, args.timings)
+    result["run_s"] = round(time.monotonic() - t0, 1)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2, default=str) + "\n")
+    text = table(result)
+    out.with_suffix(".txt").write_text(text + "\n")
+    print(text)
+    print(f"\nJSON: {out}  (run took {result['run_s']:.0f} s)")
+    return (
+        0
+        if not any(r.get("error") for r in (result.get("guest", {}), result.get("native", {})))
+        else 1
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,277 @@
+"""The bench's copy of the built SD card: the checkout's wheel, vcan0, CPU pinning, a login.
+
+Nothing here touches the built image: it is copied (sparse) and only the copy is edited, the FAT
+partition with mtools and the ext4 root with debugfs at its byte offset (no loop devices, as in
+tests/image/test_built_image.py). The copy gets, and a flashed card never has:
+
+- ``bench/`` on the FAT partition: the checkout's pure-Python wheel and ``prep.sh``, which
+  ``exolink-bench.service`` runs before the supervisor: vcan0 (modprobe vcan can-bcm) and
+  ``pip install --no-deps --force-reinstall`` of the wheel into /opt/exolink's venv;
+- an ``exolink.service`` drop-in: requires that unit and sets ``CPUAffinity=0``;
+- ``/etc/exolink/appliance.yaml``: the bench config (scenario.bench_config);
+- root's authorized_keys for the bench's throwaway ssh key, and a known Zenoh password.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import structlog
+import yaml
+from exolink import config
+
+log = structlog.get_logger("bench-board")
+
+MIB = 1 << 20
+# bring_up: the supervisor sets vcan0 up through netlink (canlink.bring_up accepts vcan) as it
+# does can0 on the board: that imports pyroute2 inside start(), before READY=1. With
+# bring_up: false the first import happens in the watchdog-pinged loop instead (_check_bus), and
+# under TCG the supervisor missed systemd's 5 s WatchdogSec right after READY on every start.
+GUEST_CAN = {
+    "interface": "socketcan",
+    "channel": "vcan0",
+    "bring_up": True,
+    "require_overlay": False,
+}
+
+PREP_SH = """\
+#!/bin/sh
+# exolink bench (a copy of the card only, never a flashed card): the bench's CAN bus and the
+# checkout's exolink, before exolink.service starts.
+set -eu
+modprobe vcan
+modprobe can_raw
+modprobe can_bcm
+ip link show vcan0 >/dev/null 2>&1 || ip link add vcan0 type vcan
+ip link set vcan0 up
+out=/run/exolink-bench-installed
+: > "$out"
+for w in /boot/firmware/bench/*.whl; do
+  /opt/exolink/bin/pip install -q --no-deps --no-index --no-cache-dir --force-reinstall "$w"
+  sha256sum "$w" >> "$out"
+done
+/opt/exolink/bin/python -c 'import exolink, importlib.metadata as m
+print("exolink", m.version("exolink"), exolink.__file__)' >> "$out"
+cat "$out"
+echo "exolink-bench: ready"
+"""
+
+BENCH_UNIT = """\
+[Unit]
+Description=exolink bench: vcan0 and the checkout's exolink wheel (bench copy of the card only)
+After=exolink-setup.service local-fs.target
+RequiresMountsFor=/boot/firmware
+
+[Service]
+Type=oneshot
+RemainAfterExit=yes
+ExecStart=/bin/sh /boot/firmware/bench/prep.sh
+StandardOutput=journal+console
+StandardError=journal+console
+TimeoutStartSec=20min
+"""
+
+DROP_IN = """\
+# exolink bench (a copy of the card only): the checkout's wheel and vcan0 first; the supervisor
+# and every node it starts on CPU 0 (the simulator node moves itself to CPU 1: priority.cpus).
+# No reboot after repeated failures: the bench reports them and the guest stays up to look at.
+[Unit]
+Requires=exolink-bench.service
+After=exolink-bench.service
+StartLimitAction=none
+
+[Service]
+CPUAffinity=0
+"""
+# (appended by prepare() for --timings relaxed: WatchdogSec=)
+
+
+def git(repo: Path, *args: str) -> str:
+    r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True)
+    return r.stdout.strip()
+
+
+def checkout_info(repo: Path) -> dict[str, Any]:
+    dirty = [line for line in git(repo, "status", "--porcelain").splitlines() if line]
+    return {
+        "commit": git(repo, "rev-parse", "HEAD"),
+        "describe": git(repo, "describe", "--always", "--dirty"),
+        "branch": git(repo, "rev-parse", "--abbrev-ref", "HEAD"),
+        "uncommitted_files": dirty,
+    }
+
+
+def find_image(repo: Path, given: str | None) -> Path:
+    if given:
+        return Path(given)
+    found = sorted(
+        (repo / "build/image").glob("exolink-bbb-*.img"), key=lambda p: p.stat().st_mtime
+    )
+    if not found:
+        raise SystemExit(
+            "no built image in build/image (build/image/exolink-bbb-<version>.img): build it with "
+            "`sudo make image` (root, ~20 min from nothing, ~8 min with build/image/cache), "
+            "or pass --image PATH"
+        )
+    return found[-1]
+
+
+def build_wheel(repo: Path, out: Path) -> Path:
+    """The checkout's pure-Python wheel (what ran is what is in the tree, committed or not)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("exolink-*.whl"):
+        old.unlink()
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out), str(repo)],
+        capture_output=True,
+        text=True,
+    )
+    if r.returncode != 0:
+        raise RuntimeError(f"pip wheel failed:\n{r.stdout}{r.stderr}")
+    (wheel,) = out.glob("exolink-*.whl")
+    return wheel
+
+
+def _partitions(img: Path) -> list[dict[str, Any]]:
+    out = subprocess.run(["sfdisk", "--json", str(img)], capture_output=True, text=True, check=True)
+    return list(json.loads(out.stdout)["partitiontable"]["partitions"])
+
+
+@dataclass
+class Card:
+    """An image file with its FAT partition (mtools spec) and ext4 root (debugfs spec)."""
+
+    img: Path
+
+    def __post_init__(self) -> None:
+        boot, root = _partitions(self.img)[:2]
+        self.fat = f"{self.img}@@{boot['start'] * 512}"
+        self.root = f"{self.img}?offset={root['start'] * 512}"
+
+    def fat_read(self, name: str) -> bytes:
+        r = subprocess.run(["mtype", "-i", self.fat, f"::{name}"], capture_output=True, check=True)
+        return r.stdout
+
+    def fat_write(self, local: Path, dest_dir: str = "/") -> None:
+        subprocess.run(["mcopy", "-o", "-i", self.fat, str(local), f"::{dest_dir}"], check=True)
+
+    def fat_mkdir(self, name: str) -> None:
+        subprocess.run(["mmd", "-D", "s", "-i", self.fat, f"::{name}"], capture_output=True)
+
+    def root_read(self, path: str) -> str:
+        r = subprocess.run(
+            ["debugfs", "-R", f"cat {path}", self.root], capture_output=True, text=True, check=True
+        )
+        return r.stdout
+
+    def root_edit(self, commands: list[str]) -> None:
+        """debugfs -w requests; a missing file to remove or an existing dir is not an error."""
+        subprocess.run(
+            ["debugfs", "-w", "-f", "-", self.root],
+            input="\n".join(commands) + "\n",
+            text=True,
+            check=True,
+            capture_output=True,
+        )
+
+    def group_id(self, name: str) -> int:
+        for line in self.root_read("/etc/group").splitlines():
+            parts = line.split(":")
+            if parts[0] == name:
+                return int(parts[2])
+        raise KeyError(f"no group {name} in the image")
+
+
+def copy_card(image: Path, dest: Path) -> Card:
+    dest.unlink(missing_ok=True)
+    subprocess.run(["cp", "--sparse=always", str(image), str(dest)], check=True)
+    with open(dest, "r+b") as f:  # a "bigger card": the first boot grows the root, as on a card
+        f.truncate(dest.stat().st_size + 256 * MIB)
+    return Card(dest)
+
+
+def _write_file(card: Card, local: Path, path: str, mode: int, uid: int, gid: int) -> list[str]:
+    return [
+        f"rm {path}",
+        f"write {local} {path}",
+        f"sif {path} mode 0{0o100000 | mode:o}",
+        f"sif {path} uid {uid}",
+        f"sif {path} gid {gid}",
+    ]
+
+
+def prepare(
+    image: Path,
+    work: Path,
+    wheel: Path,
+    ssh_pubkey: str,
+    zenoh_password: str,
+    start_grace_ms: int,
+    timings: str,
+) -> tuple[Card, dict[str, Any]]:
+    """The bench copy of ``image`` in ``work``; returns it and the appliance config it runs."""
+    work.mkdir(parents=True, exist_ok=True)
+    card = copy_card(image, work / "card.img")
+    log.info("card copied", image=str(image), copy=str(card.img))
+
+    settings = yaml.safe_load(card.fat_read("exolink-settings.yaml").decode("utf-8-sig"))
+    settings["zenoh"] = {"user": "lab", "password": zenoh_password}
+    settings["ssh"] = {"authorized_keys": [ssh_pubkey], "password": ""}
+    settings["simulate"] = False  # --sim would put the bus on udp_multicast: the bench uses vcan0
+    (work / "exolink-settings.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))
+    card.fat_write(work / "exolink-settings.yaml")
+    card.fat_mkdir("bench")
+    (work / "prep.sh").write_text(PREP_SH)
+    card.fat_write(work / "prep.sh", "/bench/")
+    card.fat_write(wheel, "/bench/")
+
+    from benchmarks.board.scenario import TIMINGS, bench_config
+
+    base = yaml.safe_load(card.root_read("/etc/exolink/appliance.yaml"))
+    cfg = bench_config(base, GUEST_CAN, start_grace_ms, timings)
+    text = yaml.safe_dump(cfg, sort_keys=False)
+    config.parse(text, "bench appliance.yaml")  # the board would refuse a bad one
+    (work / "appliance.yaml").write_text(text)
+    (work / "exolink-bench.service").write_text(BENCH_UNIT)
+    wd_s = TIMINGS[timings]["systemd_watchdog_s"]
+    (work / "bench.conf").write_text(DROP_IN + (f"WatchdogSec={wd_s}s\n" if wd_s else ""))
+    (work / "authorized_keys").write_text(ssh_pubkey + "\n")
+    gid = card.group_id("exolink")
+    cmds = [
+        *_write_file(card, work / "appliance.yaml", "/etc/exolink/appliance.yaml", 0o640, 0, gid),
+        *_write_file(
+            card,
+            work / "exolink-bench.service",
+            "/etc/systemd/system/exolink-bench.service",
+            0o644,
+            0,
+            0,
+        ),
+        "mkdir /etc/systemd/system/exolink.service.d",
+        *_write_file(
+            card,
+            work / "bench.conf",
+            "/etc/systemd/system/exolink.service.d/bench.conf",
+            0o644,
+            0,
+            0,
+        ),
+        "mkdir /root/.ssh",
+        "sif /root/.ssh mode 040700",
+        *_write_file(card, work / "authorized_keys", "/root/.ssh/authorized_keys", 0o600, 0, 0),
+    ]
+    card.root_edit(cmds)
+    back = card.root_read("/etc/exolink/appliance.yaml")
+    if back != text:
+        raise RuntimeError("debugfs did not write appliance.yaml on the card copy")
+    if not re.search(
+        r"CPUAffinity=0", card.root_read("/etc/systemd/system/exolink.service.d/bench.conf")
+    ):
+        raise RuntimeError("debugfs did not write the exolink.service drop-in")
+    return card, cfg

@@ -1,0 +1,142 @@
+"""The bench copy of the card booted under qemu-system-arm (TCG): console, ports, ssh.
+
+Same machine as tests/image/test_built_image.py: ``-M virt -cpu cortex-a15 -smp 2 -m 512``,
+the card's own armmp kernel and initrd, the card as a virtio disk; user networking forwards the
+Zenoh port and ssh to 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import structlog
+
+from benchmarks.board.card import Card
+
+log = structlog.get_logger("bench-board")
+
+ROOT_PARTUUID = "45786f6c-02"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Console:
+    """qemu's serial console, read in a thread, each line with seconds since qemu started."""
+
+    def __init__(self, proc: subprocess.Popen[bytes], t0: float, path: Path) -> None:
+        self.proc, self.t0, self.path = proc, t0, path
+        self.lines: list[tuple[float, str]] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        """Also written as it comes, so a boot can be followed (tail -f) while the bench runs."""
+        assert self.proc.stdout is not None
+        with open(self.path, "w") as f:
+            for raw in self.proc.stdout:
+                t, line = time.monotonic() - self.t0, raw.decode(errors="replace").rstrip()
+                self.lines.append((t, line))
+                f.write(f"{t:7.1f} {line}\n")
+                f.flush()
+
+    def first(self, pattern: str) -> float | None:
+        rx = re.compile(pattern)
+        return next((t for t, line in list(self.lines) if rx.search(line)), None)
+
+    def grep(self, pattern: str) -> list[str]:
+        rx = re.compile(pattern)
+        return [f"{t:7.1f} {line}" for t, line in list(self.lines) if rx.search(line)]
+
+
+class Guest:
+    def __init__(self, card: Card, work: Path, ssh_key: Path, journal_console: bool) -> None:
+        self.card, self.work, self.ssh_key = card, work, ssh_key
+        self.zenoh_port, self.ssh_port = free_port(), free_port()
+        for name in ("vmlinuz", "initrd.img"):
+            (work / name).write_bytes(card.fat_read(name))
+        append = f"root=PARTUUID={ROOT_PARTUUID} rootwait console=ttyAMA0 systemd.show_status=1"
+        fwd = (
+            f"hostfwd=tcp:127.0.0.1:{self.zenoh_port}-:7447,"
+            f"hostfwd=tcp:127.0.0.1:{self.ssh_port}-:22"
+        )
+        self.cmd = [
+            "qemu-system-arm",
+            "-M",
+            "virt",
+            "-cpu",
+            "cortex-a15",
+            "-smp",
+            "2",
+            "-m",
+            "512",
+            "-nographic",
+            "-no-reboot",
+            "-kernel",
+            str(work / "vmlinuz"),
+            "-initrd",
+            str(work / "initrd.img"),
+            "-append",
+            append,
+            "-drive",
+            f"file={card.img},format=raw,if=none,id=card",
+            "-device",
+            "virtio-blk-device,drive=card",
+            "-netdev",
+            f"user,id=net,{fwd}",
+            "-device",
+            "virtio-net-device,netdev=net",
+        ]
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    @property
+    def at(self) -> str:
+        return f"tcp/127.0.0.1:{self.zenoh_port}"
+
+    def start(self) -> Console:
+        self.t0 = time.monotonic()
+        self.proc = subprocess.Popen(
+            self.cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+        )
+        self.console = Console(self.proc, self.t0, self.work / "console.log")
+        log.info("qemu started", zenoh_port=self.zenoh_port, ssh_port=self.ssh_port)
+        return self.console
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def ssh_cmd(self, remote: str) -> list[str]:
+        return [
+            "ssh",
+            "-i",
+            str(self.ssh_key),
+            "-p",
+            str(self.ssh_port),
+            "-o",
+            "StrictHostKeyChecking=no",
+            "-o",
+            "UserKnownHostsFile=/dev/null",
+            "-o",
+            "LogLevel=ERROR",
+            "-o",
+            "BatchMode=yes",
+            "-o",
+            "ConnectTimeout=60",
+            "root@127.0.0.1",
+            remote,
+        ]
+
+    def ssh(self, remote: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(self.ssh_cmd(remote), capture_output=True, text=True, timeout=timeout)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()

@@ -1,0 +1,217 @@
+"""Per-process CPU and memory of a running appliance, from /proc (stdlib only).
+
+Runs where the appliance runs: inside the qemu guest (sent over ssh as ``python3 - ARGS``, so it
+must not import anything outside the standard library) and on the host for the native figures.
+It finds the supervisor and its node processes, takes a snapshot, prints ``PROBE_T0`` (the host
+starts its own counters on that line), sleeps the window, takes a second snapshot and prints one
+JSON document: CPU share per process (utime+stime delta / wall), PSS, the CPUs each process is
+allowed on, per-CPU idle, CAN link counters and kernel CAN stats.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from typing import Any
+
+CLK = os.sysconf("SC_CLK_TCK")
+
+
+def _read(path: str) -> str:
+    with open(path) as f:
+        return f.read()
+
+
+def find_appliance(supervisor: int) -> dict[str, int]:
+    """``{"supervisor": pid, "<node>": pid, ...}``: the node processes are its children."""
+    found = {"supervisor": supervisor}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = _read(f"/proc/{entry}/stat")
+            argv = _read(f"/proc/{entry}/cmdline").split("\0")
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == supervisor and "node" in argv and "run" in argv:
+            found[argv[argv.index("run") + 1]] = int(entry)
+    return found
+
+
+def _cpus_allowed(pid: int) -> list[str]:
+    """The distinct Cpus_allowed_list values over the process's threads."""
+    lists = set()
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    for tid in tids:
+        try:
+            for line in _read(f"/proc/{pid}/task/{tid}/status").splitlines():
+                if line.startswith("Cpus_allowed_list:"):
+                    lists.add(line.split(":", 1)[1].strip())
+        except OSError:
+            continue
+    return sorted(lists)
+
+
+def _kb(text: str, key: str) -> int | None:
+    for line in text.splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    return None
+
+
+def process(pid: int) -> dict[str, Any] | None:
+    try:
+        fields = _read(f"/proc/{pid}/stat").rsplit(")", 1)[1].split()
+        status = _read(f"/proc/{pid}/status")
+    except OSError:
+        return None
+    try:
+        rollup = _read(f"/proc/{pid}/smaps_rollup")
+    except OSError:
+        rollup = ""
+    return {
+        "pid": pid,
+        "cpu_ticks": int(fields[11]) + int(fields[12]),
+        "start_ticks": int(fields[19]),
+        "nice": int(fields[16]),
+        "policy": int(fields[38]),
+        "last_cpu": int(fields[36]),
+        "threads": int(fields[17]),
+        "pss_kb": _kb(rollup, "Pss"),
+        "rss_kb": _kb(status, "VmRSS"),
+        "cpus_allowed": _cpus_allowed(pid),
+    }
+
+
+def cpu_times() -> dict[str, list[int]]:
+    out = {}
+    for line in _read("/proc/stat").splitlines():
+        if line.startswith("cpu"):
+            name, *vals = line.split()
+            out[name] = [int(v) for v in vals]
+    return out
+
+
+def idle_pct(a: list[int], b: list[int]) -> float:
+    d = [y - x for x, y in zip(a, b, strict=False)]
+    total = sum(d[:8])  # user nice system idle iowait irq softirq steal (guest time is in user)
+    return round(100.0 * (d[3] + d[4]) / total, 1) if total else float("nan")
+
+
+def link(channel: str) -> dict[str, Any]:
+    if not channel:
+        return {}
+    r = subprocess.run(
+        ["ip", "-s", "-s", "-j", "link", "show", channel], capture_output=True, text=True
+    )
+    if r.returncode != 0:
+        return {"error": r.stderr.strip()}
+    data = json.loads(r.stdout)[0]
+    return {"stats64": data.get("stats64"), "txqlen": data.get("txqlen")}
+
+
+def can_stats() -> str | None:
+    try:
+        return _read("/proc/net/can/stats")
+    except OSError:
+        return None
+
+
+def snapshot(pids: dict[str, int], channel: str) -> dict[str, Any]:
+    return {
+        "t": time.monotonic(),
+        "procs": {name: process(pid) for name, pid in pids.items()},
+        "cpu": cpu_times(),
+        "link": link(channel),
+        "can_stats": can_stats(),
+    }
+
+
+def _delta64(a: dict[str, Any], b: dict[str, Any]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for side in ("rx", "tx"):
+        x, y = (a.get("stats64") or {}).get(side, {}), (b.get("stats64") or {}).get(side, {})
+        for k, v in y.items():
+            if isinstance(v, int) and isinstance(x.get(k), int):
+                out[f"{side}_{k}"] = v - x[k]
+    return out
+
+
+def compare(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    wall = b["t"] - a["t"]
+    procs = {}
+    for name, p0 in a["procs"].items():
+        p1 = b["procs"].get(name)
+        if p0 is None or p1 is None or p0["start_ticks"] != p1["start_ticks"]:
+            procs[name] = {"pid": (p0 or p1 or {}).get("pid"), "error": "restarted or gone"}
+            continue
+        procs[name] = {
+            "pid": p1["pid"],
+            "cpu_pct": round(100.0 * (p1["cpu_ticks"] - p0["cpu_ticks"]) / CLK / wall, 2),
+            "pss_mb": None if p1["pss_kb"] is None else round(p1["pss_kb"] / 1024, 1),
+            "rss_mb": None if p1["rss_kb"] is None else round(p1["rss_kb"] / 1024, 1),
+            "threads": p1["threads"],
+            "nice": p1["nice"],
+            "policy": {0: "other", 1: "fifo", 2: "rr", 3: "batch", 5: "idle"}.get(
+                p1["policy"], p1["policy"]
+            ),
+            "cpus_allowed": sorted(set(p0["cpus_allowed"]) | set(p1["cpus_allowed"])),
+        }
+    cpus = {
+        name: idle_pct(vals, b["cpu"][name]) for name, vals in a["cpu"].items() if name in b["cpu"]
+    }
+    return {
+        "wall_s": round(wall, 2),
+        "t0_monotonic": a["t"],
+        "t1_monotonic": b["t"],
+        "processes": procs,
+        "idle_pct": cpus,
+        "link_delta": _delta64(a["link"], b["link"]),
+        "link_end": b["link"],
+        "can_stats_start": a["can_stats"],
+        "can_stats_end": b["can_stats"],
+    }
+
+
+def _systemd_main_pid(unit: str) -> int:
+    r = subprocess.run(
+        ["systemctl", "show", "-p", "MainPID", "--value", unit], capture_output=True, text=True
+    )
+    return int(r.stdout.strip() or 0)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__)
+    who = p.add_mutually_exclusive_group(required=True)
+    who.add_argument("--pid", type=int, help="the supervisor's pid")
+    who.add_argument("--unit", help="the systemd unit whose main process is the supervisor")
+    p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument("--channel", default="", help="CAN link to count frames on (vcan0)")
+    args = p.parse_args()
+    sup = args.pid if args.pid else _systemd_main_pid(args.unit)
+    if not sup:
+        sys.stdout.write(json.dumps({"error": f"no main pid for {args.unit}"}) + "\n")
+        return 1
+    pids = find_appliance(sup)
+    first = snapshot(pids, args.channel)
+    sys.stdout.write(f"PROBE_T0 {json.dumps(sorted(pids))}\n")
+    sys.stdout.flush()
+    time.sleep(args.seconds)
+    second = snapshot(pids, args.channel)
+    out = compare(first, second)
+    out["pids"] = pids
+    out["nodes_now"] = sorted(find_appliance(sup))
+    sys.stdout.write("PROBE_RESULT " + json.dumps(out) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

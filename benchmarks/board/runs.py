@@ -1,0 +1,285 @@
+"""One bench run: the guest (the card under qemu) or native (the same load on this host)."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import re
+import secrets
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import structlog
+import yaml
+from exolink import messaging
+from exolink.config import bundled
+
+from benchmarks.board import card as cardlib
+from benchmarks.board import scenario
+from benchmarks.board.guest import Guest, free_port
+
+log = structlog.get_logger("bench-board")
+
+PROBE = Path(__file__).with_name("probe.py")
+DEVICE = "exo-01"
+SETTLE_S = 10.0
+LOG_PATTERNS = (
+    r"loop_stalled|node_hung_killed|node_exited|watchdog_trip|tripped|Watchdog timeout|Failed with"
+)
+
+
+def _connect(at: str, zenoh_config: str | None, timeout: float, alive: Any) -> scenario.Laptop:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return scenario.Laptop(at, zenoh_config, DEVICE)
+        except messaging.Unreachable:
+            if time.monotonic() > deadline or not alive():
+                raise
+            time.sleep(3)
+
+
+def _run_load(
+    laptop: scenario.Laptop, probe_cmd: list[str], seconds: float, stdin: Any
+) -> dict[str, Any]:
+    """Arm, the pattern held, settle, then the window measured by the probe and the laptop.
+
+    A pattern that is not running when the window would start (refused arm, or a trip while
+    settling) is recorded and tried once more, so the window carries the load if it can."""
+    out: dict[str, Any] = {"operator": laptop.arm_and_start_pattern()}
+    time.sleep(SETTLE_S)
+    if not _pattern_running(laptop):
+        out["first_attempt"] = {
+            **out["operator"],
+            "held_pattern_cli": laptop.stop_pattern(),
+            "status": _safe_status(laptop),
+        }
+        log.warning("pattern not running before the window: arming once more")
+        out["operator"] = laptop.arm_and_start_pattern()
+        time.sleep(SETTLE_S)
+    out["pattern_running_at_start"] = _pattern_running(laptop)
+    log.info("measuring", seconds=seconds)
+    probe = subprocess.Popen(probe_cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
+    try:
+        out["window"] = scenario.measure(laptop, probe, seconds)
+    finally:
+        if probe.poll() is None:
+            probe.kill()
+    out["held_pattern_cli"] = laptop.stop_pattern()
+    out["derived"] = scenario.derived(out["window"])
+    return out
+
+
+def _pattern_running(laptop: scenario.Laptop) -> bool:
+    try:
+        return bool(laptop.call("pattern", body={"action": "status"}).get("state") == "running")
+    except messaging.Unreachable:
+        return False
+
+
+def _safe_status(laptop: scenario.Laptop) -> dict[str, Any]:
+    try:
+        st = laptop.call("status", timeout=15)
+    except messaging.Unreachable as exc:
+        return {"error": str(exc)}
+    return {"watchdog": st.get("watchdog"), "bus": st.get("bus")}
+
+
+def run_guest(
+    repo: Path,
+    image: Path,
+    work: Path,
+    seconds: float,
+    start_grace_ms: int,
+    boot_timeout: float,
+    timings: str,
+    journal_console: bool = False,
+) -> dict[str, Any]:
+    result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": []}
+    wheel = cardlib.build_wheel(repo, work / "wheel")
+    result["wheel"] = {"file": wheel.name, "sha256": _sha256(wheel)}
+    key = work / "ssh_key"
+    for old in (key, key.with_suffix(".pub")):
+        old.unlink(missing_ok=True)
+    subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(key)], check=True)
+    password = secrets.token_urlsafe(12)
+    card, cfg = cardlib.prepare(
+        image,
+        work,
+        wheel,
+        key.with_suffix(".pub").read_text().strip(),
+        password,
+        start_grace_ms,
+        timings,
+    )
+    result["config"] = cfg
+    laptop_cfg = work / "exolink-laptop.json5"
+    login = {"transport": {"auth": {"usrpwd": {"user": "lab", "password": password}}}}
+    laptop_cfg.write_text(json.dumps(login) + "\n")
+    guest = Guest(card, work, key, journal_console)
+    result["qemu_command"] = " ".join(guest.cmd)
+    console = guest.start()
+    laptop = None
+    try:
+        laptop = _connect(guest.at, str(laptop_cfg), boot_timeout, guest.alive)
+        status, ok = laptop.wait_beating(boot_timeout, scenario.enabled_nodes(cfg))
+        boot_s = time.monotonic() - guest.t0
+        if status is None:
+            result["error"] = f"the supervisor never answered within {boot_timeout:g} s"
+            return result
+        if not ok:
+            result["notes"].append(_not_beating(status, boot_timeout))
+        result["boot"] = {
+            "all_nodes_beating_s": round(boot_s, 1) if ok else None,
+            "resolution_s": 2.0,
+            "bench_prep_done_s": console.first(r"exolink-bench: ready"),
+            "supervisor_started_s": console.first(r"Started exolink\.service"),
+            "node_start_s": {n["name"]: n["start_s"] for n in status["nodes"]},
+        }
+        installed = guest.ssh("cat /run/exolink-bench-installed; nproc; uname -r")
+        restarts = guest.ssh("systemctl show -p NRestarts --value exolink.service")
+        result["boot"]["supervisor_restarts_by_systemd"] = restarts.stdout.strip() or None
+        result["installed"] = installed.stdout.strip() or installed.stderr.strip()
+        if result["wheel"]["sha256"] not in result["installed"]:
+            result["notes"].append("the checkout's wheel is NOT what the guest installed")
+        log.info("nodes", all_beating=ok, boot_s=round(boot_s, 1))
+        time.sleep(SETTLE_S)
+        probe_cmd = guest.ssh_cmd(
+            f"taskset -c 1 python3 - --unit exolink.service --seconds {seconds:g} --channel vcan0"
+        )
+        with open(PROBE) as stdin:
+            result |= _run_load(laptop, probe_cmd, seconds, stdin)
+        result["logs"] = _guest_logs(guest, result)
+        restarts = guest.ssh("systemctl show -p NRestarts --value exolink.service")
+        result["supervisor_restarts_by_systemd_at_end"] = restarts.stdout.strip() or None
+        return result
+    finally:
+        if laptop is not None:
+            laptop.close()
+        guest.stop()
+        result["console_log"] = str(work / "console.log")
+
+
+def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
+    """Journal lines of interest, split into the whole boot and the measurement window."""
+    r = guest.ssh(
+        f"journalctl -b --no-pager -o short-monotonic -u exolink -u exolink-bench "
+        f"| grep -E '{LOG_PATTERNS}' | tail -200"
+    )
+    probe = result.get("window", {}).get("probe", {})
+    t0, t1 = probe.get("t0_monotonic"), probe.get("t1_monotonic")
+    lines = r.stdout.splitlines()
+    inside = []
+    for line in lines:
+        m = re.match(r"\[\s*(\d+\.\d+)\]", line)
+        if m and t0 is not None and t1 is not None and t0 <= float(m.group(1)) <= t1:
+            inside.append(line)
+    return {
+        "boot_total": {p: sum(p in line for line in lines) for p in LOG_PATTERNS.split("|")},
+        "window": inside[-50:],
+        "window_loop_stalled": sum("loop_stalled" in line for line in inside),
+        "last_lines": lines[-30:],
+    }
+
+
+def _not_beating(status: dict[str, Any], timeout: float) -> str:
+    bad = [
+        f"{n['name']} {n['state']} (restarts {n['restarts']}, {n['last_exit'] or 'no exit'})"
+        for n in status["nodes"]
+        if n["enabled"] and not (n["state"] == "running" and n["heartbeat_age_s"] is not None)
+    ]
+    return f"not all enabled nodes beating after {timeout:g} s: {', '.join(bad)}; measured anyway"
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def run_native(repo: Path, seconds: float, start_grace_ms: int, timings: str) -> dict[str, Any]:
+    """The same config and load on this host: udp_multicast (no vcan module here), the
+    supervisor under ``taskset -c 0``, the simulator node on CPU 1."""
+    from benchmarks.harness import group
+
+    result: dict[str, Any] = {"kind": "native", "notes": []}
+    work = Path(tempfile.mkdtemp(prefix="exolink-bench-board-"))
+    port = free_port()
+    can = {
+        "interface": "udp_multicast",
+        "channel": group(),
+        "bring_up": False,
+        "require_overlay": False,
+    }
+    base = yaml.safe_load(bundled("board").read_text())
+    cfg = scenario.bench_config(base, can, start_grace_ms, timings)
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    for n in cfg["nodes"]:
+        if n["plugin"] == "recorder":
+            n["params"]["directory"] = str(work / "recordings")
+    path = work / "appliance.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    result["config"] = cfg
+    result["bus"] = f"udp_multicast {can['channel']} (this host has no vcan kernel module)"
+    result["load1_before"] = round(os.getloadavg()[0], 2)
+    up_log = work / "up.log"
+    env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
+    exolink = [sys.executable, "-m", "exolink.cli.main"]
+    t0 = time.monotonic()
+    with open(up_log, "wb") as f:
+        proc = subprocess.Popen(
+            ["taskset", "-c", "0", *exolink, "up", "-c", str(path)],
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            env=env,
+            cwd=work,
+        )
+    laptop = None
+    try:
+        laptop = _connect(f"tcp/127.0.0.1:{port}", None, 60, lambda: proc.poll() is None)
+        status, ok = laptop.wait_beating(120, scenario.enabled_nodes(cfg))
+        if status is None:
+            result["error"] = "the supervisor never answered within 120 s"
+            return result
+        if not ok:
+            result["notes"].append(_not_beating(status, 120))
+        result["boot"] = {
+            "all_nodes_beating_s": round(time.monotonic() - t0, 1) if ok else None,
+            "resolution_s": 2.0,
+            "node_start_s": {n["name"]: n["start_s"] for n in status["nodes"]},
+        }
+        time.sleep(SETTLE_S)
+        probe_cmd = [
+            "taskset",
+            "-c",
+            "1",
+            sys.executable,
+            str(PROBE),
+            "--pid",
+            str(proc.pid),
+            "--seconds",
+            f"{seconds:g}",
+        ]
+        size0 = up_log.stat().st_size
+        result |= _run_load(laptop, probe_cmd, seconds, subprocess.DEVNULL)
+        text = up_log.read_text(errors="replace")
+        window = text.encode()[size0:].decode(errors="replace")
+        result["logs"] = {
+            "boot_total": {p: text.count(p) for p in LOG_PATTERNS.split("|")},
+            "since_arm_loop_stalled": window.count("loop_stalled"),
+            "since_arm": [ln for ln in window.splitlines() if re.search(LOG_PATTERNS, ln)][-50:],
+        }
+        result["up_log"] = str(up_log)
+        return result
+    finally:
+        if laptop is not None:
+            laptop.close()
+        proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(20)
+        if proc.poll() is None:
+            proc.kill()

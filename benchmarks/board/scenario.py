@@ -1,0 +1,332 @@
+"""The bench's nominal load and what a laptop measures of it; the same for the guest and native.
+
+Load: the H2 stream at 100 Hz and one MACCEPA board from the simulator node (pinned to CPU 1),
+maccepa_bridge, timing_monitor, the recorder recording, and the pattern at speed 10 on four joints
+while armed, started and held by the CLI; one laptop subscriber counts joint_states.
+Everything else of the appliance is confined to CPU 0.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import structlog
+from exolink import messaging
+
+log = structlog.get_logger("bench-board")
+
+SIMULATOR_CPU = 1
+PATTERN_JOINTS = ["r_hip", "r_knee", "l_hip", "l_knee"]
+PATTERN_SPEED = 10
+TIMING_QUERY = {"id": 70, "byte0": 1, "dlc": 6}  # r_hip's set-points (H2 joint control)
+
+
+# Watchdog timings: "stock" is board.yaml's (only start_grace_ms is raised: imports under TCG);
+# "relaxed" widens the node heartbeat deadline (and, on the guest, systemd's WatchdogSec) so a
+# CPU too slow for the stock ones still reaches a steady state whose CPU shares can be compared.
+TIMINGS = {
+    "stock": {"heartbeat_deadline_ms": 500, "h2_silence_ms": 100, "systemd_watchdog_s": None},
+    "relaxed": {"heartbeat_deadline_ms": 5000, "h2_silence_ms": 100, "systemd_watchdog_s": 60},
+}
+
+
+def bench_config(
+    base: dict[str, Any], can: dict[str, Any], start_grace_ms: int, timings: str
+) -> dict[str, Any]:
+    """The appliance config under test: ``base`` (the image's appliance.yaml or board.yaml) with
+    the bench's bus, a simulated trigger, the simulator node on CPU 1, one MACCEPA board, the
+    timing monitor on and the watchdog ``timings`` (TIMINGS) with the given start grace."""
+    cfg = json.loads(json.dumps(base))  # deep copy
+    cfg["can"] = can
+    cfg["trigger"] = {"source": "simulated", "sim_period_s": 0}
+    wd = cfg.setdefault("watchdog", {})
+    wd.update(
+        heartbeat_deadline_ms=TIMINGS[timings]["heartbeat_deadline_ms"],
+        h2_silence_ms=TIMINGS[timings]["h2_silence_ms"],
+        start_grace_ms=start_grace_ms,
+        maccepa_boards=[0],
+    )
+    nodes = [n for n in cfg.get("nodes", []) if n.get("plugin") != "simulator"]
+    for n in nodes:
+        if n["plugin"] in ("maccepa_bridge", "timing_monitor"):
+            n["enabled"] = True
+        if n["plugin"] == "maccepa_bridge":
+            n["params"] = {**n.get("params", {}), "boards": [0]}
+        if n["plugin"] == "timing_monitor":
+            n["params"] = {**n.get("params", {}), "ids": [70, 110]}
+        if n["plugin"] == "recorder":
+            n["params"] = {**n.get("params", {}), "autostart": True}
+        if (n.get("priority") or {}).get("cpus"):
+            raise ValueError(f"node {n['name']} sets cpus: the bench keeps it on CPU 0")
+    simulator = {
+        "name": "simulator",
+        "plugin": "simulator",
+        "priority": {"cpus": [SIMULATOR_CPU]},
+        "params": {"maccepa_boards": [0]},
+    }
+    cfg["nodes"] = [simulator, *nodes]
+    return cfg
+
+
+def enabled_nodes(cfg: dict[str, Any]) -> set[str]:
+    return {n["name"] for n in cfg["nodes"] if n.get("enabled", True)}
+
+
+def beating(status: dict[str, Any], expected: set[str]) -> bool:
+    """Every enabled node of the config is listed (the supervisor answers before it has started
+    them) and has sent a heartbeat."""
+    nodes = {n["name"]: n for n in status["nodes"]}
+    return expected <= nodes.keys() and all(
+        nodes[name]["state"] == "running" and nodes[name]["heartbeat_age_s"] is not None
+        for name in expected
+    )
+
+
+@dataclass
+class JointStates:
+    """Arrival times and publisher sequence numbers of joint_states on the laptop."""
+
+    arrivals: list[float] = field(default_factory=list)
+    seqs: list[int] = field(default_factory=list)
+    counting: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_sample(self, sample: Any) -> None:
+        if not self.counting:
+            return
+        att = sample.attachment
+        seq = messaging.decode_attachment(att.to_bytes())[0] if att else 0
+        with self.lock:
+            self.arrivals.append(time.monotonic())
+            self.seqs.append(seq)
+
+    def summary(self, t0: float, seconds: float) -> dict[str, Any]:
+        with self.lock:
+            arr, seqs = list(self.arrivals), list(self.seqs)
+        if len(arr) < 2:
+            return {"n": len(arr), "error": "fewer than two samples on the laptop"}
+        per_s = [0] * int(seconds)
+        for t in arr:
+            i = int(t - t0)
+            if 0 <= i < len(per_s):
+                per_s[i] += 1
+        gaps = [b - a for a, b in itertools.pairwise(arr)]
+        missed = sum(max(0, b - a - 1) for a, b in itertools.pairwise(seqs))
+        return {
+            "n": len(arr),
+            "rate_hz": round((len(arr) - 1) / (arr[-1] - arr[0]), 2),
+            "per_second_min": min(per_s),
+            "per_second_max": max(per_s),
+            "max_gap_ms": round(max(gaps) * 1000, 1),
+            "gaps_over_50ms": sum(g > 0.05 for g in gaps),
+            "seq_missed": missed,
+        }
+
+
+class Laptop:
+    """The host side: one Zenoh client session for queries and the subscriber, the CLI for the
+    operator's commands (arm, pattern), exactly as a lab laptop drives the board."""
+
+    def __init__(self, at: str, zenoh_config: str | None, device: str) -> None:
+        self.at, self.zenoh_config, self.device = at, zenoh_config, device
+        self.session = messaging.open_client_session(at, zenoh_config)
+        self.joint_states = JointStates()
+        key = messaging.topic_selector(0, "h2", "joint_states")
+        self._sub = self.session.declare_subscriber(key, self.joint_states.on_sample)
+        self.holder: subprocess.Popen[str] | None = None
+
+    def call(self, *path: str, body: dict[str, Any] | None = None, timeout: float = 10) -> Any:
+        key = messaging.mgmt_key(self.device, *path)
+        return messaging.request(self.session, key, body or {}, timeout_s=timeout)
+
+    def cli(self, *args: str, tries: int = 5) -> subprocess.CompletedProcess[str]:
+        """One CLI command; retried while the board does not answer (exit 4: a busy guest can
+        take longer than the CLI's timeout to accept a new session)."""
+        for _ in range(tries):
+            r = subprocess.run(self._cli(*args), capture_output=True, text=True, timeout=120)
+            if r.returncode != 4:
+                break
+            time.sleep(2)
+        return r
+
+    def _cli(self, *args: str) -> list[str]:
+        opts = ["--at", self.at, "--device", self.device, "--timeout", "20"]
+        if self.zenoh_config:
+            opts += ["--zenoh-config", self.zenoh_config]
+        return [sys.executable, "-m", "exolink.cli.main", *args, *opts]
+
+    def wait_beating(
+        self, timeout: float, expected: set[str]
+    ) -> tuple[dict[str, Any] | None, bool]:
+        """The first status in which every enabled node has sent a heartbeat, or the last one
+        seen when ``timeout`` ran out (with False)."""
+        deadline = time.monotonic() + timeout
+        last = None
+        while time.monotonic() < deadline:
+            with contextlib.suppress(messaging.Unreachable):
+                st = self.call("status", timeout=10)
+                if st.get("ok"):
+                    last = dict(st)
+                    if beating(st, expected):
+                        return last, True
+            time.sleep(2)
+        return last, False
+
+    def arm_and_start_pattern(self, timeout: float = 120) -> dict[str, Any]:
+        """``exolink arm`` (retried while refused), select, speed 10, ``pattern start`` held."""
+        out: dict[str, Any] = {}
+        deadline = time.monotonic() + timeout
+        while True:
+            r = self.cli("arm")
+            out["arm"] = (r.stdout + r.stderr).strip()
+            if r.returncode == 0 or time.monotonic() > deadline:
+                break
+            time.sleep(3)
+        out["armed"] = r.returncode == 0
+        for args in (("pattern", "select", *PATTERN_JOINTS), ("pattern", "speed", "10")):
+            r = self.cli(*args)
+            out[" ".join(args[:2])] = (r.stdout + r.stderr).strip()
+        self.holder = subprocess.Popen(
+            self._cli("pattern", "start"),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        return out
+
+    def stop_pattern(self) -> str:
+        if self.holder is None:
+            return ""
+        if self.holder.poll() is None:
+            os.killpg(self.holder.pid, 2)  # Ctrl-C: the CLI stops the pattern itself
+        try:
+            out, _ = self.holder.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.holder.kill()
+            out, _ = self.holder.communicate()
+        return out.replace("\r", "\n")[-2000:]
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._sub.undeclare()
+        self.session.close()
+
+
+def counters(laptop: Laptop) -> dict[str, Any]:
+    """What the appliance itself reports, read before and after the window."""
+    out: dict[str, Any] = {}
+    for name, path, body in (
+        ("status", ("status",), {}),
+        ("h2_reader", ("nodes", "h2_reader", "stats"), {}),
+        ("pattern", ("pattern",), {"action": "status"}),
+        ("recorder", ("record",), {"action": "status"}),
+    ):
+        try:
+            out[name] = laptop.call(*path, body=body, timeout=15)
+        except messaging.Unreachable as exc:
+            out[name] = {"error": str(exc)}
+    return out
+
+
+@contextlib.contextmanager
+def timing_query(laptop: Laptop, seconds: float) -> Iterator[dict[str, Any]]:
+    """The timing monitor's period deviation of the pattern's frames over the window."""
+    result: dict[str, Any] = {}
+
+    def ask() -> None:
+        try:
+            result.update(
+                laptop.call(
+                    "timing", body={**TIMING_QUERY, "seconds": seconds}, timeout=seconds + 60
+                )
+            )
+        except messaging.Unreachable as exc:
+            result["error"] = str(exc)
+
+    t = threading.Thread(target=ask, daemon=True)
+    t.start()
+    yield result
+    t.join(90)
+
+
+def measure(laptop: Laptop, probe: subprocess.Popen[str], seconds: float) -> dict[str, Any]:
+    """The window: started by the probe's PROBE_T0 line (its first /proc snapshot)."""
+    assert probe.stdout is not None
+    before = counters(laptop)
+    line = ""
+    for line in probe.stdout:
+        if line.startswith("PROBE_T0"):
+            break
+    else:
+        return {"error": f"probe ended before its first snapshot: {line!r}"}
+    t0 = time.monotonic()
+    laptop.joint_states.counting = True
+    with timing_query(laptop, seconds) as timing:
+        result = ""
+        for line in probe.stdout:
+            if line.startswith("PROBE_RESULT "):
+                result = line.split(" ", 1)[1]
+        probe.wait()
+    laptop.joint_states.counting = False
+    after = counters(laptop)
+    return {
+        "probe": json.loads(result) if result else {"error": "no probe result"},
+        "joint_states": laptop.joint_states.summary(t0, seconds),
+        "timing": timing,
+        "before": before,
+        "after": after,
+    }
+
+
+def derived(m: dict[str, Any]) -> dict[str, Any]:
+    """The headline figures out of the raw before/after counters."""
+    b, a = m.get("before", {}), m.get("after", {})
+    out: dict[str, Any] = {}
+    wd0, wd1 = b.get("status", {}).get("watchdog", {}), a.get("status", {}).get("watchdog", {})
+    out["watchdog_state_end"] = wd1.get("state")
+    out["watchdog_reason_end"] = wd1.get("reason")
+    if "trips" in wd0 and "trips" in wd1:
+        out["watchdog_trips_in_window"] = wd1["trips"] - wd0["trips"]
+    out["read_lag_max_ms"] = wd1.get("read_lag_max_ms")
+    r0, r1 = b.get("h2_reader", {}), a.get("h2_reader", {})
+    if isinstance(r0.get("missing"), dict) and isinstance(r1.get("missing"), dict):
+        out["h2_reader_missing"] = {
+            k: r1["missing"][k] - r0["missing"].get(k, 0) for k in r1["missing"]
+        }
+        out["h2_reader_frames"] = {
+            k: r1["frames"][k] - r0["frames"].get(k, 0) for k in r1.get("frames", {})
+        }
+        out["h2_reader_malformed"] = r1.get("malformed", 0) - r0.get("malformed", 0)
+    p0, p1 = b.get("pattern", {}), a.get("pattern", {})
+    if "sent" in p0 and "sent" in p1:
+        out["pattern_state_end"] = p1.get("state")
+        out["pattern_sent"] = p1["sent"] - p0["sent"]
+    rec0, rec1 = b.get("recorder", {}), a.get("recorder", {})
+    for k in ("received", "written", "dropped"):
+        if k in rec0 and k in rec1:
+            out[f"recorder_{k}"] = rec1[k] - rec0[k]
+    out["recorder_state_end"] = rec1.get("state")
+    nodes0 = {n["name"]: n for n in b.get("status", {}).get("nodes", [])}
+    out["node_restarts_in_window"] = {
+        n["name"]: n["restarts"] - nodes0.get(n["name"], {}).get("restarts", 0)
+        for n in a.get("status", {}).get("nodes", [])
+    }
+    return out
+
+
+def write_text(path: Path, text: str, mode: int = 0o644) -> Path:
+    path.write_text(text)
+    path.chmod(mode)
+    return path
