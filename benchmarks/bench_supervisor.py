@@ -87,20 +87,7 @@ def run(quick: bool) -> dict[str, Any]:
                     break
                 time.sleep(0.005)
             time.sleep(0.3)
-        stop_to_trip = []
-        for _ in range(5 if quick else 10):
-            time.sleep(1.5)  # the killed sender restarts
-            app.arm()
-            pid = app.node("h2_sender")["pid"]
-            bus.clear()
-            t0 = time.time()
-            os.kill(pid, signal.SIGSTOP)
-            m = bus.wait_for(is_disable, 3)
-            with contextlib.suppress(ProcessLookupError):  # the supervisor kills a hung node
-                os.kill(pid, signal.SIGCONT)
-            if m is not None:
-                stop_to_trip.append(m.timestamp - t0)
-            time.sleep(0.5)
+        stop_to_trip = _sigstop_trials(app, bus, "h2_sender", 5 if quick else 10)
         motion_stop_to_trip = _sigstop_trials(app, bus, "pattern_player", 10 if quick else 30)
         silence_to_trip = []
         for _ in range(5 if quick else 10):
