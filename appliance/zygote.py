@@ -9,8 +9,9 @@ child per node on request. No Zenoh session or thread exists here before a fork:
 its own afterwards. A node is forked through a short-lived intermediate, so it is re-parented to
 the supervisor (a child subreaper), which waits for it exactly as for a process it spawned.
 
-Protocol (SOCK_SEQPACKET from the supervisor): a JSON request {name, config, env} with two file
-descriptors, the node's stdout and its liveness pipe; the reply {pid} or {error}.
+Protocol (SOCK_SEQPACKET from the supervisor): {ready} once imported; then per node a JSON
+request {name, config, env} with two file descriptors, the node's stdout and its liveness pipe,
+and the reply {pid} or {error}.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def serve(fd: int) -> None:
     gc.collect()
     gc.freeze()
     sock = socket.socket(fileno=fd)
+    sock.send(b'{"ready": true}')  # imports done: the supervisor waits for this before any request
     while True:
         try:
             msg, fds, _flags, _addr = socket.recv_fds(sock, MAX_REQUEST, 2)

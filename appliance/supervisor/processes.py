@@ -252,10 +252,24 @@ class Zygote:
         )
         theirs.close()
         plain_priority(self.proc.pid)  # its forks must not inherit the supervisor's nice
-        self._sock.settimeout(ZYGOTE_TIMEOUT_S)
         self._lock = threading.Lock()
+        self.broken = False
+        self._sock.settimeout(ZYGOTE_READY_S)  # its imports: seconds on one A8 core
+        try:
+            ready = json.loads(self._sock.recv(4096) or b"{}").get("ready")
+        except (OSError, ValueError) as exc:
+            self._retire()
+            raise OSError(f"zygote not ready: {exc}") from None
+        if not ready:
+            self._retire()
+            raise OSError("zygote exited before it was ready")
+        self._sock.settimeout(ZYGOTE_TIMEOUT_S)
 
     def spawn(self, name: str, config: str, env: dict[str, str], live_fd: int) -> Forked:
+        """A forked node; any failure retires the zygote for good (a late reply must never be
+        taken as the answer to a later request) and the caller starts the node by exec."""
+        if self.broken:
+            raise RuntimeError("zygote retired after an earlier failure")
         r, w = os.pipe2(os.O_CLOEXEC)
         try:
             req = json.dumps({"name": name, "config": config, "env": env}).encode()
@@ -264,15 +278,24 @@ class Zygote:
                 reply = json.loads(self._sock.recv(4096) or b"{}")
         except (OSError, ValueError) as exc:
             os.close(r)
+            self._retire()
             raise RuntimeError(f"zygote: {exc}") from None
         finally:
             os.close(w)
         if "pid" not in reply:
             os.close(r)
+            self._retire()
             raise RuntimeError(f"zygote: {reply.get('error', 'no reply')}")
         return Forked(int(reply["pid"]), r)
 
+    def _retire(self) -> None:
+        """At once, from the supervisor's loop: no waiting on a zygote that misbehaves."""
+        self.broken = True
+        self._sock.close()
+        self.proc.kill()
+
     def close(self) -> None:
+        self.broken = True
         self._sock.close()  # the zygote sees EOF and exits
         try:
             self.proc.wait(3)
@@ -280,7 +303,8 @@ class Zygote:
             self.proc.kill()
 
 
-ZYGOTE_TIMEOUT_S = 10.0
+ZYGOTE_TIMEOUT_S = 2.0  # a fork takes milliseconds; the supervisor's loop waits on this
+ZYGOTE_READY_S = 120.0
 
 
 def plain_priority(pid: int) -> None:
