@@ -326,3 +326,22 @@ def test_bad_config_starts_nothing(tmp_path, mbus, text: str, expected: str) -> 
     assert r.returncode == 3
     assert f"config error: {path}" in r.stderr and expected.split(":")[0] in r.stderr
     assert collect(mbus, 0.3) == []
+
+
+def test_a_dead_zygote_costs_speed_not_restarts(app) -> None:  # type: ignore[no-untyped-def]
+    """Nodes fork from the zygote; if it dies the supervisor starts them by exec instead."""
+    st = app.status()
+    assert st["zygote_pid"]
+    os.kill(st["zygote_pid"], signal.SIGKILL)
+    pid = app.node("h2_reader")["pid"]
+    os.kill(pid, signal.SIGKILL)
+    wait_for(
+        lambda: (
+            (n := app.node("h2_reader"))["pid"] not in (None, pid)
+            and n["heartbeat_age_s"] is not None
+        ),
+        timeout=20,
+    )
+    new = app.node("h2_reader")["pid"]
+    with open(f"/proc/{new}/cmdline", "rb") as f:
+        assert b"exolink.runtime" in f.read()
