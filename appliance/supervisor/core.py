@@ -90,6 +90,9 @@ class Supervisor:
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
         self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog)
         self.watchdog.start()  # safe action before anything else can move
+        # The first link check imports pyroute2 (~4 s on an emulated A8): here, before READY, not
+        # in the loop systemd watches (with bring_up false it killed the supervisor at each start).
+        self._check_bus()
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE)
         self._serve_api()
