@@ -28,6 +28,7 @@ from exolink.config import ApplianceConfig
 from exolink.node import HEARTBEAT_PERIOD_S, HEARTBEAT_TOPIC, HEARTBEAT_TYPE, Node, NodeContext
 
 TELEMETRY_EVERY = 10
+STALL_LOG_EVERY_S = 10.0
 
 
 class NodeRunner:
@@ -57,15 +58,28 @@ class NodeRunner:
         beat = cdr.HeartbeatCdr(self.name, os.getpid())
         next_t = time.monotonic()
         stalled_since: float | None = None  # the journal says which loop went quiet, how long
+        # At most one stalled/recovered pair per STALL_LOG_EVERY_S, the rest counted: on a
+        # saturated core a motion node's 40 ms stall limit otherwise floods the journal (and the
+        # supervisor, which relays every line).
+        quiet_until, unlogged, logging = 0.0, 0, True
         while not self.stop.is_set():
             before = self.node.last_beat
             healthy = self.node.healthy()
             if not healthy and stalled_since is None:
                 stalled_since = before
-                self.log.warning("loop_stalled", limit_s=self.node.stall_s)
+                logging = time.monotonic() >= quiet_until
+                if logging:
+                    self.log.warning(
+                        "loop_stalled", limit_s=self.node.stall_s, stalls_not_logged=unlogged
+                    )
+                    unlogged = 0
             elif healthy and stalled_since is not None:
                 stalled_s = self.node.last_beat - stalled_since
-                self.log.warning("loop_recovered", stalled_s=round(stalled_s, 2))
+                if logging:
+                    self.log.warning("loop_recovered", stalled_s=round(stalled_s, 2))
+                    quiet_until = time.monotonic() + STALL_LOG_EVERY_S
+                else:
+                    unlogged += 1
                 stalled_since = None
             if healthy:  # proof of life: only the loop's own beats within stall_s count
                 self.node.liveness.beat()

@@ -67,3 +67,20 @@ def test_a_stalled_loop_is_logged_with_its_length(session: zenoh.Session) -> Non
     _, events = run_for(StallsOnce, session, 1.5)
     assert [e["event"] for e in events] == ["loop_stalled", "loop_recovered"]
     assert events[1]["stalled_s"] >= 0.8
+
+
+class StallsOften(Node):
+    """A loop on a saturated core: quiet past stall_s again and again."""
+
+    stall_s = 0.1
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            self.beat()
+            time.sleep(0.25)
+
+
+def test_repeated_stalls_are_logged_once_then_counted(session: zenoh.Session) -> None:
+    _, events = run_for(StallsOften, session, 2.0)
+    assert [e["event"] for e in events] == ["loop_stalled", "loop_recovered"]
+    assert events[0]["stalls_not_logged"] == 0
