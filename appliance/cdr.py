@@ -4,22 +4,18 @@ rosbags' generic serializer builds a message object and walks its fields (~12 us
 on an x86 core, plus numpy arrays to hold the values); the reader publishes 200 messages a second
 on a Cortex-A8. A message whose strings and sequence lengths never change (six joint names, an
 empty frame_id) has a fixed byte layout: everything but the numbers is computed once. rosbags
-stays the reference: every template is checked against its serializer when it is made, and a
-mismatch refuses to start instead of publishing bytes a ROS 2 subscriber would misread.
+stays the reference: tests/test_cdr.py checks every template byte for byte against its
+serializer over generated values (checking at start-up would load rosbags and numpy into the
+very processes this module keeps them out of).
 """
 
 from __future__ import annotations
 
-import math
 import struct
 from collections.abc import Sequence
 from typing import Any
 
 CDR_LE = b"\x00\x01\x00\x00"  # encapsulation: plain CDR, little endian
-
-
-class TemplateError(RuntimeError):
-    """The template and rosbags disagree: a layout assumption here is wrong."""
 
 
 class _Layout:
@@ -165,34 +161,3 @@ def diagnostics(
     s, consts = lay.done()
     sec, nsec = divmod(ns, 1_000_000_000)
     return CDR_LE + s.pack(sec, nsec, *consts)
-
-
-def check_against_rosbags(payload: bytes, reference: Any, typename: str) -> None:
-    """Refuse a template whose bytes differ from rosbags' for the same message."""
-    from exolink import messaging
-
-    expected = messaging.serialize(reference, typename)
-    if payload != expected:
-        raise TemplateError(
-            f"{typename}: template CDR differs from rosbags' ({payload.hex()} != {expected.hex()})"
-        )
-
-
-def joint_state_reference(names: Sequence[str], ns: int, pos: Any, eff: Any) -> Any:
-    """The same JointState as a rosbags message (for checks and tests)."""
-    import numpy as np
-    from exolink import messaging
-
-    cls = messaging.msg_class(JointStateCdr.TYPE)
-    empty = np.empty(0, dtype=np.float64)
-    return cls(
-        header=messaging.header(ns),
-        name=list(names),
-        position=np.array(pos, dtype=np.float64),
-        velocity=empty,
-        effort=empty if eff is None else np.array(eff, dtype=np.float64),
-    )
-
-
-def finite(values: Sequence[float]) -> bool:
-    return all(math.isfinite(v) for v in values)

@@ -178,16 +178,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--config", "-c", required=True)
     p.add_argument("--listen", action="append", help="also listen on a Zenoh endpoint")
     args = p.parse_args(argv)
-    from exolink import logs
     from exolink.cli.errors import run_guarded
+
+    return run_guarded(lambda a: start(a.config, a.name, a.listen), args)
+
+
+def start(config_path: str, name: str, listen: list[str] | None = None) -> int:
+    """Load the config checking this node's params only (its plugin alone loads), then run it."""
+    from exolink import logs
     from exolink.config import load
 
-    def run(a: argparse.Namespace) -> int:
-        cfg = load(a.config, check=[a.name])  # this node's params only: its plugin alone loads
-        logs.setup(a.name)
-        return run_standalone(cfg, a.name, a.listen)
-
-    return run_guarded(run, args)
+    cfg = load(config_path, check=[name])
+    logs.setup(name)
+    return run_standalone(cfg, name, listen)
 
 
 if __name__ == "__main__":

@@ -24,13 +24,9 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_node_run(args: argparse.Namespace) -> int:
-    from exolink import logs
-    from exolink.config import load
-    from exolink.runtime import run_standalone
+    from exolink.runtime import start
 
-    cfg = load(config_path(args), check=[args.name])
-    logs.setup(args.name)
-    return run_standalone(cfg, args.name, args.listen)
+    return start(config_path(args), args.name, args.listen)
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
