@@ -25,7 +25,7 @@ class ArmingState:
         self.stale_s = stale_s
         self._sub = msg.subscribe(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
         try:
-            reply = messaging.request(msg.session, msg.mgmt("watchdog"), {}, timeout_s=0.5)
+            reply = msg.request("watchdog")
             if reply.get("ok"):
                 self._update(str(reply["state"]), str(reply.get("reason", "")))
         except messaging.Unreachable:

@@ -20,16 +20,23 @@ import socket
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 import structlog
+from exolink import roles
 from exolink.config import ConfigError, DeviceName, decode_yaml, parse
 
 log = structlog.get_logger("exolink.boardsetup")
 
 SETTINGS_FILE = "exolink-settings.yaml"
-LAPTOP_FILE = "exolink-laptop.json5"
+
+
+def laptop_file(role: str) -> str:
+    """The login file of a role on the card's drive (only for the roles the settings ask for)."""
+    return f"exolink-{role}.json5"
+
+
 FIRST_BOOT_DONE = "var/lib/exolink/first-boot.done"
 LOGIN_USER = "exo"
 SERVICE_GROUP = "exolink"
@@ -55,9 +62,14 @@ class Wifi(_Strict):
     password: str = ""
 
 
+Role = Literal["observer", "operator", "admin"]
+Password = Annotated[str, msgspec.Meta(pattern=r"^[^:\s]{12,128}$")]
+
+
 class ZenohAuth(_Strict):
-    user: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{0,32}$")] = "lab"
-    password: str = ""
+    # Roles that get a laptop login file on the card; [] = no logins at all (open port).
+    logins: list[Role] = msgspec.field(default_factory=lambda: ["operator", "observer"])
+    passwords: dict[Role, Password] = msgspec.field(default_factory=dict)  # else made up
 
 
 class Ssh(_Strict):
@@ -123,6 +135,7 @@ class Plan:
     files: dict[str, tuple[str, int]] = field(default_factory=dict)  # path -> (text, mode)
     remove: list[str] = field(default_factory=list)
     boot_files: dict[str, str] = field(default_factory=dict)  # written back to the boot partition
+    boot_remove: list[str] = field(default_factory=list)
     first_boot: bool = False  # also regenerate SSH host keys and grow the root partition
     problems: list[str] = field(default_factory=list)  # applied anyway, logged as errors
 
@@ -167,41 +180,50 @@ def _wpa(s: BoardSettings) -> str:
     )
 
 
-def _zenoh_password(s: BoardSettings, root: Path) -> str:
-    """The card's password, else the one made up on an earlier boot, else a new random one."""
-    if s.zenoh.password:
-        return s.zenoh.password
+def _zenoh_passwords(s: BoardSettings, root: Path) -> dict[str, str]:
+    """Per login: the card's password, else the one made up on an earlier boot, else new."""
+    earlier: dict[str, str] = {}
     users = root / ZENOH_USERS
     if users.exists():
         for line in users.read_text().splitlines():
             user, _, password = line.partition(":")
-            if user == s.zenoh.user and password:
-                return password
-    return secrets.token_urlsafe(12)
+            if password:
+                earlier[user] = password
+    out = {}
+    for user in (roles.APPLIANCE_USER, *roles.ROLES):
+        given = s.zenoh.passwords.get(user) if user in roles.ROLES else None  # type: ignore[call-overload]
+        out[user] = given or earlier.get(user) or secrets.token_urlsafe(12)
+    return out
 
 
 def _zenoh(s: BoardSettings, root: Path, plan: Plan) -> None:
-    """Router, nodes and laptops all present user/password; the router checks the dictionary.
+    """One Zenoh login per role, and the appliance's own: the router checks the dictionary and
+    enforces the roles (exolink.roles); laptop files only for the roles the settings ask for.
 
-    An empty user switches authentication off (a closed lab network), which the log says.
+    No logins switches authentication and roles off (a closed lab network), which the log says.
     """
-    if not s.zenoh.user:
+    for role in roles.ROLES:
+        if role not in s.zenoh.logins:
+            plan.boot_remove.append(laptop_file(role))
+    if not s.zenoh.logins:
         plan.files["etc/exolink/zenoh.json5"] = ("{}\n", 0o640)
         plan.remove.append(ZENOH_USERS)
-        log.warning("zenoh authentication is off", why="zenoh.user is empty in the settings")
+        log.warning("zenoh authentication is off", why="zenoh.logins is empty in the settings")
         return
-    password = _zenoh_password(s, root)
-    auth = {"user": s.zenoh.user, "password": password}
-    board = {"transport": {"auth": {"usrpwd": {**auth, "dictionary_file": "/" + ZENOH_USERS}}}}
+    passwords = _zenoh_passwords(s, root)
+    own = {"user": roles.APPLIANCE_USER, "password": passwords[roles.APPLIANCE_USER]}
+    board = {"transport": {"auth": {"usrpwd": {**own, "dictionary_file": "/" + ZENOH_USERS}}}}
     plan.files["etc/exolink/zenoh.json5"] = (json.dumps(board, indent=2) + "\n", 0o640)
-    plan.files[ZENOH_USERS] = (f"{s.zenoh.user}:{password}\n", 0o640)
-    laptop = {"transport": {"auth": {"usrpwd": auth}}}
-    plan.boot_files[LAPTOP_FILE] = (
-        f"// Zenoh login for {s.device}: on the laptop, "
-        f"exolink --zenoh-config {LAPTOP_FILE} --at tcp/{s.device}.local:7447 status\n"
-        + json.dumps(laptop, indent=2)
-        + "\n"
-    )
+    plan.files[ZENOH_USERS] = ("".join(f"{u}:{pw}\n" for u, pw in passwords.items()), 0o640)
+    for role in s.zenoh.logins:
+        laptop = {"transport": {"auth": {"usrpwd": {"user": role, "password": passwords[role]}}}}
+        name = laptop_file(role)
+        plan.boot_files[name] = (
+            f"// Zenoh login of role {role} on {s.device}: on the laptop, "
+            f"exolink --zenoh-config {name} --at tcp/{s.device}.local:7447 status\n"
+            + json.dumps(laptop, indent=2)
+            + "\n"
+        )
 
 
 def _device_in_config(text: str, device: str) -> str:
@@ -287,6 +309,8 @@ def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:
     for name, text in p.boot_files.items():
         if not (boot / name).exists() or (boot / name).read_text() != text:
             _write(boot, name, text, 0o600)
+    for name in p.boot_remove:
+        (boot / name).unlink(missing_ok=True)
     if root == Path("/"):
         _run_live(settings, p)
     for problem in p.problems:
@@ -296,7 +320,7 @@ def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:
         device=settings.device,
         wifi=bool(settings.wifi.ssid),
         ethernet=settings.ethernet.address,
-        zenoh_auth=bool(settings.zenoh.user),
+        zenoh_logins=settings.zenoh.logins,
         simulate=settings.simulate,
         files=len(p.files),
     )

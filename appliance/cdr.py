@@ -161,3 +161,11 @@ def diagnostics(
     s, consts = lay.done()
     sec, nsec = divmod(ns, 1_000_000_000)
     return CDR_LE + s.pack(sec, nsec, *consts)
+
+
+def string_msg(text: str) -> bytes:
+    """A std_msgs/String (the command log's JSON lines)."""
+    lay = _Layout()
+    lay.string(text)
+    s, consts = lay.done()
+    return CDR_LE + s.pack(*consts)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+from exolink import roles
 from exolink.config import ApplianceConfig, ConfigError, ZenohConfig
 
 MSG_DIR = Path(__file__).with_name("msgs")
@@ -197,7 +198,14 @@ def session_config(
             "connect/timeout_ms",
             json.dumps({"router": -1, "peer": -1, "client": CLIENT_CONNECT_TIMEOUT_MS}),
         )
+    if mode == "router" and roles.enforced(json.loads(cfg.get_json("transport/auth/usrpwd"))):
+        cfg.insert_json5("access_control", json.dumps(roles.access_control(zcfg.domain_id)))
     return cfg
+
+
+def login(cfg: zenoh.Config) -> str:
+    """The login a session's management queries end with (see roles)."""
+    return json.loads(cfg.get_json("transport/auth/usrpwd/user")) or roles.ANONYMOUS_USER
 
 
 def open_session(cfg: zenoh.Config, what: str) -> zenoh.Session:
@@ -217,6 +225,7 @@ def local_endpoint(zcfg: ZenohConfig) -> str:
 
 
 def open_node_session(cfg: ApplianceConfig) -> zenoh.Session:
+    """A node's client session, with the appliance's own login when the board has logins."""
     endpoint = local_endpoint(cfg.zenoh)
     zcfg = session_config(cfg.zenoh, connect=[endpoint], mode="client")
     return open_session(zcfg, f"supervisor's Zenoh router at {endpoint}")
@@ -231,12 +240,22 @@ def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
 
 
 def open_client_session(endpoint: str, config_file: str | None = None) -> zenoh.Session:
-    """A laptop tool's session to one appliance (config_file: the board's login, if it has one)."""
+    """A laptop tool's session to one appliance (config_file: the login file the board wrote
+    for a role; without one, an open appliance is assumed). Its queries end with client_login."""
+    zcfg = _client_config(endpoint, config_file)
+    hint = f" as {login(zcfg)} (is the login file this board's?)" if config_file else ""
+    return open_session(zcfg, f"no appliance answers at {endpoint}{hint}")
+
+
+def client_login(config_file: str | None) -> str:
+    return login(_client_config("tcp/127.0.0.1:0", config_file))
+
+
+def _client_config(endpoint: str, config_file: str | None) -> zenoh.Config:
     if config_file and not os.path.isfile(config_file):
         raise ConfigError(f"{config_file}: Zenoh config file not found")
     base = ZenohConfig(listen=[], config_file=config_file)
-    zcfg = session_config(base, connect=[endpoint], mode="client")
-    return open_session(zcfg, f"no appliance answers at {endpoint}")
+    return session_config(base, connect=[endpoint], mode="client")
 
 
 # --- typed pub/sub ---------------------------------------------------------------------------
@@ -298,6 +317,7 @@ class Messaging:
         self.domain_id = cfg.zenoh.domain_id
         self.namespace = cfg.zenoh.namespace
         self.device = cfg.device
+        self._commands: CommandLog | None = None
 
     def key(self, topic: str, typename: str) -> str:
         return topic_key(self.domain_id, self.namespace, topic, typename)
@@ -321,6 +341,24 @@ class Messaging:
     def mgmt(self, *path: str) -> str:
         return mgmt_key(self.device, *path)
 
+    def serve(
+        self,
+        path: str | tuple[str, ...],
+        handler: Callable[[dict[str, Any]], dict[str, Any] | None],
+        needs: Needs = roles.OBSERVER,
+    ) -> zenoh.Queryable:
+        """This appliance's management queryable at ``exolink/<device>/<path>`` (see serve)."""
+        if self._commands is None:
+            self._commands = CommandLog(self)
+        parts = (path,) if isinstance(path, str) else path
+        return serve(self.session, self.mgmt(*parts), handler, needs, self._commands)
+
+    def request(
+        self, *path: str, body: dict[str, Any] | None = None, timeout_s: float = 0.5
+    ) -> dict[str, Any]:
+        """A query from inside the appliance, as its own login."""
+        return request(self.session, self.mgmt(*path), body, timeout_s, roles.APPLIANCE_USER)
+
 
 # --- JSON queries (commands and management) --------------------------------------------------
 
@@ -329,27 +367,91 @@ class CommandRefused(Exception):
     """Raised by a handler to refuse a request; the text reaches the caller verbatim."""
 
 
+# The role a request needs: one for the whole key, or chosen from the request (its action).
+Needs = str | Callable[[dict[str, Any]], str]
+COMMANDS_TOPIC = "commands"
+COMMANDS_TYPE = "std_msgs/msg/String"
+_LOGGED_VALUE_CHARS = 200
+
+
+def _summary(request: dict[str, Any]) -> dict[str, Any]:
+    """The request as the command log keeps it: uploaded content by size, long values cut."""
+    out: dict[str, Any] = {}
+    for k, v in request.items():
+        if k == "content" and isinstance(v, str):
+            out[k] = f"<{len(v)} chars>"
+        else:
+            text = json.dumps(v)
+            out[k] = v if len(text) <= _LOGGED_VALUE_CHARS else text[:_LOGGED_VALUE_CHARS] + "..."
+    return out
+
+
+class CommandLog:
+    """Every command a role above observer sent, with the login that sent it: in the process'
+    log and on the ``commands`` topic (std_msgs/String, JSON), which the recorder records."""
+
+    def __init__(self, msg: Messaging) -> None:
+        self._msg = msg
+        self._pub: Publisher | None = None
+        self._lock = threading.Lock()
+
+    def write(self, user: str, key: str, request: dict[str, Any], reply: dict[str, Any]) -> None:
+        entry = {"by": user, "key": key, "request": _summary(request), "ok": reply["ok"]}
+        if not reply["ok"]:
+            entry["error"] = reply.get("error", "")
+        _log().info("command", **entry)
+        with self._lock:
+            if self._pub is None:
+                self._pub = self._msg.publisher(COMMANDS_TOPIC, COMMANDS_TYPE, raw=True)
+        from exolink import cdr
+
+        self._pub.put(cdr.string_msg(json.dumps(entry)))
+
+
+@cache
+def _log() -> Any:
+    import structlog
+
+    return structlog.get_logger("exolink.commands")
+
+
 def serve(
-    session: zenoh.Session, key: str, handler: Callable[[dict[str, Any]], dict[str, Any] | None]
+    session: zenoh.Session,
+    key: str,
+    handler: Callable[[dict[str, Any]], dict[str, Any] | None],
+    needs: Needs = roles.OBSERVER,
+    log: CommandLog | None = None,
 ) -> zenoh.Queryable:
-    """A JSON queryable: the handler's dict is the reply; refusals and bugs become errors."""
+    """A JSON queryable at ``key/<login>``: the login (proven by Zenoh's access control on a
+    board with logins) must hold the role the request needs; refusals and bugs become errors.
+    Commands (more than observer needed, or an action such as e-stop) go into ``log`` with the
+    login that sent them, accepted or not."""
 
     def on_query(query: zenoh.Query) -> None:
+        qkey = str(query.key_expr)
+        user = qkey.rsplit("/", 1)[-1]
+        request: dict[str, Any] = {}
+        needed = roles.OBSERVER
         try:
             raw = query.payload.to_bytes() if query.payload is not None else b"{}"
             request = json.loads(raw or b"{}")
             if not isinstance(request, dict):
                 raise CommandRefused("request must be a JSON object")
+            needed = needs(request) if callable(needs) else needs
+            roles.check(user, needed, f"{key.split('/', 2)[-1]} {request.get('action', '')}")
             reply = {"ok": True, **(handler(request) or {})}
-        except CommandRefused as exc:
+        except (CommandRefused, roles.Forbidden) as exc:
             reply = {"ok": False, "error": str(exc)}
         except json.JSONDecodeError as exc:
             reply = {"ok": False, "error": f"request is not valid JSON: {exc}"}
         except Exception as exc:  # never leave a caller waiting on a handler bug
             reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
         query.reply(query.key_expr, json.dumps(reply).encode())
+        command = needed != roles.OBSERVER or request.get("action") not in (None, "status")
+        if log is not None and command and user != roles.APPLIANCE_USER:
+            log.write(user, key, request, reply)
 
-    return session.declare_queryable(key, on_query)
+    return session.declare_queryable(f"{key}/*", on_query)
 
 
 class Unreachable(Exception):
@@ -361,10 +463,11 @@ def request(
     key: str,
     body: dict[str, Any] | None = None,
     timeout_s: float = DEFAULT_QUERY_TIMEOUT_S,
+    user: str = roles.ANONYMOUS_USER,
 ) -> dict[str, Any]:
-    """One JSON query with a deadline; Unreachable when nothing answers."""
+    """One JSON query as login ``user`` with a deadline; Unreachable when nothing answers."""
     payload = json.dumps(body or {}).encode()
-    for reply in session.get(key, payload=payload, timeout=timeout_s):
+    for reply in session.get(f"{key}/{user}", payload=payload, timeout=timeout_s):
         if reply.ok is not None:
             result: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
             return result

@@ -23,7 +23,7 @@ from typing import Any
 import msgspec
 import structlog
 import zenoh
-from exolink import cdr, liveness, messaging
+from exolink import cdr, liveness, messaging, roles
 from exolink.config import ApplianceConfig
 from exolink.node import HEARTBEAT_PERIOD_S, HEARTBEAT_TOPIC, HEARTBEAT_TYPE, Node, NodeContext
 
@@ -104,7 +104,7 @@ class NodeRunner:
             self.session.liveliness().declare_token(self.msg.mgmt("nodes", self.name, "alive"))
         )
         self._decls.append(
-            messaging.serve(self.session, self.msg.mgmt("nodes", self.name, "params"), self._params)
+            self.msg.serve(("nodes", self.name, "params"), self._params, roles.ADMIN)
         )
         self.node.beat()  # the loop's stall clock starts now, not at construction
         hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)

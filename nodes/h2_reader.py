@@ -81,9 +81,7 @@ class H2Reader(Node):
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         self.stats = ReaderStats()
         self.gaps = GapCounter(h2.PERIOD_S)
-        self._q = messaging.serve(
-            self.ctx.session, m.mgmt("nodes", self.name, "stats"), lambda _req: asdict(self.stats)
-        )
+        self._q = m.serve(("nodes", self.name, "stats"), lambda _req: asdict(self.stats))
         self.js = cdr.JointStateCdr(h2.JOINTS)
         self._reported_out_of_range = 0
         self.fs = cdr.FootSwitchesCdr()

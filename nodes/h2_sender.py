@@ -14,7 +14,7 @@ from typing import Annotated, Any
 
 import can
 import msgspec
-from exolink import messaging
+from exolink import messaging, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_bus
 from exolink.messaging import CommandRefused
@@ -39,10 +39,6 @@ class SenderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # The protocol allows 127 and 100; a lab sets what its motors and its patients tolerate.
     torque_cap: Caps = msgspec.field(default_factory=lambda: [127] * 6)
     stiffness_cap: Caps = msgspec.field(default_factory=lambda: [100] * 6)
-
-
-def command_key(msg: messaging.Messaging) -> str:
-    return msg.mgmt("h2", "command")
 
 
 class H2Sender(Node):
@@ -70,9 +66,7 @@ class H2Sender(Node):
         self.JointCommand = messaging.msg_class(JOINT_COMMAND)
         self.sent = 0
         self.refused = 0
-        self._q = messaging.serve(
-            self.ctx.session, command_key(self.ctx.messaging), self.on_command
-        )
+        self._q = self.ctx.messaging.serve(("h2", "command"), self.on_command, roles.OPERATOR)
         if p.send_limits_on_start:
             self._send(self.limit_frames)
 

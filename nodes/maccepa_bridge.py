@@ -13,7 +13,7 @@ from typing import Annotated, Any
 
 import can
 import msgspec
-from exolink import messaging
+from exolink import messaging, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
@@ -50,7 +50,7 @@ class MaccepaBridge(Node):
         self.arming = ArmingState(m) if self.params.require_armed else None
         self.malformed = 0
         self.lock = threading.Lock()
-        self._q = messaging.serve(self.ctx.session, m.mgmt("maccepa"), self.on_command)
+        self._q = m.serve("maccepa", self.on_command, roles.OPERATOR)
 
     def build(self, req: dict[str, Any]) -> list[can.Message]:
         board, kind = req.get("board"), req.get("kind")

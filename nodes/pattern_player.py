@@ -38,7 +38,7 @@ from typing import Annotated, Any, Literal
 import can
 import msgspec
 import numpy as np
-from exolink import messaging
+from exolink import messaging, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
@@ -165,8 +165,8 @@ class PatternPlayer(Node):
         self.sent = 0
         self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE)
         self.State = messaging.msg_class(STATE_TYPE)
-        self._q = messaging.serve(
-            self.ctx.session, self.ctx.messaging.mgmt("pattern"), self.on_command
+        self._q = self.ctx.messaging.serve(
+            "pattern", self.on_command, roles.status_or(roles.OPERATOR)
         )
 
     # --- commands -------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 import yaml
-from exolink import __version__, messaging
+from exolink import __version__, messaging, roles
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
@@ -143,7 +143,7 @@ class Recorder(Node):
             for t in self.params.topics
         ]
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS)
-        self._q = messaging.serve(self.ctx.session, m.mgmt("record"), self.on_command)
+        self._q = m.serve("record", self.on_command, roles.status_or(roles.OPERATOR))
         if self.params.autostart:
             self.start_recording(dict(self.params.labels))
 

@@ -15,7 +15,6 @@ from typing import Annotated, Any
 
 import msgspec
 import numpy as np
-from exolink import messaging
 from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
@@ -60,9 +59,7 @@ class TimingMonitor(Node):
         self.bus = self.reader.bus
         self.lock = threading.Lock()
         self.stamps: dict[tuple[int, int | None, int | None], collections.deque[float]] = {}
-        self._q = messaging.serve(
-            self.ctx.session, self.ctx.messaging.mgmt("timing"), self.on_query
-        )
+        self._q = self.ctx.messaging.serve("timing", self.on_query)
 
     def _key_stamps(self, fid: int, dlc: int | None, byte0: int | None) -> list[float]:
         with self.lock:

@@ -201,9 +201,12 @@ def spawn(tmp_path: Path) -> Iterator[Callable[..., Proc]]:
 
 
 class Appliance:
-    def __init__(self, cfg_path, spawn, *, wait_nodes: bool = True) -> None:  # type: ignore[no-untyped-def]
+    def __init__(
+        self, cfg_path, spawn, *, wait_nodes: bool = True, login: Path | None = None
+    ) -> None:  # type: ignore[no-untyped-def]
         self.cfg = load(cfg_path)
         self.at = messaging.local_endpoint(self.cfg.zenoh)
+        self.login = login  # the laptop login file the CLI uses (a board with logins)
         self.proc = spawn("up", "-c", str(cfg_path), name="up")
         self.session = None
         wait_for(lambda: self.cli("status").returncode == 0, timeout=20)
@@ -213,9 +216,11 @@ class Appliance:
                 timeout=20,
             )
 
-    def cli(self, *args: str) -> subprocess.CompletedProcess[str]:
+    def cli(self, *args: str, login: Path | None = None) -> subprocess.CompletedProcess[str]:
+        who = login or self.login
+        opts = ["--zenoh-config", str(who)] if who else []
         return subprocess.run(
-            [*EXOLINK, *args, "--at", self.at, "--timeout", "3"],
+            [*EXOLINK, *args, "--at", self.at, "--timeout", "3", *opts],
             capture_output=True,
             text=True,
             timeout=30,
@@ -230,7 +235,10 @@ class Appliance:
         return next(n for n in self.status()["nodes"] if n["name"] == name)
 
     def arm(self) -> None:
-        r = wait_for(lambda: (x := self.cli("arm")).returncode == 0 and x, timeout=10)
+        self.arm_as(None)
+
+    def arm_as(self, login: Path | None) -> None:
+        r = wait_for(lambda: (x := self.cli("arm", login=login)).returncode == 0 and x, timeout=10)
         assert "armed" in r.stdout  # type: ignore[union-attr]
 
 

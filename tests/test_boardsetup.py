@@ -60,21 +60,39 @@ def test_shipped_settings_make_a_dhcp_board_with_a_zenoh_login(card: tuple[Path,
     assert not (root / "etc/wpa_supplicant/wpa_supplicant-wlan0.conf").exists()
     assert "NTP=pool.ntp.org" in (root / "etc/systemd/timesyncd.conf.d/exolink.conf").read_text()
     assert (root / "etc/default/exolink").read_text() == "EXOLINK_UP_ARGS=\n"
-    user, _, password = (root / "etc/exolink/zenoh-users.txt").read_text().strip().partition(":")
-    assert user == "lab" and len(password) >= 16
-    assert password in (boot / boardsetup.LAPTOP_FILE).read_text()
+    users = _users(root)
+    assert set(users) == {"exolink", "observer", "operator", "admin"}
+    assert all(len(pw) >= 16 for pw in users.values()) and len(set(users.values())) == 4
+    for role in ("operator", "observer"):
+        assert users[role] in (boot / boardsetup.laptop_file(role)).read_text()
+    assert not (boot / boardsetup.laptop_file("admin")).exists()  # not asked for
     assert (root / "etc/exolink/zenoh-users.txt").stat().st_mode & 0o777 == 0o640
+    board = (root / "etc/exolink/zenoh.json5").read_text()
+    assert '"user": "exolink"' in board and users["exolink"] in board
 
 
-def test_generated_zenoh_password_survives_later_boots(card: tuple[Path, Path]) -> None:
+def _users(root: Path) -> dict[str, str]:
+    lines = (root / "etc/exolink/zenoh-users.txt").read_text().splitlines()
+    return dict(line.split(":", 1) for line in lines)
+
+
+def test_generated_zenoh_passwords_survive_later_boots(card: tuple[Path, Path]) -> None:
     boot, root = card
     apply(boot, root)
-    first = (root / "etc/exolink/zenoh-users.txt").read_text()
+    first = _users(root)
     apply(boot, root)
-    assert (root / "etc/exolink/zenoh-users.txt").read_text() == first
-    edit(boot, zenoh__password="chosen-by-the-lab")
+    assert _users(root) == first
+    edit(boot, zenoh__passwords={"operator": "chosen-by-the-lab"}, zenoh__logins=["admin"])
     apply(boot, root)
-    assert (root / "etc/exolink/zenoh-users.txt").read_text() == "lab:chosen-by-the-lab\n"
+    assert _users(root) == {**first, "operator": "chosen-by-the-lab"}
+    assert [f.name for f in boot.glob("exolink-*.json5")] == ["exolink-admin.json5"]
+
+
+def test_short_zenoh_password_is_refused(card: tuple[Path, Path]) -> None:
+    boot, _ = card
+    edit(boot, zenoh__passwords={"operator": "short"})
+    with pytest.raises(ConfigError, match=r"zenoh\.passwords"):
+        boardsetup.load_settings(boot / boardsetup.SETTINGS_FILE)
 
 
 def test_device_name_goes_into_appliance_yaml_keeping_comments(card: tuple[Path, Path]) -> None:
@@ -215,12 +233,12 @@ def test_rendered_zenoh_login_admits_the_laptop_file_and_refuses_others(
     router = messaging.open_session(cfg, "router")
     try:
         at = f"tcp/127.0.0.1:{port}"
-        laptop = messaging.open_client_session(at, str(boot / boardsetup.LAPTOP_FILE))
+        laptop = messaging.open_client_session(at, str(boot / boardsetup.laptop_file("observer")))
         laptop.close()
         with pytest.raises(messaging.Unreachable):
             messaging.open_client_session(at)
         wrong = tmp_path / "wrong.json5"
-        wrong.write_text('{transport: {auth: {usrpwd: {user: "lab", password: "guess"}}}}')
+        wrong.write_text('{transport: {auth: {usrpwd: {user: "observer", password: "guess"}}}}')
         with pytest.raises(messaging.Unreachable):
             messaging.open_client_session(at, str(wrong))
     finally:
@@ -229,4 +247,4 @@ def test_rendered_zenoh_login_admits_the_laptop_file_and_refuses_others(
 
 def test_missing_laptop_file_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match="Zenoh config file not found"):
-        messaging.open_client_session("tcp/127.0.0.1:1", "/nonexistent/exolink-laptop.json5")
+        messaging.open_client_session("tcp/127.0.0.1:1", "/nonexistent/exolink-observer.json5")

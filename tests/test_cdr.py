@@ -71,6 +71,12 @@ def test_diagnostics_is_rosbags_cdr(ns: int, level: str, text: str, values: dict
     assert payload == messaging.serialize(ref, messaging.DIAGNOSTICS_TYPE)
 
 
+@given(text=st.text(max_size=200))
+def test_string_is_rosbags_cdr(text: str) -> None:
+    ref = messaging.msg_class("std_msgs/msg/String")(data=text)
+    assert cdr.string_msg(text) == messaging.serialize(ref, "std_msgs/msg/String")
+
+
 def test_type_hash_table_matches_rosbags() -> None:
     table = json.loads(messaging.TYPE_HASHES.read_text())
     store = messaging.typestore()

@@ -112,7 +112,8 @@ def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None
     app.arm()
     s = messaging.open_client_session(app.at)
     try:
-        messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 1.5})
+        # Long enough that two CLI runs fit in it on a loaded 2-core machine (1.5 s did not).
+        messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 6})
         assert_all_disabled(collect(mbus, 0.5, {70}))
         wd = app.status()["watchdog"]
         assert wd["reason"] == "h2 data silent" and "limit 100 ms" in wd["detail"]
@@ -120,6 +121,7 @@ def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None
         assert r.returncode == 5 and "cannot arm: no H2 data for" in r.stderr
     finally:
         s.close()
+    wait_for(lambda: app.status()["bus"]["h2_silent_s"] < 0.5, timeout=15)
     app.arm()  # data is back
 
 

@@ -29,6 +29,7 @@ class Remote:
         self.timeout = args.timeout
         self.domain, self.ns = args.domain, args.ns
         self.session = messaging.open_client_session(self.at, args.zenoh_config)
+        self.user = messaging.client_login(args.zenoh_config)
         self._device = args.device
 
     @property
@@ -59,7 +60,7 @@ class Remote:
 
     def call(self, *path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
         key = messaging.mgmt_key(self.device, *path)
-        reply = messaging.request(self.session, key, body or {}, timeout_s=self.timeout)
+        reply = messaging.request(self.session, key, body or {}, self.timeout, self.user)
         if not reply.get("ok"):
             raise Refused(str(reply.get("error", "refused")))
         return reply
@@ -328,7 +329,7 @@ def common() -> argparse.ArgumentParser:
     g.add_argument(
         "--zenoh-config",
         default=os.environ.get("EXOLINK_ZENOH_CONFIG"),
-        help="Zenoh login for a board that requires one: the card's exolink-laptop.json5 "
+        help="Zenoh login for a board that requires one: the card's exolink-<role>.json5 "
         "(env EXOLINK_ZENOH_CONFIG)",
     )
     g.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for an answer")

@@ -20,7 +20,7 @@ import msgspec
 import structlog
 import yaml
 import zenoh
-from exolink import liveness, messaging
+from exolink import liveness, messaging, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
@@ -395,16 +395,19 @@ class Supervisor:
     # --- management API ---------------------------------------------------------------------
 
     def _serve_api(self) -> None:
-        routes = {
-            "status": self.api_status,
-            "nodes": lambda _r: {"nodes": [n.describe() for n in self.nodes.values()]},
-            "control": self.api_control,
-            "logs": self.api_logs,
-            "watchdog": self.api_watchdog,
-            "trigger": self.api_trigger,
+        routes: dict[str, tuple[Any, messaging.Needs]] = {
+            "status": (self.api_status, roles.OBSERVER),
+            "nodes": (
+                lambda _r: {"nodes": [n.describe() for n in self.nodes.values()]},
+                roles.OBSERVER,
+            ),
+            "control": (self.api_control, roles.ADMIN),
+            "logs": (self.api_logs, roles.ADMIN),
+            "watchdog": (self.api_watchdog, _watchdog_needs),
+            "trigger": (self.api_trigger, roles.status_or(roles.OPERATOR)),
         }
-        for path, handler in routes.items():
-            self._decls.append(messaging.serve(self.session, self.msg.mgmt(path), handler))
+        for path, (handler, needs) in routes.items():
+            self._decls.append(self.msg.serve(path, handler, needs))
 
     def api_status(self, _req: dict[str, Any]) -> dict[str, Any]:
         wd = self.watchdog.snapshot()
@@ -496,6 +499,11 @@ class Supervisor:
         if action is not None:
             raise CommandRefused(f"unknown trigger action {action!r} (fire)")
         return {"count": self.trigger_count, "last_ns": self.last_trigger_ns}
+
+
+def _watchdog_needs(req: dict[str, Any]) -> str:
+    """E-stop is every login's; arming and disarming are the operator's."""
+    return roles.OPERATOR if req.get("action") in ("arm", "disarm") else roles.OBSERVER
 
 
 def _config_data(cfg: ApplianceConfig) -> dict[str, Any]:

@@ -221,7 +221,7 @@ def prepare(
     log.info("card copied", image=str(image), copy=str(card.img))
 
     settings = yaml.safe_load(card.fat_read("exolink-settings.yaml").decode("utf-8-sig"))
-    settings["zenoh"] = {"user": "lab", "password": zenoh_password}
+    settings["zenoh"] = {"logins": ["operator"], "passwords": {"operator": zenoh_password}}
     settings["ssh"] = {"authorized_keys": [ssh_pubkey], "password": ""}
     settings["simulate"] = False  # --sim would put the bus on udp_multicast: the bench uses vcan0
     (work / "exolink-settings.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))

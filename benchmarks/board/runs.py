@@ -126,8 +126,8 @@ def run_guest(
         timings,
     )
     result["config"] = cfg
-    laptop_cfg = work / "exolink-laptop.json5"
-    login = {"transport": {"auth": {"usrpwd": {"user": "lab", "password": password}}}}
+    laptop_cfg = work / "exolink-operator.json5"
+    login = {"transport": {"auth": {"usrpwd": {"user": "operator", "password": password}}}}
     laptop_cfg.write_text(json.dumps(login) + "\n")
     guest = Guest(card, work, key, journal_console)
     result["qemu_command"] = " ".join(guest.cmd)

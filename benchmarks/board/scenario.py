@@ -148,7 +148,8 @@ class Laptop:
 
     def call(self, *path: str, body: dict[str, Any] | None = None, timeout: float = 10) -> Any:
         key = messaging.mgmt_key(self.device, *path)
-        return messaging.request(self.session, key, body or {}, timeout_s=timeout)
+        user = messaging.client_login(self.zenoh_config)
+        return messaging.request(self.session, key, body or {}, timeout, user)
 
     def cli(self, *args: str, tries: int = 5) -> subprocess.CompletedProcess[str]:
         """One CLI command; retried while the board does not answer (exit 4: a busy guest can

@@ -15,8 +15,9 @@ from typing import Annotated, Any
 
 import can
 import msgspec
+from exolink import roles
 from exolink.canbus import id_filters, open_bus
-from exolink.messaging import CommandRefused, serve
+from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.nodes.simulator.boards import H2Board, MaccepaBoard
 from exolink.protocol import h2, maccepa
@@ -172,7 +173,7 @@ class SimulatorNode(Node):
             self.ctx.config.can, filters=id_filters(Simulator.command_ids(self.params))
         )
         self.sim = Simulator(self.bus, self.params)
-        self._q = serve(self.ctx.session, self.ctx.messaging.mgmt("sim", "fault"), self._on_fault)
+        self._q = self.ctx.messaging.serve(("sim", "fault"), self._on_fault, roles.ADMIN)
 
     def _on_fault(self, req: dict[str, Any]) -> dict[str, Any]:
         try:

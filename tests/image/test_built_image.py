@@ -422,8 +422,8 @@ def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -
     c.wait_for(r"root filesystem grown", 60)
     c.wait_for(r"ssh host keys generated", 60)
 
-    laptop = booted["dir"] / "exolink-laptop.json5"
-    laptop.write_bytes(mcat(booted["fat"], "exolink-laptop.json5"))
+    laptop = booted["dir"] / "exolink-operator.json5"
+    laptop.write_bytes(mcat(booted["fat"], "exolink-operator.json5"))
     cmd = [
         sys.executable,
         "-m",

@@ -40,10 +40,12 @@ def _names(card: Path) -> list[str]:
 
 def test_a_new_boot_file_is_on_the_card_when_write_returns(fat_boot: Path, tmp_path: Path) -> None:
     text = "// Zenoh login for exo-01\n" + "x" * 3000 + "\n"
-    boardsetup._write(fat_boot, boardsetup.LAPTOP_FILE, text, 0o600)
+    boardsetup._write(fat_boot, boardsetup.laptop_file("operator"), text, 0o600)
     card = _card_after_power_cut(tmp_path)
-    assert _mtype(card, boardsetup.LAPTOP_FILE) == text
-    assert _names(card) == [boardsetup.LAPTOP_FILE]  # no stray temp entry sharing its clusters
+    assert _mtype(card, boardsetup.laptop_file("operator")) == text
+    assert _names(card) == [
+        boardsetup.laptop_file("operator")
+    ]  # no stray temp entry sharing its clusters
     check = subprocess.run(["fsck.vfat", "-n", str(card)], capture_output=True, text=True)
     assert "cross-linked" not in check.stdout and "Orphaned" not in check.stdout, check.stdout
 
@@ -51,8 +53,8 @@ def test_a_new_boot_file_is_on_the_card_when_write_returns(fat_boot: Path, tmp_p
 def test_a_rewritten_boot_file_is_the_new_one_when_write_returns(
     fat_boot: Path, tmp_path: Path
 ) -> None:
-    boardsetup._write(fat_boot, boardsetup.LAPTOP_FILE, "old\n", 0o600)
-    boardsetup._write(fat_boot, boardsetup.LAPTOP_FILE, "new login\n", 0o600)
+    boardsetup._write(fat_boot, boardsetup.laptop_file("operator"), "old\n", 0o600)
+    boardsetup._write(fat_boot, boardsetup.laptop_file("operator"), "new login\n", 0o600)
     card = _card_after_power_cut(tmp_path)
-    assert _mtype(card, boardsetup.LAPTOP_FILE) == "new login\n"
-    assert _names(card) == [boardsetup.LAPTOP_FILE]
+    assert _mtype(card, boardsetup.laptop_file("operator")) == "new login\n"
+    assert _names(card) == [boardsetup.laptop_file("operator")]

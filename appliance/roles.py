@@ -1,0 +1,133 @@
+"""Who may do what on the network: the one place roles, logins and Zenoh's access control meet.
+
+A board with logins (a usrpwd dictionary in its Zenoh config) runs its router with Zenoh's own
+access control, default deny. Each laptop login is named after its role. Every management query
+ends with the caller's login (``exolink/<device>/<path>/<login>``) and the ACL lets a login
+query only keys ending in its own name, so a handler reads a caller's identity from the key and
+Zenoh has already proven it. What a role may do is then decided here (``allows``), per request.
+
+- ``observer``: data, status, e-stop.
+- ``operator``: also arm and disarm, joint commands, patterns, recording, trigger.
+- ``admin``: also node start/stop/restart, params, logs, simulator faults.
+- ``exolink``: the appliance's own processes (the login in /etc/exolink/zenoh.json5, readable by
+  the service only); they declare queryables and publish data, which no laptop login may.
+
+No laptop login may put data or declare queryables: a forged ``watchdog`` state or joint state
+would otherwise reach the nodes that act on them. An appliance without logins (``make sim``, a
+closed lab network) enforces nothing: any key suffix is believed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+OBSERVER, OPERATOR, ADMIN = "observer", "operator", "admin"
+ROLES = (OBSERVER, OPERATOR, ADMIN)
+APPLIANCE_USER = "exolink"
+# A caller without a login (open appliance) speaks as admin: nothing is enforced there anyway.
+ANONYMOUS_USER = ADMIN
+_RANK = {OBSERVER: 0, OPERATOR: 1, ADMIN: 2, APPLIANCE_USER: 3}
+
+ALL_MESSAGES = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
+
+
+class Forbidden(Exception):
+    """A caller's role does not allow the request; the text names both."""
+
+
+def check(user: str, needed: str, what: str) -> None:
+    """Raise Forbidden unless login ``user`` holds role ``needed`` (or a higher one)."""
+    if user not in _RANK:
+        raise Forbidden(f"unknown caller {user!r} (logins: {', '.join(ROLES)})")
+    if _RANK[user] < _RANK[needed]:
+        raise Forbidden(f"{what} needs the {needed} role; this login is {user}")
+
+
+def status_or(role: str) -> Callable[[dict[str, Any]], str]:
+    """Needs of a key whose ``status`` action (the default) is a read and the rest commands."""
+
+    def needs(request: dict[str, Any]) -> str:
+        return OBSERVER if request.get("action", "status") in ("status", None) else role
+
+    return needs
+
+
+def login_user(zenoh_json: dict[str, Any] | None) -> str | None:
+    """The usrpwd user of a Zenoh config (a laptop's login file), None without one."""
+    usrpwd = ((zenoh_json or {}).get("transport") or {}).get("auth", {}).get("usrpwd") or {}
+    user = usrpwd.get("user")
+    return str(user) if user else None
+
+
+def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> dict[str, Any]:
+    return {
+        "id": rid,
+        "messages": messages,
+        "flows": flows,
+        "permission": "allow",
+        "key_exprs": keys,
+    }
+
+
+def access_control(domain_id: int) -> dict[str, Any]:
+    """Zenoh's ``access_control`` section for the supervisor's router."""
+    data = [f"{domain_id}/**"]
+    rules = [
+        _rule("appliance", ALL_MESSAGES, ["ingress", "egress"], ["**"]),
+        # Data and presence, for every login (egress: what the router sends the laptop).
+        _rule("read data", ["declare_subscriber"], ["ingress"], data),
+        _rule("receive data", ["put", "delete"], ["egress"], data),
+        _rule(
+            "see nodes",
+            ["liveliness_query", "declare_liveliness_subscriber"],
+            ["ingress"],
+            ["exolink/*/nodes/*/alive", "exolink/*/operators/*"],
+        ),
+        _rule(
+            "node tokens",
+            ["liveliness_token", "reply"],
+            ["egress"],
+            ["exolink/*/nodes/*/alive", "exolink/*/operators/*"],
+        ),
+        _rule("hold a pattern", ["liveliness_token"], ["ingress"], ["exolink/*/operators/*"]),
+        _rule("logs", ["declare_subscriber"], ["ingress"], ["exolink/*/log/*"]),
+        _rule("receive logs", ["put"], ["egress"], ["exolink/*/log/*"]),
+    ]
+    policies = [{"id": "appliance", "rules": ["appliance"], "subjects": [APPLIANCE_USER]}]
+    for role in ROLES:
+        own = [f"exolink/*/**/{role}"]
+        rules += [
+            _rule(f"{role} queries", ["query"], ["ingress"], own),
+            _rule(f"{role} replies", ["reply"], ["egress"], own),
+        ]
+        granted = [f"{role} queries", f"{role} replies", "read data", "receive data"]
+        granted += ["see nodes", "node tokens"]
+        if _RANK[role] >= _RANK[OPERATOR]:
+            granted.append("hold a pattern")
+        if role == ADMIN:
+            granted += ["logs", "receive logs"]
+        policies.append({"id": role, "rules": granted, "subjects": [role]})
+    subjects = [{"id": u, "usernames": [u]} for u in (APPLIANCE_USER, *ROLES)]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def enforced(usrpwd: dict[str, Any] | None) -> bool:
+    """A router config with a login dictionary enforces roles (the board); without, it's open."""
+    return bool(usrpwd and usrpwd.get("dictionary_file"))

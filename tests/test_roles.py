@@ -1,0 +1,194 @@
+"""Roles on the network, against a real appliance whose Zenoh router enforces the logins the
+board's first boot writes (boardsetup renders them; Zenoh's own usrpwd and access control check
+them). Every CLI call here is a real laptop process with a role's login file."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from conftest import Appliance, wait_for
+from exolink import boardsetup, messaging, roles
+from exolink.config import bundled
+from mcap.reader import make_reader
+
+DEVICE = "sim"
+
+
+def board_logins(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
+    """The board's Zenoh config (appliance login + dictionary) and one laptop file per role,
+    as boardsetup renders them on a card whose settings ask for every role."""
+    settings = boardsetup.BoardSettings(
+        device=DEVICE, zenoh=boardsetup.ZenohAuth(logins=list(roles.ROLES))
+    )
+    plan = boardsetup.plan(settings, tmp_path / "root")
+    users = tmp_path / "zenoh-users.txt"
+    users.write_text(plan.files[boardsetup.ZENOH_USERS][0])
+    board = json.loads(plan.files["etc/exolink/zenoh.json5"][0])
+    board["transport"]["auth"]["usrpwd"]["dictionary_file"] = str(users)
+    board_file = tmp_path / "zenoh.json5"
+    board_file.write_text(json.dumps(board))
+    logins = {}
+    for role in roles.ROLES:
+        name = boardsetup.laptop_file(role)
+        logins[role] = tmp_path / name
+        logins[role].write_text(plan.boot_files[name])
+    return board_file, logins
+
+
+@pytest.fixture
+def guarded(tmp_path: Path, write_config, spawn) -> tuple[Appliance, Path, dict[str, Path]]:  # type: ignore[no-untyped-def]
+    board_file, logins = board_logins(tmp_path)
+    nodes = yaml.safe_load(bundled("sim").read_text())["nodes"]
+    for n in nodes:
+        if n["name"] == "recorder":
+            n["params"]["directory"] = str(tmp_path / "rec")
+    cfg = write_config(nodes=nodes, zenoh={"config_file": str(board_file)})
+    return Appliance(cfg, spawn, login=logins["admin"]), board_file, logins
+
+
+class Inbox:
+    """Samples one session receives on a key, for checks from the test thread."""
+
+    def __init__(self, session: Any, key: str) -> None:
+        self.items: list[Any] = []
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample: Any) -> None:
+        with self._lock:
+            self.items.append(sample)
+
+    def payloads(self) -> list[bytes]:
+        with self._lock:
+            return [bytes(s.payload.to_bytes()) for s in self.items]
+
+
+def commands(inbox: Inbox) -> list[dict[str, Any]]:
+    """The command log's JSON entries (std_msgs/String CDR: 4-byte header, uint32 length)."""
+    return [json.loads(p[8:-1].decode()) for p in inbox.payloads()]
+
+
+def test_roles_decide_who_may_do_what(guarded) -> None:  # type: ignore[no-untyped-def]
+    app, board_file, logins = guarded
+    obs, op, admin = (logins[r] for r in roles.ROLES)
+    inside = messaging.open_client_session(app.at, str(board_file))  # the appliance's own login
+    try:
+        log = Inbox(inside, messaging.topic_selector(0, "h2", "commands"))
+        # Anyone without a login, or with a wrong password, is refused at the door.
+        with pytest.raises(messaging.Unreachable):
+            messaging.open_client_session(app.at)
+        wrong = obs.parent / "wrong.json5"
+        wrong.write_text(obs.read_text().replace('"observer"', '"operator"'))
+        assert app.cli("status", login=wrong).returncode == 4
+
+        # observer: reads and e-stops, nothing else.
+        assert app.cli("status", login=obs).returncode == 0
+        r = app.cli("echo", "joint_states", "-n", "1", "--json", login=obs)
+        assert r.returncode == 0 and "position" in r.stdout, r.stderr
+        for cmd in (("arm",), ("send", "position", "l_knee", "20"), ("stop", "recorder")):
+            r = app.cli(*cmd, login=obs)
+            assert r.returncode == 5, (cmd, r.stdout, r.stderr)
+            assert "role; this login is observer" in r.stderr, (cmd, r.stderr)
+        r = app.cli("record", "start", login=obs)
+        assert r.returncode == 5 and "needs the operator role" in r.stderr
+        assert app.cli("nodes", login=obs).returncode == 0
+        assert app.node("recorder")["state"] == "running"
+
+        # operator: arms, commands, records; cannot stop nodes.
+        app.arm_as(op)
+        r = app.cli("send", "position", "l_knee", "20", login=op)
+        assert r.returncode == 0, r.stderr
+        r = app.cli("stop", "recorder", login=op)
+        assert r.returncode == 5 and "needs the admin role; this login is operator" in r.stderr
+        r = app.cli("estop", login=obs)
+        assert r.returncode == 0 and "watchdog tripped" in r.stdout  # (an earlier trip may win)
+
+        # admin: node control.
+        r = app.cli("restart", "timing_monitor", login=admin)
+        assert r.returncode == 0, r.stderr
+
+        # Every command above observer is in the command log with the login that sent it.
+        def logged() -> list[tuple[str, str, str, bool]]:
+            return [
+                (e["by"], e["key"].rsplit("/", 1)[-1], e["request"].get("action", ""), e["ok"])
+                for e in commands(log)
+            ]
+
+        wait_for(lambda: ("admin", "control", "restart", True) in logged(), timeout=10)
+        got = logged()
+        assert ("observer", "watchdog", "arm", False) in got
+        assert ("operator", "watchdog", "arm", True) in got
+        assert ("operator", "command", "", True) in got  # h2/command: the joint set-point
+        assert ("operator", "control", "stop", False) in got
+        assert ("observer", "watchdog", "estop", True) in got
+    finally:
+        inside.close()
+
+
+def test_a_login_cannot_forge_data_or_serve_commands(guarded) -> None:  # type: ignore[no-untyped-def]
+    """An operator's session publishing a watchdog state or answering management keys reaches
+    nothing: Zenoh's access control drops it at the router."""
+    app, board_file, logins = guarded
+    inside = messaging.open_client_session(app.at, str(board_file))
+    laptop = messaging.open_client_session(app.at, str(logins["operator"]))
+    try:
+        wd_key = messaging.topic_selector(0, "h2", "watchdog")
+        seen = Inbox(inside, wd_key)
+        wait_for(lambda: seen.payloads(), timeout=5)  # the supervisor's own state does arrive
+        key = messaging.topic_key(0, "h2", "watchdog", "exolink_msgs/msg/WatchdogEvent")
+        js_key = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
+        before = len(seen.payloads())
+        for _ in range(20):
+            laptop.put(key, b"forged armed")
+            laptop.put(js_key, b"x")
+            time.sleep(0.01)
+        time.sleep(0.5)
+        assert b"forged armed" not in seen.payloads()[before:]
+        # A laptop serving a management key never gets the queries meant for the appliance.
+        fake = laptop.declare_queryable(
+            messaging.mgmt_key(DEVICE, "watchdog", "*"),
+            lambda q: q.reply(q.key_expr, b'{"ok": true, "state": "armed"}'),
+        )
+        try:
+            for _ in range(5):  # the real watchdog is disarmed: only the fake would say armed
+                reply = messaging.request(inside, messaging.mgmt_key(DEVICE, "watchdog"))
+                assert reply["ok"] and reply["state"] == "disarmed", reply
+        finally:
+            fake.undeclare()
+    finally:
+        laptop.close()
+        inside.close()
+
+
+def test_commands_are_written_into_the_recording(guarded) -> None:  # type: ignore[no-untyped-def]
+    app, _board_file, logins = guarded
+    op = logins["operator"]
+    assert app.cli("record", "start", "--label", "subject=S01", login=op).returncode == 0
+
+    def armed_and_sent() -> bool:  # a loaded machine can trip the watchdog in between: again
+        app.arm_as(op)
+        return app.cli("send", "position", "l_knee", "15", login=op).returncode == 0
+
+    wait_for(armed_and_sent, timeout=20)
+    time.sleep(0.5)
+    r = app.cli("record", "stop", login=op)
+    assert r.returncode == 0, r.stderr
+    files = wait_for(
+        lambda: list((Path(app.cfg.node("recorder").params["directory"])).glob("*.mcap"))
+    )
+    with open(files[0], "rb") as f:  # type: ignore[index]
+        entries = [
+            json.loads(bytes(msg.data)[8:-1].decode())
+            for _schema, channel, msg in make_reader(f).iter_messages()
+            if channel.topic.endswith("/commands")
+        ]
+    assert {(e["by"], e["request"].get("action")) for e in entries} >= {
+        ("operator", "arm"),
+        ("operator", "start"),
+    }
