@@ -10,6 +10,7 @@ partition), only when the root is ``/``.
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import ipaddress
 import json
@@ -20,7 +21,7 @@ import socket
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 import structlog
@@ -41,6 +42,11 @@ FIRST_BOOT_DONE = "var/lib/exolink/first-boot.done"
 LOGIN_USER = "exo"
 SERVICE_GROUP = "exolink"
 ZENOH_USERS = "etc/exolink/zenoh-users.txt"
+TLS_DIR = "etc/exolink/tls"
+TLS_PORT = 7448
+# The supervisor's listen endpoints: with TLS, plain TCP stays on loopback for the nodes.
+LISTEN_PLAIN = ["tcp/0.0.0.0:7447"]
+LISTEN_TLS = ["tcp/127.0.0.1:7447", f"tls/0.0.0.0:{TLS_PORT}"]
 
 Country = Annotated[str, msgspec.Meta(pattern=r"^[A-Z]{2}$")]
 Host = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9.:-]{1,253}$")]
@@ -70,6 +76,7 @@ class ZenohAuth(_Strict):
     # Roles that get a laptop login file on the card; [] = no logins at all (open port).
     logins: list[Role] = msgspec.field(default_factory=lambda: ["operator", "observer"])
     passwords: dict[Role, Password] = msgspec.field(default_factory=dict)  # else made up
+    tls: bool = False  # laptops connect with TLS (a CA made on the board) on TLS_PORT
 
 
 class Ssh(_Strict):
@@ -212,18 +219,82 @@ def _zenoh(s: BoardSettings, root: Path, plan: Plan) -> None:
         return
     passwords = _zenoh_passwords(s, root)
     own = {"user": roles.APPLIANCE_USER, "password": passwords[roles.APPLIANCE_USER]}
-    board = {"transport": {"auth": {"usrpwd": {**own, "dictionary_file": "/" + ZENOH_USERS}}}}
+    board: dict[str, Any] = {
+        "transport": {"auth": {"usrpwd": {**own, "dictionary_file": "/" + ZENOH_USERS}}}
+    }
+    at = f"tcp/{s.device}.local:7447"
+    ca = ""
+    if s.zenoh.tls:
+        ca = base64.b64encode(tls_files(root / TLS_DIR, s.device)["ca.pem"].read_bytes()).decode()
+        board["transport"]["link"] = {
+            "tls": {
+                "listen_private_key": f"/{TLS_DIR}/server.key",
+                "listen_certificate": f"/{TLS_DIR}/server.pem",
+            }
+        }
+        at = f"tls/{s.device}.local:{TLS_PORT}"
     plan.files["etc/exolink/zenoh.json5"] = (json.dumps(board, indent=2) + "\n", 0o640)
     plan.files[ZENOH_USERS] = ("".join(f"{u}:{pw}\n" for u, pw in passwords.items()), 0o640)
     for role in s.zenoh.logins:
-        laptop = {"transport": {"auth": {"usrpwd": {"user": role, "password": passwords[role]}}}}
+        laptop: dict[str, Any] = {
+            "transport": {"auth": {"usrpwd": {"user": role, "password": passwords[role]}}}
+        }
+        if ca:  # the board's own CA, inline: the laptop verifies it talks to this board
+            laptop["transport"]["link"] = {"tls": {"root_ca_certificate_base64": ca}}
         name = laptop_file(role)
         plan.boot_files[name] = (
             f"// Zenoh login of role {role} on {s.device}: on the laptop, "
-            f"exolink --zenoh-config {name} --at tcp/{s.device}.local:7447 status\n"
+            f"exolink --zenoh-config {name} --at {at} status\n"
             + json.dumps(laptop, indent=2)
             + "\n"
         )
+
+
+def tls_files(tls_dir: Path, device: str) -> dict[str, Path]:
+    """The board's CA and its server certificate (openssl), made once per device name.
+
+    The CA key never leaves the board; laptops get ca.pem inside their login files and check
+    that the server's certificate names ``<device>.local`` (or localhost through a tunnel).
+    """
+    files = {n: tls_dir / n for n in ("ca.key", "ca.pem", "server.key", "server.pem")}
+    names = [f"DNS:{device}.local", f"DNS:{device}", "DNS:localhost", "IP:127.0.0.1"]
+    marker = tls_dir / "names"
+    have = all(f.exists() for f in (*files.values(), marker))
+    if have and marker.read_text() == ",".join(names):
+        return files
+    tls_dir.mkdir(parents=True, exist_ok=True)
+    os.chmod(tls_dir, 0o750)
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=tls_dir)
+
+    ca_ext = ["-addext", "basicConstraints=critical,CA:TRUE"]
+    ca_ext += ["-addext", "keyUsage=critical,keyCertSign,cRLSign"]
+    openssl("req", "-x509", *ec, "-days", "3650", "-keyout", "ca.key", "-out", "ca.pem", *ca_ext,
+            "-subj", f"/CN=exolink {device} CA")  # fmt: skip
+    openssl(
+        "req", *ec, "-keyout", "server.key", "-out", "server.csr", "-subj", f"/CN={device}.local"
+    )
+    (tls_dir / "server.ext").write_text(
+        f"subjectAltName={','.join(names)}\nbasicConstraints=CA:FALSE\n"
+        "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n"
+    )
+    openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+            "-CAcreateserial", "-out", "server.pem", "-days", "3650", "-extfile", "server.ext")  # fmt: skip
+    for f in files.values():
+        os.chmod(f, 0o640 if f.suffix == ".key" else 0o644)
+    marker.write_text(",".join(names))
+    return files
+
+
+def _listen_in_config(text: str, endpoints: list[str]) -> str:
+    """Set ``zenoh.listen`` when it is one of the two shipped values (a hand edit stays)."""
+    for known in (LISTEN_PLAIN, LISTEN_TLS):
+        line = f"  listen: {json.dumps(known)}"
+        if line in text:
+            return text.replace(line, f"  listen: {json.dumps(endpoints)}", 1)
+    return text
 
 
 def _device_in_config(text: str, device: str) -> str:
@@ -264,6 +335,8 @@ def plan(s: BoardSettings, root: Path) -> Plan:
         # The supervisor refuses the file with its line (exit 3) and systemd leaves it stopped.
         try:
             text = _device_in_config(appliance.read_text(), s.device)
+            listen = LISTEN_TLS if s.zenoh.tls and s.zenoh.logins else LISTEN_PLAIN
+            text = _listen_in_config(text, listen)
             parse(text, str(appliance))
         except ConfigError as exc:
             p.problems.append(f"{exc} (left unchanged; device name applied on the next boot)")
@@ -330,6 +403,7 @@ def apply(settings: BoardSettings, boot: Path, root: Path) -> Plan:
 def _run_live(settings: BoardSettings, p: Plan) -> None:
     socket.sethostname(settings.device)
     _own("/etc/exolink/zenoh.json5", "/etc/exolink/zenoh-users.txt", "/etc/exolink/appliance.yaml")
+    _own(*(str(f) for f in Path("/", TLS_DIR).glob("*")), "/" + TLS_DIR)
     home = Path(f"/home/{LOGIN_USER}/.ssh")
     subprocess.run(["chown", "-R", f"{LOGIN_USER}:{LOGIN_USER}", str(home)], check=True)
     if settings.ssh.password:  # on stdin, never in argv

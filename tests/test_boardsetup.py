@@ -4,7 +4,7 @@ boot test of the image)."""
 
 from __future__ import annotations
 
-import hashlib
+import json
 import shutil
 import subprocess
 import sys
@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import free_port
 from exolink import boardsetup, messaging
 from exolink.config import ConfigError, ZenohConfig, bundled, load
 
@@ -226,7 +227,7 @@ def test_rendered_zenoh_login_admits_the_laptop_file_and_refuses_others(
         "/etc/exolink/zenoh-users.txt", str(root / "etc/exolink/zenoh-users.txt")
     )
     board_cfg.write_text(text)
-    port = 7000 + hashlib.sha1(str(tmp_path).encode()).digest()[0]
+    port = free_port()
     cfg = messaging.session_config(
         ZenohConfig(config_file=str(board_cfg)), listen=[f"tcp/127.0.0.1:{port}"], mode="router"
     )
@@ -243,6 +244,45 @@ def test_rendered_zenoh_login_admits_the_laptop_file_and_refuses_others(
             messaging.open_client_session(at, str(wrong))
     finally:
         router.close()
+
+
+def test_tls_login_needs_the_boards_ca(card: tuple[Path, Path], tmp_path: Path) -> None:
+    """TLS with a CA made by openssl as on the board: the laptop file (CA inline) connects over
+    tls/, the same login without the CA and plain TCP to the TLS port are refused."""
+    boot, root = card
+    edit(boot, zenoh__tls=True)
+    apply(boot, root)
+    appliance = (root / "etc/exolink/appliance.yaml").read_text()
+    assert f"listen: {json.dumps(boardsetup.LISTEN_TLS)}" in appliance
+    assert (root / boardsetup.TLS_DIR / "ca.key").stat().st_mode & 0o777 == 0o640
+    board_cfg = root / "etc/exolink/zenoh.json5"
+    board_cfg.write_text(board_cfg.read_text().replace("/etc/exolink/", f"{root}/etc/exolink/"))
+    port = free_port()
+    cfg = messaging.session_config(
+        ZenohConfig(config_file=str(board_cfg)), listen=[f"tls/127.0.0.1:{port}"], mode="router"
+    )
+    router = messaging.open_session(cfg, "router")
+    try:
+        login = boot / boardsetup.laptop_file("operator")
+        assert f"--at tls/exo-01.local:{boardsetup.TLS_PORT}" in login.read_text()
+        messaging.open_client_session(f"tls/localhost:{port}", str(login)).close()
+        data = json5_body(login)
+        del data["transport"]["link"]
+        no_ca = tmp_path / "no-ca.json5"
+        no_ca.write_text(json.dumps(data))
+        with pytest.raises(messaging.Unreachable):
+            messaging.open_client_session(f"tls/localhost:{port}", str(no_ca))
+        with pytest.raises(messaging.Unreachable):
+            messaging.open_client_session(f"tcp/127.0.0.1:{port}", str(login))
+    finally:
+        router.close()
+
+
+def json5_body(path: Path) -> dict:
+    """A login file without its leading // comment line."""
+    return json.loads(
+        "\n".join(ln for ln in path.read_text().splitlines() if not ln.startswith("//"))
+    )
 
 
 def test_missing_laptop_file_is_a_config_error() -> None:
