@@ -147,7 +147,14 @@ def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.
 
 def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
     """Until every named node has declared its liveliness token (it does so after configure())."""
-    s = messaging.open_client_session(endpoint)
+    deadline = time.monotonic() + timeout
+    while True:  # the process that listens may still be starting (seconds on a loaded machine)
+        try:
+            s = messaging.open_client_session(endpoint)
+            break
+        except messaging.Unreachable:
+            if time.monotonic() > deadline:
+                raise
     try:
 
         def alive() -> bool:
