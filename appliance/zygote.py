@@ -2,7 +2,7 @@
 
 A node started with ``python -m exolink.runtime`` spends ~200 ms on an x86 core (seconds on the
 board's Cortex-A8) importing the same runtime every other node imports, and keeps a private copy
-of it. The supervisor starts this process once; it imports the common runtime (Zenoh, python-can,
+of it. The supervisor forks this process once, before it opens anything; it has imported the common runtime (Zenoh, python-can,
 structlog, msgspec, the protocol tables, never a node plugin), freezes it for the garbage
 collector (gc.freeze: pages stay shared, not copied on the first collection) and then forks one
 child per node on request. No Zenoh session or thread exists here before a fork: each node opens
@@ -97,7 +97,7 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
     try:
         sock.close()
         os.setsid()
-        _set_comm(f"exo-{req['name']}")
+        set_comm(f"exo-{req['name']}")
         out, live = fds
         os.dup2(out, 1)
         os.dup2(out, 2)
@@ -121,7 +121,7 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
         os._exit(code)
 
 
-def _set_comm(name: str) -> None:
+def set_comm(name: str) -> None:
     """What top and the journal show for the process (its cmdline stays the zygote's)."""
     import ctypes
 
@@ -130,7 +130,3 @@ def _set_comm(name: str) -> None:
 
 
 PR_SET_NAME = 15
-
-
-if __name__ == "__main__":
-    serve(int(sys.argv[1]))

@@ -158,6 +158,8 @@ class Appliance:
                 continue
             try:
                 st = messaging.request(s, "exolink/sim/status", timeout_s=1)
+                if not st.get("ok"):
+                    raise RuntimeError(f"status refused: {st.get('error')}")
                 if all(
                     n["heartbeat_age_s"] is not None for n in st["nodes"] if n["state"] == "running"
                 ):

@@ -43,12 +43,16 @@ def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, mo
     app = Appliance(cfg, spawn)
     st = app.status()
     assert {n["name"] for n in st["nodes"]} == set(names)
-    # Forked from the zygote (its cmdline), re-parented to the supervisor that waits for them.
+    # Forked from the zygote, itself a fork of the supervisor (same cmdline, its own name),
+    # and re-parented to the supervisor that waits for them.
     assert st["zygote_pid"]
+    assert Path(f"/proc/{st['zygote_pid']}/comm").read_text().strip() == "exo-zygote"
+    sup_cmdline = Path(f"/proc/{st['pid']}/cmdline").read_bytes()
     for n in st["nodes"]:
         stat = Path(f"/proc/{n['pid']}/stat").read_text()
         assert int(stat.rsplit(")", 1)[1].split()[1]) == st["pid"], n
-        assert b"exolink.zygote" in Path(f"/proc/{n['pid']}/cmdline").read_bytes(), n
+        assert Path(f"/proc/{n['pid']}/comm").read_text().strip() == f"exo-{n['name']}"[:15]
+        assert Path(f"/proc/{n['pid']}/cmdline").read_bytes() == sup_cmdline, n
     app.proc.stop()
     wait_for(lambda: all((out / f"{n}.json").exists() for n in names), timeout=15)
 

@@ -8,6 +8,7 @@ Stop order is the reverse with the safe action first.
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import shutil
 import tempfile
@@ -78,6 +79,7 @@ class Supervisor:
 
     def start(self) -> None:
         cfg = self.cfg
+        self.zygote = self._start_zygote()  # a fork: before any socket, session or thread
         if cfg.can.interface == "socketcan":
             if cfg.can.require_overlay:
                 canlink.check_overlay()
@@ -108,7 +110,6 @@ class Supervisor:
         )
         self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
         self.trigger_out = trigger.open_output(cfg.trigger)
-        self.zygote = self._start_zygote()
         config_path = self._workdir / "appliance.yaml"
         config_path.write_text(yaml.safe_dump(_config_data(cfg), sort_keys=False))
         for ncfg in cfg.nodes:
@@ -132,10 +133,12 @@ class Supervisor:
         if os.environ.get("EXOLINK_SPAWN") == "exec":
             return None
         try:
-            return Zygote()
+            zygote = Zygote()
         except OSError as exc:
             self.log.warning("zygote_unavailable", error=str(exc), fallback="exec")
             return None
+        gc.freeze()  # this process' objects, shared with the zygote: no collector writes to them
+        return zygote
 
     # --- events from other threads ----------------------------------------------------------
 

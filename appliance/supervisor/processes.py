@@ -196,9 +196,9 @@ class Forked:
     """A node forked by the zygote and re-parented to this process: the part of Popen's
     interface the supervisor uses. One thread reaps it; everyone else reads the result."""
 
-    def __init__(self, pid: int, stdout_fd: int) -> None:
+    def __init__(self, pid: int, stdout_fd: int | None) -> None:
         self.pid = pid
-        self.stdout = os.fdopen(stdout_fd, "rb")
+        self.stdout = os.fdopen(stdout_fd, "rb") if stdout_fd is not None else None
         self.returncode: int | None = None
         self._done = threading.Event()
         threading.Thread(target=self._reap, daemon=True, name=f"reap-{pid}").start()
@@ -236,7 +236,12 @@ PR_SET_CHILD_SUBREAPER = 36
 
 
 class Zygote:
-    """The supervisor's end of ``exolink.zygote``: one request at a time, a node pid back."""
+    """The supervisor's end of ``exolink.zygote``: one request at a time, a node pid back.
+
+    The zygote is a fork of the supervisor made before it opens anything or starts a thread
+    (Supervisor.start calls this first): the runtime both import is then one set of pages
+    shared by the supervisor, the zygote and every node, and no second interpreter imports it
+    again (seconds on the A8)."""
 
     def __init__(self) -> None:
         import ctypes
@@ -245,11 +250,7 @@ class Zygote:
         if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:  # orphaned nodes come to us
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "exolink.zygote", str(theirs.fileno())],
-            pass_fds=(theirs.fileno(),),
-            start_new_session=True,
-        )
+        self.proc = Forked(_fork_zygote(self._sock, theirs), None)
         theirs.close()
         plain_priority(self.proc.pid)  # its forks must not inherit the supervisor's nice
         self._lock = threading.Lock()
@@ -301,6 +302,26 @@ class Zygote:
             self.proc.wait(3)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+
+
+def _fork_zygote(ours: socket.socket, theirs: socket.socket) -> int:
+    from exolink import zygote
+
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            ours.close()
+            os.setsid()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, signal.SIG_DFL)
+            zygote.set_comm("exo-zygote")
+            zygote.serve(theirs.fileno())
+            code = 0
+        finally:
+            os._exit(code)
+    theirs.close()
+    return pid
 
 
 ZYGOTE_TIMEOUT_S = 2.0  # a fork takes milliseconds; the supervisor's loop waits on this
