@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
 
-from exolink import messaging
+from exolink import cdr, messaging
 
 WATCHDOG_TOPIC = "watchdog"
 WATCHDOG_TYPE = "exolink_msgs/msg/WatchdogEvent"
@@ -23,7 +22,7 @@ class ArmingState:
         self._lock = threading.Lock()
         self._state, self._reason, self._seen = "unknown", "no word from the watchdog yet", 0.0
         self.stale_s = stale_s
-        self._sub = msg.subscribe(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
+        self._sub = msg.subscribe_raw(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
         try:
             reply = msg.request("watchdog")
             if reply.get("ok"):
@@ -31,8 +30,12 @@ class ArmingState:
         except messaging.Unreachable:
             pass  # stays "unknown" until the first event
 
-    def _on_event(self, ev: Any, _meta: messaging.Meta) -> None:
-        self._update(ev.state, ev.reason)
+    def _on_event(self, payload: bytes) -> None:
+        try:
+            state, reason, _detail, _frames = cdr.watchdog_event(payload)
+        except ValueError:
+            return  # not a WatchdogEvent: never taken as a state (stale soon means not armed)
+        self._update(state, reason)
 
     def _update(self, state: str, reason: str) -> None:
         with self._lock:

@@ -169,3 +169,76 @@ def string_msg(text: str) -> bytes:
     lay.string(text)
     s, consts = lay.done()
     return CDR_LE + s.pack(*consts)
+
+
+class _Writer:
+    """CDR written field by field, for messages whose strings change with every message."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray(CDR_LE)
+
+    def put(self, code: str, *values: Any) -> None:
+        size = struct.calcsize("<" + code[-1])
+        self.buf += b"\x00" * ((-(len(self.buf) - 4)) % size)
+        self.buf += struct.pack("<" + code, *values)
+
+    def string(self, text: str) -> None:
+        data = text.encode() + b"\x00"
+        self.put("I", len(data))
+        self.buf += data
+
+    def stamp(self, ns: int) -> None:
+        self.put("iI", *divmod(ns, 1_000_000_000))
+
+
+def joint_command(
+    ns: int, joint: str, mode: int, setpoint: int, stiffness: int, source: str
+) -> bytes:
+    """exolink_msgs/JointCommand: a joint-control frame someone put on the bus."""
+    w = _Writer()
+    w.stamp(ns)
+    w.string("")  # frame_id
+    w.string(joint)
+    w.put("B", mode)
+    w.put("h", setpoint)
+    w.put("B", stiffness)
+    w.string(source)
+    return bytes(w.buf)
+
+
+def pattern_state(ns: int, s: dict[str, Any], selected: Sequence[bool]) -> bytes:
+    """exolink_msgs/PatternState from the player's status dict."""
+    w = _Writer()
+    w.stamp(ns)
+    w.string(str(s["state"]))
+    w.string(str(s["reason"]))
+    w.put("II", s["index"], s["length"])
+    w.put("B", s["speed"])
+    w.put("f", s["period_ms"])
+    w.put("6?", *selected)
+    for key in ("file", "operator", "timing"):
+        w.string(str(s[key]))
+    return bytes(w.buf)
+
+
+def watchdog_event(payload: bytes) -> tuple[str, str, str, int]:
+    """(state, reason, detail, frames_sent) of an exolink_msgs/WatchdogEvent; ValueError when
+    the payload is not one (it comes over the network: checked, never trusted)."""
+    if payload[:4] != CDR_LE:
+        raise ValueError("not little-endian CDR")
+    pos = 4 + 8  # encapsulation, stamp
+    texts = []
+    try:
+        for _ in range(3):
+            pos += (-(pos - 4)) % 4
+            (n,) = struct.unpack_from("<I", payload, pos)
+            raw = payload[pos + 4 : pos + 4 + n]
+            if n == 0 or len(raw) != n or raw[-1] != 0:
+                raise ValueError("bad string")
+            texts.append(raw[:-1].decode())
+            pos += 4 + n
+        pos += (-(pos - 4)) % 4
+        (frames,) = struct.unpack_from("<I", payload, pos)
+    except (struct.error, UnicodeDecodeError) as exc:
+        raise ValueError(f"truncated or garbled WatchdogEvent: {exc}") from None
+    return texts[0], texts[1], texts[2], frames

@@ -338,6 +338,14 @@ class Messaging:
 
         return self.session.declare_subscriber(self.key(topic, typename), on_sample)
 
+    def subscribe_raw(
+        self, topic: str, typename: str, callback: Callable[[bytes], None]
+    ) -> zenoh.Subscriber:
+        """CDR bytes to a decoder of the caller's (exolink.cdr): no typestore in the process."""
+        return self.session.declare_subscriber(
+            self.key(topic, typename), lambda sample: callback(sample.payload.to_bytes())
+        )
+
     def mgmt(self, *path: str) -> str:
         return mgmt_key(self.device, *path)
 

@@ -146,7 +146,12 @@ class Appliance:
             stderr=subprocess.STDOUT,
             env=env,
         )
-        self.session = messaging.open_client_session(self.at) if self._wait_up() else None
+        self.session: Any = None
+        try:
+            self.session = messaging.open_client_session(self.at) if self._wait_up() else None
+        except BaseException:  # never leave an appliance running behind a failed benchmark
+            self.close()
+            raise
 
     def _wait_up(self) -> bool:
         end = time.monotonic() + 30

@@ -14,7 +14,7 @@ from typing import Annotated, Any
 
 import can
 import msgspec
-from exolink import messaging, roles
+from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_bus
 from exolink.messaging import CommandRefused
@@ -62,8 +62,7 @@ class H2Sender(Node):
         self.bus = open_bus(self.ctx.config.can, filters=[])
         self.lock = threading.Lock()
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
-        self.pub = self.ctx.messaging.publisher("joint_commands", JOINT_COMMAND)
-        self.JointCommand = messaging.msg_class(JOINT_COMMAND)
+        self.pub = self.ctx.messaging.publisher("joint_commands", JOINT_COMMAND, raw=True)
         self.sent = 0
         self.refused = 0
         self._q = self.ctx.messaging.serve(("h2", "command"), self.on_command, roles.OPERATOR)
@@ -173,17 +172,9 @@ class H2Sender(Node):
         jc = h2.decode(frame)
         if isinstance(jc, h2.JointControl):
             now = time.time_ns()
-            self.pub.publish(
-                self.JointCommand(
-                    header=messaging.header(now),
-                    joint=h2.JOINTS[jc.motor - 1],
-                    mode=jc.mode,
-                    setpoint=jc.setpoint,
-                    stiffness=jc.stiffness,
-                    source=self.name,
-                ),
-                now,
-            )
+            joint = h2.JOINTS[jc.motor - 1]
+            payload = cdr.joint_command(now, joint, jc.mode, jc.setpoint, jc.stiffness, self.name)
+            self.pub.put(payload, now)
 
     def run(self, stop: threading.Event) -> None:
         while not stop.wait(0.1):

@@ -37,8 +37,7 @@ from typing import Annotated, Any, Literal
 
 import can
 import msgspec
-import numpy as np
-from exolink import messaging, roles
+from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
@@ -163,8 +162,7 @@ class PatternPlayer(Node):
         self.timing = p.timing
         self.task: Any = None
         self.sent = 0
-        self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE)
-        self.State = messaging.msg_class(STATE_TYPE)
+        self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True)
         self._q = self.ctx.messaging.serve(
             "pattern", self.on_command, roles.status_or(roles.OPERATOR)
         )
@@ -424,22 +422,7 @@ class PatternPlayer(Node):
         with self.lock:
             s = self.status()
         now = time.time_ns()
-        self.pub.publish(
-            self.State(
-                stamp=messaging.stamp(now),
-                state=s["state"],
-                reason=s["reason"],
-                index=s["index"],
-                length=s["length"],
-                speed=s["speed"],
-                period_ms=s["period_ms"],
-                selected=np.array(self.selected, dtype=bool),
-                file=s["file"],
-                operator=s["operator"],
-                timing_mode=s["timing"],
-            ),
-            now,
-        )
+        self.pub.put(cdr.pattern_state(now, s, self.selected), now)
 
     def shutdown(self) -> None:
         with self.lock:

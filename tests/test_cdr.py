@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import pytest
 from exolink import cdr, messaging
 from exolink.protocol import h2
 from hypothesis import given, settings
@@ -69,6 +70,85 @@ def test_diagnostics_is_rosbags_cdr(ns: int, level: str, text: str, values: dict
     payload = cdr.diagnostics(ns, "n/x", messaging.LEVELS[level], text, "hw", values)
     ref = messaging.diagnostics(ns, "n/x", level, text, "hw", values)
     assert payload == messaging.serialize(ref, messaging.DIAGNOSTICS_TYPE)
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    joint=st.text(max_size=10),
+    mode=st.integers(0, 255),
+    sp=st.integers(-32768, 32767),
+    stiff=st.integers(0, 255),
+    source=st.text(max_size=10),
+)
+def test_joint_command_is_rosbags_cdr(
+    ns: int, joint: str, mode: int, sp: int, stiff: int, source: str
+) -> None:
+    cls = messaging.msg_class("exolink_msgs/msg/JointCommand")
+    ref = cls(
+        header=messaging.header(ns),
+        joint=joint,
+        mode=mode,
+        setpoint=sp,
+        stiffness=stiff,
+        source=source,
+    )
+    payload = cdr.joint_command(ns, joint, mode, sp, stiff, source)
+    assert payload == messaging.serialize(ref, "exolink_msgs/msg/JointCommand")
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    texts=st.lists(st.text(max_size=12), min_size=5, max_size=5),
+    counts=st.lists(st.integers(0, 2**32 - 1), min_size=2, max_size=2),
+    speed=st.integers(0, 255),
+    period=st.floats(width=32, allow_nan=False),
+    selected=st.lists(st.booleans(), min_size=6, max_size=6),
+)
+def test_pattern_state_is_rosbags_cdr(ns, texts, counts, speed, period, selected) -> None:  # type: ignore[no-untyped-def]
+    state, reason, file, operator, timing = texts
+    status = {"state": state, "reason": reason, "index": counts[0], "length": counts[1]}
+    status |= {"speed": speed, "period_ms": period, "file": file, "operator": operator}
+    status["timing"] = timing
+    cls = messaging.msg_class("exolink_msgs/msg/PatternState")
+    ref = cls(
+        stamp=messaging.stamp(ns),
+        state=state,
+        reason=reason,
+        index=counts[0],
+        length=counts[1],
+        speed=speed,
+        period_ms=period,
+        selected=np.array(selected, dtype=bool),
+        file=file,
+        operator=operator,
+        timing_mode=timing,
+    )
+    payload = cdr.pattern_state(ns, status, selected)
+    assert payload == messaging.serialize(ref, "exolink_msgs/msg/PatternState")
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    texts=st.lists(st.text(max_size=30), min_size=3, max_size=3),
+    frames=st.integers(0, 2**32 - 1),
+)
+def test_watchdog_event_decodes_rosbags_cdr(ns: int, texts: list[str], frames: int) -> None:
+    cls = messaging.msg_class("exolink_msgs/msg/WatchdogEvent")
+    ref = cls(
+        stamp=messaging.stamp(ns),
+        state=texts[0],
+        reason=texts[1],
+        detail=texts[2],
+        frames_sent=frames,
+    )
+    payload = messaging.serialize(ref, "exolink_msgs/msg/WatchdogEvent")
+    assert cdr.watchdog_event(payload) == (*texts, frames)
+    for cut in (0, 5, 13, len(payload) - 1):
+        with pytest.raises(ValueError):
+            cdr.watchdog_event(payload[:cut])
 
 
 @given(text=st.text(max_size=200))
