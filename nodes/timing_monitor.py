@@ -7,14 +7,15 @@ frames are id 70) can be told apart by their first data byte (the motor id).
 
 from __future__ import annotations
 
+import bisect
 import collections
 import itertools
+import statistics
 import threading
 import time
 from typing import Annotated, Any
 
 import msgspec
-import numpy as np
 from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
@@ -24,24 +25,28 @@ MAX_STAMPS = 200_000
 
 
 def deviation_stats(stamps: list[float], expected_s: float | None = None) -> dict[str, Any]:
-    """Period deviations |dt - expected| (expected: the median period when not given)."""
+    """Period deviations |dt - expected| (expected: the median period when not given). Plain
+    Python (statistics, bisect): numpy would be this node's largest import for one query."""
     if len(stamps) < 3:
         return {"n": 0, "error": f"too few frames ({len(stamps)})"}
-    dt = np.diff(np.asarray(stamps))
-    exp = float(np.median(dt)) if expected_s is None else expected_s
-    dev = np.abs(dt - exp) * 1e3
-    counts, _ = np.histogram(dev * 1e3, bins=[*HIST_EDGES_US, np.inf])
+    dt = [b - a for a, b in itertools.pairwise(stamps)]
+    exp = statistics.median(dt) if expected_s is None else expected_s
+    dev = [abs(d - exp) * 1e3 for d in dt]
+    counts = [0] * len(HIST_EDGES_US)
+    for d in dev:
+        counts[bisect.bisect_right(HIST_EDGES_US, d * 1e3) - 1] += 1
     labels = [f"{a}-{b}us" for a, b in itertools.pairwise(HIST_EDGES_US)] + [
         f">{HIST_EDGES_US[-1]}us"
     ]
+    p99 = statistics.quantiles(dev, n=100, method="inclusive")[98]
     return {
-        "n": int(dt.size),
+        "n": len(dt),
         "expected_ms": round(exp * 1e3, 4),
-        "mean_period_ms": round(float(dt.mean()) * 1e3, 4),
-        "mean_dev_ms": round(float(dev.mean()), 4),
-        "p99_dev_ms": round(float(np.percentile(dev, 99)), 4),
-        "max_dev_ms": round(float(dev.max()), 4),
-        "histogram": dict(zip(labels, map(int, counts), strict=True)),
+        "mean_period_ms": round(statistics.fmean(dt) * 1e3, 4),
+        "mean_dev_ms": round(statistics.fmean(dev), 4),
+        "p99_dev_ms": round(p99, 4),
+        "max_dev_ms": round(max(dev), 4),
+        "histogram": dict(zip(labels, counts, strict=True)),
     }
 
 

@@ -1,0 +1,40 @@
+"""The timing monitor's statistics in plain Python match numpy's (the reference it replaced)."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+import pytest
+from exolink.nodes.timing_monitor import HIST_EDGES_US, deviation_stats
+
+
+def reference(stamps: list[float], expected_s: float | None) -> dict:
+    dt = np.diff(np.asarray(stamps))
+    exp = float(np.median(dt)) if expected_s is None else expected_s
+    dev = np.abs(dt - exp) * 1e3
+    counts, _ = np.histogram(dev * 1e3, bins=[*HIST_EDGES_US, np.inf])
+    return {
+        "n": int(dt.size),
+        "expected_ms": exp * 1e3,
+        "mean_period_ms": float(dt.mean()) * 1e3,
+        "mean_dev_ms": float(dev.mean()),
+        "p99_dev_ms": float(np.percentile(dev, 99)),
+        "max_dev_ms": float(dev.max()),
+        "histogram": [int(c) for c in counts],
+    }
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_deviation_stats_match_numpy(seed: int) -> None:
+    rng = random.Random(seed)
+    t, stamps = 0.0, []
+    jitter = rng.choice([1e-6, 1e-4, 3e-3])
+    for _ in range(rng.randint(3, 3000)):
+        t += 0.02 + rng.gauss(0, jitter)
+        stamps.append(t)
+    expected = rng.choice([None, 0.02])
+    got, ref = deviation_stats(stamps, expected), reference(stamps, expected)
+    assert list(got["histogram"].values()) == ref.pop("histogram")
+    for key, value in ref.items():
+        assert got[key] == pytest.approx(value, abs=2e-4), key
