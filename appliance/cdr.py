@@ -122,6 +122,21 @@ class FootSwitchesCdr:
         return CDR_LE + self._s.pack(sec, nsec, self._a, *switches, battery_raw, self._b, volts)
 
 
+class MaccepaCdr:
+    """exolink_msgs/Maccepa{Sensors,Positions,Controller}: header, uint8 board, int16 values."""
+
+    def __init__(self, n_values: int) -> None:
+        lay = _Layout()
+        _header(lay)
+        lay.slots("B")
+        lay.slots("h", n_values)
+        self._s, (self._frame_id,) = lay.done()  # the int16s need no padding after the uint8
+
+    def encode(self, ns: int, board: int, values: Sequence[int]) -> bytes:
+        sec, nsec = divmod(ns, 1_000_000_000)
+        return CDR_LE + self._s.pack(sec, nsec, self._frame_id, board, *values)
+
+
 class HeartbeatCdr:
     """exolink_msgs/Heartbeat of one node and process: only the stamp and count change."""
 

@@ -13,7 +13,7 @@ from typing import Annotated, Any
 
 import can
 import msgspec
-from exolink import messaging, roles
+from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
 from exolink.messaging import CommandRefused
@@ -25,6 +25,18 @@ TYPES = {
     maccepa.Positions: ("positions", "exolink_msgs/msg/MaccepaPositions"),
     maccepa.Controller: ("controller", "exolink_msgs/msg/MaccepaController"),
 }
+
+
+# Each message's int16 fields, in its .msg order, from the decoded frame's attributes.
+_FIELDS: dict[type, tuple[str, ...]] = {
+    maccepa.Sensors: ("current", "temperature", "velocity", "load"),
+    maccepa.Positions: ("link", "lever", "extra_position", "extra_sensor"),
+    maccepa.Controller: ("setpoint", "actuation", "process_variable"),
+}
+
+
+def _values(f: Any) -> list[int]:
+    return [getattr(f, name) for name in _FIELDS[type(f)]]
 
 
 class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -42,11 +54,11 @@ class MaccepaBridge(Node):
         self.reader = open_reader(self.ctx.config.can, maccepa.data_ids(self.params.boards))
         self.bus = self.reader.bus
         self.pubs = {
-            (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename)
+            (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename, raw=True)
             for b in self.params.boards
             for cls, (topic, typename) in TYPES.items()
         }
-        self.classes = {cls: messaging.msg_class(t) for cls, (_, t) in TYPES.items()}
+        self.templates = {cls: cdr.MaccepaCdr(len(_FIELDS[cls])) for cls in TYPES}
         self.arming = ArmingState(m) if self.params.require_armed else None
         self.malformed = 0
         self.lock = threading.Lock()
@@ -97,35 +109,7 @@ class MaccepaBridge(Node):
             self.malformed += 1
             return
         ns = int(msg.timestamp * 1e9)
-        cls = self.classes[type(f)]
-        hdr = messaging.header(ns)
-        if isinstance(f, maccepa.Sensors):
-            out = cls(
-                header=hdr,
-                board=f.board,
-                current_ma=f.current,
-                temperature_c=f.temperature,
-                velocity_rpm=f.velocity,
-                load_n=f.load,
-            )
-        elif isinstance(f, maccepa.Positions):
-            out = cls(
-                header=hdr,
-                board=f.board,
-                link_deg=f.link,
-                lever_deg=f.lever,
-                extra_position=f.extra_position,
-                extra_sensor=f.extra_sensor,
-            )
-        else:
-            out = cls(
-                header=hdr,
-                board=f.board,
-                setpoint=f.setpoint,
-                actuation=f.actuation,
-                process_variable=f.process_variable,
-            )
-        pub.publish(out, ns)
+        pub.put(self.templates[type(f)].encode(ns, f.board, _values(f)), ns)
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():

@@ -151,6 +151,35 @@ def test_watchdog_event_decodes_rosbags_cdr(ns: int, texts: list[str], frames: i
             cdr.watchdog_event(payload[:cut])
 
 
+MACCEPA = {
+    "exolink_msgs/msg/MaccepaSensors": ("current_ma", "temperature_c", "velocity_rpm", "load_n"),
+    "exolink_msgs/msg/MaccepaPositions": (
+        "link_deg",
+        "lever_deg",
+        "extra_position",
+        "extra_sensor",
+    ),
+    "exolink_msgs/msg/MaccepaController": ("setpoint", "actuation", "process_variable"),
+}
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    typename=st.sampled_from(sorted(MACCEPA)),
+    board=st.integers(0, 255),
+    values=st.lists(st.integers(-32768, 32767), min_size=4, max_size=4),
+)
+def test_maccepa_is_rosbags_cdr(ns: int, typename: str, board: int, values: list[int]) -> None:
+    fields = MACCEPA[typename]
+    vals = values[: len(fields)]
+    ref = messaging.msg_class(typename)(
+        header=messaging.header(ns), board=board, **dict(zip(fields, vals, strict=True))
+    )
+    payload = cdr.MaccepaCdr(len(fields)).encode(ns, board, vals)
+    assert payload == messaging.serialize(ref, typename)
+
+
 @given(text=st.text(max_size=200))
 def test_string_is_rosbags_cdr(text: str) -> None:
     ref = messaging.msg_class("std_msgs/msg/String")(data=text)

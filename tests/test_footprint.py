@@ -12,7 +12,13 @@ from conftest import Appliance, wait_for
 from exolink.plugins import available
 
 # Nodes whose every dependency is light: no rosbags (generic CDR) and hence no numpy.
-LEAN = {"h2_reader", "h2_sender", "pattern_player", "timing_monitor"}  # exolink.cdr, no typestore
+LEAN = {
+    "h2_reader",
+    "h2_sender",
+    "pattern_player",
+    "timing_monitor",
+    "maccepa_bridge",
+}  # exolink.cdr, no typestore
 HEAVY = ("numpy", "rosbags", "mcap", "zstandard")
 
 
