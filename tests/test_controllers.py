@@ -3,10 +3,15 @@ with the watchdog, every claim checked by an independent listener on the bus."""
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import signal
 from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import Appliance, collect, wait_for
 from exolink.controller import State
 from exolink.jointlimits import Limits, default_max, default_min
 from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
@@ -220,3 +225,182 @@ def msgspec_convert(data: dict[str, Any], cls: type) -> Any:
     import msgspec
 
     return msgspec.convert(data, cls)
+
+
+# --- on the simulator, with the watchdog ------------------------------------------------------
+
+# A lab's own controller package, installed the way pip would (a dist-info with entry points on
+# the path): how the tests get a controller that fails on demand, through the real plugin story.
+LAB_PLUGIN = '''
+from exolink.controller import Controller, NoParams
+
+
+class Raiser(Controller):
+    """Holds r_knee where it is until told to fail, then raises in update."""
+
+    def configure(self):
+        self.boom = False
+
+    def claims(self):
+        return ["r_knee/position"]
+
+    def activate(self, state):
+        self.hold = state.of("r_knee")
+
+    def command(self, request):
+        self.boom = True
+        return {}
+
+    def update(self, state, time, period):
+        if self.boom:
+            raise RuntimeError("lab controller bug")
+        return {"r_knee/position": self.hold}
+'''
+
+CTRL = [
+    {"name": "a", "type": "forward_command", "params": {"joints": ["r_knee"]}},
+    {
+        "name": "b",
+        "type": "forward_command",
+        "params": {"joints": ["r_knee"], "initial": {"r_knee": 45}},
+    },
+    {"name": "left", "type": "forward_command", "params": {"joints": ["l_knee"]}},
+]
+
+
+def nodes(controllers: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        {
+            "name": "controller_manager",
+            "plugin": "controller_manager",
+            "critical": True,
+            "heartbeat_deadline_ms": 50,
+            # Silence limits above a loaded test machine's stalls: these tests are not about them.
+            "params": {"controllers": controllers, "max_step_deg": 3, "h2_timeout_ms": 300},
+        },
+    ]
+
+
+@pytest.fixture
+def lab_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    site = tmp_path / "labsite"
+    (site / "lab_ctrl-0.1.dist-info").mkdir(parents=True)
+    (site / "lab_ctrl-0.1.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: lab-ctrl\nVersion: 0.1\n"
+    )
+    (site / "lab_ctrl-0.1.dist-info" / "entry_points.txt").write_text(
+        "[exolink.controllers]\nraiser = lab_ctrl:Raiser\n"
+    )
+    (site / "lab_ctrl.py").write_text(LAB_PLUGIN)
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    )
+
+
+@pytest.fixture
+def app(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def]
+    return Appliance(write_config(nodes=nodes(CTRL), watchdog={"h2_silence_ms": 500}), spawn)
+
+
+def ctl(app: Appliance, *args: str) -> Any:
+    r = app.cli("controllers", *args)
+    return r
+
+
+def listing(app: Appliance) -> dict[str, dict[str, Any]]:
+    r = app.cli("controllers", "list", "--json")
+    assert r.returncode == 0, r.stderr
+    return {c["name"]: c for c in json.loads(r.stdout)["controllers"]}
+
+
+def joint_frames(frames: list[Any], motor: int) -> list[h2.JointControl]:
+    return [
+        f
+        for f in (h2.decode(m) for m in frames)
+        if isinstance(f, h2.JointControl) and f.motor == motor
+    ]
+
+
+def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    r = ctl(app, "activate", "a")
+    assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    # one owner per interface: refused with the owner named
+    r = ctl(app, "activate", "b")
+    assert r.returncode == 5 and "cannot activate b: r_knee/position is owned by a" in r.stderr
+    assert ctl(app, "command", "a", "r_knee=30").returncode == 0
+    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [30])
+    # the switch: every H2 cycle has exactly one r_knee set-point, a's (30) then b's ramp to 45
+    mbus.q.queue.clear()
+    assert ctl(app, "switch", "--activate", "b", "--deactivate", "a").returncode == 0
+    frames = collect(mbus, 0.5, {70, 110})
+    cycles: list[list[int]] = [[]]
+    for m in frames:
+        if m.arbitration_id == 110:
+            cycles.append([])
+        elif (f := h2.decode(m)).motor == 2:  # type: ignore[union-attr]
+            cycles[-1].append(f.setpoint)  # type: ignore[union-attr]
+    full = cycles[1:-1]
+    assert full and all(len(c) == 1 for c in full), cycles
+    points = [c[0] for c in cycles if c]
+    assert points == sorted(points) and points[0] == 30 and points[-1] == 45, points
+    assert {p for p in points if p not in (30, 45)} <= {33, 36, 39, 42}  # step limit 3 deg
+    # a lab controller that raises: deactivated, its joint disabled, the other keeps writing
+    assert (
+        ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 5
+    )  # not loaded
+    r = ctl(app, "load", "lab", "raiser")
+    assert r.returncode == 0, r.stderr
+    assert ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 0
+    assert ctl(app, "command", "lab", "r_knee=0").returncode == 0
+    frames = collect(mbus, 0.5, {70})
+    knee = joint_frames(frames, 2)
+    assert h2.JointControl(2, 4, 0, 0) in knee
+    assert all(f.mode == 4 for f in knee[knee.index(h2.JointControl(2, 4, 0, 0)) :])
+    after = frames[[h2.decode(m) for m in frames].index(h2.JointControl(2, 4, 0, 0)) :]
+    assert joint_frames(after, 5) and all(f.mode == 1 for f in joint_frames(after, 5))
+    s = listing(app)
+    assert (
+        s["lab"]["state"] == "inactive" and "RuntimeError: lab controller bug" in s["lab"]["error"]
+    )
+    assert s["left"]["state"] == "active"
+    # bad params refuse the load, naming the controller and the param
+    r = ctl(app, "load", "p", "pid", "--params", '{"joints": ["r_hip"], "kp": "fast"}')
+    assert r.returncode == 5 and "p (pid) params" in r.stderr and "kp" in r.stderr, r.stderr
+
+
+def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)  # the trip's frames and anything in flight
+    assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
+    s = listing(app)
+    assert s["a"]["state"] == s["left"]["state"] == "inactive"
+    r = ctl(app, "activate", "a")
+    assert r.returncode == 5 and "motors not armed" in r.stderr
+    app.arm()  # re-arming does not bring them back
+    assert joint_frames(collect(mbus, 0.4, {70}), 2) == []
+    assert ctl(app, "activate", "a").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])
+def test_hung_or_killed_manager_disables_motors(app, mbus, sig) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    pid = app.node("controller_manager")["pid"]
+    os.kill(pid, sig)
+    try:
+        frames = [h2.decode(m) for m in collect(mbus, 1.0, {70})]
+        assert {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)} <= set(frames)
+        assert app.status()["watchdog"]["state"] == "tripped"
+    finally:
+        if sig == signal.SIGSTOP:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)

@@ -51,15 +51,20 @@ class ForwardParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # No command for this long (0 = never): 'hold' keeps the last, 'disable' the safe action.
     timeout_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 0.0
     on_timeout: Literal["hold", "disable"] = "hold"
+    # First command at activation (the manager's step limit ramps to it); joints not given
+    # start where they are (position) or at zero torque.
+    initial: dict[Joint, float] = {}
 
 
 class ForwardCommand(Controller):
-    """Starts by holding the joints where they are (position) or at zero torque."""
+    """Starts from ``initial``, else holds the joints where they are (position) or at zero torque."""
 
     Params = ForwardParams
 
     def configure(self) -> None:
         _unique(self.name, list(self.params.joints))
+        if set(self.params.initial) - set(self.params.joints):
+            raise ValueError(f"{self.name}: initial values for joints it does not drive")
         self.keys = {j: interface(j, self.params.interface) for j in self.params.joints}
         self.values: dict[str, float] = {}
         self.last_command = 0.0
@@ -70,7 +75,8 @@ class ForwardCommand(Controller):
 
     def activate(self, state: State) -> None:
         hold = self.params.interface == "position"
-        self.values = {self.keys[j]: float(state.of(j)) if hold else 0.0 for j in self.keys}
+        start = {j: float(state.of(j)) if hold else 0.0 for j in self.keys} | self.params.initial
+        self.values = {self.keys[j]: v for j, v in start.items()}
         self.last_command, self.timed_out = time.monotonic(), False
 
     def command(self, request: dict[str, Any]) -> dict[str, Any]:

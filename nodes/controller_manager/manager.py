@@ -200,19 +200,21 @@ class Manager:
             raise ManagerRefused(str(exc)) from None
 
     def status(self) -> dict[str, Any]:
-        with self.lock:
-            over = sorted(self.overhead_s)
-            return {
-                "controllers": [s.status() for s in self.slots.values()],
-                "owners": dict(self.owners),
-                "cycles": self.cycles,
-                "overhead_us": {
-                    "n": len(over),
-                    "p50": round(over[len(over) // 2] * 1e6, 1) if over else None,
-                    "p99": round(over[int(len(over) * 0.99)] * 1e6, 1) if over else None,
-                    "max": round(over[-1] * 1e6, 1) if over else None,
-                },
-            }
+        with self.lock:  # copies only: the loop waits on this lock, so no work inside it
+            slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
+            over = list(self.overhead_s)
+        over.sort()
+        return {
+            "controllers": [s.status() for s in slots],
+            "owners": owners,
+            "cycles": cycles,
+            "overhead_us": {
+                "n": len(over),
+                "p50": round(over[len(over) // 2] * 1e6, 1) if over else None,
+                "p99": round(over[int(len(over) * 0.99)] * 1e6, 1) if over else None,
+                "max": round(over[-1] * 1e6, 1) if over else None,
+            },
+        }
 
     # --- switching --------------------------------------------------------------------------
 
