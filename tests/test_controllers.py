@@ -404,3 +404,21 @@ def test_hung_or_killed_manager_disables_motors(app, mbus, sig) -> None:  # type
         if sig == signal.SIGSTOP:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGCONT)
+
+
+def test_h2_silent_claimed_joints_get_the_safe_action(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert ctl(app, "activate", "a").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    from exolink import messaging
+
+    s = messaging.open_client_session(app.at)
+    try:
+        reply = messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 2})
+    finally:
+        s.close()
+    assert reply["ok"], reply
+    frames = [h2.decode(m) for m in collect(mbus, 1.0, {70})]
+    assert h2.JointControl(2, 4, 0, 0) in frames  # from the manager (and the watchdog)
+    assert [f for f in frames if f.mode == 1] == []  # type: ignore[union-attr]
+    assert "no H2 joint angles" in listing(app)["a"]["error"]
