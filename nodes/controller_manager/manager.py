@@ -135,6 +135,7 @@ class Manager:
         self.last_pos: list[int | None] = [None] * len(JOINTS)  # last position written
         self.pending: list[Switch] = []
         self.cycles = 0
+        self.gaps = 0  # cycles where a claimed joint got no frame (no value yet)
         self.overhead_s: deque[float] = deque(maxlen=2000)
 
     # --- loading ----------------------------------------------------------------------------
@@ -202,12 +203,14 @@ class Manager:
     def status(self) -> dict[str, Any]:
         with self.lock:  # copies only: the loop waits on this lock, so no work inside it
             slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
+            gaps = self.gaps
             over = list(self.overhead_s)
         over.sort()
         return {
             "controllers": [s.status() for s in slots],
             "owners": owners,
             "cycles": cycles,
+            "gaps": gaps,
             "overhead_us": {
                 "n": len(over),
                 "p50": round(over[len(over) // 2] * 1e6, 1) if over else None,
@@ -448,19 +451,17 @@ class Manager:
             if torque_owner is not None:
                 v = held.get(f"{name}/torque")
                 if v is None:
+                    self.gaps += 1
                     continue
                 mode, sp, st, owner = TORQUE, round(v), 0, torque_owner
             elif pos_owner is not None:
                 v = held.get(f"{name}/position")
-                if v is None:
+                s = held.get(f"{name}/stiffness") if f"{name}/stiffness" in owners else 0
+                if v is None or s is None:
+                    self.gaps += 1
                     continue
-                sp, st, owner = round(v), 0, pos_owner
-                mode = POSITION
-                if f"{name}/stiffness" in owners:
-                    s = held.get(f"{name}/stiffness")
-                    if s is None:
-                        continue
-                    mode, st = STIFFNESS, round(s)
+                sp, st, owner = round(v), round(s), pos_owner
+                mode = STIFFNESS if f"{name}/stiffness" in owners else POSITION
             else:
                 continue
             last = self.last_pos[j] if mode != TORQUE else None
