@@ -42,3 +42,29 @@ def find_node_class(plugin: str) -> type[Node]:
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise PluginError(f"node plugin {plugin!r} ({eps[0].value}) is not an exolink Node")
     return cls
+
+
+CONTROLLER_GROUP = "exolink.controllers"
+
+
+def controller_types() -> dict[str, str]:
+    """Controller type -> ``module:Class`` for every installed controller (not cached: a lab
+    may pip-install one while the manager runs, and the next load should see it)."""
+    return {ep.name: ep.value for ep in entry_points(group=CONTROLLER_GROUP)}
+
+
+def find_controller_class(kind: str) -> type:
+    """Import the controller type asked for; PluginError names what is installed."""
+    eps = [ep for ep in entry_points(group=CONTROLLER_GROUP) if ep.name == kind]
+    if not eps:
+        names = ", ".join(sorted(controller_types())) or "none installed"
+        raise PluginError(f"unknown controller type {kind!r} (available: {names})")
+    try:
+        cls = eps[0].load()
+    except Exception as exc:
+        raise PluginError(f"controller type {kind!r} failed to import: {exc}") from exc
+    from exolink.controller import Controller
+
+    if not (isinstance(cls, type) and issubclass(cls, Controller)):
+        raise PluginError(f"controller type {kind!r} ({eps[0].value}) is not an exolink Controller")
+    return cls

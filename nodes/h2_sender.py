@@ -10,29 +10,26 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Annotated, Any
+from typing import Any
 
 import can
 import msgspec
 from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_bus
+from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 MOTION = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
-Angles = Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)]
-Caps = Annotated[
-    list[Annotated[int, msgspec.Meta(ge=0, le=127)]], msgspec.Meta(min_length=6, max_length=6)
-]
 
 
 class SenderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Joint limits this lab accepts (deg, joint order r_hip..l_ankle), inside the mechanical ranges.
-    min_angles: Angles = msgspec.field(default_factory=lambda: [h2.RANGES[j][0] for j in h2.JOINTS])
-    max_angles: Angles = msgspec.field(default_factory=lambda: [h2.RANGES[j][1] for j in h2.JOINTS])
+    min_angles: Angles = msgspec.field(default_factory=default_min)
+    max_angles: Angles = msgspec.field(default_factory=default_max)
     send_limits_on_start: bool = True
     require_armed: bool = True
     # Per joint: the largest |set-point| accepted in torque mode and stiffness in stiffness mode.
@@ -46,17 +43,14 @@ class H2Sender(Node):
 
     def configure(self) -> None:
         p = self.params
-        # Validate the configured limits with the codec: a bad config starts nothing.
-        try:
-            self.limit_frames = [
-                h2.encode_accepted_angles("min", p.min_angles),
-                h2.encode_accepted_angles("max", p.max_angles),
-            ]
-        except ProtocolError as exc:
-            raise ValueError(f"{self.name} params: {exc}") from None
-        for j, lo, hi in zip(h2.JOINTS, p.min_angles, p.max_angles, strict=True):
-            if lo > hi:
-                raise ValueError(f"{self.name} params: {j} min {lo} > max {hi}")
+        # Validated with the codec: a bad config starts nothing.
+        self.checks = Limits.of(
+            p.min_angles, p.max_angles, p.torque_cap, p.stiffness_cap, self.name
+        )
+        self.limit_frames = [
+            h2.encode_accepted_angles("min", p.min_angles),
+            h2.encode_accepted_angles("max", p.max_angles),
+        ]
         # What the H2 enforces now: the configured limits, until an operator sends stricter ones.
         self.h2_min, self.h2_max = list(p.min_angles), list(p.max_angles)
         self.bus = open_bus(self.ctx.config.can, filters=[])
@@ -101,25 +95,17 @@ class H2Sender(Node):
             return [h2.encode_joint_control(m, mode) for m in range(1, 7)]
         motor = h2.motor_id(joint)  # type: ignore[arg-type]
         msg = h2.encode_joint_control(motor, mode, req.get("setpoint", 0), req.get("stiffness", 0))
-        name, i = h2.JOINTS[motor - 1], motor - 1
-        sp = int(req.get("setpoint", 0))
-        if mode in (h2.MODES["position"], h2.MODES["stiffness"]):
-            lo, hi = self.limits(i)
-            if not lo <= sp <= hi:
-                raise CommandRefused(
-                    f"{name} set-point {sp} deg is outside the limits {lo}..{hi} "
-                    "(the stricter of the configured ones and the last sent to the H2)"
-                )
-        if mode == h2.MODES["torque"] and abs(sp) > self.params.torque_cap[i]:
-            raise CommandRefused(
-                f"{name} torque {sp} is above its cap {self.params.torque_cap[i]} (torque_cap)"
-            )
-        stiffness = int(req.get("stiffness", 0))
-        if mode == h2.MODES["stiffness"] and stiffness > self.params.stiffness_cap[i]:
-            raise CommandRefused(
-                f"{name} stiffness {stiffness} is above its cap {self.params.stiffness_cap[i]}"
-                " (stiffness_cap)"
-            )
+        i = motor - 1
+        why = self.checks.violation(
+            i,
+            mode,
+            int(req.get("setpoint", 0)),
+            int(req.get("stiffness", 0)),
+            self.limits(i),
+            " (the stricter of the configured ones and the last sent to the H2)",
+        )
+        if why is not None:
+            raise CommandRefused(why)
         if mode in MOTION and self.arming is not None and (why := self.arming.check()):
             raise CommandRefused(why)
         return [msg]

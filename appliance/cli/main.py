@@ -83,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     remote.register_management(sub)
     motion.register(sub)
     recordings.register(sub)
+    __import__("exolink.cli.controllers").cli.controllers.register(sub)
     return parser
 
 

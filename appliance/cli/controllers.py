@@ -1,0 +1,104 @@
+"""``exolink controllers ...``: the controller manager from a laptop (list, types, load, unload,
+activate, deactivate, switch, command). Reading needs the observer role, the rest operator."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from exolink.cli.remote import _guard, _Leaves, common, remote
+
+
+def _show(s: dict[str, Any]) -> str:
+    lines = [f"cycles {s['cycles']}  written {s['written']}  safe-action frames {s['safe']}"]
+    for c in s["controllers"]:
+        why = f" ({c['error']})" if c.get("error") else ""
+        mean = c["update_ms_mean"]
+        lines.append(
+            f"{c['name']:<16} {c['type']:<18} {c['state']}{why}\n"
+            f"  claims {', '.join(c['claims'])}\n"
+            f"  update ms mean {mean if mean is not None else '-'} max {c['update_ms_max']} "
+            f"(budget {c['budget_ms']})  overruns {c['overruns']}  limited {c['limited']}"
+        )
+    return "\n".join(lines)
+
+
+def _value(text: str) -> tuple[str, float]:
+    joint, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"{text!r}: give JOINT=VALUE, e.g. r_knee=30")
+    try:
+        return joint, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a number") from None
+
+
+def _params(text: str) -> dict[str, Any]:
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"--params is not JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise argparse.ArgumentTypeError("--params must be a JSON object")
+    return data
+
+
+@_guard
+def cmd_controllers(args: argparse.Namespace) -> int:
+    a = args.action
+    body: dict[str, Any] = {"action": a}
+    if a == "load":
+        body |= {"name": args.name, "type": args.type, "params": args.params}
+        if args.budget_ms is not None:
+            body["budget_ms"] = args.budget_ms
+    elif a in ("unload",):
+        body["name"] = args.name
+    elif a in ("activate", "deactivate"):
+        body["names"] = args.names
+    elif a == "switch":
+        body |= {"activate": args.activate, "deactivate": args.deactivate}
+    elif a == "command":
+        body |= {"name": args.name, "values": dict(args.values)}
+    with remote(args) as r:
+        reply = r.call("controllers", body=body)
+    reply.pop("ok", None)
+    if getattr(args, "json", False):
+        sys.stdout.write(json.dumps(reply) + "\n")
+    elif a == "list":
+        sys.stdout.write(_show(reply) + "\n")
+    elif a == "types":
+        for name, where in sorted(reply["types"].items()):
+            sys.stdout.write(f"{name:<20} {where}\n")
+    elif a in ("activate", "deactivate", "switch"):
+        sys.stdout.write(f"active: {', '.join(reply['active']) or '-'}\n")
+    else:
+        sys.stdout.write("ok " + json.dumps(reply) + "\n")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    parent = common()
+    p = sub.add_parser("controllers", help="controller manager: list, load, activate, switch")
+    s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
+    q = s.add_parser("list", help="loaded controllers, their state, claims and update times")
+    q.add_argument("--json", action="store_true")
+    s.add_parser("types", help="installed controller types (entry points exolink.controllers)")
+    q = s.add_parser("load", help="load NAME TYPE [--params JSON]: validated, then inactive")
+    q.add_argument("name")
+    q.add_argument("type")
+    q.add_argument("--params", type=_params, default={})
+    q.add_argument("--budget-ms", type=float, help="CPU per update before it is deactivated")
+    q = s.add_parser("unload", help="unload NAME (inactive only)")
+    q.add_argument("name")
+    for name in ("activate", "deactivate"):
+        q = s.add_parser(name, help=f"{name} NAME... at the next H2 cycle")
+        q.add_argument("names", nargs="+")
+    q = s.add_parser("switch", help="deactivate some and activate others at one H2 cycle")
+    q.add_argument("--activate", nargs="+", default=[], metavar="NAME")
+    q.add_argument("--deactivate", nargs="+", default=[], metavar="NAME")
+    q = s.add_parser("command", help="command NAME JOINT=VALUE... (forward_command, pid)")
+    q.add_argument("name")
+    q.add_argument("values", nargs="+", type=_value)
+    p.set_defaults(func=cmd_controllers)

@@ -1,0 +1,95 @@
+"""The controller plugin interface: what the controller manager hands a controller and expects back.
+
+Kept apart from the manager (and light: msgspec and the H2 joint names) because a lab's own
+controller package imports only this, exactly as a node imports ``exolink.node``. A controller
+never touches the bus, Zenoh or the watchdog: it gets the H2 state once per H2 cycle and returns
+values for the command interfaces it claimed; the manager checks limits, encodes and writes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import msgspec
+from exolink.protocol.h2 import JOINTS
+
+INTERFACES = ("position", "torque", "stiffness")
+
+
+class NoParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    pass
+
+
+class SafeStop(Exception):
+    """Raised by ``update`` to ask for the safe action on this controller's joints (e.g. a
+    forward-command timeout set to disable): it is deactivated like a failed one, logged as asked."""
+
+
+class Refused(Exception):
+    """A controller refuses a request (a bad command, a bad joint); the text reaches the caller."""
+
+
+@dataclass(frozen=True, slots=True)
+class State:
+    """One H2 cycle: whole degrees and raw torque counts in joint order (``JOINTS``), foot
+    switches (r_heel, r_toe, l_heel, l_toe; None until the first foot-switch frame)."""
+
+    position: tuple[int, ...]
+    torque: tuple[int, ...]
+    feet: tuple[int, int, int, int] | None = None
+
+    def of(self, joint: str) -> int:
+        return self.position[JOINTS.index(joint)]
+
+
+def interface(joint: str, kind: str) -> str:
+    """``r_knee/position``: the one spelling of a command interface."""
+    if joint not in JOINTS:
+        raise Refused(f"unknown joint {joint!r} (valid: {', '.join(JOINTS)})")
+    if kind not in INTERFACES:
+        raise Refused(f"unknown interface {kind!r} (valid: {', '.join(INTERFACES)})")
+    return f"{joint}/{kind}"
+
+
+class Controller:
+    """Subclass, set ``Params`` to a msgspec Struct, implement ``claims`` and ``update``.
+
+    Lifecycle: constructed with validated params (a bad param refuses the load) -> ``configure``
+    (may raise to refuse the load) -> ``activate(state)`` at a cycle boundary (start from where
+    the joints are, not from where they were last time) -> ``update`` once per H2 cycle ->
+    ``deactivate``. ``update`` returns ``{interface: value}`` for interfaces it claimed; a
+    claimed interface left out keeps its last value. Raising, or spending more CPU than the
+    budget, deactivates the controller and puts its joints in the safe action.
+    """
+
+    Params: ClassVar[type[msgspec.Struct]] = NoParams
+
+    def __init__(self, name: str, params: Any) -> None:
+        self.name = name
+        self.params = params
+
+    def claims(self) -> list[str]:
+        raise NotImplementedError
+
+    def configure(self) -> None:
+        pass
+
+    def activate(self, state: State) -> None:
+        pass
+
+    def deactivate(self) -> None:
+        pass
+
+    def update(self, state: State, time: float, period: float) -> dict[str, float]:
+        """``time``: the angle frame's kernel receive time (s since the epoch); ``period``: the
+        measured time since the previous cycle's frame (s)."""
+        raise NotImplementedError
+
+    def command(self, request: dict[str, Any]) -> dict[str, Any]:
+        """An operator's input (``exolink controllers command NAME ...``), from a Zenoh thread:
+        hand the loop a new immutable value; never block it."""
+        raise Refused(f"controller {self.name} takes no commands")
+
+    def status(self) -> dict[str, Any]:
+        return {}

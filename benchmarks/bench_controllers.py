@@ -1,0 +1,74 @@
+"""Controller manager: H2 angle frame (id 110) on the bus -> the command frame (id 70) it causes,
+with 1 and 3 forward-command controllers active, and the manager's own work per cycle without
+the controllers' (``overhead_us``, measured inside the node: read -> frames sent, minus update).
+
+Goal (issue 20): p99 < 1 ms on x86 on the sim bus. Both frames are stamped by the listener's
+kernel on the same socket, so the figure is bus to bus, including the udp_multicast path.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from exolink.protocol import h2
+
+from benchmarks.harness import Appliance, Drained, pct
+
+JOINTS3 = ["r_knee", "l_knee", "r_hip"]
+
+
+def measure(n_controllers: int, seconds: float) -> dict[str, Any]:
+    controllers = [
+        {"name": f"c{i}", "type": "forward_command", "params": {"joints": [j]}}
+        for i, j in enumerate(JOINTS3[:n_controllers])
+    ]
+    nodes = [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        {
+            "name": "controller_manager",
+            "plugin": "controller_manager",
+            "critical": True,
+            "heartbeat_deadline_ms": 50,
+            "priority": {"fifo": 50},
+            "params": {"controllers": controllers},
+        },
+    ]
+    app = Appliance(nodes=nodes)
+    bus = Drained(app.group)
+    try:
+        app.arm()
+        names = [c["name"] for c in controllers]
+        reply = app.call("controllers", {"action": "activate", "names": names})
+        if not reply.get("ok"):
+            raise RuntimeError(f"activate: {reply}")
+        time.sleep(0.3)
+        bus.clear()
+        frames = bus.collect(seconds)
+        status = app.call("controllers", {"action": "list"})
+    finally:
+        bus.close()
+        app.close()
+    # first command frame after each angle frame, before the next angle frame
+    latency, pending = [], None
+    for m in frames:
+        if m.arbitration_id == h2.JOINT_ANGLES:
+            pending = m.timestamp
+        elif m.arbitration_id == h2.JOINT_CONTROL and pending is not None and len(m.data) == 6:
+            latency.append(m.timestamp - pending)
+            pending = None
+    cycles = sum(1 for m in frames if m.arbitration_id == h2.JOINT_ANGLES)
+    return {
+        "frame_to_command_ms": pct(latency, 1e3),
+        "cycles_without_command": cycles - len(latency),
+        "overhead_us": status["overhead_us"],
+        "update_ms_max": max(c["update_ms_max"] for c in status["controllers"]),
+        "still_active": sum(c["state"] == "active" for c in status["controllers"]),
+        "stopped_because": sorted({c["error"] for c in status["controllers"] if c["error"]}),
+    }
+
+
+def run(quick: bool) -> dict[str, Any]:
+    seconds = 3.0 if quick else 15.0
+    return {f"controllers_{n}": measure(n, seconds) for n in (1, 3)}

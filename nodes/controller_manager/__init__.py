@@ -1,0 +1,245 @@
+"""Controller manager [thesis: the ros_control hardware interface]: read -> update -> write once
+per H2 cycle, paced by the joint-angle frame (id 110).
+
+The node reads the H2 frames itself (one FrameReader: angles, torques, foot switches, and joint
+control so it sees a disable from anyone), hands each cycle to ``Manager`` with the angle frame's
+kernel timestamp and the measured period, and writes what comes back. Safety around the loop:
+
+- nothing is written unless the watchdog is armed; a trip (seen on Zenoh, or as its disable
+  frames on the bus, whichever comes first) deactivates every controller, and they stay inactive
+  until an operator re-arms and activates them again;
+- a type 4/5 frame for a claimed joint from any sender stops the controllers driving it (their
+  next set-point would switch the joint back on);
+- no angle frame for ``h2_timeout_ms`` while controllers are active: their joints get the safe
+  action and every controller stops (the watchdog trips on the same silence a little later);
+- the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
+  (``heartbeat_deadline_ms: 50`` in the configs, as for the pattern player).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from functools import lru_cache
+from typing import Annotated, Any, Literal
+
+import can
+import msgspec
+from exolink import roles
+from exolink.arming import ArmingState
+from exolink.canbus import open_reader
+from exolink.controller import State
+from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
+from exolink.messaging import CommandRefused
+from exolink.node import Node
+from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.plugins import controller_types
+from exolink.protocol import h2
+
+BEAT_S = 0.02
+SWITCH_WAIT_S = 1.0
+SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
+READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES, h2.JOINT_CONTROL]
+
+
+class ControllerSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    name: str
+    type: str
+    params: dict[str, Any] = {}
+    budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None
+
+
+class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    min_angles: Angles = msgspec.field(default_factory=default_min)
+    max_angles: Angles = msgspec.field(default_factory=default_max)
+    torque_cap: Caps = msgspec.field(default_factory=lambda: [127] * 6)
+    stiffness_cap: Caps = msgspec.field(default_factory=lambda: [100] * 6)
+    # The largest change of a position set-point from one 10 ms cycle to the next (deg).
+    max_step_deg: Annotated[int, msgspec.Meta(ge=1, le=60)] = 3
+    # CPU one controller's update may take per cycle before it is deactivated.
+    update_budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 2.0
+    h2_timeout_ms: Annotated[int, msgspec.Meta(ge=15, le=1000)] = 50
+    safe_action: Literal["disable", "stop"] = "disable"
+    require_armed: bool = True
+    controllers: list[ControllerSpec] = []  # loaded (inactive) at start
+
+
+@lru_cache(maxsize=4096)
+def _frame(motor: int, mode: int, setpoint: int, stiffness: int) -> can.Message:
+    """Encoded once per distinct command (the codec checks ranges again): a holding joint costs
+    a dictionary look-up per cycle, not an encode."""
+    return h2.encode_joint_control(motor, mode, setpoint, stiffness)
+
+
+class ControllerManagerNode(Node):
+    Params = ManagerParams
+    stall_s = 2 * BEAT_S
+
+    def configure(self) -> None:
+        p = self.params
+        limits = Limits.of(p.min_angles, p.max_angles, p.torque_cap, p.stiffness_cap, self.name)
+        self.manager = Manager(limits, p.max_step_deg, p.update_budget_ms)
+        for n, spec in enumerate(p.controllers):
+            try:
+                self.manager.load(spec.name, spec.type, spec.params, spec.budget_ms)
+            except ManagerRefused as exc:
+                raise ValueError(f"{self.name} params: controllers[{n}]: {exc}") from None
+        self.safe_mode = h2.MODES["disabled" if p.safe_action == "disable" else "stopped"]
+        self.reader = open_reader(self.ctx.config.can, READ_IDS)
+        self.bus = self.reader.bus
+        self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
+        self.torque: tuple[int, ...] = (0,) * 6
+        self.feet: tuple[int, int, int, int] | None = None
+        self.last_angle_ts: float | None = None
+        self.last_angle_mono = time.monotonic()
+        self.written = 0
+        self.safe_sent = 0
+        self._q = self.ctx.messaging.serve("controllers", self.on_request, self._needs)
+
+    @staticmethod
+    def _needs(request: dict[str, Any]) -> str:
+        return (
+            roles.OBSERVER
+            if request.get("action", "list") in ("list", "types")
+            else (roles.OPERATOR)
+        )
+
+    # --- management ---------------------------------------------------------------------------
+
+    def on_request(self, req: dict[str, Any]) -> dict[str, Any]:
+        action = req.get("action", "list")
+        try:
+            if action == "list":
+                return {**self.manager.status(), "written": self.written, "safe": self.safe_sent}
+            if action == "types":
+                return {"types": controller_types()}
+            if action == "load":
+                params = req.get("params") or {}
+                if not isinstance(params, dict):
+                    raise CommandRefused("params must be an object")
+                budget = req.get("budget_ms")
+                return self.manager.load(
+                    str(req.get("name", "")), str(req.get("type", "")), params, budget
+                )
+            if action == "unload":
+                self.manager.unload(str(req.get("name", "")))
+                return {}
+            if action == "command":
+                body = {k: v for k, v in req.items() if k not in ("action", "name")}
+                return self.manager.command(str(req.get("name", "")), body)
+            if action in ("activate", "deactivate", "switch"):
+                return self._switch(action, req)
+        except ManagerRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(
+            f"unknown controllers action {action!r} "
+            "(list, types, load, unload, activate, deactivate, switch, command)"
+        )
+
+    def _switch(self, action: str, req: dict[str, Any]) -> dict[str, Any]:
+        def names(key: str) -> list[str]:
+            v = req.get(key, [])
+            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+                raise CommandRefused(f"{key} must be a list of controller names")
+            return v
+
+        if action == "switch":
+            sw = Switch(names("activate"), names("deactivate"))
+        elif action == "activate":
+            sw = Switch(names("names"), [])
+        else:
+            sw = Switch([], names("names"))
+        if sw.activate and self.arming is not None and (why := self.arming.check()):
+            raise CommandRefused(why)
+        self.manager.request(sw)
+        if not sw.done.wait(SWITCH_WAIT_S) and self.manager.withdraw(sw):
+            raise CommandRefused(
+                f"no H2 cycle within {SWITCH_WAIT_S:g} s to switch at (is the H2 streaming?)"
+            )
+        sw.done.wait()
+        if sw.error is not None:
+            raise CommandRefused(sw.error)
+        return {"active": self.manager.active()}
+
+    # --- the loop -----------------------------------------------------------------------------
+
+    def _not_armed(self) -> str | None:
+        return self.arming.check() if self.arming is not None else None
+
+    def run(self, stop: threading.Event) -> None:
+        timeout = self.params.h2_timeout_ms / 1e3
+        while not stop.is_set():
+            self.beat()
+            try:
+                frames = self.reader.read(BEAT_S)
+            except (can.CanError, OSError) as exc:
+                self.log.error("bus_read_error", error=str(exc))
+                self._silent("CAN read error: " + str(exc))
+                stop.wait(BEAT_S)
+                continue
+            self._on_frames(frames)
+            if time.monotonic() - self.last_angle_mono > timeout:
+                self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
+                self.manager.idle(self._not_armed())
+
+    def _on_frames(self, frames: list[Any]) -> None:
+        decoded = [(f, h2.decode(f)) for f in frames]
+        # Safety first: a disable/stop anywhere in the batch stops its joints' controllers
+        # before any set-point of this batch is computed.
+        stopped = {
+            d.motor - 1
+            for _f, d in decoded
+            if isinstance(d, h2.JointControl) and d.mode in SAFE_MODES and 1 <= d.motor <= 6
+        }
+        if stopped:
+            names = ", ".join(h2.JOINTS[j] for j in sorted(stopped))
+            self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
+        for f, d in decoded:
+            if isinstance(d, h2.JointTorques):
+                self.torque = tuple(d)
+            elif isinstance(d, h2.FootSwitches):
+                self.feet = (d.r_heel, d.r_toe, d.l_heel, d.l_toe)
+            elif isinstance(d, h2.JointAngles):
+                self._cycle(f.timestamp, State(tuple(d), self.torque, self.feet))
+
+    def _cycle(self, stamp: float, state: State) -> None:
+        """One H2 cycle (every angle frame, in order, so a late batch still gets one write per
+        cycle and no cycle is skipped for a claimed joint)."""
+        t0 = time.perf_counter()
+        period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
+        self.last_angle_ts, self.last_angle_mono = stamp, time.monotonic()
+        out = self.manager.cycle(state, stamp, period, self._not_armed())
+        for j in sorted(out.safe):
+            self._send(_frame(j + 1, self.safe_mode, 0, 0))
+            self.safe_sent += 1
+        for w in out.writes:
+            self._send(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
+            self.written += 1
+        self.manager.overhead_s.append(time.perf_counter() - t0 - out.controller_s)
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self.bus.send(msg)
+        except can.CanError as exc:
+            self.log.error("send_failed", error=str(exc))
+
+    def _silent(self, reason: str) -> None:
+        joints = self.manager.stop_all(reason) if self.manager.active() else set()
+        for j in sorted(joints):
+            self._send(_frame(j + 1, self.safe_mode, 0, 0))
+            self.safe_sent += 1
+        if joints:
+            self.log.warning("controllers_stopped_h2_silent", reason=reason)
+
+    def shutdown(self) -> None:
+        if hasattr(self, "manager"):
+            joints = self.manager.stop_all("controller manager shutting down")
+            if hasattr(self, "bus"):
+                for j in sorted(joints):
+                    self._send(_frame(j + 1, self.safe_mode, 0, 0))
+        if hasattr(self, "_q"):
+            self._q.undeclare()
+        if getattr(self, "arming", None) is not None:
+            self.arming.close()  # type: ignore[union-attr]
+        if hasattr(self, "bus"):
+            self.bus.shutdown()

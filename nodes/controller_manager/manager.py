@@ -1,0 +1,475 @@
+"""The controller manager's logic, free of any bus or Zenoh session (so tests feed it states).
+
+One ``Manager`` owns the loaded controllers, the claims on command interfaces (one owner each),
+the switches waiting for a cycle boundary, and turns one H2 cycle into the joint commands to
+write. The node around it (``ControllerManagerNode``) reads the bus, checks arming and writes.
+Everything that changes what is active happens inside ``cycle`` (or ``stop_all`` /
+``joints_disabled``) under one lock, so no cycle ever sees half a switch.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+import structlog
+from exolink.controller import INTERFACES, Controller, Refused, SafeStop, State
+from exolink.jointlimits import POSITION, STIFFNESS, TORQUE, Limits
+from exolink.plugins import PluginError, find_controller_class
+from exolink.protocol.h2 import JOINTS
+
+log = structlog.get_logger()
+
+
+class ManagerRefused(Exception):
+    """A management request the manager refuses; the text names what is in the way."""
+
+
+@dataclass
+class Slot:
+    """A loaded controller and what the manager knows of it."""
+
+    name: str
+    kind: str
+    ctrl: Controller
+    claims: tuple[str, ...]
+    budget_s: float
+    state: str = "inactive"
+    error: str = ""
+    updates: int = 0
+    cpu_s_total: float = 0.0
+    cpu_s_max: float = 0.0
+    overruns: int = 0
+    limited: int = 0
+
+    def joints(self) -> set[int]:
+        return {JOINTS.index(c.split("/")[0]) for c in self.claims}
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "type": self.kind,
+            "state": self.state,
+            "claims": list(self.claims),
+            "error": self.error,
+            "updates": self.updates,
+            "update_ms_mean": round(self.cpu_s_total / self.updates * 1e3, 4)
+            if self.updates
+            else None,
+            "update_ms_max": round(self.cpu_s_max * 1e3, 4),
+            "budget_ms": round(self.budget_s * 1e3, 3),
+            "overruns": self.overruns,
+            "limited": self.limited,
+            **self.ctrl.status(),
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class Write:
+    """One joint's command for this cycle, inside every limit (motor 1..6)."""
+
+    motor: int
+    mode: int
+    setpoint: int
+    stiffness: int
+
+
+@dataclass
+class Switch:
+    """Deactivate some, activate others: applied whole at one cycle boundary, or refused whole."""
+
+    activate: list[str]
+    deactivate: list[str]
+    done: threading.Event = field(default_factory=threading.Event)
+    error: str | None = None
+
+
+@dataclass
+class Cycle:
+    """What one cycle asks of the node: frames to write and joints to put in the safe action."""
+
+    writes: list[Write] = field(default_factory=list)
+    safe: set[int] = field(default_factory=set)
+    controller_s: float = 0.0  # wall time inside controllers' update (the rest is overhead)
+
+
+def split(interface: str) -> tuple[int, str]:
+    joint, _, kind = interface.partition("/")
+    return JOINTS.index(joint), kind
+
+
+def check_claims(name: str, claims: list[str]) -> tuple[str, ...]:
+    """A controller's own claims: known interfaces, no repeats, not torque and position on one
+    joint (the H2 runs one mode per joint)."""
+    seen: set[str] = set()
+    for c in claims:
+        joint, _, kind = c.partition("/")
+        if joint not in JOINTS or kind not in INTERFACES:
+            raise ManagerRefused(
+                f"{name} claims {c!r}: interfaces are <joint>/<{'|'.join(INTERFACES)}> "
+                f"with joint one of {', '.join(JOINTS)}"
+            )
+        if c in seen:
+            raise ManagerRefused(f"{name} claims {c} twice")
+        seen.add(c)
+    for j in JOINTS:
+        if f"{j}/torque" in seen and ({f"{j}/position", f"{j}/stiffness"} & seen):
+            raise ManagerRefused(f"{name} claims {j}/torque with {j}'s position or stiffness")
+    return tuple(claims)
+
+
+class Manager:
+    def __init__(self, limits: Limits, max_step_deg: int, budget_ms: float) -> None:
+        self.limits = limits
+        self.max_step = max_step_deg
+        self.default_budget_s = budget_ms / 1e3
+        self.lock = threading.Lock()
+        self.slots: dict[str, Slot] = {}
+        self.owners: dict[str, str] = {}  # interface -> active controller
+        self.held: dict[str, float] = {}  # interface -> last value a controller gave
+        self.last_pos: list[int | None] = [None] * len(JOINTS)  # last position written
+        self.pending: list[Switch] = []
+        self.cycles = 0
+        self.gaps = 0  # cycles where a claimed joint got no frame (no value yet)
+        self.overhead_s: deque[float] = deque(maxlen=2000)
+
+    # --- loading ----------------------------------------------------------------------------
+
+    def load(
+        self, name: str, kind: str, params: dict[str, Any] | None, budget_ms: float | None = None
+    ) -> dict[str, Any]:
+        """Import, validate params, configure: the controller is then inactive. Every error
+        refuses the load and names the controller and what is wrong."""
+        if not name or not isinstance(name, str) or "/" in name:
+            raise ManagerRefused(f"controller name {name!r}: give a plain name")
+        with self.lock:
+            if name in self.slots:
+                raise ManagerRefused(f"a controller named {name} is already loaded")
+        try:
+            cls = find_controller_class(kind)
+        except PluginError as exc:
+            raise ManagerRefused(str(exc)) from None
+        try:
+            p = msgspec.convert(params or {}, cls.Params)  # type: ignore[attr-defined]
+        except msgspec.ValidationError as exc:
+            raise ManagerRefused(f"controller {name} ({kind}) params: {exc}") from None
+        if budget_ms is not None and not (
+            isinstance(budget_ms, int | float) and 0 < budget_ms <= 1000
+        ):
+            raise ManagerRefused(f"controller {name}: budget_ms must be in (0, 1000]")
+        ctrl: Controller = cls(name, p)
+        try:
+            ctrl.configure()
+            claims = check_claims(name, ctrl.claims())
+        except (Refused, ValueError) as exc:
+            raise ManagerRefused(f"controller {name} ({kind}): {exc}") from None
+        budget = budget_ms / 1e3 if budget_ms is not None else self.default_budget_s
+        slot = Slot(name, kind, ctrl, claims, budget)
+        with self.lock:
+            if name in self.slots:
+                raise ManagerRefused(f"a controller named {name} is already loaded")
+            self.slots[name] = slot
+        log.info("controller_loaded", controller=name, type=kind, claims=list(claims))
+        return slot.status()
+
+    def unload(self, name: str) -> None:
+        with self.lock:
+            slot = self._slot(name)
+            if slot.state == "active":
+                raise ManagerRefused(f"{name} is active: deactivate it first")
+            del self.slots[name]
+        log.info("controller_unloaded", controller=name)
+
+    def _slot(self, name: str) -> Slot:
+        slot = self.slots.get(name)
+        if slot is None:
+            names = ", ".join(self.slots) or "none loaded"
+            raise ManagerRefused(f"no controller {name!r} (loaded: {names})")
+        return slot
+
+    def command(self, name: str, request: dict[str, Any]) -> dict[str, Any]:
+        with self.lock:
+            slot = self._slot(name)
+        try:
+            return slot.ctrl.command(request)
+        except Refused as exc:
+            raise ManagerRefused(str(exc)) from None
+
+    def status(self) -> dict[str, Any]:
+        with self.lock:  # copies only: the loop waits on this lock, so no work inside it
+            slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
+            gaps = self.gaps
+            over = list(self.overhead_s)
+        over.sort()
+        return {
+            "controllers": [s.status() for s in slots],
+            "owners": owners,
+            "cycles": cycles,
+            "gaps": gaps,
+            "overhead_us": {
+                "n": len(over),
+                "p50": round(over[len(over) // 2] * 1e6, 1) if over else None,
+                "p99": round(over[int(len(over) * 0.99)] * 1e6, 1) if over else None,
+                "max": round(over[-1] * 1e6, 1) if over else None,
+            },
+        }
+
+    # --- switching --------------------------------------------------------------------------
+
+    def request(self, switch: Switch) -> None:
+        """Check what can be checked now (names, states) and queue for the next boundary."""
+        with self.lock:
+            self._precheck(switch)
+            self.pending.append(switch)
+
+    def withdraw(self, switch: Switch) -> bool:
+        """Take back a switch no cycle applied; False when one did meanwhile."""
+        with self.lock:
+            if switch in self.pending:
+                self.pending.remove(switch)
+                return True
+            return False
+
+    def _precheck(self, sw: Switch) -> None:
+        if not sw.activate and not sw.deactivate:
+            raise ManagerRefused("nothing to switch: name controllers to activate or deactivate")
+        if set(sw.activate) & set(sw.deactivate):
+            raise ManagerRefused("a controller cannot be activated and deactivated at once")
+        for n in sw.deactivate:
+            if self._slot(n).state != "active":
+                raise ManagerRefused(f"{n} is not active")
+        for n in sw.activate:
+            if self._slot(n).state == "active":
+                raise ManagerRefused(f"{n} is already active")
+        self._conflicts(sw)
+
+    def _conflicts(self, sw: Switch) -> None:
+        """The claims after the switch: one owner per interface, one mode per joint."""
+        owners = {i: o for i, o in self.owners.items() if o not in sw.deactivate}
+        for n in sw.activate:
+            for c in self.slots[n].claims:
+                if c in owners:
+                    raise ManagerRefused(f"cannot activate {n}: {c} is owned by {owners[c]}")
+                owners[c] = n
+        for j in JOINTS:
+            t, p, s = (owners.get(f"{j}/{k}") for k in ("torque", "position", "stiffness"))
+            if t and (p or s):
+                raise ManagerRefused(
+                    f"cannot switch: {j}/torque ({t}) and {j}/{'position' if p else 'stiffness'} "
+                    f"({p or s}) would both drive {j}"
+                )
+            if s and not p:
+                raise ManagerRefused(
+                    f"cannot switch: {j}/stiffness ({s}) needs {j}/position claimed too "
+                    "(stiffness mode carries a position set-point)"
+                )
+
+    def _apply(self, state: State | None, not_armed: str | None) -> None:
+        """Pending switches, at this boundary. Without a state (no H2 cycle) only switches that
+        just deactivate apply: activating needs where the joints are."""
+        keep: list[Switch] = []
+        for sw in self.pending:
+            if sw.activate and state is None:
+                keep.append(sw)
+                continue
+            try:
+                self._precheck(sw)
+                if sw.activate and not_armed:
+                    raise ManagerRefused(not_armed)
+                started: list[Slot] = []
+                try:
+                    for n in sw.activate:
+                        slot = self.slots[n]
+                        slot.ctrl.activate(state)  # type: ignore[arg-type]
+                        started.append(slot)
+                except Exception as exc:
+                    for slot in started:
+                        self._safe_deactivate(slot)
+                    raise ManagerRefused(
+                        f"{n} refused to activate: {type(exc).__name__}: {exc}"
+                    ) from None
+                for n in sw.deactivate:
+                    self._release(self.slots[n], "")
+                for slot in started:
+                    self._claim(slot, state)  # type: ignore[arg-type]
+            except ManagerRefused as exc:
+                sw.error = str(exc)
+            sw.done.set()
+            log.info(
+                "controllers_switched" if sw.error is None else "switch_refused",
+                activate=sw.activate,
+                deactivate=sw.deactivate,
+                error=sw.error,
+            )
+        self.pending = keep
+
+    def _claim(self, slot: Slot, state: State) -> None:
+        slot.state, slot.error = "active", ""
+        for c in slot.claims:
+            self.owners[c] = slot.name
+            j, kind = split(c)
+            if kind == "position":  # the step limit starts from where the joint is
+                self.last_pos[j] = state.position[j]
+
+    def _safe_deactivate(self, slot: Slot) -> None:
+        try:
+            slot.ctrl.deactivate()
+        except Exception as exc:  # a broken deactivate must not keep claims
+            log.error("controller_deactivate_failed", controller=slot.name, error=str(exc))
+
+    def _release(self, slot: Slot, error: str) -> None:
+        self._safe_deactivate(slot)
+        slot.state, slot.error = "inactive", error
+        for c in slot.claims:
+            if self.owners.get(c) == slot.name:
+                del self.owners[c]
+                self.held.pop(c, None)
+                j, kind = split(c)
+                if kind == "position":
+                    self.last_pos[j] = None
+
+    # --- the loop ---------------------------------------------------------------------------
+
+    def idle(self, not_armed: str | None) -> None:
+        """A loop tick without an H2 cycle: deactivations still apply."""
+        with self.lock:
+            if self.pending:
+                self._apply(None, not_armed)
+
+    def active(self) -> list[str]:
+        with self.lock:
+            return [s.name for s in self.slots.values() if s.state == "active"]
+
+    def stop_all(self, reason: str) -> set[int]:
+        """A trip or a silent H2: every controller inactive until an operator activates it
+        again. Returns the joints that were claimed (for the safe action)."""
+        with self.lock:
+            joints: set[int] = set()
+            for slot in self.slots.values():
+                if slot.state == "active":
+                    joints |= slot.joints()
+                    self._release(slot, reason)
+                    log.warning("controller_stopped", controller=slot.name, reason=reason)
+            return joints
+
+    def joints_disabled(self, joints: set[int], why: str) -> None:
+        """Someone (the watchdog, an operator) disabled or stopped these joints on the bus: the
+        next set-point would switch them back on, so their controllers stop now."""
+        with self.lock:
+            for slot in self.slots.values():
+                if slot.state == "active" and slot.joints() & joints:
+                    self._release(slot, why)
+                    log.warning("controller_stopped", controller=slot.name, reason=why)
+
+    def cycle(self, state: State, t: float, period: float, not_armed: str | None) -> Cycle:
+        """One H2 cycle: apply switches, update active controllers, saturate, compose frames."""
+        out = Cycle()
+        with self.lock:
+            self.cycles += 1
+            if not_armed:
+                for slot in self.slots.values():
+                    if slot.state == "active":
+                        self._release(slot, not_armed)
+                        log.warning("controller_stopped", controller=slot.name, reason=not_armed)
+            if self.pending:
+                self._apply(state, not_armed)
+            if not_armed:
+                return out
+            for slot in list(self.slots.values()):
+                if slot.state == "active":
+                    self._update(slot, state, t, period, out)
+            self._compose(state, out)
+        return out
+
+    def _update(self, slot: Slot, state: State, t: float, period: float, out: Cycle) -> None:
+        c0, w0 = time.thread_time(), time.perf_counter()
+        try:
+            values = slot.ctrl.update(state, t, period)
+            cpu = time.thread_time() - c0
+            out.controller_s += time.perf_counter() - w0
+            bad = self._check_values(slot, values)
+        except SafeStop as exc:
+            self._fail(slot, f"asked for the safe action: {exc}", out, error=False)
+            return
+        except Exception as exc:
+            self._fail(slot, f"update raised {type(exc).__name__}: {exc}", out)
+            return
+        slot.updates += 1
+        slot.cpu_s_total += cpu
+        slot.cpu_s_max = max(slot.cpu_s_max, cpu)
+        if cpu > slot.budget_s:
+            slot.overruns += 1
+            self._fail(
+                slot,
+                f"overran its budget: {cpu * 1e3:.3f} ms CPU > {slot.budget_s * 1e3:g} ms",
+                out,
+            )
+            return
+        if bad:
+            self._fail(slot, bad, out)
+            return
+        self.held.update(values)
+
+    def _check_values(self, slot: Slot, values: Any) -> str | None:
+        if not isinstance(values, dict):
+            return f"update returned {type(values).__name__}, not a dict of interface values"
+        for k, v in values.items():
+            if k not in slot.claims:
+                return f"wrote {k}, which it did not claim"
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                return f"wrote {k} = {v!r}, not a finite number"
+        return None
+
+    def _fail(self, slot: Slot, reason: str, out: Cycle, error: bool = True) -> None:
+        """Deactivate ``slot``; its joints get the safe action, so any other controller driving
+        one of them stops too (a disabled joint must not be switched back on by a neighbour)."""
+        joints = slot.joints()
+        self._release(slot, reason)
+        (log.error if error else log.warning)(
+            "controller_failed", controller=slot.name, reason=reason
+        )
+        for other in self.slots.values():
+            if other.state == "active" and other.joints() & joints:
+                self._release(other, f"shares a joint with {slot.name}, which failed")
+                joints |= other.joints()
+        out.safe |= joints
+
+    def _compose(self, state: State, out: Cycle) -> None:
+        """One frame per claimed joint, inside the limits; a joint whose values are not all
+        known yet gets no frame (the H2 keeps what it had)."""
+        owners, held = self.owners, self.held
+        for j, name in enumerate(JOINTS):
+            if j in out.safe:
+                continue
+            pos_owner = owners.get(f"{name}/position")
+            torque_owner = owners.get(f"{name}/torque")
+            if torque_owner is not None:
+                v = held.get(f"{name}/torque")
+                if v is None:
+                    self.gaps += 1
+                    continue
+                mode, sp, st, owner = TORQUE, round(v), 0, torque_owner
+            elif pos_owner is not None:
+                v = held.get(f"{name}/position")
+                s = held.get(f"{name}/stiffness") if f"{name}/stiffness" in owners else 0
+                if v is None or s is None:
+                    self.gaps += 1
+                    continue
+                sp, st, owner = round(v), round(s), pos_owner
+                mode = STIFFNESS if f"{name}/stiffness" in owners else POSITION
+            else:
+                continue
+            last = self.last_pos[j] if mode != TORQUE else None
+            sp2, st2 = self.limits.saturate(j, mode, sp, st, last, self.max_step)
+            if (sp2, st2) != (sp, st):
+                self.slots[owner].limited += 1
+            if self.limits.violation(j, mode, sp2, st2) is not None:  # cannot happen: belt
+                continue
+            if mode != TORQUE:
+                self.last_pos[j] = sp2
+            out.writes.append(Write(j + 1, mode, sp2, st2))

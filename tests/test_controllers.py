@@ -1,0 +1,425 @@
+"""Controller manager: the pure logic fed H2 states (no transport), then the node on the simulator
+with the watchdog, every claim checked by an independent listener on the bus."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import Appliance, collect, wait_for
+from exolink.controller import State
+from exolink.jointlimits import Limits, default_max, default_min
+from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
+from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.protocol import h2
+
+SITTING = State((40, 60, 0, 40, 60, 0), (0,) * 6)
+
+
+def manager(max_step: int = 60, budget_ms: float = 50.0, **caps: list[int]) -> Manager:
+    limits = Limits.of(
+        caps.get("min", default_min()),
+        caps.get("max", default_max()),
+        caps.get("torque", [127] * 6),
+        caps.get("stiffness", [100] * 6),
+        "test",
+    )
+    return Manager(limits, max_step, budget_ms)
+
+
+def switch(m: Manager, activate: list[str] = (), deactivate: list[str] = ()) -> Switch:  # type: ignore[assignment]
+    """Queue a switch and run the cycle boundary that applies it."""
+    sw = Switch(list(activate), list(deactivate))
+    m.request(sw)
+    m.cycle(SITTING, 0.0, 0.01, None)
+    assert sw.done.is_set()
+    return sw
+
+
+def fwd(m: Manager, name: str, joints: list[str], **kw: Any) -> None:
+    m.load(name, "forward_command", {"joints": joints, **kw})
+
+
+# --- pure logic ---------------------------------------------------------------------------------
+
+
+def test_bad_params_refuse_the_load_with_the_reason() -> None:
+    m = manager()
+    with pytest.raises(ManagerRefused, match=r"pid1 \(pid\) params: .*kp"):
+        m.load("pid1", "pid", {"joints": ["r_knee"], "kp": -1})
+    with pytest.raises(ManagerRefused, match=r"unknown controller type 'nosuch'.*forward_command"):
+        m.load("x", "nosuch", {})
+    with pytest.raises(ManagerRefused, match=r"points\[1\].time_s must increase"):
+        m.load(
+            "t",
+            "joint_trajectory",
+            {"joints": ["r_knee"], "points": [{"time_s": 1, "positions": [1]}] * 2},
+        )
+    assert m.status()["controllers"] == []
+
+
+def test_conflicting_claim_refused_naming_the_owner() -> None:
+    m = manager()
+    fwd(m, "a", ["r_knee", "r_hip"])
+    fwd(m, "b", ["r_knee"])
+    m.load("p", "pid", {"joints": ["r_hip"]})
+    assert switch(m, ["a"]).error is None
+    with pytest.raises(ManagerRefused, match="cannot activate b: r_knee/position is owned by a"):
+        m.request(Switch(["b"], []))
+    # torque and position on one joint from two controllers: refused, both named
+    with pytest.raises(ManagerRefused, match=r"r_hip/torque \(p\) and r_hip/position \(a\)"):
+        m.request(Switch(["p"], []))
+    assert m.active() == ["a"]
+
+
+def test_switch_applies_whole_at_one_boundary() -> None:
+    m = manager()
+    fwd(m, "a", ["r_knee"])
+    fwd(m, "b", ["r_knee"])
+    switch(m, ["a"])
+    m.command("a", {"values": {"r_knee": 61}})
+    sw = Switch(["b"], ["a"])
+    m.request(sw)
+    assert m.active() == ["a"]  # nothing changes until the cycle boundary
+    out = m.cycle(SITTING, 0.0, 0.01, None)
+    assert m.active() == ["b"] and sw.error is None
+    # b holds where the joint is (60); exactly one write for r_knee in that cycle
+    assert [(w.motor, w.setpoint) for w in out.writes] == [(2, 60)]
+
+
+def test_raising_controller_deactivated_its_joints_safe_others_keep_writing(
+    tmp_path: Path,
+) -> None:
+    m = manager()
+    fwd(m, "a", ["r_knee"])
+    fwd(m, "b", ["l_knee"])
+    switch(m, ["a", "b"])
+    m.slots["a"].ctrl.update = lambda *_: 1 / 0  # type: ignore[method-assign]
+    out = m.cycle(SITTING, 0.0, 0.01, None)
+    assert out.safe == {1}  # r_knee
+    assert [w.motor for w in out.writes] == [5]  # l_knee still written
+    assert m.active() == ["b"]
+    assert "update raised ZeroDivisionError" in m.slots["a"].error
+
+
+def test_overrun_deactivates() -> None:
+    import time
+
+    m = manager(budget_ms=1.0)
+    fwd(m, "a", ["r_knee"])
+    switch(m, ["a"])
+    real = m.slots["a"].ctrl.update
+
+    def slow(*args: Any) -> Any:
+        t = time.thread_time()
+        while time.thread_time() - t < 0.005:  # CPU, not wall time: the budget counts CPU
+            pass
+        return real(*args)
+
+    m.slots["a"].ctrl.update = slow  # type: ignore[method-assign]
+    out = m.cycle(SITTING, 0.0, 0.01, None)
+    assert out.safe == {1} and out.writes == [] and m.active() == []
+    assert "overran its budget" in m.slots["a"].error and m.slots["a"].overruns == 1
+
+
+def test_outputs_saturate_to_limits_step_and_caps() -> None:
+    m = manager(max_step=3, max=[100, 70, 20, 100, 100, 20], torque=[10] * 6)
+    fwd(m, "a", ["r_knee"])
+    m.load("t", "forward_command", {"joints": ["l_knee"], "interface": "torque"})
+    switch(m, ["a", "t"])
+    m.command("a", {"values": {"r_knee": 99}})
+    m.command("t", {"values": {"l_knee": -50}})
+    seen = []
+    for _ in range(6):
+        out = m.cycle(SITTING, 0.0, 0.01, None)
+        seen.append({w.motor: (w.mode, w.setpoint) for w in out.writes})
+    assert [s[2] for s in seen] == [(1, 63), (1, 66), (1, 69), (1, 70), (1, 70), (1, 70)]
+    assert all(s[5] == (3, -10) for s in seen)
+    assert m.slots["a"].limited == 6 and m.slots["t"].limited == 6
+    # a non-finite output is a fault, not something to saturate
+    m.slots["a"].ctrl.values = {"r_knee/position": float("nan")}  # type: ignore[attr-defined]
+    out = m.cycle(SITTING, 0.0, 0.01, None)
+    assert out.safe == {1} and "not a finite number" in m.slots["a"].error
+
+
+def test_not_armed_stops_everything_and_activation_refused() -> None:
+    m = manager()
+    fwd(m, "a", ["r_knee"])
+    switch(m, ["a"])
+    out = m.cycle(SITTING, 0.0, 0.01, "motors not armed: watchdog is tripped")
+    assert out.writes == [] and m.active() == []
+    sw = Switch(["a"], [])
+    m.request(sw)
+    m.cycle(SITTING, 0.0, 0.01, "motors not armed: watchdog is tripped")
+    assert sw.error == "motors not armed: watchdog is tripped"
+    assert m.active() == [] and m.cycle(SITTING, 0.0, 0.01, None).writes == []
+    assert switch(m, ["a"]).error is None and m.active() == ["a"]  # armed again + activate
+
+
+def test_forward_command_timeout_hold_or_disable() -> None:
+    import time
+
+    m = manager()
+    fwd(m, "h", ["r_knee"], timeout_s=0.001)
+    fwd(m, "d", ["l_knee"], timeout_s=0.001, on_timeout="disable")
+    switch(m, ["h", "d"])
+    time.sleep(0.01)
+    out = m.cycle(SITTING, 0.0, 0.01, None)
+    assert out.safe == {4} and [(w.motor, w.setpoint) for w in out.writes] == [(2, 60)]
+    assert m.slots["h"].ctrl.status()["timed_out"] and "no command" in m.slots["d"].error
+
+
+def test_pid_anti_windup_and_cap() -> None:
+    pid = Pid("p", PidParams(joints=["r_knee"], kp=1.0, ki=10.0, output_cap=5.0, i_clamp=3.0))
+    pid.configure()
+    pid.activate(State((0, 0, 0, 0, 0, 0), (0,) * 6))
+    pid.command({"values": {"r_knee": 50}})
+    for _ in range(100):  # far from the set-point: saturated, the integral must not wind up
+        u = pid.update(State((0, 0, 0, 0, 0, 0), (0,) * 6), 0.0, 0.01)["r_knee/torque"]
+        assert u == 5.0
+    assert pid.integral["r_knee"] == 0.0
+    # at the set-point the output is just the (bounded) integral
+    u = pid.update(State((0, 50, 0, 0, 0, 0), (0,) * 6), 0.0, 0.01)["r_knee/torque"]
+    assert abs(u) <= 3.0
+
+
+def test_pid_brings_a_simulated_joint_in_torque_mode_to_its_setpoint() -> None:
+    from exolink.nodes.simulator.boards import H2Board
+
+    board = H2Board()
+    pid = Pid("p", PidParams(joints=["r_knee"], kp=0.5, ki=0.2, output_cap=10, i_clamp=2))
+    pid.configure()
+
+    def state() -> State:
+        return State(tuple(round(j.pos) for j in board.joints), (0,) * 6)
+
+    pid.activate(state())
+    pid.command({"values": {"r_knee": 45}})
+    for _ in range(300):  # 3 s of 10 ms cycles through the codec and the board's dynamics
+        u = pid.update(state(), 0.0, 0.01)["r_knee/torque"]
+        board.handle(h2.encode_joint_control("r_knee", "torque", round(u)))
+        board.step(0.01)
+    assert abs(board.joints[1].pos - 45) <= 2
+
+
+def test_trajectory_interpolates_from_where_the_joints_are() -> None:
+    from exolink.nodes.controller_manager.builtin import TrajectoryParams
+
+    p = msgspec_convert(
+        {"joints": ["r_knee"], "points": [{"time_s": 1, "positions": [80]}]}, TrajectoryParams
+    )
+    t = JointTrajectory("t", p)
+    t.configure()
+    t.activate(SITTING)
+    assert t.update(SITTING, 100.0, 0.01) == {"r_knee/position": 60}
+    assert t.update(SITTING, 100.5, 0.01) == {"r_knee/position": 70}
+    assert t.update(SITTING, 102.0, 0.01) == {"r_knee/position": 80}
+
+
+def msgspec_convert(data: dict[str, Any], cls: type) -> Any:
+    import msgspec
+
+    return msgspec.convert(data, cls)
+
+
+# --- on the simulator, with the watchdog ------------------------------------------------------
+
+# A lab's own controller package, installed the way pip would (a dist-info with entry points on
+# the path): how the tests get a controller that fails on demand, through the real plugin story.
+LAB_PLUGIN = '''
+from exolink.controller import Controller, NoParams
+
+
+class Raiser(Controller):
+    """Holds r_knee where it is until told to fail, then raises in update."""
+
+    def configure(self):
+        self.boom = False
+
+    def claims(self):
+        return ["r_knee/position"]
+
+    def activate(self, state):
+        self.hold = state.of("r_knee")
+
+    def command(self, request):
+        self.boom = True
+        return {}
+
+    def update(self, state, time, period):
+        if self.boom:
+            raise RuntimeError("lab controller bug")
+        return {"r_knee/position": self.hold}
+'''
+
+CTRL = [
+    {"name": "a", "type": "forward_command", "params": {"joints": ["r_knee"]}},
+    {
+        "name": "b",
+        "type": "forward_command",
+        "params": {"joints": ["r_knee"], "initial": {"r_knee": 45}},
+    },
+    {"name": "left", "type": "forward_command", "params": {"joints": ["l_knee"]}},
+]
+
+
+def nodes(controllers: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        {
+            "name": "controller_manager",
+            "plugin": "controller_manager",
+            "critical": True,
+            "heartbeat_deadline_ms": 50,
+            # Silence limits above a loaded test machine's stalls: these tests are not about them.
+            "params": {"controllers": controllers, "max_step_deg": 3, "h2_timeout_ms": 300},
+        },
+    ]
+
+
+@pytest.fixture
+def lab_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    site = tmp_path / "labsite"
+    (site / "lab_ctrl-0.1.dist-info").mkdir(parents=True)
+    (site / "lab_ctrl-0.1.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: lab-ctrl\nVersion: 0.1\n"
+    )
+    (site / "lab_ctrl-0.1.dist-info" / "entry_points.txt").write_text(
+        "[exolink.controllers]\nraiser = lab_ctrl:Raiser\n"
+    )
+    (site / "lab_ctrl.py").write_text(LAB_PLUGIN)
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    )
+
+
+@pytest.fixture
+def app(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def]
+    return Appliance(write_config(nodes=nodes(CTRL), watchdog={"h2_silence_ms": 500}), spawn)
+
+
+def ctl(app: Appliance, *args: str) -> Any:
+    r = app.cli("controllers", *args)
+    return r
+
+
+def listing(app: Appliance) -> dict[str, dict[str, Any]]:
+    r = app.cli("controllers", "list", "--json")
+    assert r.returncode == 0, r.stderr
+    return {c["name"]: c for c in json.loads(r.stdout)["controllers"]}
+
+
+def joint_frames(frames: list[Any], motor: int) -> list[h2.JointControl]:
+    return [
+        f
+        for f in (h2.decode(m) for m in frames)
+        if isinstance(f, h2.JointControl) and f.motor == motor
+    ]
+
+
+def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    r = ctl(app, "activate", "a")
+    assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    # one owner per interface: refused with the owner named
+    r = ctl(app, "activate", "b")
+    assert r.returncode == 5 and "cannot activate b: r_knee/position is owned by a" in r.stderr
+    assert ctl(app, "command", "a", "r_knee=30").returncode == 0
+    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [30])
+    # the switch: b's ramp to 45 follows a's 30 with no cycle where both or neither wrote.
+    # On the bus: no interleaving (a both-write cycle would put a 30 after b's first value) and
+    # one r_knee frame per angle frame (frames in flight at the window's ends aside: a loaded
+    # machine delays a command past the next angle frame, which shifts it, never drops it);
+    # in the manager: no cycle in which a claimed joint went unwritten.
+    mbus.q.queue.clear()
+    before = json.loads(ctl(app, "list", "--json").stdout)["gaps"]
+    assert ctl(app, "switch", "--activate", "b", "--deactivate", "a").returncode == 0
+    frames = collect(mbus, 0.5, {70, 110})
+    points = [f.setpoint for f in joint_frames(frames, 2)]
+    angles = sum(m.arbitration_id == 110 for m in frames)
+    assert points == sorted(points) and points[0] == 30 and points[-1] == 45, points
+    assert {p for p in points if p not in (30, 45)} <= {33, 36, 39, 42}  # step limit 3 deg
+    assert abs(len(points) - angles) <= 2, (len(points), angles)
+    assert json.loads(ctl(app, "list", "--json").stdout)["gaps"] == before
+    # a lab controller that raises: deactivated, its joint disabled, the other keeps writing
+    assert (
+        ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 5
+    )  # not loaded
+    r = ctl(app, "load", "lab", "raiser")
+    assert r.returncode == 0, r.stderr
+    assert ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 0
+    assert ctl(app, "command", "lab", "r_knee=0").returncode == 0
+    frames = collect(mbus, 0.5, {70})
+    knee = joint_frames(frames, 2)
+    assert h2.JointControl(2, 4, 0, 0) in knee
+    assert all(f.mode == 4 for f in knee[knee.index(h2.JointControl(2, 4, 0, 0)) :])
+    after = frames[[h2.decode(m) for m in frames].index(h2.JointControl(2, 4, 0, 0)) :]
+    assert joint_frames(after, 5) and all(f.mode == 1 for f in joint_frames(after, 5))
+    s = listing(app)
+    assert (
+        s["lab"]["state"] == "inactive" and "RuntimeError: lab controller bug" in s["lab"]["error"]
+    )
+    assert s["left"]["state"] == "active"
+    # bad params refuse the load, naming the controller and the param
+    r = ctl(app, "load", "p", "pid", "--params", '{"joints": ["r_hip"], "kp": "fast"}')
+    assert r.returncode == 5 and "p (pid) params" in r.stderr and "kp" in r.stderr, r.stderr
+
+
+def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)  # the trip's frames and anything in flight
+    assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
+    s = listing(app)
+    assert s["a"]["state"] == s["left"]["state"] == "inactive"
+    r = ctl(app, "activate", "a")
+    assert r.returncode == 5 and "motors not armed" in r.stderr
+    app.arm()  # re-arming does not bring them back
+    assert joint_frames(collect(mbus, 0.4, {70}), 2) == []
+    assert ctl(app, "activate", "a").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])
+def test_hung_or_killed_manager_disables_motors(app, mbus, sig) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    pid = app.node("controller_manager")["pid"]
+    os.kill(pid, sig)
+    try:
+        frames = [h2.decode(m) for m in collect(mbus, 1.0, {70})]
+        assert {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)} <= set(frames)
+        assert app.status()["watchdog"]["state"] == "tripped"
+    finally:
+        if sig == signal.SIGSTOP:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+
+
+def test_h2_silent_claimed_joints_get_the_safe_action(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.arm()
+    assert ctl(app, "activate", "a").returncode == 0
+    assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    from exolink import messaging
+
+    s = messaging.open_client_session(app.at)
+    try:
+        reply = messaging.request(s, "exolink/sim/sim/fault", {"fault": "silent", "duration_s": 2})
+    finally:
+        s.close()
+    assert reply["ok"], reply
+    frames = [h2.decode(m) for m in collect(mbus, 1.0, {70})]
+    assert h2.JointControl(2, 4, 0, 0) in frames  # from the manager (and the watchdog)
+    after = frames[frames.index(h2.JointControl(2, 4, 0, 0)) :]  # before it: frames in flight
+    assert [f for f in after if f.mode == 1] == []  # type: ignore[union-attr]
+    assert "no H2 joint angles" in listing(app)["a"]["error"]
