@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
+    remote.add_global_options(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("up", help="run the appliance: supervisor, nodes, watchdog (board side)")
@@ -86,9 +87,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line as the command functions get it (appliance options resolved)."""
+    from exolink.cli.remote import resolve_appliance_options
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    resolve_appliance_options(parser, args)
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse(argv)
     from exolink.cli.errors import run_guarded
 
     return run_guarded(args.func, args)

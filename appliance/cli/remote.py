@@ -312,29 +312,90 @@ def cmd_send(args: argparse.Namespace) -> int:
 # --- registration ----------------------------------------------------------------------------
 
 
+def _appliance_options() -> list[tuple[str, dict[str, Any]]]:
+    """The options of every command that talks to an appliance: flag -> add_argument keywords."""
+    return [
+        (
+            "--at",
+            {
+                "default": os.environ.get("EXOLINK_AT", DEFAULT_AT),
+                "help": f"Zenoh endpoint of the appliance (env EXOLINK_AT, default {DEFAULT_AT})",
+            },
+        ),
+        (
+            "--device",
+            {
+                "default": os.environ.get("EXOLINK_DEVICE"),
+                "help": "device name when several appliances answer (env EXOLINK_DEVICE)",
+            },
+        ),
+        (
+            "--zenoh-config",
+            {
+                "default": os.environ.get("EXOLINK_ZENOH_CONFIG"),
+                "help": "Zenoh login for a board that requires one: the card's "
+                "exolink-laptop.json5 (env EXOLINK_ZENOH_CONFIG)",
+            },
+        ),
+        (
+            "--timeout",
+            {"type": float, "default": 3.0, "help": "seconds to wait for an answer (default 3)"},
+        ),
+        ("--domain", {"type": int, "default": 0, "help": "ROS domain id of data topics (0)"}),
+        ("--ns", {"default": "h2", "help": "namespace of data topics (h2)"}),
+    ]
+
+
+GLOBAL_PREFIX = "global_"
+
+
+def _dest(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_")
+
+
 def common() -> argparse.ArgumentParser:
+    """Parent of the commands that talk to an appliance: its options after the command.
+
+    Nothing is set unless given, so a value after the command wins over one before it (see
+    add_global_options); resolve_appliance_options fills in the defaults.
+    """
     p = argparse.ArgumentParser(add_help=False)
-    g = p.add_argument_group("appliance")
-    g.add_argument(
-        "--at",
-        default=os.environ.get("EXOLINK_AT", DEFAULT_AT),
-        help=f"Zenoh endpoint of the appliance (env EXOLINK_AT, default {DEFAULT_AT})",
-    )
-    g.add_argument(
-        "--device",
-        default=os.environ.get("EXOLINK_DEVICE"),
-        help="device name when several appliances answer (env EXOLINK_DEVICE)",
-    )
-    g.add_argument(
-        "--zenoh-config",
-        default=os.environ.get("EXOLINK_ZENOH_CONFIG"),
-        help="Zenoh login for a board that requires one: the card's exolink-laptop.json5 "
-        "(env EXOLINK_ZENOH_CONFIG)",
-    )
-    g.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for an answer")
-    g.add_argument("--domain", type=int, default=0, help="ROS domain id of data topics")
-    g.add_argument("--ns", default="h2", help="namespace of data topics")
+    p.set_defaults(talks_to_appliance=True)
+    g = p.add_argument_group("appliance (also accepted before the command)")
+    for flag, kw in _appliance_options():
+        g.add_argument(flag, **{**kw, "default": argparse.SUPPRESS})
     return p
+
+
+def add_global_options(parser: argparse.ArgumentParser) -> None:
+    """The same options before the command: `exolink --at tcp/10.0.0.2:7447 status`."""
+    g = parser.add_argument_group("appliance options (before or after the command)")
+    for flag, kw in _appliance_options():
+        g.add_argument(
+            flag,
+            **{**kw, "dest": GLOBAL_PREFIX + _dest(flag), "default": argparse.SUPPRESS},
+            metavar=_dest(flag).upper(),
+        )
+
+
+def resolve_appliance_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """After the command > before it > environment / default; refused by commands without them."""
+    before = {
+        flag: getattr(args, GLOBAL_PREFIX + _dest(flag))
+        for flag, _kw in _appliance_options()
+        if hasattr(args, GLOBAL_PREFIX + _dest(flag))
+    }
+    for flag in before:
+        delattr(args, GLOBAL_PREFIX + _dest(flag))
+    if not getattr(args, "talks_to_appliance", False):
+        if before:
+            parser.error(
+                f"{', '.join(before)}: `exolink {args.command}` does not talk to an appliance"
+            )
+        return
+    for flag, kw in _appliance_options():
+        if not hasattr(args, _dest(flag)):
+            setattr(args, _dest(flag), before.get(flag, kw["default"]))
 
 
 class _Leaves:
