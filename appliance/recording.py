@@ -172,9 +172,12 @@ def flatten(msg: Any, prefix: str = "") -> dict[str, Any]:
 
 def export_csv(path: str | Path, out_dir: str | Path) -> dict[str, int]:
     """One CSV per topic: absolute time, time since the last trigger (empty before the first)."""
+    triggers = sorted(info(path).triggers)  # a bad input file stops here, before any output
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    triggers = sorted(info(path).triggers)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(f"cannot write CSV files into {out}: {exc.strerror}") from None
     writers: dict[str, tuple[Any, Any, list[str]]] = {}
     counts: dict[str, int] = {}
     ti = -1
@@ -214,6 +217,8 @@ def recover(path: str | Path, out: str | Path) -> dict[str, int]:
     recovered, stopped = 0, ""
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
+    if Path(out).exists():
+        raise RecordingError(f"{out} exists (a recording is never overwritten)")
     with _open(path) as f, Path(out).open("xb") as g:
         w = Writer(g)
         w.start(profile="ros2", library="exolink recover")

@@ -5,11 +5,18 @@ simulated appliance through real `exolink` processes."""
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import EXOLINK, Appliance
+from exolink import messaging
 from exolink.cli.main import parse
 from exolink.cli.remote import DEFAULT_AT
+from exolink.nodes.recorder import McapFile, RecorderParams
+
+JS = "sensor_msgs/msg/JointState"
+WD = "exolink_msgs/msg/WatchdogEvent"
 
 SIM_NODES = [
     {"name": "simulator", "plugin": "simulator"},
@@ -56,3 +63,69 @@ def test_options_before_the_command_reach_the_appliance(write_config, spawn) -> 
     # a value after the command wins: an unreachable endpoint before it does not matter
     r = run("--at", "tcp/127.0.0.1:9", "nodes", "--at", app.at)
     assert r.returncode == 0, r.stderr
+
+
+# --- one-line errors ---------------------------------------------------------------------------
+
+
+@pytest.fixture
+def recording(tmp_path: Path) -> Path:
+    """A small MCAP file as the recorder writes them: joint states and what the supervisor says."""
+    path = tmp_path / "trial.mcap"
+    f = McapFile(path, RecorderParams(), {})
+    for i in range(20):
+        ns = 1_700_000_000_000_000_000 + i * 10_000_000
+        for topic, typename, msg in (
+            (
+                "h2/joint_states",
+                JS,
+                messaging.msg_class(JS)(
+                    header=messaging.header(ns),
+                    name=["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"],
+                    position=np.radians([10.0, 20, 0, 10, 20, 0]),
+                    velocity=np.empty(0),
+                    effort=np.array([1.0, 2, 0, 1, 2, 0]),
+                ),
+            ),
+            (
+                "h2/watchdog",
+                WD,
+                messaging.msg_class(WD)(
+                    stamp=messaging.stamp(ns), state="armed", reason="", detail="", frames_sent=0
+                ),
+            ),
+        ):
+            cid = f.channel(topic, typename)
+            f.w.add_message(
+                cid,
+                log_time=ns,
+                data=messaging.serialize(msg, typename),
+                publish_time=ns,
+                sequence=i,
+            )
+    f.close({})
+    return path
+
+
+def one_line_error(r: subprocess.CompletedProcess[str], *expected: str) -> None:
+    assert r.returncode != 0, r.stdout
+    assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    for text in expected:
+        assert text in r.stderr, r.stderr
+
+
+def test_bad_label_and_paths_are_one_line(recording: Path, tmp_path: Path) -> None:
+    r = run("record", "start", "--label", "noequals", "--at", "tcp/127.0.0.1:9", "--timeout", "1")
+    one_line_error(r, "label 'noequals' must be KEY=VALUE")
+    assert r.returncode == 2  # refused before any network
+    one_line_error(run("export", str(recording), "--csv", "/proc/x"), "/proc/x")
+    one_line_error(run("export", str(recording), "--csv", f"{recording}/out"), f"{recording}/out")
+    assert not (tmp_path / "never").exists()
+    one_line_error(run("export", str(tmp_path / "none.mcap"), "--csv", str(tmp_path / "never")))
+    assert not (tmp_path / "never").exists()  # no output for an input that is not there
+    one_line_error(run("info", str(tmp_path)), str(tmp_path))  # a directory
+    one_line_error(run("play", str(tmp_path), "--at", "tcp/127.0.0.1:9"), str(tmp_path))
+    one_line_error(run("recover", str(recording), "-o", str(recording)), f"{recording} exists")
+    one_line_error(run("recover", str(recording), "-o", "/proc/x.mcap"), "/proc/x.mcap")
+    r = run("export", str(recording), "--csv", str(tmp_path / "csv"))
+    assert r.returncode == 0 and "/h2/joint_states" in r.stdout, r.stderr

@@ -9,7 +9,7 @@ import threading
 from datetime import UTC, datetime
 from typing import Any
 
-from exolink.cli.errors import EXIT_CONFIG, fail
+from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.remote import _guard, _Leaves, common, remote
 
 
@@ -18,7 +18,7 @@ def _labels(items: list[str]) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise argparse.ArgumentTypeError(f"label {item!r} must be KEY=VALUE")
+            raise ValueError(f"label {item!r} must be KEY=VALUE (e.g. --label subject=S01)")
         out[key] = value
     return out
 
@@ -27,7 +27,10 @@ def _labels(items: list[str]) -> dict[str, str]:
 def cmd_record(args: argparse.Namespace) -> int:
     body: dict[str, Any] = {"action": args.action}
     if args.action == "start":
-        body["labels"] = _labels(args.label or [])
+        try:
+            body["labels"] = _labels(args.label or [])
+        except ValueError as exc:
+            return fail(str(exc), EXIT_USAGE)
     with remote(args) as r:
         s = r.call("record", body=body)
     s.pop("ok", None)
@@ -43,6 +46,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _guard_file(func):  # type: ignore[no-untyped-def]
+    """A file that is missing, unreadable or not writable is one line naming it."""
+
     def wrapped(args: argparse.Namespace) -> int:
         from exolink.recording import RecordingError
 
@@ -50,6 +55,9 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
             return int(func(args))
         except RecordingError as exc:
             return fail(str(exc), EXIT_CONFIG)
+        except OSError as exc:
+            where = exc.filename if exc.filename is not None else getattr(args, "file", "")
+            return fail(f"{where}: {exc.strerror or exc}", EXIT_CONFIG)
 
     return wrapped
 
@@ -107,8 +115,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
 @_guard_file
 @_guard
 def cmd_play(args: argparse.Namespace) -> int:
-    from exolink.recording import play
+    from exolink.recording import info, play
 
+    info(args.file)  # a missing or broken file is said before connecting
     topics = (
         [t if t.startswith("/") else f"/{args.ns}/{t}" for t in args.topics]
         if args.topics
