@@ -129,3 +129,14 @@ def test_bad_label_and_paths_are_one_line(recording: Path, tmp_path: Path) -> No
     one_line_error(run("recover", str(recording), "-o", "/proc/x.mcap"), "/proc/x.mcap")
     r = run("export", str(recording), "--csv", str(tmp_path / "csv"))
     assert r.returncode == 0 and "/h2/joint_states" in r.stdout, r.stderr
+
+
+# --- negative lists ----------------------------------------------------------------------------
+
+
+def test_negative_lists_parse_without_equals_sign() -> None:
+    a = parse(["send", "limits", "--min", "-10,0,-20,-20,0,-20", "--max", "-5,80,-1.5,90,80,15"])
+    assert a.min == [-10, 0, -20, -20, 0, -20] and a.max == [-5, 80, -1.5, 90, 80, 15]
+    assert parse(["send", "limits", "--min=-10,0,-20,-20,0,-20"]).min[0] == -10  # as before
+    assert parse(["maccepa", "0", "setpoint", "-30"]).value == -30
+    assert parse(["echo", "t", "-n", "2"]).count == 2  # options are still options

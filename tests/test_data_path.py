@@ -185,6 +185,16 @@ def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> N
     assert cli(cfg, "send", "torque", "r_knee", "20").returncode == 0  # at the cap: allowed
 
 
+def test_negative_limit_lists_need_no_equals_sign(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
+    """Issue 19: `--min -10,0,...` (no `=`) is a value, not an unknown option."""
+    _cfg_path, cfg, _procs = appliance
+    wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
+    r = cli(cfg, "send", "limits", "--min", "-10,0,-20,-10,0,-20", "--max", "90,80,15,90,80,15")
+    assert r.returncode == 0, r.stderr
+    frames = {m.arbitration_id: h2.decode(m) for m in collect(mbus, 0.5, {h2.MIN_ANGLES})}
+    assert list(frames[h2.MIN_ANGLES]) == [-10, 0, -20, -10, 0, -20]
+
+
 def test_cli_echo_topics_hz(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
     _cfg_path, cfg, _procs = appliance
     wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
