@@ -140,3 +140,28 @@ def test_negative_lists_parse_without_equals_sign() -> None:
     assert parse(["send", "limits", "--min=-10,0,-20,-20,0,-20"]).min[0] == -10  # as before
     assert parse(["maccepa", "0", "setpoint", "-30"]).value == -30
     assert parse(["echo", "t", "-n", "2"]).count == 2  # options are still options
+
+
+# --- units in echo -----------------------------------------------------------------------------
+
+
+def test_echo_text_shows_units_from_the_table() -> None:
+    from exolink.cli.remote import _pretty
+
+    js = {
+        "header": {"stamp": {"sec": 1, "nanosec": 0}, "frame_id": ""},
+        "name": ["r_hip", "r_knee"],
+        "position": [float(np.radians(10)), float(np.radians(-20))],
+        "velocity": [],
+        "effort": [1.5, -2.0],
+    }
+    text = _pretty(js, typename=JS).splitlines()
+    assert "position: [0.174533, -0.349066] rad  ([10, -20] deg)" in text
+    assert "effort: [1.5, -2] N·m" in text and "velocity: []" in text
+    assert "    sec: 1" in text  # nested fields: no unit
+    jc = "exolink_msgs/msg/JointCommand"
+    cmd = {"joint": "r_knee", "mode": 3, "setpoint": 12, "stiffness": 0, "source": "cli"}
+    assert "setpoint: 12 counts" in _pretty(cmd, typename=jc)
+    assert "setpoint: 30 deg" in _pretty({**cmd, "mode": 1, "setpoint": 30}, typename=jc)
+    assert "setpoint: 0\n" in _pretty({**cmd, "mode": 4, "setpoint": 0}, typename=jc)
+    assert _pretty({"x": 1.0}, typename="unknown/msg/Type") == "x: 1"

@@ -202,6 +202,17 @@ def test_cli_echo_topics_hz(appliance, mbus) -> None:  # type: ignore[no-untyped
     assert r.returncode == 0, r.stderr
     lines = [json.loads(x) for x in r.stdout.splitlines()]
     assert len(lines) == 3 and lines[0]["name"] == list(h2.JOINTS)
+    assert "rad" not in r.stdout  # --json stays raw
+    # Issue 19: the text view says the units (joint angles also in degrees, as commands take them)
+    r = cli(cfg, "echo", "joint_states", "-n", "1")
+    assert r.returncode == 0, r.stderr
+    fields = dict(line.split(": ", 1) for line in r.stdout.splitlines() if ": " in line)
+    assert fields["position"].endswith(" deg)") and " rad  ([" in fields["position"], r.stdout
+    assert fields["effort"].endswith("] N·m"), r.stdout
+    r = cli(cfg, "echo", "foot_switches", "-n", "1")
+    assert r.returncode == 0, r.stderr
+    assert "battery_volts: " in r.stdout and " V\n" in r.stdout, r.stdout
+    assert "battery_raw: " in r.stdout and " counts\n" in r.stdout, r.stdout
     r = cli(cfg, "topics", "--listen", "1")
     assert "/h2/joint_states" in r.stdout and "sensor_msgs/msg/JointState" in r.stdout
     assert "/h2/foot_switches" in r.stdout

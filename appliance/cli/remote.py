@@ -149,9 +149,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
     def on(sample: Any) -> None:
         if done.is_set():
             return
-        _topic, _typename, msg = _decode_sample(sample)
+        _topic, typename, msg = _decode_sample(sample)
         data = to_builtin(msg)
-        line = json.dumps(data) if args.json else _pretty(data)
+        line = json.dumps(data) if args.json else _pretty(data, typename=typename)
         try:
             sys.stdout.write(line + ("\n" if args.json else "\n---\n"))
             sys.stdout.flush()
@@ -184,15 +184,24 @@ def _quiet_stdout() -> None:
     os.dup2(devnull, sys.stdout.fileno())
 
 
-def _pretty(data: Any, indent: int = 0) -> str:
+def _pretty(data: Any, indent: int = 0, typename: str = "") -> str:
+    """YAML-like text; a top-level field of a known unit (exolink.cli.units) shows it."""
+    from exolink.cli.units import degrees, unit
+
     pad = "  " * indent
     if isinstance(data, dict):
         lines = []
         for k, v in data.items():
             if isinstance(v, dict):
                 lines.append(f"{pad}{k}:\n{_pretty(v, indent + 1)}")
-            else:
-                lines.append(f"{pad}{k}: {_fmt(v)}")
+                continue
+            u = unit(typename, k, data) if typename else None
+            text = f"{pad}{k}: {_fmt(v)}"
+            if u and v != []:
+                text += f" {u}"
+                if u == "rad":
+                    text += f"  ({_fmt(degrees(v))} deg)"
+            lines.append(text)
         return "\n".join(lines)
     return pad + _fmt(data)
 
