@@ -5,6 +5,7 @@ simulated appliance through real `exolink` processes."""
 from __future__ import annotations
 
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from exolink.nodes.recorder import McapFile, RecorderParams
 
 JS = "sensor_msgs/msg/JointState"
 WD = "exolink_msgs/msg/WatchdogEvent"
+RECORDED_S = 1_700_000_000
 
 SIM_NODES = [
     {"name": "simulator", "plugin": "simulator"},
@@ -70,11 +72,12 @@ def test_options_before_the_command_reach_the_appliance(write_config, spawn) -> 
 
 @pytest.fixture
 def recording(tmp_path: Path) -> Path:
-    """A small MCAP file as the recorder writes them: joint states and what the supervisor says."""
+    """A small MCAP file as the recorder writes them: joint states and the appliance's own state
+    (watchdog, a node's diagnostics), stamped in 2023 (RECORDED_S): nothing live is."""
     path = tmp_path / "trial.mcap"
     f = McapFile(path, RecorderParams(), {})
     for i in range(20):
-        ns = 1_700_000_000_000_000_000 + i * 10_000_000
+        ns = RECORDED_S * 1_000_000_000 + i * 10_000_000
         for topic, typename, msg in (
             (
                 "h2/joint_states",
@@ -103,6 +106,15 @@ def recording(tmp_path: Path) -> Path:
                 publish_time=ns,
                 sequence=i,
             )
+        diag = messaging.diagnostics(ns, "h2_reader/h2_stream", "error", "replayed fault", "h2", {})
+        cid = f.channel("h2/nodes/h2_reader/diagnostics", messaging.DIAGNOSTICS_TYPE)
+        f.w.add_message(
+            cid,
+            log_time=ns,
+            data=messaging.serialize(diag, messaging.DIAGNOSTICS_TYPE),
+            publish_time=ns,
+            sequence=i,
+        )
     f.close({})
     return path
 
@@ -165,3 +177,61 @@ def test_echo_text_shows_units_from_the_table() -> None:
     assert "setpoint: 30 deg" in _pretty({**cmd, "mode": 1, "setpoint": 30}, typename=jc)
     assert "setpoint: 0\n" in _pretty({**cmd, "mode": 4, "setpoint": 0}, typename=jc)
     assert _pretty({"x": 1.0}, typename="unknown/msg/Type") == "x: 1"
+
+
+# --- play: a separate namespace unless --live, never the appliance's own state -------------------
+
+
+def test_what_play_never_republishes_live() -> None:
+    from exolink.recording import replay_topic
+
+    assert replay_topic("/h2/joint_states", live=False) == "replay/h2/joint_states"
+    assert replay_topic("/h2/joint_states", live=True) == "h2/joint_states"
+    assert replay_topic("/h2/maccepa/b0/positions", live=True) == "h2/maccepa/b0/positions"
+    for own in (
+        "/h2/watchdog",
+        "/other/ns/pattern_state",
+        "/h2/trigger",
+        "/h2/supervisor/diagnostics",
+        "/h2/nodes/recorder/diagnostics",
+        "/h2/nodes/h2_reader/heartbeat",
+        "/watchdog",
+    ):
+        assert replay_topic(own, live=True) is None, own
+        assert replay_topic(own, live=False) == "replay/" + own.strip("/")
+
+
+def test_play_lands_on_live_keys_only_with_live(write_config, spawn, recording) -> None:  # type: ignore[no-untyped-def]
+    app = Appliance(write_config(nodes=SIM_NODES), spawn)
+    s = messaging.open_client_session(app.at)
+    replayed: list[str] = []  # data topics of samples carrying the recording's stamps
+
+    def on(sample) -> None:  # type: ignore[no-untyped-def]
+        topic, typename = messaging.parse_key(str(sample.key_expr))
+        msg = messaging.deserialize(sample.payload.to_bytes(), typename)
+        stamp = msg.header.stamp if hasattr(msg, "header") else getattr(msg, "stamp", None)
+        if stamp is not None and RECORDED_S <= stamp.sec < RECORDED_S + 10:
+            replayed.append(topic)
+
+    sub = s.declare_subscriber("0/**", on)
+    try:
+        r = run("play", str(recording), "--rate", "5", "--at", app.at)
+        assert r.returncode == 0, r.stderr
+        time.sleep(0.5)
+        assert sorted(set(replayed)) == [
+            "replay/h2/joint_states",
+            "replay/h2/nodes/h2_reader/diagnostics",
+            "replay/h2/watchdog",
+        ]
+        assert "played 60 messages onto /replay/..." in r.stdout
+        replayed.clear()
+        r = run("play", str(recording), "--rate", "5", "--live", "--at", app.at)
+        assert r.returncode == 0, r.stderr
+        time.sleep(0.5)
+        assert sorted(set(replayed)) == ["h2/joint_states"] and len(replayed) == 20
+        assert "played 20 messages onto the live keys" in r.stdout
+        assert "/h2/watchdog" in r.stderr and "/h2/nodes/h2_reader/diagnostics" in r.stderr
+        assert "replayed fault" not in app.node("h2_reader")["health"]
+    finally:
+        sub.undeclare()
+        s.close()

@@ -11,6 +11,7 @@ from typing import Any
 
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.remote import _guard, _Leaves, common, remote
+from exolink.recording import REPLAY_PREFIX
 
 
 def _labels(items: list[str]) -> dict[str, str]:
@@ -115,22 +116,38 @@ def cmd_recover(args: argparse.Namespace) -> int:
 @_guard_file
 @_guard
 def cmd_play(args: argparse.Namespace) -> int:
-    from exolink.recording import info, play
+    from exolink.recording import info, play, replay_topic
 
-    info(args.file)  # a missing or broken file is said before connecting
+    recorded = info(args.file).topics  # a missing or broken file is said before connecting
     topics = (
         [t if t.startswith("/") else f"/{args.ns}/{t}" for t in args.topics]
         if args.topics
-        else None
+        else list(recorded)
     )
+    held = [t for t in topics if replay_topic(t, args.live, args.prefix) is None]
+    if held:
+        sys.stderr.write(
+            f"not replayed onto the live keys (the appliance's own state): {', '.join(held)}\n"
+        )
+    where = "the live keys" if args.live else f"/{args.prefix.strip('/')}/..."
     stop = threading.Event()
     with remote(args) as r:
         try:
-            n = play(r.session, args.file, args.rate, args.loop, topics, args.domain, stop)
+            n = play(
+                r.session,
+                args.file,
+                args.rate,
+                args.loop,
+                topics,
+                args.domain,
+                stop,
+                live=args.live,
+                prefix=args.prefix,
+            )
         except KeyboardInterrupt:
             stop.set()
             return 130
-    sys.stdout.write(f"played {n} messages\n")
+    sys.stdout.write(f"played {n} messages onto {where}\n")
     return 0
 
 
@@ -161,10 +178,24 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser(
-        "play", parents=[parent], help="republish a recording onto Zenoh with its timing"
+        "play",
+        parents=[parent],
+        help=f"republish a recording onto Zenoh with its timing (under /{REPLAY_PREFIX}/ unless --live)",
     )
     p.add_argument("file")
     p.add_argument("--rate", type=float, default=1.0)
     p.add_argument("--loop", action="store_true")
     p.add_argument("--topics", nargs="+")
+    p.add_argument(
+        "--prefix",
+        default=REPLAY_PREFIX,
+        help=f"republish under PREFIX/<recorded topic> (default {REPLAY_PREFIX}: "
+        f"`exolink echo /{REPLAY_PREFIX}/h2/joint_states`)",
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="republish onto the recorded (live) topics instead; never the appliance's own "
+        "state (watchdog, pattern_state, trigger, node and supervisor diagnostics)",
+    )
     p.set_defaults(func=cmd_play)
