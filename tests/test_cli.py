@@ -235,3 +235,66 @@ def test_play_lands_on_live_keys_only_with_live(write_config, spawn, recording) 
     finally:
         sub.undeclare()
         s.close()
+
+
+# --- the status table ----------------------------------------------------------------------------
+
+
+def node(name: str, state: str = "running", **kw: object) -> dict:
+    running = state == "running"
+    return {
+        "name": name,
+        "critical": True,
+        "enabled": True,
+        "state": state,
+        "pid": 4321 if running else None,
+        "uptime_s": 12.5 if running else 0.0,
+        "restarts": 0,
+        "last_exit": "",
+        "health": "",
+        "heartbeat_age_s": 0.2 if running else None,
+        **({"cpu_s": 1.25, "rss_mb": 31.5} if running else {}),
+        **kw,
+    }
+
+
+def test_status_table_aligned_and_health_never_blank() -> None:
+    from exolink.cli.remote import _node_table
+
+    nodes = [
+        node("simulator", critical=False),
+        node("maccepa_bridge_left_leg_board_3", health="error: joint angle outside its range"),
+        node("h2_reader", health="ok"),
+        node("pattern_player", heartbeat_age_s=None),  # spawned, no heartbeat yet
+        node("recorder", "stopped", critical=False, last_exit="stopped by operator"),
+        node("timing_monitor", "stopped", enabled=False, critical=False),
+        node("h2_sender", "backoff", restarts=3, last_exit="exit 1"),
+        node("x", "failed", restarts=10, last_exit="exit 1: restart limit (5 in 60 s)"),
+        node("y", "killed", last_exit="killed: no heartbeat for 510 ms"),
+    ]
+    head, *rows, footer = _node_table(nodes).splitlines()
+    assert footer == "(* critical)" and len(rows) == len(nodes)
+    health = head.index("health")
+    left = {t: head.index(t) for t in ("node", "state", "last exit", "health")}
+    right = {t: head.index(t) + len(t) for t in ("pid", "uptime", "restarts", "cpu_s", "rss_mb")}
+    for n, row in zip(nodes, rows, strict=True):
+        assert row.startswith(n["name"] + ("*" if n["critical"] else "")), row
+        state = n["state"] if n["enabled"] else "disabled"
+        assert row[left["state"] :].startswith(state + " "), (row, head)
+        for title, end in right.items():  # right-aligned numbers end under their title
+            assert row[end - 1] != " " and row[end] == " ", (title, row, head)
+        assert row[left["last exit"] - 1] == " " and row[left["last exit"]] != " ", (row, head)
+        assert row[health - 1] == " " and row[health:].strip(), (row, head)
+    said = [row[health:] for row in rows]
+    assert said == [
+        "ok",
+        "error: joint angle outside its range",
+        "ok",
+        "starting",
+        "stopped",
+        "disabled",
+        "restarting",
+        "failed",
+        "killed",
+    ]
+    assert "stopped by operator" in rows[4] and "restart limit" in rows[7]

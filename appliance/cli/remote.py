@@ -472,17 +472,45 @@ def _print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2) + "\n")
 
 
+def node_health(n: dict[str, Any]) -> str:
+    """What the health column says for a node: never blank."""
+    if not n.get("enabled", True):
+        return "disabled"
+    state = str(n.get("state") or "unknown")
+    if state == "running":
+        if n.get("heartbeat_age_s") is None:
+            return "starting"  # spawned, no heartbeat yet
+        return str(n.get("health") or "ok")  # its own diagnostics, if it publishes any
+    return {"backoff": "restarting"}.get(state, state)
+
+
+# (title, right-aligned, cell); the last column is not padded.
+_COLUMNS: list[tuple[str, bool, Any]] = [
+    ("node", False, lambda n: n["name"] + ("*" if n.get("critical") else "")),
+    ("state", False, lambda n: n["state"] if n.get("enabled", True) else "disabled"),
+    ("pid", True, lambda n: n.get("pid") or "-"),
+    ("uptime", True, lambda n: n.get("uptime_s", 0)),
+    ("restarts", True, lambda n: n.get("restarts", 0)),
+    ("cpu_s", True, lambda n: n.get("cpu_s", "-")),
+    ("rss_mb", True, lambda n: n.get("rss_mb", "-")),
+    ("last exit", False, lambda n: n.get("last_exit") or "-"),
+    ("health", False, node_health),
+]
+
+
 def _node_table(nodes: list[dict[str, Any]]) -> str:
-    head = f"{'node':14} {'state':9} {'pid':>7} {'uptime':>8} {'restarts':>8} {'cpu_s':>7} {'rss_mb':>7}  last exit / health"
-    rows = [head]
-    for n in nodes:
-        crit = "*" if n.get("critical") else " "
-        state = n["state"] if n.get("enabled", True) else "disabled"
-        rows.append(
-            f"{n['name'] + crit:14} {state:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
-            f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')} {n.get('health', '')}"
-        )
-    return "\n".join(rows) + "\n(* critical)\n"
+    """One row per node; every column as wide as its widest cell, so long names keep it aligned."""
+    cells = [[title for title, _r, _f in _COLUMNS]]
+    cells += [[str(f(n)) for _t, _r, f in _COLUMNS] for n in nodes]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(_COLUMNS))]
+    lines = []
+    for row in cells:
+        parts = [
+            c.rjust(w) if right else c.ljust(w)
+            for c, w, (_t, right, _f) in zip(row, widths, _COLUMNS, strict=True)
+        ]
+        lines.append("  ".join([*parts[:-1], row[-1]]).rstrip())
+    return "\n".join(lines) + "\n(* critical)\n"
 
 
 @_guard
