@@ -147,7 +147,16 @@ def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.
 
 def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
     """Until every named node has declared its liveliness token (it does so after configure())."""
-    s = messaging.open_client_session(endpoint)
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            s = messaging.open_client_session(endpoint)
+            break
+        except messaging.Unreachable:
+            # The node listening on `endpoint` was spawned just now: on a loaded machine it takes
+            # more than a second to listen, and the client's retries (1 s, then 2 s later) miss it.
+            if time.monotonic() > end:
+                raise
     try:
 
         def alive() -> bool:
