@@ -248,6 +248,7 @@ def test_reader_counts_gaps_and_malformed(write_config, spawn, group) -> None:  
     cfg = load(cfg_path)
     spawn("node", "run", "simulator", "-c", str(cfg_path), "--listen", cfg.zenoh.listen[0])
     spawn("node", "run", "h2_reader", "-c", str(cfg_path))
+    wait_alive(messaging.local_endpoint(cfg.zenoh), ["simulator", "h2_reader"])
     s = messaging.open_client_session(messaging.local_endpoint(cfg.zenoh))
     try:
 
