@@ -8,7 +8,7 @@ PYTEST_ARGS ?=
 # Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
 APT_WAIT := -o DPkg::Lock::Timeout=600
 
-.PHONY: install sim test test-kernel test-image image image-lock test-image-built overlays lint format bench bench-board lock dbc msgs clean
+.PHONY: install sim dist test test-kernel test-image image image-lock test-image-built overlays lint format bench bench-board lock dbc msgs clean
 
 install: $(STAMP)
 
@@ -22,6 +22,13 @@ $(STAMP): pyproject.toml requirements.lock
 
 sim: $(STAMP)
 	$(BIN)/exolink up --sim
+
+# The wheel and sdist in dist/: `pipx install dist/exolink-*.whl` gives a laptop the CLI alone
+# (tests/test_dist.py checks the wheel's entry point and package data).
+dist: $(STAMP)
+	rm -rf dist
+	$(BIN)/python -m build --outdir dist .
+	@echo "laptop: pipx install $$(ls dist/exolink-*.whl)"
 
 test: $(STAMP)
 	$(BIN)/ruff check .
@@ -88,4 +95,4 @@ msgs: $(STAMP)
 	$(BIN)/python -c 'from exolink import messaging; print(messaging.write_hash_table(), "types")'
 
 clean:
-	rm -rf $(VENV) build *.egg-info bench-results.json
+	rm -rf $(VENV) build dist *.egg-info bench-results.json

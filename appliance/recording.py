@@ -7,6 +7,7 @@ recording stays readable after the project's own message definitions change.
 from __future__ import annotations
 
 import csv
+import fnmatch
 import math
 import time
 from collections.abc import Iterator
@@ -172,9 +173,12 @@ def flatten(msg: Any, prefix: str = "") -> dict[str, Any]:
 
 def export_csv(path: str | Path, out_dir: str | Path) -> dict[str, int]:
     """One CSV per topic: absolute time, time since the last trigger (empty before the first)."""
+    triggers = sorted(info(path).triggers)  # a bad input file stops here, before any output
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    triggers = sorted(info(path).triggers)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(f"cannot write CSV files into {out}: {exc.strerror}") from None
     writers: dict[str, tuple[Any, Any, list[str]]] = {}
     counts: dict[str, int] = {}
     ti = -1
@@ -214,6 +218,8 @@ def recover(path: str | Path, out: str | Path) -> dict[str, int]:
     recovered, stopped = 0, ""
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
+    if Path(out).exists():
+        raise RecordingError(f"{out} exists (a recording is never overwritten)")
     with _open(path) as f, Path(out).open("xb") as g:
         w = Writer(g)
         w.start(profile="ros2", library="exolink recover")
@@ -250,6 +256,37 @@ def recover(path: str | Path, out: str | Path) -> dict[str, int]:
     return {"messages": recovered}
 
 
+REPLAY_PREFIX = "replay"
+# Never republished onto the live keys: what the supervisor and the motion nodes take as the
+# appliance's own word. The watchdog's state (motion nodes arm on it), the pattern state (the
+# supervisor watches its operator), node diagnostics and heartbeats, the supervisor's diagnostics
+# and trigger edges. Matched on the end of the topic, whatever its namespace.
+OWN_STATE_TOPICS = ("watchdog", "pattern_state", "trigger", "supervisor/*", "nodes/*/*")
+
+
+def own_state(topic: str) -> bool:
+    """Is this recorded topic (namespace included) one of OWN_STATE_TOPICS?"""
+    parts = topic.strip("/").split("/")
+    for pattern in OWN_STATE_TOPICS:
+        tail = pattern.split("/")
+        if len(parts) >= len(tail) and all(
+            fnmatch.fnmatchcase(p, t) for p, t in zip(parts[-len(tail) :], tail, strict=True)
+        ):
+            return True
+    return False
+
+
+def replay_topic(topic: str, live: bool, prefix: str = REPLAY_PREFIX) -> str | None:
+    """Where a recorded topic is republished: under ``prefix`` (default), or with ``live`` its
+    own key, except the appliance's own state (None: not republished)."""
+    topic = topic.strip("/")
+    if live:
+        return None if own_state(topic) else topic
+    if not prefix.strip("/"):
+        raise RecordingError("a replay prefix is needed (the live keys take --live)")
+    return f"{prefix.strip('/')}/{topic}"
+
+
 def play(
     session: Any,
     path: str | Path,
@@ -258,14 +295,26 @@ def play(
     topics: list[str] | None = None,
     domain_id: int = 0,
     stop: Any = None,
+    live: bool = False,
+    prefix: str = REPLAY_PREFIX,
 ) -> int:
-    """Republish a recording onto Zenoh under the original keys, with the original timing / rate."""
+    """Republish a recording onto Zenoh with the original timing / rate.
+
+    By default under ``<prefix>/<recorded topic>`` (``0/replay/h2/joint_states/...``), where
+    nothing on an appliance listens; with ``live`` under the original keys, minus the appliance's
+    own state (OWN_STATE_TOPICS). Data keys only: never a management key or a liveliness token.
+    """
     import os
 
     from exolink import messaging
 
     if not rate > 0:
         raise RecordingError(f"rate must be > 0, got {rate}")
+    wanted = list(info(path).topics) if topics is None else topics
+    targets = {t: replay_topic(t, live, prefix) for t in wanted}
+    topics = [t for t, target in targets.items() if target is not None]
+    if not topics:
+        return 0
     gid = os.urandom(16)
     pubs: dict[str, Any] = {}
     sent = seq = 0
@@ -280,7 +329,9 @@ def play(
             delay = due - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            topic = channel.topic.strip("/")
+            topic = targets.get(channel.topic)
+            if topic is None:  # iter_messages filters already: never on a live own-state key
+                continue
             key = f"{domain_id}/{topic}/{messaging.dds_name(schema.name)}/{messaging.type_hash(schema.name)}"
             pub = pubs.get(key)
             if pub is None:

@@ -185,6 +185,16 @@ def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> N
     assert cli(cfg, "send", "torque", "r_knee", "20").returncode == 0  # at the cap: allowed
 
 
+def test_negative_limit_lists_need_no_equals_sign(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
+    """Issue 19: `--min -10,0,...` (no `=`) is a value, not an unknown option."""
+    _cfg_path, cfg, _procs = appliance
+    wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
+    r = cli(cfg, "send", "limits", "--min", "-10,0,-20,-10,0,-20", "--max", "90,80,15,90,80,15")
+    assert r.returncode == 0, r.stderr
+    frames = {m.arbitration_id: h2.decode(m) for m in collect(mbus, 0.5, {h2.MIN_ANGLES})}
+    assert list(frames[h2.MIN_ANGLES]) == [-10, 0, -20, -10, 0, -20]
+
+
 def test_cli_echo_topics_hz(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
     _cfg_path, cfg, _procs = appliance
     wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
@@ -192,6 +202,17 @@ def test_cli_echo_topics_hz(appliance, mbus) -> None:  # type: ignore[no-untyped
     assert r.returncode == 0, r.stderr
     lines = [json.loads(x) for x in r.stdout.splitlines()]
     assert len(lines) == 3 and lines[0]["name"] == list(h2.JOINTS)
+    assert "rad" not in r.stdout  # --json stays raw
+    # Issue 19: the text view says the units (joint angles also in degrees, as commands take them)
+    r = cli(cfg, "echo", "joint_states", "-n", "1")
+    assert r.returncode == 0, r.stderr
+    fields = dict(line.split(": ", 1) for line in r.stdout.splitlines() if ": " in line)
+    assert fields["position"].endswith(" deg)") and " rad  ([" in fields["position"], r.stdout
+    assert fields["effort"].endswith("] N·m"), r.stdout
+    r = cli(cfg, "echo", "foot_switches", "-n", "1")
+    assert r.returncode == 0, r.stderr
+    assert "battery_volts: " in r.stdout and " V\n" in r.stdout, r.stdout
+    assert "battery_raw: " in r.stdout and " counts\n" in r.stdout, r.stdout
     r = cli(cfg, "topics", "--listen", "1")
     assert "/h2/joint_states" in r.stdout and "sensor_msgs/msg/JointState" in r.stdout
     assert "/h2/foot_switches" in r.stdout

@@ -233,6 +233,7 @@ def test_play_then_rerecord_gives_identical_messages(write_config, spawn, tmp_pa
             "--topics",
             "joint_states",
             "foot_switches",
+            "--live",
             "--at",
             other.at,
         ],

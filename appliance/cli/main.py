@@ -7,8 +7,10 @@ fast; errors are one readable line and a non-zero exit code, never a traceback.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from exolink import __version__
 
@@ -29,11 +31,24 @@ def _add_bus(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channel", default=None, help="can0 / vcan0 / multicast group")
 
 
+class Parser(argparse.ArgumentParser):
+    """Any word starting with a minus and a digit is a value, not an option: `--min -10,0,-20,...`.
+
+    Python 3.11 only takes `-10` or `-1.5` for a number (3.13 takes any `-<digit>...`); the
+    subcommands' parsers are made from this class too.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from exolink.cli import board, bus_tools, motion, recordings, remote
 
-    parser = argparse.ArgumentParser(prog="exolink", description=__doc__)
+    parser = Parser(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
+    remote.add_global_options(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("up", help="run the appliance: supervisor, nodes, watchdog (board side)")
@@ -87,9 +102,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line as the command functions get it (appliance options resolved)."""
+    from exolink.cli.remote import resolve_appliance_options
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    resolve_appliance_options(parser, args)
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse(argv)
     from exolink.cli.errors import run_guarded
 
     return run_guarded(args.func, args)

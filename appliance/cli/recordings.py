@@ -9,8 +9,9 @@ import threading
 from datetime import UTC, datetime
 from typing import Any
 
-from exolink.cli.errors import EXIT_CONFIG, fail
+from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.remote import _guard, _Leaves, common, remote
+from exolink.recording import REPLAY_PREFIX
 
 
 def _labels(items: list[str]) -> dict[str, str]:
@@ -18,7 +19,7 @@ def _labels(items: list[str]) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise argparse.ArgumentTypeError(f"label {item!r} must be KEY=VALUE")
+            raise ValueError(f"label {item!r} must be KEY=VALUE (e.g. --label subject=S01)")
         out[key] = value
     return out
 
@@ -27,7 +28,10 @@ def _labels(items: list[str]) -> dict[str, str]:
 def cmd_record(args: argparse.Namespace) -> int:
     body: dict[str, Any] = {"action": args.action}
     if args.action == "start":
-        body["labels"] = _labels(args.label or [])
+        try:
+            body["labels"] = _labels(args.label or [])
+        except ValueError as exc:
+            return fail(str(exc), EXIT_USAGE)
     with remote(args) as r:
         s = r.call("record", body=body)
     s.pop("ok", None)
@@ -43,6 +47,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _guard_file(func):  # type: ignore[no-untyped-def]
+    """A file that is missing, unreadable or not writable is one line naming it."""
+
     def wrapped(args: argparse.Namespace) -> int:
         from exolink.recording import RecordingError
 
@@ -50,6 +56,9 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
             return int(func(args))
         except RecordingError as exc:
             return fail(str(exc), EXIT_CONFIG)
+        except OSError as exc:
+            where = exc.filename if exc.filename is not None else getattr(args, "file", "")
+            return fail(f"{where}: {exc.strerror or exc}", EXIT_CONFIG)
 
     return wrapped
 
@@ -107,21 +116,38 @@ def cmd_recover(args: argparse.Namespace) -> int:
 @_guard_file
 @_guard
 def cmd_play(args: argparse.Namespace) -> int:
-    from exolink.recording import play
+    from exolink.recording import info, play, replay_topic
 
+    recorded = info(args.file).topics  # a missing or broken file is said before connecting
     topics = (
         [t if t.startswith("/") else f"/{args.ns}/{t}" for t in args.topics]
         if args.topics
-        else None
+        else list(recorded)
     )
+    held = [t for t in topics if replay_topic(t, args.live, args.prefix) is None]
+    if held:
+        sys.stderr.write(
+            f"not replayed onto the live keys (the appliance's own state): {', '.join(held)}\n"
+        )
+    where = "the live keys" if args.live else f"/{args.prefix.strip('/')}/..."
     stop = threading.Event()
     with remote(args) as r:
         try:
-            n = play(r.session, args.file, args.rate, args.loop, topics, args.domain, stop)
+            n = play(
+                r.session,
+                args.file,
+                args.rate,
+                args.loop,
+                topics,
+                args.domain,
+                stop,
+                live=args.live,
+                prefix=args.prefix,
+            )
         except KeyboardInterrupt:
             stop.set()
             return 130
-    sys.stdout.write(f"played {n} messages\n")
+    sys.stdout.write(f"played {n} messages onto {where}\n")
     return 0
 
 
@@ -152,10 +178,24 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser(
-        "play", parents=[parent], help="republish a recording onto Zenoh with its timing"
+        "play",
+        parents=[parent],
+        help=f"republish a recording onto Zenoh with its timing (under /{REPLAY_PREFIX}/ unless --live)",
     )
     p.add_argument("file")
     p.add_argument("--rate", type=float, default=1.0)
     p.add_argument("--loop", action="store_true")
     p.add_argument("--topics", nargs="+")
+    p.add_argument(
+        "--prefix",
+        default=REPLAY_PREFIX,
+        help=f"republish under PREFIX/<recorded topic> (default {REPLAY_PREFIX}: "
+        f"`exolink echo /{REPLAY_PREFIX}/h2/joint_states`)",
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="republish onto the recorded (live) topics instead; never the appliance's own "
+        "state (watchdog, pattern_state, trigger, node and supervisor diagnostics)",
+    )
     p.set_defaults(func=cmd_play)

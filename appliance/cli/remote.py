@@ -150,9 +150,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
     def on(sample: Any) -> None:
         if done.is_set():
             return
-        _topic, _typename, msg = _decode_sample(sample)
+        _topic, typename, msg = _decode_sample(sample)
         data = to_builtin(msg)
-        line = json.dumps(data) if args.json else _pretty(data)
+        line = json.dumps(data) if args.json else _pretty(data, typename=typename)
         try:
             sys.stdout.write(line + ("\n" if args.json else "\n---\n"))
             sys.stdout.flush()
@@ -185,15 +185,24 @@ def _quiet_stdout() -> None:
     os.dup2(devnull, sys.stdout.fileno())
 
 
-def _pretty(data: Any, indent: int = 0) -> str:
+def _pretty(data: Any, indent: int = 0, typename: str = "") -> str:
+    """YAML-like text; a top-level field of a known unit (exolink.cli.units) shows it."""
+    from exolink.cli.units import degrees, unit
+
     pad = "  " * indent
     if isinstance(data, dict):
         lines = []
         for k, v in data.items():
             if isinstance(v, dict):
                 lines.append(f"{pad}{k}:\n{_pretty(v, indent + 1)}")
-            else:
-                lines.append(f"{pad}{k}: {_fmt(v)}")
+                continue
+            u = unit(typename, k, data) if typename else None
+            text = f"{pad}{k}: {_fmt(v)}"
+            if u and v != []:
+                text += f" {u}"
+                if u == "rad":
+                    text += f"  ({_fmt(degrees(v))} deg)"
+            lines.append(text)
         return "\n".join(lines)
     return pad + _fmt(data)
 
@@ -313,29 +322,90 @@ def cmd_send(args: argparse.Namespace) -> int:
 # --- registration ----------------------------------------------------------------------------
 
 
+def _appliance_options() -> list[tuple[str, dict[str, Any]]]:
+    """The options of every command that talks to an appliance: flag -> add_argument keywords."""
+    return [
+        (
+            "--at",
+            {
+                "default": os.environ.get("EXOLINK_AT", DEFAULT_AT),
+                "help": f"Zenoh endpoint of the appliance (env EXOLINK_AT, default {DEFAULT_AT})",
+            },
+        ),
+        (
+            "--device",
+            {
+                "default": os.environ.get("EXOLINK_DEVICE"),
+                "help": "device name when several appliances answer (env EXOLINK_DEVICE)",
+            },
+        ),
+        (
+            "--zenoh-config",
+            {
+                "default": os.environ.get("EXOLINK_ZENOH_CONFIG"),
+                "help": "Zenoh login for a board that requires one: the card's "
+                "exolink-<role>.json5 (env EXOLINK_ZENOH_CONFIG)",
+            },
+        ),
+        (
+            "--timeout",
+            {"type": float, "default": 3.0, "help": "seconds to wait for an answer (default 3)"},
+        ),
+        ("--domain", {"type": int, "default": 0, "help": "ROS domain id of data topics (0)"}),
+        ("--ns", {"default": "h2", "help": "namespace of data topics (h2)"}),
+    ]
+
+
+GLOBAL_PREFIX = "global_"
+
+
+def _dest(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_")
+
+
 def common() -> argparse.ArgumentParser:
+    """Parent of the commands that talk to an appliance: its options after the command.
+
+    Nothing is set unless given, so a value after the command wins over one before it (see
+    add_global_options); resolve_appliance_options fills in the defaults.
+    """
     p = argparse.ArgumentParser(add_help=False)
-    g = p.add_argument_group("appliance")
-    g.add_argument(
-        "--at",
-        default=os.environ.get("EXOLINK_AT", DEFAULT_AT),
-        help=f"Zenoh endpoint of the appliance (env EXOLINK_AT, default {DEFAULT_AT})",
-    )
-    g.add_argument(
-        "--device",
-        default=os.environ.get("EXOLINK_DEVICE"),
-        help="device name when several appliances answer (env EXOLINK_DEVICE)",
-    )
-    g.add_argument(
-        "--zenoh-config",
-        default=os.environ.get("EXOLINK_ZENOH_CONFIG"),
-        help="Zenoh login for a board that requires one: the card's exolink-<role>.json5 "
-        "(env EXOLINK_ZENOH_CONFIG)",
-    )
-    g.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for an answer")
-    g.add_argument("--domain", type=int, default=0, help="ROS domain id of data topics")
-    g.add_argument("--ns", default="h2", help="namespace of data topics")
+    p.set_defaults(talks_to_appliance=True)
+    g = p.add_argument_group("appliance (also accepted before the command)")
+    for flag, kw in _appliance_options():
+        g.add_argument(flag, **{**kw, "default": argparse.SUPPRESS})
     return p
+
+
+def add_global_options(parser: argparse.ArgumentParser) -> None:
+    """The same options before the command: `exolink --at tcp/10.0.0.2:7447 status`."""
+    g = parser.add_argument_group("appliance options (before or after the command)")
+    for flag, kw in _appliance_options():
+        g.add_argument(
+            flag,
+            **{**kw, "dest": GLOBAL_PREFIX + _dest(flag), "default": argparse.SUPPRESS},
+            metavar=_dest(flag).upper(),
+        )
+
+
+def resolve_appliance_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """After the command > before it > environment / default; refused by commands without them."""
+    before = {
+        flag: getattr(args, GLOBAL_PREFIX + _dest(flag))
+        for flag, _kw in _appliance_options()
+        if hasattr(args, GLOBAL_PREFIX + _dest(flag))
+    }
+    for flag in before:
+        delattr(args, GLOBAL_PREFIX + _dest(flag))
+    if not getattr(args, "talks_to_appliance", False):
+        if before:
+            parser.error(
+                f"{', '.join(before)}: `exolink {args.command}` does not talk to an appliance"
+            )
+        return
+    for flag, kw in _appliance_options():
+        if not hasattr(args, _dest(flag)):
+            setattr(args, _dest(flag), before.get(flag, kw["default"]))
 
 
 class _Leaves:
@@ -403,17 +473,45 @@ def _print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2) + "\n")
 
 
+def node_health(n: dict[str, Any]) -> str:
+    """What the health column says for a node: never blank."""
+    if not n.get("enabled", True):
+        return "disabled"
+    state = str(n.get("state") or "unknown")
+    if state == "running":
+        if n.get("heartbeat_age_s") is None:
+            return "starting"  # spawned, no heartbeat yet
+        return str(n.get("health") or "ok")  # its own diagnostics, if it publishes any
+    return {"backoff": "restarting"}.get(state, state)
+
+
+# (title, right-aligned, cell); the last column is not padded.
+_COLUMNS: list[tuple[str, bool, Any]] = [
+    ("node", False, lambda n: n["name"] + ("*" if n.get("critical") else "")),
+    ("state", False, lambda n: n["state"] if n.get("enabled", True) else "disabled"),
+    ("pid", True, lambda n: n.get("pid") or "-"),
+    ("uptime", True, lambda n: n.get("uptime_s", 0)),
+    ("restarts", True, lambda n: n.get("restarts", 0)),
+    ("cpu_s", True, lambda n: n.get("cpu_s", "-")),
+    ("rss_mb", True, lambda n: n.get("rss_mb", "-")),
+    ("last exit", False, lambda n: n.get("last_exit") or "-"),
+    ("health", False, node_health),
+]
+
+
 def _node_table(nodes: list[dict[str, Any]]) -> str:
-    head = f"{'node':14} {'state':9} {'pid':>7} {'uptime':>8} {'restarts':>8} {'cpu_s':>7} {'rss_mb':>7}  last exit / health"
-    rows = [head]
-    for n in nodes:
-        crit = "*" if n.get("critical") else " "
-        state = n["state"] if n.get("enabled", True) else "disabled"
-        rows.append(
-            f"{n['name'] + crit:14} {state:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
-            f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')} {n.get('health', '')}"
-        )
-    return "\n".join(rows) + "\n(* critical)\n"
+    """One row per node; every column as wide as its widest cell, so long names keep it aligned."""
+    cells = [[title for title, _r, _f in _COLUMNS]]
+    cells += [[str(f(n)) for _t, _r, f in _COLUMNS] for n in nodes]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(_COLUMNS))]
+    lines = []
+    for row in cells:
+        parts = [
+            c.rjust(w) if right else c.ljust(w)
+            for c, w, (_t, right, _f) in zip(row, widths, _COLUMNS, strict=True)
+        ]
+        lines.append("  ".join([*parts[:-1], row[-1]]).rstrip())
+    return "\n".join(lines) + "\n(* critical)\n"
 
 
 @_guard
