@@ -12,8 +12,9 @@ Zenoh has already proven it. What a role may do is then decided here (``allows``
 - ``exolink``: the appliance's own processes (the login in /etc/exolink/zenoh.json5, readable by
   the service only); they declare queryables and publish data, which no laptop login may.
 
-No laptop login may put data or declare queryables: a forged ``watchdog`` state or joint state
-would otherwise reach the nodes that act on them. An appliance without logins (``make sim``, a
+No laptop login may put data (except under ``<domain>/replay/``, where ``exolink play`` puts a
+recording) or declare queryables: a forged ``watchdog`` state or joint state would otherwise
+reach the nodes that act on them. An appliance without logins (``make sim``, a
 closed lab network) enforces nothing: any key suffix is believed.
 """
 
@@ -101,6 +102,8 @@ def access_control(domain_id: int) -> dict[str, Any]:
             ["exolink/*/nodes/*/alive", "exolink/*/operators/*"],
         ),
         _rule("hold a pattern", ["liveliness_token"], ["ingress"], ["exolink/*/operators/*"]),
+        # `exolink play` (operator and up) republishes a recording under replay/, never live keys.
+        _rule("replay", ["put", "delete"], ["ingress"], [f"{domain_id}/replay/**"]),
         _rule("logs", ["declare_subscriber"], ["ingress"], ["exolink/*/log/*"]),
         _rule("receive logs", ["put"], ["egress"], ["exolink/*/log/*"]),
     ]
@@ -114,7 +117,7 @@ def access_control(domain_id: int) -> dict[str, Any]:
         granted = [f"{role} queries", f"{role} replies", "read data", "receive data"]
         granted += ["see nodes", "node tokens"]
         if _RANK[role] >= _RANK[OPERATOR]:
-            granted.append("hold a pattern")
+            granted += ["hold a pattern", "replay"]
         if role == ADMIN:
             granted += ["logs", "receive logs"]
         policies.append({"id": role, "rules": granted, "subjects": [role]})

@@ -150,6 +150,11 @@ def test_a_login_cannot_forge_data_or_serve_commands(guarded) -> None:  # type: 
             time.sleep(0.01)
         time.sleep(0.5)
         assert b"forged armed" not in seen.payloads()[before:]
+        # What a laptop may put: a replay, under replay/ (exolink play), seen by others.
+        replay = Inbox(inside, "0/replay/**")
+        wait_for(
+            lambda: laptop.put("0/replay/h2/joint_states/x/y", b"replayed") or replay.payloads()
+        )
         # A laptop serving a management key never gets the queries meant for the appliance.
         fake = laptop.declare_queryable(
             messaging.mgmt_key(DEVICE, "watchdog", "*"),
