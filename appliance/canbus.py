@@ -1,12 +1,14 @@
 """The one place that opens a python-can bus from configuration.
 
 SocketCAN gets kernel receive filters so a node only wakes for its own ids; the other interfaces
-(virtual in-process, udp_multicast across processes) apply the same filters in python-can.
+(virtual in-process, udp_multicast across processes) apply the same filters in python-can. The
+simulated bus (python-can's udp_multicast) is kept on the loopback interface: ``SimBus``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import select
 import socket
 import struct
@@ -20,7 +22,7 @@ if TYPE_CHECKING:
     import can
 
 STD_MASK = 0x7FF
-IP_MULTICAST_ALL = 49  # linux/in.h; Python's socket module does not export it
+_I32 = struct.Struct("@i")
 
 
 class CanOpenError(RuntimeError):
@@ -40,31 +42,149 @@ def open_bus(
     """Open the configured bus; failures name the interface and the likely fix."""
     import can
 
-    kwargs: dict[str, object] = {
-        "interface": cfg.interface,
-        "channel": cfg.channel,
-        "receive_own_messages": receive_own_messages,
-    }
-    if filters is not None:
-        kwargs["can_filters"] = filters
     try:
-        bus = can.Bus(**kwargs)
+        if cfg.interface == "udp_multicast":
+            bus = sim_bus_class()(
+                cfg.channel, can_filters=filters, receive_own_messages=receive_own_messages
+            )
+            if filters is not None:
+                _udp_kernel_filter(bus, filters)
+            return bus
+        kwargs: dict[str, object] = {
+            "interface": cfg.interface,
+            "channel": cfg.channel,
+            "receive_own_messages": receive_own_messages,
+        }
+        if filters is not None:
+            kwargs["can_filters"] = filters
+        return can.Bus(**kwargs)
     except (OSError, can.CanError, ValueError) as exc:
         raise CanOpenError(_explain(cfg, exc)) from exc
-    if cfg.interface == "udp_multicast":
-        _own_group_only(bus)
-        if filters is not None:
-            _udp_kernel_filter(bus, filters)
-    return bus
 
 
-def _own_group_only(bus: can.BusABC) -> None:
-    """python-can binds its multicast socket to 0.0.0.0:port, and Linux then delivers every group
-    joined anywhere on the host: a second simulated appliance (or a test) on another group would
-    see this bus's frames. IP_MULTICAST_ALL=0 keeps to the groups this socket joined."""
-    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)  # python-can internals
-    if isinstance(sock, socket.socket) and sock.family == socket.AF_INET:
-        sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+# --- the simulated bus: python-can's udp_multicast, kept on this machine ------------------------
+#
+# python-can joins its group on whatever interface the route to the group names and sends that
+# way: with a default route the sim bus went out on eth0, and a route change mid-run left the
+# members joined on the old interface while frames left by the new one (silence, no error).
+# Here every socket is bound to the loopback interface: joined on lo, sending through lo with TTL 0
+# (the kernel never lets a TTL-0 multicast leave the host). No route is needed at all.
+
+SIM_PORT = 43113  # python-can's default udp_multicast port
+LOOPBACK = "lo"
+IP_MULTICAST_ALL = 49  # linux/in.h; Python's socket module does not export it
+SO_TIMESTAMPNS = 35
+
+
+def _loopback_socket(group: str, port: int) -> socket.socket:
+    """A UDP socket on ``group`` through the loopback interface only, for sending and receiving."""
+    try:
+        if not ipaddress.IPv4Address(group).is_multicast:
+            raise ValueError
+    except ValueError:
+        raise OSError(f"the simulated bus needs an IPv4 multicast group, not {group!r}") from None
+    try:
+        lo = socket.if_nametoindex(LOOPBACK)
+    except OSError:
+        raise OSError(f"no loopback interface {LOOPBACK!r}") from None
+    _check_loopback(group, port, lo)
+    loopback = socket.inet_aton("127.0.0.1")
+    grp = socket.inet_aton(group)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        ip = socket.IPPROTO_IP
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        # Only the groups this socket joined (Linux otherwise delivers every group joined
+        # anywhere on the host to a socket bound to the port: another sim bus would leak in).
+        sock.setsockopt(ip, IP_MULTICAST_ALL, 0)
+        sock.bind((group, port))  # unicast datagrams to the port are not frames
+        sock.setsockopt(ip, socket.IP_MULTICAST_IF, bytes(4) + loopback + _I32.pack(lo))
+        sock.setsockopt(ip, socket.IP_MULTICAST_TTL, 0)
+        sock.setsockopt(ip, socket.IP_MULTICAST_LOOP, 1)
+        sock.setsockopt(ip, socket.IP_ADD_MEMBERSHIP, grp + loopback + _I32.pack(lo))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def _check_loopback(group: str, port: int, lo: int) -> None:
+    """What a send needs, asked of the kernel without sending: the loopback interface up, and
+    the loopback network (127.0.0.0/8) on it."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", 0))
+        except OSError as exc:
+            raise OSError(
+                f"loopback has no 127.0.0.0/8 address ({exc.strerror}): "
+                f"`ip addr add 127.0.0.1/8 dev {LOOPBACK}`"
+            ) from None
+        probe.setsockopt(
+            socket.IPPROTO_IP, socket.IP_MULTICAST_IF, bytes(4) + bytes(4) + _I32.pack(lo)
+        )
+        try:
+            probe.connect((group, port))
+        except OSError as exc:
+            raise OSError(
+                f"no way to {group} through the loopback interface ({exc.strerror}): "
+                f"is {LOOPBACK} up? `ip link set {LOOPBACK} up`"
+            ) from None
+
+
+_SIM_BUS: type | None = None
+
+
+def sim_bus_class() -> type[can.BusABC]:
+    """``SimBus``, defined on first use: python-can is imported only by processes that open a
+    bus, and this module's import stays light."""
+    global _SIM_BUS
+    if _SIM_BUS is None:
+        _SIM_BUS = _define_sim_bus()
+    return _SIM_BUS
+
+
+def _define_sim_bus() -> type[can.BusABC]:
+    import can
+    from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus, UdpMulticastBus
+    from can.interfaces.udp_multicast.utils import is_msgpack_installed
+
+    class LoopbackGroup(GeneralPurposeUdpMulticastBus):  # type: ignore[misc]
+        """python-can's multicast socket holder with our socket (``_create_socket`` is its
+        hook); python-can's send and receive as they are."""
+
+        def _create_socket(self, address_family: socket.AddressFamily) -> socket.socket:
+            try:
+                sock = _loopback_socket(self.group, self.port)
+            except OSError as exc:  # python-can turns OSError here into a vaguer message
+                raise can.CanInitializationError(str(exc)) from exc
+            self.timestamp_nanosecond = True
+            return sock
+
+    class SimBus(UdpMulticastBus):  # type: ignore[misc]
+        """python-can's udp_multicast bus (its datagrams, its API) on the loopback interface."""
+
+        def __init__(
+            self,
+            channel: str,
+            port: int = SIM_PORT,
+            receive_own_messages: bool = False,
+            fd: bool = True,
+            can_filters: list[dict[str, int | bool]] | None = None,
+            **kwargs: object,
+        ) -> None:
+            is_msgpack_installed()
+            if receive_own_messages:
+                raise can.CanInterfaceNotImplementedError(
+                    "receiving own messages is not yet implemented"
+                )
+            # The socket first: if it fails, no half-made bus is left to warn when collected.
+            self._multicast = LoopbackGroup(channel, port, hop_limit=0)
+            can.BusABC.__init__(self, channel, can_filters=can_filters, **kwargs)
+            self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
+
+    return SimBus
 
 
 # python-can's udp_multicast datagram is msgpack of a dict in pack_message's fixed key order:
@@ -136,10 +256,7 @@ def _explain(cfg: CanConfig, exc: Exception) -> str:
             f"`ip link add dev {cfg.channel} type vcan && ip link set {cfg.channel} up`."
         )
     if cfg.interface == "udp_multicast":
-        return (
-            f"{base}. udp_multicast needs a multicast route: "
-            "`ip route add 224.0.0.0/4 dev lo` (or a default route)."
-        )
+        return f"cannot open the simulated CAN bus (udp_multicast {cfg.channel} on loopback): {exc}"
     return base
 
 

@@ -1,4 +1,5 @@
-"""The batched frame reader and the simulated bus' kernel filter, on real udp_multicast sockets."""
+"""The batched frame reader and the simulated bus' kernel filter, on real udp_multicast sockets
+(the simulated bus runs on loopback: a datagram from elsewhere goes through lo)."""
 
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ def test_udp_kernel_filter_keeps_only_the_ids_asked_for(group: str) -> None:
         assert reader.malformed == 0
         # A datagram in no python-can layout passes the kernel filter and is counted, not fatal.
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
         s.sendto(b"garbage", (group, plain._multicast._socket.getsockname()[1]))  # type: ignore[attr-defined]
         s.close()
         time.sleep(0.1)
