@@ -296,6 +296,7 @@ _MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_allo
 # core, 7,000 in 100 ms = 5.8 MB of the 6 MiB granted. Without CAP_NET_ADMIN, net.core.rmem_max
 # caps the grant (often 212992: twice that holds ~510 frames), logged at open.
 RCVBUF_BYTES = {"socketcan": 1 << 20, "udp_multicast": 3 << 20}
+LATE_S = 0.01  # a frame read later than this after it arrived is counted late (one H2 period)
 
 
 class Frame(NamedTuple):
@@ -318,11 +319,13 @@ class FrameReader:
     reader's largest cost). Here one ``select`` is followed by every frame already queued, each a
     ``recvmsg`` and one ``struct`` unpack.
 
+    What was lost and how far behind the reader runs, none of which python-can reports:
     ``dropped`` is the kernel's count of frames this socket lost (a full receive buffer), read
     from the socket when asked: exact on SocketCAN and on the simulated bus, where the kernel
     filters never queue, so never count, other ids (on the sim bus, a reader of more ids than
-    the kernel filter takes hears, and may drop, every id: ``filtered`` counts the others).
-    python-can does not report it.
+    the kernel filter takes hears, and may drop, every id: ``filtered`` counts the others). ``late`` counts frames read more than
+    ``late_s`` after they arrived, ``lag_max_s`` is the oldest a frame was when read,
+    ``batches_full`` counts reads that stopped at the batch limit with frames still queued.
     """
 
     def __init__(
@@ -330,12 +333,20 @@ class FrameReader:
         bus: can.BusABC,
         cfg: CanConfig,
         ids: Iterable[int] | None,
+        late_s: float = LATE_S,
         rcvbuf: int | None = None,
     ) -> None:
         self.bus = bus
         self.ids = frozenset(ids) if ids is not None else None
+        self.late_s = late_s
         self.malformed = 0
         self.filtered = 0  # frames of other ids that reached this process
+        self.frames = 0
+        self.batches = 0
+        self.batch_max = 0
+        self.batches_full = 0
+        self.late = 0
+        self.lag_max_s = 0.0
         self.rcvbuf: int | None = None  # bytes the kernel grants this socket's queue
         if cfg.interface == "socketcan":
             self._sock: socket.socket | None = bus.socket  # type: ignore[attr-defined]
@@ -364,8 +375,40 @@ class FrameReader:
         """Frames the kernel dropped at this socket since it opened (None: no socket to ask)."""
         return socket_drops(self._sock) if self._sock is not None else None
 
+    def counters(self) -> dict[str, int | float | None]:
+        """The receive-loss and backlog counters, for stats and diagnostics."""
+        return {
+            "dropped": self.dropped,
+            "frames": self.frames,
+            "late": self.late,
+            "lag_max_ms": round(self.lag_max_s * 1e3, 2),
+            "batch_max": self.batch_max,
+            "batches_full": self.batches_full,
+            "filtered": self.filtered,
+            "rcvbuf": self.rcvbuf,
+        }
+
     def read(self, timeout: float) -> list[Frame]:
         """Every frame queued now (up to a batch), waiting up to ``timeout`` for the first one."""
+        out = self._read(timeout)
+        if out:
+            n = len(out)
+            self.frames += n
+            self.batches += 1
+            if n > self.batch_max:
+                self.batch_max = n
+            if n >= _BATCH:
+                self.batches_full += 1
+            now = time.time()
+            lag = now - out[0].timestamp  # the oldest of the batch (the socket is a FIFO)
+            if lag > self.lag_max_s:
+                self.lag_max_s = lag
+            if lag > self.late_s:
+                old = now - self.late_s
+                self.late += sum(1 for f in out if f.timestamp < old)
+        return out
+
+    def _read(self, timeout: float) -> list[Frame]:
         if self._sock is None:
             msg = self.bus.recv(timeout)
             if msg is None:

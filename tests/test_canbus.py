@@ -67,7 +67,9 @@ def test_reader_batches_frames_with_kernel_timestamps(group: str) -> None:
         assert len(frames) == 20  # one wake-up, one batch
         assert all(t0 - 0.01 < f.timestamp < time.time() for f in frames)
         assert frames[0].data == b"\x01" * 6
-        assert reader.dropped == 0
+        c = reader.counters()
+        assert c["frames"] == 20 and c["batch_max"] == 20 and c["dropped"] == 0
+        assert c["late"] == 20  # read 200 ms after they arrived: all later than one H2 period
     finally:
         reader.bus.shutdown()
         tx.shutdown()
@@ -95,6 +97,7 @@ def test_stalled_sim_reader_counts_every_frame_it_lost(group: str) -> None:
         assert dropped is not None and dropped > 0
         assert len(received) + dropped == sent
         assert {f.arbitration_id for f in received} == {110}
+        assert reader.counters()["batches_full"] > 0  # the backlog it came back to
     finally:
         reader.bus.shutdown()
         tx.shutdown()
@@ -124,7 +127,8 @@ def test_more_ids_than_the_kernel_filter_takes(group: str) -> None:
             tx.send(can.Message(arbitration_id=i, data=b"\x01", is_extended_id=False))
         time.sleep(0.2)
         assert [f.arbitration_id for f in reader.read(0.5)] == [ids[0], ids[-1]]
-        assert reader.filtered == 2 and reader.dropped == 0
+        c = reader.counters()
+        assert c["filtered"] == 2 and c["dropped"] == 0
     finally:
         reader.bus.shutdown()
         tx.shutdown()

@@ -402,6 +402,17 @@ def _print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2) + "\n")
 
 
+def _receive(rx: dict[str, Any] | None) -> str:
+    """A bus reader's receive losses and backlog, after its health."""
+    if not rx:
+        return ""
+    dropped = "n/a" if rx.get("dropped") is None else rx["dropped"]
+    return (
+        f"  rx dropped {dropped} late {rx.get('late')} lag max {rx.get('lag_max_ms')} ms"
+        f" batch max {rx.get('batch_max')}"
+    )
+
+
 def _node_table(nodes: list[dict[str, Any]]) -> str:
     head = f"{'node':14} {'state':9} {'pid':>7} {'uptime':>8} {'restarts':>8} {'cpu_s':>7} {'rss_mb':>7}  last exit / health"
     rows = [head]
@@ -411,6 +422,7 @@ def _node_table(nodes: list[dict[str, Any]]) -> str:
         rows.append(
             f"{n['name'] + crit:14} {state:9} {n.get('pid') or '-':>7} {n.get('uptime_s', 0):>8} "
             f"{n.get('restarts', 0):>8} {n.get('cpu_s', '-'):>7} {n.get('rss_mb', '-'):>7}  {n.get('last_exit', '')} {n.get('health', '')}"
+            + _receive(n.get("receive"))
         )
     return "\n".join(rows) + "\n(* critical)\n"
 
