@@ -158,8 +158,9 @@ class Appliance:
                 continue
             try:
                 st = messaging.request(s, "exolink/sim/status", timeout_s=1)
-                if all(
-                    n["heartbeat_age_s"] is not None for n in st["nodes"] if n["state"] == "running"
+                nodes = st.get("nodes")  # absent from a reply the supervisor gave while starting
+                if nodes and all(
+                    n["heartbeat_age_s"] is not None for n in nodes if n["state"] == "running"
                 ):
                     return True
             except messaging.Unreachable:
