@@ -11,7 +11,7 @@ import time
 from importlib import import_module
 from typing import Any
 
-SUITES = ["codec", "simulator", "reader", "supervisor", "pattern", "recorder"]
+SUITES = ["codec", "simulator", "reader", "flood", "supervisor", "pattern", "recorder"]
 
 
 def flatten(prefix: str, data: Any, out: list[tuple[str, str]]) -> None:
