@@ -1,12 +1,15 @@
 """The one place that opens a python-can bus from configuration.
 
-SocketCAN gets kernel receive filters so a node only wakes for its own ids; the other interfaces
-(virtual in-process, udp_multicast across processes) apply the same filters in python-can.
+A node only wakes for its own ids: SocketCAN gets kernel receive filters, and so does the
+simulated bus (python-can's udp_multicast, kept on the loopback interface: ``SimBus``); the
+in-process virtual bus filters in python-can. ``FrameReader`` is the receive hot path and counts
+what the kernel dropped.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import select
 import socket
 import struct
@@ -14,13 +17,16 @@ import time
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, NamedTuple
 
+import structlog
 from exolink.config import CanConfig
 
 if TYPE_CHECKING:
     import can
 
 STD_MASK = 0x7FF
-IP_MULTICAST_ALL = 49  # linux/in.h; Python's socket module does not export it
+_U32BE = struct.Struct("!I")
+_I32 = struct.Struct("@i")
+_PKTINFO = struct.Struct("@i4s4s")  # struct in_pktinfo
 
 
 class CanOpenError(RuntimeError):
@@ -40,91 +46,224 @@ def open_bus(
     """Open the configured bus; failures name the interface and the likely fix."""
     import can
 
-    kwargs: dict[str, object] = {
-        "interface": cfg.interface,
-        "channel": cfg.channel,
-        "receive_own_messages": receive_own_messages,
-    }
-    if filters is not None:
-        kwargs["can_filters"] = filters
     try:
-        bus = can.Bus(**kwargs)
+        if cfg.interface == "udp_multicast":
+            return sim_bus_class()(
+                cfg.channel, can_filters=filters, receive_own_messages=receive_own_messages
+            )
+        kwargs: dict[str, object] = {
+            "interface": cfg.interface,
+            "channel": cfg.channel,
+            "receive_own_messages": receive_own_messages,
+        }
+        if filters is not None:
+            kwargs["can_filters"] = filters
+        return can.Bus(**kwargs)
     except (OSError, can.CanError, ValueError) as exc:
         raise CanOpenError(_explain(cfg, exc)) from exc
-    if cfg.interface == "udp_multicast":
-        _own_group_only(bus)
-        if filters is not None:
-            _udp_kernel_filter(bus, filters)
-    return bus
 
 
-def _own_group_only(bus: can.BusABC) -> None:
-    """python-can binds its multicast socket to 0.0.0.0:port, and Linux then delivers every group
-    joined anywhere on the host: a second simulated appliance (or a test) on another group would
-    see this bus's frames. IP_MULTICAST_ALL=0 keeps to the groups this socket joined."""
-    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)  # python-can internals
-    if isinstance(sock, socket.socket) and sock.family == socket.AF_INET:
-        sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+# --- the simulated bus: python-can's udp_multicast, kept on this machine ------------------------
+#
+# python-can joins its group on whatever interface the route to the group names and sends that
+# way: with a default route the sim bus went out on eth0, and a route change mid-run left the
+# members joined on the old interface while frames left by the new one (silence, no error).
+# Here every socket is bound to the loopback interface: joined on lo, sending through lo with TTL 0
+# (the kernel never lets a TTL-0 multicast leave the host). No route is needed at all.
+#
+# The kernel filter SocketCAN has, without losing count: every frame is sent from a source address
+# that encodes its id (127.111.0.0 + id for standard ids), and a reader of exact standard ids joins
+# the group for those sources only (source-specific membership). Datagrams from other sources are
+# never queued to its socket and never counted there, so the socket's drop counter (sk_drops) is
+# exactly the frames of its ids it lost; a socket filter (classic BPF) counted every datagram it
+# rejected in the same counter. The datagram itself is python-can's, unchanged.
+
+SIM_PORT = 43113  # python-can's default udp_multicast port
+LOOPBACK = "lo"
+_SOURCE_BASE = 0x7F6F0000  # 127.111.0.0: standard id i is sent from 127.111.(i >> 8).(i & 0xFF)
+_SOURCE_OTHER = _SOURCE_BASE | 0xFFFE  # extended ids: never joined by a filtered reader
+IP_PKTINFO, IP_ADD_SOURCE_MEMBERSHIP, IP_MULTICAST_ALL = 8, 39, 49  # linux/in.h
+SO_TIMESTAMPNS = 35
 
 
-# python-can's udp_multicast datagram is msgpack of a dict in pack_message's fixed key order:
-# fixmap(11), "timestamp" (fixstr 9) + float64, "arbitration_id" (fixstr 14) + the id as a
-# fixint, uint8 or uint16. Offsets below are from the UDP header, where a socket filter starts.
-_UDP_HDR = 8
-_MAP11, _STR14 = 0x8B, 0xAE
-_AT_KEY, _AT_ID = _UDP_HDR + 20, _UDP_HDR + 35
-_BPF_LDB, _BPF_LDH, _BPF_JA, _BPF_JEQ, _BPF_JGE, _BPF_RET = 0x30, 0x28, 0x05, 0x15, 0x35, 0x06
-SO_ATTACH_FILTER = 26
+def sim_source(arbitration_id: int, extended: bool = False) -> str:
+    """The loopback source address a frame with this id is sent from on the simulated bus."""
+    addr = _SOURCE_OTHER if extended or arbitration_id > STD_MASK else _SOURCE_BASE | arbitration_id
+    return socket.inet_ntoa(_U32BE.pack(addr))
 
 
-def _udp_kernel_filter(bus: can.BusABC, filters: list[dict[str, int | bool]]) -> None:
-    """The kernel filter SocketCAN has, for the simulated bus: a classic BPF socket filter that
-    reads the id out of python-can's datagram and drops other ids before they wake the process.
-    On the sim bus every process would otherwise wake for, and decode, every frame of every node.
-    A datagram not laid out as expected passes (python-can's own filter still applies)."""
-    import ctypes
-
-    ids = [int(f["can_id"]) for f in filters]
-    if any(f.get("extended") or int(f.get("can_mask", 0)) != STD_MASK for f in filters):
-        return  # only exact standard ids are compiled; python-can filters the rest
-    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)  # python-can internals
-    if not isinstance(sock, socket.socket):
-        return
-    program = _bpf_ids(ids)
-    buf = ctypes.create_string_buffer(program)
-    fprog = struct.pack("HL", len(program) // 8, ctypes.addressof(buf))
-    sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
+def exact_ids(filters: list[dict[str, int | bool]] | None) -> list[int] | None:
+    """The ids of filters that are all exact standard-id matches (what a kernel filter takes)."""
+    if filters is None or any(
+        f.get("extended") or int(f.get("can_mask", 0)) != STD_MASK for f in filters
+    ):
+        return None
+    return sorted({int(f["can_id"]) for f in filters})
 
 
-def _bpf_ids(ids: list[int]) -> bytes:
-    """accept (the whole datagram) if its id is in ``ids`` or its layout is not the expected
-    one, else drop. Jump offsets are counted from the next instruction."""
-    n = len(ids)
-    # index: 0 ldb[0]  1 jeq map11  2 ldb[key]  3 jeq str14  4 ldb[id]  5 jge 0x80  6 ja CHK
-    #        7 jeq 0xcc  8 ldb[id+1]  9 ja CHK  10 jeq 0xcd  11 ldh[id+1]  12.. CHK  then drop, accept
-    chk, drop = 12, 12 + n
-    acc = drop + 1
+def _loopback_socket(group: str, port: int, ids: list[int] | None) -> socket.socket:
+    """A UDP socket on ``group`` through the loopback interface only, for sending and receiving.
 
-    def j(at: int, target: int) -> int:
-        return target - at - 1
+    ``ids``: join for the sources of these standard ids only (None: every source, []: none,
+    for a bus that only sends). More ids
+    than the kernel takes per membership (net.ipv4.igmp_max_msf, 10 by default) join for every
+    source instead; python-can's and the reader's own filters still apply."""
+    try:
+        if not ipaddress.IPv4Address(group).is_multicast:
+            raise ValueError
+    except ValueError:
+        raise OSError(f"the simulated bus needs an IPv4 multicast group, not {group!r}") from None
+    try:
+        lo = socket.if_nametoindex(LOOPBACK)
+    except OSError:
+        raise OSError(f"no loopback interface {LOOPBACK!r}") from None
+    _check_loopback(group, port, lo)
+    loopback = socket.inet_aton("127.0.0.1")
+    grp = socket.inet_aton(group)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        ip = socket.IPPROTO_IP
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        # Only the groups this socket joined (Linux otherwise delivers every group joined
+        # anywhere on the host to a socket bound to the port: another sim bus would leak in).
+        sock.setsockopt(ip, IP_MULTICAST_ALL, 0)
+        sock.bind((group, port))  # unicast datagrams to the port are not frames
+        sock.setsockopt(ip, socket.IP_MULTICAST_IF, bytes(4) + loopback + _I32.pack(lo))
+        sock.setsockopt(ip, socket.IP_MULTICAST_TTL, 0)
+        sock.setsockopt(ip, socket.IP_MULTICAST_LOOP, 1)
+        if ids is None or (ids and not _join_sources(sock, grp, loopback, ids)):
+            sock.setsockopt(ip, socket.IP_ADD_MEMBERSHIP, grp + loopback + _I32.pack(lo))
+        # ids == []: a bus that only sends joins nothing and is sent nothing
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
-    ins = [
-        (_BPF_LDB, 0, 0, _UDP_HDR),
-        (_BPF_JEQ, 0, j(1, acc), _MAP11),
-        (_BPF_LDB, 0, 0, _AT_KEY),
-        (_BPF_JEQ, 0, j(3, acc), _STR14),
-        (_BPF_LDB, 0, 0, _AT_ID),
-        (_BPF_JGE, j(5, 7), 0, 0x80),
-        (_BPF_JA, 0, 0, j(6, chk)),
-        (_BPF_JEQ, 0, j(7, 10), 0xCC),
-        (_BPF_LDB, 0, 0, _AT_ID + 1),
-        (_BPF_JA, 0, 0, j(9, chk)),
-        (_BPF_JEQ, 0, j(10, acc), 0xCD),
-        (_BPF_LDH, 0, 0, _AT_ID + 1),
-    ]
-    ins += [(_BPF_JEQ, j(chk + i, acc), 0, fid) for i, fid in enumerate(ids)]
-    ins += [(_BPF_RET, 0, 0, 0), (_BPF_RET, 0, 0, 0xFFFFFFFF)]
-    return b"".join(struct.pack("=HBBI", *i) for i in ins)
+
+def _join_sources(sock: socket.socket, grp: bytes, loopback: bytes, ids: list[int]) -> bool:
+    """Source-specific membership for these ids' sources; False (nothing joined) if refused."""
+    try:
+        for i in ids:
+            src = socket.inet_aton(sim_source(i))
+            sock.setsockopt(socket.IPPROTO_IP, IP_ADD_SOURCE_MEMBERSHIP, grp + loopback + src)
+    except OSError as exc:  # ENOBUFS past net.ipv4.igmp_max_msf
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_DROP_MEMBERSHIP, grp + loopback)
+        structlog.get_logger().bind(node="canbus").info(
+            "sim_filter_in_python",
+            ids=len(ids),
+            reason=f"{exc.strerror}: more sources than net.ipv4.igmp_max_msf",
+        )
+        return False
+    return True
+
+
+def _check_loopback(group: str, port: int, lo: int) -> None:
+    """What a send needs, asked of the kernel without sending: the loopback interface up, and
+    the loopback network (127.0.0.0/8, where the frame sources live) on it."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((sim_source(0), 0))
+        except OSError as exc:
+            raise OSError(
+                f"loopback has no 127.0.0.0/8 address ({exc.strerror}): "
+                f"`ip addr add 127.0.0.1/8 dev {LOOPBACK}`"
+            ) from None
+        probe.setsockopt(
+            socket.IPPROTO_IP, socket.IP_MULTICAST_IF, bytes(4) + bytes(4) + _I32.pack(lo)
+        )
+        try:
+            probe.connect((group, port))
+        except OSError as exc:
+            raise OSError(
+                f"no way to {group} through the loopback interface ({exc.strerror}): "
+                f"is {LOOPBACK} up? `ip link set {LOOPBACK} up`"
+            ) from None
+
+
+_SIM_BUS: type | None = None
+
+
+def sim_bus_class() -> type[can.BusABC]:
+    """``SimBus``, defined on first use: python-can is imported only by processes that open a
+    bus, and this module's import stays light."""
+    global _SIM_BUS
+    if _SIM_BUS is None:
+        _SIM_BUS = _define_sim_bus()
+    return _SIM_BUS
+
+
+def _define_sim_bus() -> type[can.BusABC]:
+    import can
+    from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus, UdpMulticastBus
+    from can.interfaces.udp_multicast.utils import is_msgpack_installed, pack_message
+
+    class LoopbackGroup(GeneralPurposeUdpMulticastBus):  # type: ignore[misc]
+        """python-can's multicast socket holder with our socket (``_create_socket`` is its
+        hook) and a send that sets the frame's source address."""
+
+        def __init__(self, group: str, port: int, ids: list[int] | None) -> None:
+            self._ids = ids
+            super().__init__(group, port, hop_limit=0)
+
+        def _create_socket(self, address_family: socket.AddressFamily) -> socket.socket:
+            try:
+                sock = _loopback_socket(self.group, self.port, self._ids)
+            except OSError as exc:  # python-can turns OSError here into a vaguer message
+                raise can.CanInitializationError(str(exc)) from exc
+            self.timestamp_nanosecond = True
+            return sock
+
+        def send_from(self, data: bytes, source: str, timeout: float | None) -> None:
+            if timeout != self._last_send_timeout:
+                self._last_send_timeout = timeout
+                self._socket.settimeout(timeout)
+            info = _PKTINFO.pack(0, socket.inet_aton(source), bytes(4))
+            try:
+                sent = self._socket.sendmsg(
+                    [data], [(socket.IPPROTO_IP, IP_PKTINFO, info)], 0, self._send_destination
+                )
+            except TimeoutError:
+                raise can.CanTimeoutError() from None
+            except OSError as exc:
+                raise can.CanOperationError(f"failed to send via socket: {exc}") from exc
+            if sent < len(data):
+                raise can.CanTimeoutError()
+
+    class SimBus(UdpMulticastBus):  # type: ignore[misc]
+        """python-can's udp_multicast bus (its datagrams, its API) on the loopback interface.
+
+        Filters of exact standard ids are applied in the kernel (source-specific membership),
+        as SocketCAN applies them; python-can's filter applies as well."""
+
+        def __init__(
+            self,
+            channel: str,
+            port: int = SIM_PORT,
+            receive_own_messages: bool = False,
+            fd: bool = True,
+            can_filters: list[dict[str, int | bool]] | None = None,
+            **kwargs: object,
+        ) -> None:
+            is_msgpack_installed()
+            if receive_own_messages:
+                raise can.CanInterfaceNotImplementedError(
+                    "receiving own messages is not yet implemented"
+                )
+            # The socket first: if it fails, no half-made bus is left to warn when collected.
+            self._multicast = LoopbackGroup(channel, port, exact_ids(can_filters))
+            can.BusABC.__init__(self, channel, can_filters=can_filters, **kwargs)
+            self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
+
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            if self._can_protocol is not can.CanProtocol.CAN_FD and msg.is_fd:
+                raise can.CanOperationError("cannot send FD message over bus with CAN FD disabled")
+            source = sim_source(msg.arbitration_id, msg.is_extended_id)
+            self._multicast.send_from(pack_message(msg), source, timeout)
+
+    return SimBus
 
 
 def _explain(cfg: CanConfig, exc: Exception) -> str:
@@ -136,24 +275,28 @@ def _explain(cfg: CanConfig, exc: Exception) -> str:
             f"`ip link add dev {cfg.channel} type vcan && ip link set {cfg.channel} up`."
         )
     if cfg.interface == "udp_multicast":
-        return (
-            f"{base}. udp_multicast needs a multicast route: "
-            "`ip route add 224.0.0.0/4 dev lo` (or a default route)."
-        )
+        return f"cannot open the simulated CAN bus (udp_multicast {cfg.channel} on loopback): {exc}"
     return base
 
 
 # --- the receive hot path ----------------------------------------------------------------------
 
-SO_RXQ_OVFL = 40  # asm-generic/socket.h; Python's socket module does not export it
 _CAN_FRAME = struct.Struct("=IB3x8s")  # linux/can.h struct can_frame
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _TIMESPEC = struct.Struct("@ll")
-_U32 = struct.Struct("=I")
-_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_U32.size)
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
 _BATCH = 64
-SO_RCVBUFFORCE = 33
-RCVBUF_BYTES = 1 << 20
+SO_RCVBUFFORCE, SO_MEMINFO = 33, 55  # asm-generic/socket.h; not exported by Python
+_MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_alloc .. [8] drops
+# Receive queue asked for per socket: a 100 ms stall at full load loses nothing. The kernel
+# charges each queued frame its whole buffer (x86-64: 768 B per SocketCAN frame, 832 B per sim
+# datagram; an ARM32 sk_buff is smaller) and grants twice the request. SocketCAN at 1 Mbit/s:
+# at most 21,277 frames/s (no data bytes, no stuffing), 2,128 in 100 ms = 1.6 MB of the 2 MiB
+# granted. The sim bus has no bit rate: one sender floods it at ~50-70k frames/s on an x86
+# core, 7,000 in 100 ms = 5.8 MB of the 6 MiB granted. Without CAP_NET_ADMIN, net.core.rmem_max
+# caps the grant (often 212992: twice that holds ~510 frames), logged at open.
+RCVBUF_BYTES = {"socketcan": 1 << 20, "udp_multicast": 3 << 20}
+LATE_S = 0.01  # a frame read later than this after it arrived is counted late (one H2 period)
 
 
 class Frame(NamedTuple):
@@ -170,41 +313,102 @@ class Frame(NamedTuple):
 class FrameReader:
     """Reads the socket under a python-can bus directly, in batches.
 
-    python-can opens, configures and filters the bus (kernel filters on SocketCAN) and still
-    sends; only receiving bypasses it: its ``recv`` builds a checked ``can.Message`` per frame
-    behind a ``select`` per frame (~35 us per frame on an x86 core, the reader's largest cost).
-    Here one ``select`` is followed by every frame already queued, each a ``recvmsg`` and one
-    ``struct`` unpack. ``dropped`` is the kernel's count of frames this socket lost to a full
-    receive buffer (SO_RXQ_OVFL), which python-can does not report.
+    python-can opens, configures and filters the bus (kernel filters on SocketCAN and on the
+    simulated bus) and still sends; only receiving bypasses it: its ``recv`` builds a checked
+    ``can.Message`` per frame behind a ``select`` per frame (~35 us per frame on an x86 core, the
+    reader's largest cost). Here one ``select`` is followed by every frame already queued, each a
+    ``recvmsg`` and one ``struct`` unpack.
+
+    What was lost and how far behind the reader runs, none of which python-can reports:
+    ``dropped`` is the kernel's count of frames this socket lost (a full receive buffer), read
+    from the socket when asked: exact on SocketCAN and on the simulated bus, where the kernel
+    filters never queue, so never count, other ids (on the sim bus, a reader of more ids than
+    the kernel filter takes hears, and may drop, every id: ``filtered`` counts the others). ``late`` counts frames read more than
+    ``late_s`` after they arrived, ``lag_max_s`` is the oldest a frame was when read,
+    ``batches_full`` counts reads that stopped at the batch limit with frames still queued.
     """
 
-    def __init__(self, bus: can.BusABC, cfg: CanConfig, ids: Iterable[int] | None) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        cfg: CanConfig,
+        ids: Iterable[int] | None,
+        late_s: float = LATE_S,
+        rcvbuf: int | None = None,
+    ) -> None:
         self.bus = bus
         self.ids = frozenset(ids) if ids is not None else None
-        # None where the kernel cannot tell: on the sim bus, datagrams our socket filter rejects
-        # are counted in the same sk_drops as an overflowing queue.
-        self.dropped: int | None = 0
+        self.late_s = late_s
         self.malformed = 0
+        self.filtered = 0  # frames of other ids that reached this process
+        self.frames = 0
+        self.batches = 0
+        self.batch_max = 0
+        self.batches_full = 0
+        self.late = 0
+        self.lag_max_s = 0.0
+        self.rcvbuf: int | None = None  # bytes the kernel grants this socket's queue
         if cfg.interface == "socketcan":
-            self._sock: socket.socket = bus.socket  # type: ignore[attr-defined]
+            self._sock: socket.socket | None = bus.socket  # type: ignore[attr-defined]
             self._parse = self._parse_socketcan
         elif cfg.interface == "udp_multicast":
             self._sock = bus._multicast._socket  # type: ignore[attr-defined]  # python-can internals
             self._parse = self._parse_udp
-            if ids is not None:
-                self.dropped = None
             import msgpack
 
             self._unpackb = msgpack.unpackb
         else:  # the in-process virtual bus has no socket: python-can's own receive path
-            self._sock = None  # type: ignore[assignment]
+            self._sock = None
         if self._sock is not None:
-            with contextlib.suppress(OSError):
-                self._sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
-            _size_receive_buffer(self._sock)
+            want = rcvbuf or RCVBUF_BYTES[cfg.interface]
+            self.rcvbuf = size_receive_buffer(self._sock, want)
+            if self.rcvbuf < 2 * want:
+                structlog.get_logger().bind(node="canbus").warning(
+                    "receive_buffer_capped",
+                    wanted=2 * want,
+                    granted=self.rcvbuf,
+                    fix=f"sysctl -w net.core.rmem_max={want} (or run with CAP_NET_ADMIN)",
+                )
+
+    @property
+    def dropped(self) -> int | None:
+        """Frames the kernel dropped at this socket since it opened (None: no socket to ask)."""
+        return socket_drops(self._sock) if self._sock is not None else None
+
+    def counters(self) -> dict[str, int | float | None]:
+        """The receive-loss and backlog counters, for stats and diagnostics."""
+        return {
+            "dropped": self.dropped,
+            "frames": self.frames,
+            "late": self.late,
+            "lag_max_ms": round(self.lag_max_s * 1e3, 2),
+            "batch_max": self.batch_max,
+            "batches_full": self.batches_full,
+            "filtered": self.filtered,
+            "rcvbuf": self.rcvbuf,
+        }
 
     def read(self, timeout: float) -> list[Frame]:
-        """Every frame queued now, waiting up to ``timeout`` for the first one."""
+        """Every frame queued now (up to a batch), waiting up to ``timeout`` for the first one."""
+        out = self._read(timeout)
+        if out:
+            n = len(out)
+            self.frames += n
+            self.batches += 1
+            if n > self.batch_max:
+                self.batch_max = n
+            if n >= _BATCH:
+                self.batches_full += 1
+            now = time.time()
+            lag = now - out[0].timestamp  # the oldest of the batch (the socket is a FIFO)
+            if lag > self.lag_max_s:
+                self.lag_max_s = lag
+            if lag > self.late_s:
+                old = now - self.late_s
+                self.late += sum(1 for f in out if f.timestamp < old)
+        return out
+
+    def _read(self, timeout: float) -> list[Frame]:
         if self._sock is None:
             msg = self.bus.recv(timeout)
             if msg is None:
@@ -230,14 +434,10 @@ class FrameReader:
             except (BlockingIOError, InterruptedError):
                 break
             ts = 0.0
-            for level, kind, cdata in anc:
-                if level == socket.SOL_SOCKET:
-                    if kind == SO_RXQ_OVFL and len(cdata) >= 4:
-                        if self.dropped is not None:
-                            self.dropped = _U32.unpack_from(cdata)[0]
-                    elif len(cdata) >= _TIMESPEC.size:  # SO_TIMESTAMPNS, set by python-can
-                        sec, ns = _TIMESPEC.unpack_from(cdata)
-                        ts = sec + ns * 1e-9
+            for level, _kind, cdata in anc:  # SO_TIMESTAMPNS, set by python-can and SimBus
+                if level == socket.SOL_SOCKET and len(cdata) >= _TIMESPEC.size:
+                    sec, ns = _TIMESPEC.unpack_from(cdata)
+                    ts = sec + ns * 1e-9
             frame = parse(raw, ts or time.time())
             if frame is not None:
                 out.append(frame)
@@ -273,22 +473,37 @@ class FrameReader:
             self.malformed += 1
             return None
         if self.ids is not None and (frame.is_extended_id or fid not in self.ids):
-            return None  # the kernel filter SocketCAN would have applied
+            self.filtered += 1  # past the kernel filter (too many ids for it, or not exact)
+            return None
         return frame
 
 
-def _size_receive_buffer(sock: socket.socket) -> None:
-    """Room for a 100 ms stall at a full 1 Mbit/s bus (~800 frames, ~1 KB of kernel memory each):
-    SO_RCVBUFFORCE where permitted (CAP_NET_ADMIN), else as much as net.core.rmem_max allows."""
+def socket_drops(sock: socket.socket) -> int | None:
+    """The socket's kernel drop counter (sk_drops, SO_MEMINFO), None if the kernel won't say."""
+    try:
+        raw = sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, _MEMINFO.size)
+    except OSError:
+        return None
+    return _MEMINFO.unpack(raw)[8] if len(raw) == _MEMINFO.size else None
+
+
+def size_receive_buffer(sock: socket.socket, want: int) -> int:
+    """Ask for ``want`` bytes of receive queue: SO_RCVBUFFORCE where permitted (CAP_NET_ADMIN),
+    else SO_RCVBUF, which net.core.rmem_max caps. Returns what the kernel granted (it doubles the
+    request for its bookkeeping; each queued frame is charged its whole buffer, see README)."""
     for opt in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
         try:
-            sock.setsockopt(socket.SOL_SOCKET, opt, RCVBUF_BYTES)
-            return
+            sock.setsockopt(socket.SOL_SOCKET, opt, want)
+            break
         except OSError:
             continue
+    return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
 
 
-def open_reader(cfg: CanConfig, ids: Iterable[int] | None = None) -> FrameReader:
-    """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends and closes."""
+def open_reader(
+    cfg: CanConfig, ids: Iterable[int] | None = None, rcvbuf: int | None = None
+) -> FrameReader:
+    """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends and closes.
+    ``rcvbuf``: the receive queue to ask for, in bytes (default: ``RCVBUF_BYTES``)."""
     bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
-    return FrameReader(bus, cfg, ids)
+    return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf)

@@ -11,7 +11,16 @@ import time
 from importlib import import_module
 from typing import Any
 
-SUITES = ["codec", "simulator", "reader", "supervisor", "pattern", "recorder", "controllers"]
+SUITES = [
+    "codec",
+    "simulator",
+    "reader",
+    "flood",
+    "supervisor",
+    "pattern",
+    "recorder",
+    "controllers",
+]
 
 
 def flatten(prefix: str, data: Any, out: list[tuple[str, str]]) -> None:

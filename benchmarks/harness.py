@@ -163,9 +163,10 @@ class Appliance:
                 continue
             try:
                 st = messaging.request(s, "exolink/sim/status", timeout_s=1)
-                # not ok: a supervisor still starting (its status can fail before it is ready)
-                if st.get("ok") and all(
-                    n["heartbeat_age_s"] is not None for n in st["nodes"] if n["state"] == "running"
+                # not ok, or no nodes: a supervisor still starting
+                nodes = st.get("nodes") if st.get("ok") else None
+                if nodes and all(
+                    n["heartbeat_age_s"] is not None for n in nodes if n["state"] == "running"
                 ):
                     return True
             except messaging.Unreachable:

@@ -51,6 +51,9 @@ class ReaderStats:
     stream_restarts: int = 0
     socket_dropped: int | None = 0  # kernel drops from a full receive buffer (None: not known)
     out_of_range: int = 0  # angle frames with a joint outside its mechanical range (a fault)
+    # The socket's losses and the reader's backlog (canbus.FrameReader.counters): dropped,
+    # frames, late, lag_max_ms, batch_max, batches_full, rcvbuf.
+    receive: dict[str, int | float | None] = field(default_factory=dict)
 
 
 class GapCounter:
@@ -81,9 +84,10 @@ class H2Reader(Node):
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         self.stats = ReaderStats()
         self.gaps = GapCounter(h2.PERIOD_S)
-        self._q = m.serve(("nodes", self.name, "stats"), lambda _req: asdict(self.stats))
+        self._q = m.serve(("nodes", self.name, "stats"), lambda _req: self._stats())
         self.js = cdr.JointStateCdr(h2.JOINTS)
         self._reported_out_of_range = 0
+        self._reported_dropped = 0
         self.fs = cdr.FootSwitchesCdr()
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
@@ -143,9 +147,16 @@ class H2Reader(Node):
         self.pub_fs.put(self.fs.encode(ns, switches, f.battery, volts), ns)
         self.stats.published_foot_switches += 1
 
+    def _stats(self) -> dict[str, Any]:
+        st = self.stats
+        st.receive = self.reader.counters()
+        st.socket_dropped = st.receive["dropped"]  # type: ignore[assignment]
+        return {"node": self.name, **asdict(st)}  # a wildcard query's replies say whose they are
+
     def _diagnostics(self) -> None:
         st = self.stats
-        st.socket_dropped = self.reader.dropped
+        rx = st.receive = self.reader.counters()
+        dropped = st.socket_dropped = rx["dropped"]  # type: ignore[assignment]
         values = {
             **{f"frames_{i}": n for i, n in st.frames.items()},
             **{f"missing_{i}": n for i, n in st.missing.items()},
@@ -154,24 +165,27 @@ class H2Reader(Node):
             "without_torque": st.without_torque,
             "published_joint_states": st.published_joint_states,
             "stream_restarts": st.stream_restarts,
-            "socket_dropped": st.socket_dropped,
             "out_of_range": st.out_of_range,
+            # rx_*: receive losses and backlog; the supervisor shows them in `exolink status`
+            **{f"rx_{k}": v for k, v in rx.items()},
         }
         silent = self._silent_for() > 0.1
         fault = st.out_of_range > self._reported_out_of_range
         self._reported_out_of_range = st.out_of_range
+        lost = (dropped or 0) - self._reported_dropped
+        self._reported_dropped = dropped or 0
         now = time.time_ns()
+        level = "error" if silent or fault else "warn" if lost > 0 else "ok"
+        if silent:
+            message = "no H2 data"
+        elif fault:
+            message = "joint angle outside its mechanical range"
+        elif lost > 0:
+            message = f"{lost} frames lost in the receive queue ({dropped} in all)"
+        else:
+            message = "streaming"
         payload = cdr.diagnostics(
-            now,
-            f"{self.name}/h2_stream",
-            messaging.LEVELS["error" if silent or fault else "ok"],
-            "no H2 data"
-            if silent
-            else "joint angle outside its mechanical range"
-            if fault
-            else "streaming",
-            "h2",
-            values,
+            now, f"{self.name}/h2_stream", messaging.LEVELS[level], message, "h2", values
         )
         self.pub_diag.put(payload, now)
 

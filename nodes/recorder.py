@@ -5,6 +5,8 @@ with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosb
 PlotJuggler open them. The Zenoh callback only enqueues; a writer thread writes, so a slow SD card
 never stalls the session. Nothing is lost silently: a full queue counts a drop, and the counters
 go out on diagnostics (which are recorded too) and into each file's ``exolink.stats`` metadata.
+What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
+reader's receive counters (its ``nodes/<name>/stats``) when the file was opened and closed.
 Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs
 at most that much. A full disk stops the recording cleanly with an ERROR diagnostic; earlier files
 are never reopened.
@@ -15,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fnmatch
+import json
 import os
 import queue
 import threading
@@ -38,6 +41,8 @@ DRAIN_SLICE_S = 0.05
 # A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
 # file: the reply then says "stopping", which is true, instead of the CLI timing out.
 STOP_REPLY_S = 2.0
+RECEIVE_QUERY_S = 0.5  # the readers' receive counters, asked when a file opens and closes
+RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the file alone
 
 
 class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -106,8 +111,9 @@ class McapFile:
     def size(self) -> int:
         return self.f.tell()
 
-    def close(self, stats: dict[str, str]) -> None:
+    def close(self, stats: dict[str, str], receive: dict[str, str]) -> None:
         self.w.add_metadata("exolink.stats", stats)
+        self.w.add_metadata("exolink.receive", receive)
         self.w.finish()
         self.f.flush()
         os.fsync(self.f.fileno())
@@ -131,6 +137,7 @@ class Recorder(Node):
         self.file: McapFile | None = None
         self.index = 0
         self.session_stamp = ""
+        self._receive_at_open: dict[str, dict[str, Any]] = {}
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
         self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
@@ -245,6 +252,7 @@ class Recorder(Node):
         name = "_".join(
             x for x in (self.ctx.config.device, self.session_stamp, label, f"{self.index:03d}") if x
         )
+        self._receive_at_open = self._receive_counters()
         self.file = McapFile(self.dir / f"{name}.mcap", self.params, self._metadata())
         with self.lock:
             self.stats.files.append(str(self.file.path))
@@ -256,7 +264,38 @@ class Recorder(Node):
         with self.lock:
             stats = {k: str(v) for k, v in vars(self.stats).items() if k != "files"}
         f, self.file = self.file, None
-        f.close(stats)
+        f.close(stats, self._receive_metadata(self._receive_counters()))
+
+    def _receive_counters(self) -> dict[str, dict[str, Any]]:
+        """Every bus reader's receive counters now (node -> FrameReader.counters())."""
+        out: dict[str, dict[str, Any]] = {}
+        key = self.ctx.messaging.mgmt("nodes", "*", "stats")
+        try:
+            for reply in self.ctx.session.get(key, payload=b"{}", timeout=RECEIVE_QUERY_S):
+                if reply.ok is None:
+                    continue
+                stats = json.loads(reply.ok.payload.to_bytes())
+                if isinstance(stats.get("receive"), dict) and isinstance(stats.get("node"), str):
+                    out[stats["node"]] = stats["receive"]
+        except Exception as exc:  # the file is written either way; the gap is said in it
+            self.log.warning("receive_counters_unavailable", error=str(exc))
+        return out
+
+    def _receive_metadata(self, at_close: dict[str, dict[str, Any]]) -> dict[str, str]:
+        """``<node>.<counter>``: since the reader started; ``<node>.<counter>_in_file``: between
+        this file's open and close (absent if the reader restarted or did not answer at open)."""
+        meta: dict[str, str] = {}
+        at_open = self._receive_at_open
+        for node, now in sorted(at_close.items()):
+            meta.update({f"{node}.{k}": str(v) for k, v in now.items()})
+            before = at_open.get(node, {})
+            for k in RECEIVE_DELTAS:
+                a, b = before.get(k), now.get(k)
+                if isinstance(a, int) and isinstance(b, int) and b >= a:
+                    meta[f"{node}.{k}_in_file"] = str(b - a)
+        for node in sorted(set(at_open) - set(at_close)):
+            meta[f"{node}.error"] = "no answer when the file was closed"
+        return meta
 
     def _need_split(self) -> bool:
         f, p = self.file, self.params

@@ -19,6 +19,7 @@ from pathlib import Path
 import can
 import pytest
 import yaml
+import zenoh
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import CanConfig, bundled, load
@@ -145,16 +146,21 @@ def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.
     raise AssertionError(f"condition not met within {timeout} s")
 
 
+def connect(endpoint: str, timeout: float = 30.0) -> zenoh.Session:
+    """A client session to a process just spawned: it listens once its imports are done, which
+    took longer than one connect attempt (3 s) on a host busy with other test runs."""
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            return messaging.open_client_session(endpoint)
+        except messaging.Unreachable:
+            if time.monotonic() > end:
+                raise
+
+
 def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
     """Until every named node has declared its liveliness token (it does so after configure())."""
-    deadline = time.monotonic() + timeout
-    while True:  # the process that listens may still be starting (seconds on a loaded machine)
-        try:
-            s = messaging.open_client_session(endpoint)
-            break
-        except messaging.Unreachable:
-            if time.monotonic() > deadline:
-                raise
+    s = connect(endpoint, timeout)
     try:
 
         def alive() -> bool:

@@ -1,35 +1,52 @@
-"""The batched frame reader and the simulated bus' kernel filter, on real udp_multicast sockets."""
+"""The batched frame reader and the simulated bus (udp_multicast on loopback) on real sockets."""
 
 from __future__ import annotations
 
 import socket
 import time
+from pathlib import Path
 
 import can
-from exolink.canbus import open_bus, open_reader
+import pytest
+from exolink.canbus import open_bus, open_reader, sim_source
 from exolink.config import CanConfig
 
 
-def test_udp_kernel_filter_keeps_only_the_ids_asked_for(group: str) -> None:
+def _raw_to_group(group: str, data: bytes, source: str) -> None:
+    """A datagram onto the sim bus from ``source`` (through loopback), not python-can's."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.bind((source, 0))
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        s.sendto(data, (group, 43113))
+    finally:
+        s.close()
+
+
+def test_sim_kernel_filter_keeps_only_the_ids_asked_for(group: str) -> None:
     cfg = CanConfig(interface="udp_multicast", channel=group)
     reader = open_reader(cfg, [5, 110, 1100])
     plain = open_bus(cfg)  # no filter: hears everything (proves the frames were on the bus)
     tx = open_bus(cfg)
     try:
-        ids = [5, 70, 110, 120, 200, 1100, 1101, 0x7FF]
+        ids = [0, 5, 70, 110, 120, 200, 1100, 1101, 0x7FF]
         for i in ids:
             tx.send(can.Message(arbitration_id=i, data=bytes([i & 0xFF]), is_extended_id=False))
+        tx.send(can.Message(arbitration_id=110, data=b"x", is_extended_id=True))
         time.sleep(0.2)
         got = [f.arbitration_id for f in reader.read(0.5)]
         heard = []
         while (m := plain.recv(0.2)) is not None:
             heard.append(m.arbitration_id)
-        assert got == [5, 110, 1100] and sorted(heard) == sorted(ids)
+        assert got == [5, 110, 1100] and sorted(heard) == sorted([*ids, 110])
         assert reader.malformed == 0
-        # A datagram in no python-can layout passes the kernel filter and is counted, not fatal.
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        s.sendto(b"garbage", (group, plain._multicast._socket.getsockname()[1]))  # type: ignore[attr-defined]
-        s.close()
+        # Filtered in the kernel: frames of other ids were never queued, so never counted as
+        # drops (a socket filter counted every frame it rejected as dropped).
+        assert reader.dropped == 0
+        # A datagram in no python-can layout, from an accepted id's source, is counted, not
+        # fatal; from any other source it never reaches the filtered reader.
+        _raw_to_group(group, b"garbage", source="127.0.0.1")
+        _raw_to_group(group, b"garbage", source=sim_source(110))
         time.sleep(0.1)
         assert reader.read(0.2) == [] and reader.malformed == 1
     finally:
@@ -50,7 +67,86 @@ def test_reader_batches_frames_with_kernel_timestamps(group: str) -> None:
         assert len(frames) == 20  # one wake-up, one batch
         assert all(t0 - 0.01 < f.timestamp < time.time() for f in frames)
         assert frames[0].data == b"\x01" * 6
-        assert reader.dropped is None  # filtered datagrams count as drops on UDP: not reported
+        c = reader.counters()
+        assert c["frames"] == 20 and c["batch_max"] == 20 and c["dropped"] == 0
+        assert c["late"] == 20  # read 200 ms after they arrived: all later than one H2 period
     finally:
         reader.bus.shutdown()
+        tx.shutdown()
+
+
+def test_stalled_sim_reader_counts_every_frame_it_lost(group: str) -> None:
+    """frames of its ids sent = received + dropped, exactly, on the simulated bus; frames of
+    other ids on the same bus (as many again) are neither received nor counted."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    reader = open_reader(cfg, [110], rcvbuf=1 << 16)  # a small queue: the stall overflows it
+    tx = open_bus(cfg)
+    sent = 2000
+    try:
+        for i in range(sent):  # nobody reads meanwhile: the reader is stalled
+            tx.send(
+                can.Message(arbitration_id=110, data=i.to_bytes(2, "little"), is_extended_id=False)
+            )
+            tx.send(
+                can.Message(arbitration_id=120, data=i.to_bytes(2, "little"), is_extended_id=False)
+            )
+        received = []
+        while frames := reader.read(0.3):
+            received += frames
+        dropped = reader.dropped
+        assert dropped is not None and dropped > 0
+        assert len(received) + dropped == sent
+        assert {f.arbitration_id for f in received} == {110}
+        assert reader.counters()["batches_full"] > 0  # the backlog it came back to
+    finally:
+        reader.bus.shutdown()
+        tx.shutdown()
+
+
+def test_receive_buffer_is_what_the_kernel_granted(group: str) -> None:
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    reader = open_reader(cfg, [110], rcvbuf=1 << 16)
+    try:
+        sock = reader.bus._multicast._socket  # type: ignore[attr-defined]
+        assert reader.rcvbuf == sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        assert reader.rcvbuf == 2 * (1 << 16)  # below any rmem_max: granted (doubled) as asked
+    finally:
+        reader.bus.shutdown()
+
+
+def test_more_ids_than_the_kernel_filter_takes(group: str) -> None:
+    """Past net.ipv4.igmp_max_msf sources the reader joins for every source and filters in
+    Python: same frames, and the others are counted as filtered."""
+    limit = int(Path("/proc/sys/net/ipv4/igmp_max_msf").read_text())
+    ids = list(range(200, 200 + limit + 1))
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    reader = open_reader(cfg, ids)
+    tx = open_bus(cfg)
+    try:
+        for i in (ids[0], 70, ids[-1], 120):
+            tx.send(can.Message(arbitration_id=i, data=b"\x01", is_extended_id=False))
+        time.sleep(0.2)
+        assert [f.arbitration_id for f in reader.read(0.5)] == [ids[0], ids[-1]]
+        c = reader.counters()
+        assert c["filtered"] == 2 and c["dropped"] == 0
+    finally:
+        reader.bus.shutdown()
+        tx.shutdown()
+
+
+def test_a_bus_that_only_sends_is_sent_nothing(group: str) -> None:
+    """filters=[] (the h2 sender's bus): no membership, so no frame is queued for it."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    quiet = open_bus(cfg, filters=[])
+    tx = open_bus(cfg)
+    try:
+        for _ in range(5):
+            tx.send(can.Message(arbitration_id=110, data=b"\x01", is_extended_id=False))
+        time.sleep(0.1)
+        sock = quiet._multicast._socket  # type: ignore[attr-defined]
+        sock.setblocking(False)
+        with pytest.raises(BlockingIOError):
+            sock.recv(256)
+    finally:
+        quiet.shutdown()
         tx.shutdown()

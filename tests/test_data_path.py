@@ -12,7 +12,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-from conftest import EXOLINK, collect, wait_alive, wait_for
+from conftest import EXOLINK, collect, connect, wait_alive, wait_for
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import load
@@ -248,8 +248,7 @@ def test_reader_counts_gaps_and_malformed(write_config, spawn, group) -> None:  
     cfg = load(cfg_path)
     spawn("node", "run", "simulator", "-c", str(cfg_path), "--listen", cfg.zenoh.listen[0])
     spawn("node", "run", "h2_reader", "-c", str(cfg_path))
-    wait_alive(messaging.local_endpoint(cfg.zenoh), ["simulator", "h2_reader"])
-    s = messaging.open_client_session(messaging.local_endpoint(cfg.zenoh))
+    s = connect(messaging.local_endpoint(cfg.zenoh))
     try:
 
         def frames_seen() -> int:

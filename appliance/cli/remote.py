@@ -473,6 +473,17 @@ def _print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2) + "\n")
 
 
+def _receive(rx: dict[str, Any] | None) -> str:
+    """A bus reader's receive losses and backlog, after its health."""
+    if not rx:
+        return ""
+    dropped = "n/a" if rx.get("dropped") is None else rx["dropped"]
+    return (
+        f"  rx dropped {dropped} late {rx.get('late')} lag max {rx.get('lag_max_ms')} ms"
+        f" batch max {rx.get('batch_max')}"
+    )
+
+
 def node_health(n: dict[str, Any]) -> str:
     """What the health column says for a node: never blank."""
     if not n.get("enabled", True):
@@ -495,7 +506,7 @@ _COLUMNS: list[tuple[str, bool, Any]] = [
     ("cpu_s", True, lambda n: n.get("cpu_s", "-")),
     ("rss_mb", True, lambda n: n.get("rss_mb", "-")),
     ("last exit", False, lambda n: n.get("last_exit") or "-"),
-    ("health", False, node_health),
+    ("health", False, lambda n: node_health(n) + _receive(n.get("receive"))),
 ]
 
 

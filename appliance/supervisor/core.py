@@ -255,6 +255,7 @@ class Supervisor:
         if node is None:
             return
         arr = messaging.deserialize(sample.payload.to_bytes(), DIAGNOSTICS_TYPE)
+        node.note_diagnostics(arr.status)  # a bus reader's receive losses (rx_*) for status
         worst = max(arr.status, key=lambda st: st.level, default=None)
         if worst is not None:
             level = {0: "ok", 1: "warn", 2: "error"}.get(int(worst.level), "stale")

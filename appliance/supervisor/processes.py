@@ -52,6 +52,9 @@ class NodeProcess:
     start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
     deliberate_stop: bool = False
     health: str = ""  # from the node's own diagnostics, if it publishes any
+    # A bus reader's receive losses and backlog: its diagnostics values named rx_* (dropped,
+    # late, lag_max_ms, ...), as of its last report.
+    receive: dict[str, Any] = field(default_factory=dict)
     restart_times: collections.deque[float] = field(default_factory=collections.deque)
     logs: collections.deque[str] = field(
         default_factory=lambda: collections.deque(maxlen=LOG_LINES)
@@ -63,6 +66,17 @@ class NodeProcess:
     @property
     def name(self) -> str:
         return self.cfg.name
+
+    def note_diagnostics(self, statuses: Any) -> None:
+        """Keep the rx_* values of the node's diagnostics (diagnostic_msgs/DiagnosticStatus)."""
+        rx = {
+            kv.key[3:]: _number(kv.value)
+            for st in statuses
+            for kv in st.values
+            if kv.key.startswith("rx_")
+        }
+        if rx:
+            self.receive = rx
 
     @property
     def pid(self) -> int | None:
@@ -182,6 +196,7 @@ class NodeProcess:
             "restarts": self.restarts,
             "last_exit": self.last_exit,
             "health": self.health,
+            **({"receive": self.receive} if self.receive else {}),
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,
@@ -402,3 +417,15 @@ def relay(log: structlog.typing.FilteringBoundLogger, node: str, line: str) -> N
         log.info("node_output", node=node, line=line)
         return
     sys.stderr.write(line + "\n")
+
+
+def _number(text: str) -> int | float | str | None:
+    """A diagnostics value (always a string) back as the number it was."""
+    if text == "None":
+        return None
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            continue
+    return text

@@ -156,3 +156,28 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
         up.terminate()
         up.wait(30)
         log.close()
+
+
+def test_stalled_reader_counts_every_frame_it_lost(vcan0: str) -> None:
+    """SocketCAN: frames of its ids sent = received + dropped (the socket's kernel count), for a
+    reader that did not read during the burst; frames of other ids are filtered, not counted."""
+    from exolink.canbus import open_reader
+
+    reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [110], rcvbuf=1 << 16)
+    tx = listener(vcan0)
+    sent = 2000
+    try:
+        for i in range(sent):
+            data = i.to_bytes(2, "little")
+            tx.send(can.Message(arbitration_id=110, data=data, is_extended_id=False))
+            tx.send(can.Message(arbitration_id=120, data=data, is_extended_id=False))
+        received = []
+        while frames := reader.read(0.3):
+            received += frames
+        dropped = reader.dropped
+        assert dropped is not None and dropped > 0
+        assert len(received) + dropped == sent
+        assert {f.arbitration_id for f in received} == {110}
+    finally:
+        reader.bus.shutdown()
+        tx.shutdown()
