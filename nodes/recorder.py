@@ -111,9 +111,9 @@ class McapFile:
     def size(self) -> int:
         return self.f.tell()
 
-    def close(self, stats: dict[str, str], receive: dict[str, str]) -> None:
+    def close(self, stats: dict[str, str], receive: dict[str, str] | None = None) -> None:
         self.w.add_metadata("exolink.stats", stats)
-        self.w.add_metadata("exolink.receive", receive)
+        self.w.add_metadata("exolink.receive", receive or {})
         self.w.finish()
         self.f.flush()
         os.fsync(self.f.fileno())
@@ -269,7 +269,8 @@ class Recorder(Node):
     def _receive_counters(self) -> dict[str, dict[str, Any]]:
         """Every bus reader's receive counters now (node -> FrameReader.counters())."""
         out: dict[str, dict[str, Any]] = {}
-        key = self.ctx.messaging.mgmt("nodes", "*", "stats")
+        # Every node's stats queryable, asked as the appliance's own login (see exolink.roles).
+        key = self.ctx.messaging.mgmt("nodes", "*", "stats", roles.APPLIANCE_USER)
         try:
             for reply in self.ctx.session.get(key, payload=b"{}", timeout=RECEIVE_QUERY_S):
                 if reply.ok is None:
