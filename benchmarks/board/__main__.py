@@ -116,7 +116,16 @@ def table(result: dict[str, Any]) -> str:
     row("node restarts in window", _restarts(g), _restarts(n))
     row("cold start to all beating (s)", *pair("boot", "all_nodes_beating_s"))
     row("supervisor restarts by systemd", get(g, "supervisor_restarts_by_systemd_at_end"), "n/a")
+    row("  of them during the load", _load_restarts(g), "n/a")
+    row(
+        "  'Watchdog timeout' in window",
+        get(g, "logs", "window_counts", "Watchdog timeout"),
+        "n/a",
+    )
+    row("laptop session", _laptop(g), _laptop(n))
     for run in (g, n):
+        if not run:
+            continue
         cpu0 = idle(run, "cpu0")
         if isinstance(cpu0, int | float) and cpu0 < 5:
             lines.append(
@@ -126,11 +135,32 @@ def table(result: dict[str, Any]) -> str:
     if g.get("qemu_command"):
         lines += ["", "qemu: " + g["qemu_command"]]
     for run in (g, n):
+        if not run:
+            continue
         for note in run.get("notes", []):
             lines.append(f"note ({run['kind']}): {note}")
+        if run.get("laptop_error"):
+            lines.append(
+                f"LAPTOP FAILED ({run['kind']}): {run['laptop_error']}; the figures above that "
+                "need the laptop (joint_states, pattern, watchdog, recorder) are n/a"
+            )
         if run.get("error"):
             lines.append(f"ERROR ({run['kind']}): {run['error']}")
     return "\n".join(lines)
+
+
+def _laptop(run: dict[str, Any]) -> str | None:
+    if not run:
+        return None
+    if run.get("laptop_error"):
+        return "FAILED (see note)"
+    return "connected" if "operator" in run else None
+
+
+def _load_restarts(run: dict[str, Any]) -> int | None:
+    a = run.get("supervisor_restarts_by_systemd_before_load")
+    b = run.get("supervisor_restarts_by_systemd_at_end")
+    return b - a if isinstance(a, int) and isinstance(b, int) else None
 
 
 def _vcan_drops(run: dict[str, Any]) -> str | None:
@@ -181,6 +211,13 @@ def main() -> int:
         action="store_true",
         help="forward the guest's journal to the serial console (debugging; costs guest CPU)",
     )
+    p.add_argument(
+        "--py-spy",
+        metavar="WHEEL",
+        help="an armv7 py-spy wheel (pip download py-spy --platform manylinux2014_armv7l "
+        "--only-binary=:all:): installed on the card copy; the window is profiled "
+        "(build/bench-board/profile-guest*.txt, 'profile' in the JSON)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -203,7 +240,9 @@ def main() -> int:
     }
     if args.only != "native":
         image = cardlib.find_image(REPO, args.image)
-        result["guest"] = runs.run_guest(
+        result["guest"] = _guarded(
+            "guest",
+            runs.run_guest,
             REPO,
             image,
             Path(args.work),
@@ -212,9 +251,12 @@ def main() -> int:
             args.boot_timeout,
             args.timings,
             args.journal_console,
+            Path(args.py_spy) if args.py_spy else None,
         )
     if args.only != "guest":
-        result["native"] = runs.run_native(REPO, args.seconds, args.start_grace_ms, args.timings)
+        result["native"] = _guarded(
+            "native", runs.run_native, REPO, args.seconds, args.start_grace_ms, args.timings
+        )
     result["run_s"] = round(time.monotonic() - t0, 1)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -223,11 +265,17 @@ def main() -> int:
     out.with_suffix(".txt").write_text(text + "\n")
     print(text)
     print(f"\nJSON: {out}  (run took {result['run_s']:.0f} s)")
-    return (
-        0
-        if not any(r.get("error") for r in (result.get("guest", {}), result.get("native", {})))
-        else 1
-    )
+    runs_ = (result.get("guest", {}), result.get("native", {}))
+    return 0 if not any(r.get("error") or r.get("laptop_error") for r in runs_) else 1
+
+
+def _guarded(kind: str, fn: Any, *args: Any) -> dict[str, Any]:
+    """A run that raises still leaves a row in the table and the JSON."""
+    try:
+        return dict(fn(*args))
+    except Exception as exc:
+        structlog.get_logger("bench-board").exception("run failed", kind=kind)
+        return {"kind": kind, "notes": [], "error": f"{type(exc).__name__}: {exc}"}
 
 
 if __name__ == "__main__":

@@ -214,8 +214,10 @@ def prepare(
     zenoh_password: str,
     start_grace_ms: int,
     timings: str,
+    extra_wheels: tuple[Path, ...] = (),
 ) -> tuple[Card, dict[str, Any]]:
-    """The bench copy of ``image`` in ``work``; returns it and the appliance config it runs."""
+    """The bench copy of ``image`` in ``work``; returns it and the appliance config it runs.
+    ``extra_wheels`` (an armv7 py-spy, say) are installed beside exolink, without dependencies."""
     work.mkdir(parents=True, exist_ok=True)
     card = copy_card(image, work / "card.img")
     log.info("card copied", image=str(image), copy=str(card.img))
@@ -229,7 +231,8 @@ def prepare(
     card.fat_mkdir("bench")
     (work / "prep.sh").write_text(PREP_SH)
     card.fat_write(work / "prep.sh", "/bench/")
-    card.fat_write(wheel, "/bench/")
+    for w in (wheel, *extra_wheels):
+        card.fat_write(w, "/bench/")
 
     from benchmarks.board.scenario import TIMINGS, bench_config
 

@@ -21,7 +21,7 @@ from exolink import messaging
 from exolink.config import bundled
 
 from benchmarks.board import card as cardlib
-from benchmarks.board import scenario
+from benchmarks.board import profile, scenario
 from benchmarks.board.guest import Guest, free_port
 
 log = structlog.get_logger("bench-board")
@@ -53,7 +53,11 @@ def _connect(at: str, zenoh_config: str | None, timeout: float, alive: Any) -> s
 
 
 def _run_load(
-    laptop: scenario.Laptop, probe_cmd: list[str], seconds: float, stdin: Any
+    laptop: scenario.Laptop,
+    probe_cmd: list[str],
+    seconds: float,
+    stdin: Any,
+    profiler: list[str] | None = None,
 ) -> dict[str, Any]:
     """Arm, the pattern held, settle, then the window measured by the probe and the laptop.
 
@@ -73,14 +77,35 @@ def _run_load(
     out["pattern_running_at_start"] = _pattern_running(laptop)
     log.info("measuring", seconds=seconds)
     probe = subprocess.Popen(probe_cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
+    prof = _start_profiler(profiler)
     try:
         out["window"] = scenario.measure(laptop, probe, seconds)
     finally:
         if probe.poll() is None:
             probe.kill()
+        _end_profiler(prof, out)
     out["held_pattern_cli"] = laptop.stop_pattern()
     out["derived"] = scenario.derived(out["window"])
     return out
+
+
+def _start_profiler(cmd: list[str] | None) -> subprocess.Popen[str] | None:
+    if cmd is None:
+        return None
+    log.info("profiling the window", cmd=" ".join(cmd[-1:]))
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _end_profiler(prof: subprocess.Popen[str] | None, out: dict[str, Any]) -> None:
+    if prof is None:
+        return
+    try:
+        text, _ = prof.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        prof.kill()
+        text, _ = prof.communicate()
+    out["profiler_rc"] = prof.returncode
+    out["profiler_output"] = text[-2000:]
 
 
 def _pattern_running(laptop: scenario.Laptop) -> bool:
@@ -107,6 +132,7 @@ def run_guest(
     boot_timeout: float,
     timings: str,
     journal_console: bool = False,
+    py_spy: Path | None = None,
 ) -> dict[str, Any]:
     result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": []}
     wheel = cardlib.build_wheel(repo, work / "wheel")
@@ -124,6 +150,7 @@ def run_guest(
         password,
         start_grace_ms,
         timings,
+        (py_spy,) if py_spy else (),
     )
     result["config"] = cfg
     laptop_cfg = work / "exolink-operator.json5"
@@ -134,43 +161,118 @@ def run_guest(
     console = guest.start()
     laptop = None
     try:
-        laptop = _connect(guest.at, str(laptop_cfg), boot_timeout, guest.alive)
-        status, ok = laptop.wait_beating(boot_timeout, scenario.enabled_nodes(cfg))
+        try:
+            laptop = _connect(guest.at, str(laptop_cfg), boot_timeout, guest.alive)
+        except messaging.Unreachable as exc:
+            # What the guest itself shows (CPU, PSS, restarts, journal) is still measured.
+            result["laptop_error"] = f"the laptop never connected ({boot_timeout:g} s): {exc}"
+            log.error("laptop cannot connect: measuring the guest without it", error=str(exc))
         boot_s = time.monotonic() - guest.t0
-        if status is None:
-            result["error"] = f"the supervisor never answered within {boot_timeout:g} s"
-            return result
-        if not ok:
-            result["notes"].append(_not_beating(status, boot_timeout))
         result["boot"] = {
-            "all_nodes_beating_s": round(boot_s, 1) if ok else None,
-            "resolution_s": 2.0,
             "bench_prep_done_s": console.first(r"exolink-bench: ready"),
             "supervisor_started_s": console.first(r"Started exolink\.service"),
-            "node_start_s": {n["name"]: n["start_s"] for n in status["nodes"]},
         }
+        if laptop is not None:
+            status, ok = laptop.wait_beating(boot_timeout, scenario.enabled_nodes(cfg))
+            boot_s = time.monotonic() - guest.t0
+            if status is None:
+                result["laptop_error"] = f"the supervisor never answered within {boot_timeout:g} s"
+            else:
+                if not ok:
+                    result["notes"].append(_not_beating(status, boot_timeout))
+                result["boot"] |= {
+                    "all_nodes_beating_s": round(boot_s, 1) if ok else None,
+                    "resolution_s": 2.0,
+                    "node_start_s": {n["name"]: n["start_s"] for n in status["nodes"]},
+                }
         installed = guest.ssh("cat /run/exolink-bench-installed; nproc; uname -r")
-        restarts = guest.ssh("systemctl show -p NRestarts --value exolink.service")
-        result["boot"]["supervisor_restarts_by_systemd"] = restarts.stdout.strip() or None
+        result["boot"]["supervisor_restarts_by_systemd"] = _nrestarts(guest)
         result["installed"] = installed.stdout.strip() or installed.stderr.strip()
         if result["wheel"]["sha256"] not in result["installed"]:
             result["notes"].append("the checkout's wheel is NOT what the guest installed")
-        log.info("nodes", all_beating=ok, boot_s=round(boot_s, 1))
+        log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
         time.sleep(SETTLE_S)
         probe_cmd = guest.ssh_cmd(
             f"taskset -c 1 python3 - --unit exolink.service --seconds {seconds:g} --channel vcan0"
         )
+        result["supervisor_restarts_by_systemd_before_load"] = _nrestarts(guest)
+        profiler = None
+        if py_spy is not None:  # on CPU 1 with the simulator: CPU 0 is what is measured
+            profiler = guest.ssh_cmd(
+                "taskset -c 1 /opt/exolink/bin/py-spy record --nonblocking --subprocesses "
+                f"--threads -r {PROFILE_RATE} -d {seconds:g} -f raw -o {GUEST_PROFILE} "
+                "-p $(systemctl show -p MainPID --value exolink.service)"
+            )
         with open(PROBE) as stdin:
-            result |= _run_load(laptop, probe_cmd, seconds, stdin)
+            if laptop is not None and "laptop_error" not in result:
+                result |= _run_load(laptop, probe_cmd, seconds, stdin, profiler)
+            else:  # no load from the laptop: the guest's own figures, said to be without it
+                result["window"] = _probe_only(probe_cmd, seconds, stdin)
+        result["supervisor_restarts_by_systemd_at_end"] = _nrestarts(guest)
         result["logs"] = _guest_logs(guest, result)
-        restarts = guest.ssh("systemctl show -p NRestarts --value exolink.service")
-        result["supervisor_restarts_by_systemd_at_end"] = restarts.stdout.strip() or None
+        if py_spy is not None:
+            result["profile"] = _fetch_profile(guest, work, result, seconds)
+        return result
+    except Exception as exc:  # a table with what was measured beats a traceback without one
+        log.exception("guest run failed")
+        result["error"] = f"{type(exc).__name__}: {exc}"
         return result
     finally:
         if laptop is not None:
             laptop.close()
         guest.stop()
         result["console_log"] = str(work / "console.log")
+
+
+PROFILE_RATE = 50
+GUEST_PROFILE = "/run/exolink-profile.txt"
+
+
+def _fetch_profile(
+    guest: Guest, work: Path, result: dict[str, Any], seconds: float
+) -> dict[str, Any]:
+    """The window's py-spy stacks, saved beside the console log, summarized per process."""
+    r = guest.ssh(f"cat {GUEST_PROFILE}")
+    raw = work / "profile-guest.txt"
+    raw.write_text(r.stdout)
+    names = _pid_names(result)
+    summary = profile.summarize(r.stdout, names)
+    text = profile.render(summary, PROFILE_RATE * seconds)
+    (work / "profile-guest-top.txt").write_text(text + "\n")
+    return {"raw": str(raw), "rate_hz": PROFILE_RATE, "summary": summary}
+
+
+def _pid_names(result: dict[str, Any]) -> dict[int, str]:
+    names = {}
+    probe = result.get("window", {}).get("probe", {})
+    for name, pid in (probe.get("pids") or {}).items():
+        names[int(pid)] = name
+    st = result.get("window", {}).get("before", {}).get("status", {})
+    if isinstance(st.get("pid"), int):
+        names[st["pid"]] = "supervisor"
+    if isinstance(st.get("zygote_pid"), int):
+        names[st["zygote_pid"]] = "zygote"
+    for n in st.get("nodes", []):
+        if isinstance(n.get("pid"), int):
+            names[n["pid"]] = n["name"]
+    return names
+
+
+def _nrestarts(guest: Guest) -> int | None:
+    """systemd's count of supervisor restarts (its watchdog kills among them)."""
+    r = guest.ssh("systemctl show -p NRestarts --value exolink.service")
+    out = r.stdout.strip()
+    return int(out) if out.isdigit() else None
+
+
+def _probe_only(probe_cmd: list[str], seconds: float, stdin: Any) -> dict[str, Any]:
+    log.info("measuring without the laptop", seconds=seconds)
+    probe = subprocess.Popen(probe_cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
+    try:
+        return scenario.measure(None, probe, seconds)
+    finally:
+        if probe.poll() is None:
+            probe.kill()
 
 
 def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
@@ -189,6 +291,7 @@ def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
             inside.append(line)
     return {
         "boot_total": {p: sum(p in line for line in lines) for p in LOG_PATTERNS.split("|")},
+        "window_counts": {p: sum(p in line for line in inside) for p in LOG_PATTERNS.split("|")},
         "window": inside[-50:],
         "window_loop_stalled": stalls("\n".join(inside)),
         "last_lines": lines[-30:],

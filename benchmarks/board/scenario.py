@@ -262,10 +262,11 @@ def timing_query(laptop: Laptop, seconds: float) -> Iterator[dict[str, Any]]:
     t.join(90)
 
 
-def measure(laptop: Laptop, probe: subprocess.Popen[str], seconds: float) -> dict[str, Any]:
-    """The window: started by the probe's PROBE_T0 line (its first /proc snapshot)."""
+def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float) -> dict[str, Any]:
+    """The window: started by the probe's PROBE_T0 line (its first /proc snapshot). Without a
+    laptop (it could not connect) only the probe's figures."""
     assert probe.stdout is not None
-    before = counters(laptop)
+    before = counters(laptop) if laptop is not None else {}
     line = ""
     for line in probe.stdout:
         if line.startswith("PROBE_T0"):
@@ -273,21 +274,25 @@ def measure(laptop: Laptop, probe: subprocess.Popen[str], seconds: float) -> dic
     else:
         return {"error": f"probe ended before its first snapshot: {line!r}"}
     t0 = time.monotonic()
-    laptop.joint_states.counting = True
-    with timing_query(laptop, seconds) as timing:
+    timing: dict[str, Any] = {}
+    with contextlib.ExitStack() as stack:
+        if laptop is not None:
+            laptop.joint_states.counting = True
+            timing = stack.enter_context(timing_query(laptop, seconds))
         result = ""
         for line in probe.stdout:
             if line.startswith("PROBE_RESULT "):
                 result = line.split(" ", 1)[1]
         probe.wait()
+    out: dict[str, Any] = {"probe": json.loads(result) if result else {"error": "no probe result"}}
+    if laptop is None:
+        return out
     laptop.joint_states.counting = False
-    after = counters(laptop)
-    return {
-        "probe": json.loads(result) if result else {"error": "no probe result"},
+    return out | {
         "joint_states": laptop.joint_states.summary(t0, seconds),
         "timing": timing,
         "before": before,
-        "after": after,
+        "after": counters(laptop),
     }
 
 
