@@ -37,6 +37,18 @@ def test_missing_interface_names_the_fix() -> None:
         canlink.health("can7")
 
 
+def test_link_monitor_keeps_its_socket_and_names_the_fix() -> None:
+    m = canlink.LinkMonitor("lo")  # no CAN link in this kernel: loopback has a state too
+    try:
+        assert m.health().state == "up"
+        sock = m._ip
+        assert m.health().state == "up" and m._ip is sock  # one netlink socket, kept
+    finally:
+        m.close()
+    with pytest.raises(canlink.CanLinkError, match=r"no network interface 'can7'"):
+        canlink.LinkMonitor("can7").health()
+
+
 def test_link_health_bad_states() -> None:
     assert canlink.LinkHealth("bus-off").bad and canlink.LinkHealth("error-passive").bad
     assert not canlink.LinkHealth("error-active").bad and not canlink.LinkHealth("up").bad

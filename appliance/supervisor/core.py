@@ -68,6 +68,7 @@ class Supervisor:
         self.trigger_count = 0
         self.last_trigger_ns: int | None = None
         self.health: canlink.LinkHealth | None = None
+        self.link: canlink.LinkMonitor | None = None
         self._decls: list[Any] = []
         self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
         self.nodes: dict[str, NodeProcess] = {}
@@ -288,8 +289,10 @@ class Supervisor:
     def _check_bus(self) -> None:
         if self.cfg.can.interface != "socketcan":
             return
+        if self.link is None:
+            self.link = canlink.LinkMonitor(self.cfg.can.channel)
         try:
-            self.health = canlink.health(self.cfg.can.channel)
+            self.health = self.link.health()
         except canlink.CanLinkError as exc:
             self.health = canlink.LinkHealth("down")
             self.log.error("can_link_missing", error=str(exc))
@@ -393,6 +396,8 @@ class Supervisor:
             self.session.close()
         if hasattr(self, "bus"):
             self.bus.shutdown()
+        if self.link is not None:
+            self.link.close()
         shutil.rmtree(self._workdir, ignore_errors=True)
         self.log.info("supervisor_stopped")
 

@@ -52,10 +52,12 @@ def test_bus_factory_kernel_filters(vcan0: str) -> None:
 
 
 def test_netlink_up_down_and_bitrate_refusal(vcan0: str) -> None:
+    monitor = canlink.LinkMonitor(vcan0)  # the supervisor's periodic check
     canlink.set_state(vcan0, up=False)
-    assert canlink.health(vcan0).state == "down"
+    assert canlink.health(vcan0).state == "down" and monitor.health().state == "down"
     canlink.set_state(vcan0, up=True)
-    assert canlink.health(vcan0).state == "up"
+    assert canlink.health(vcan0).state == "up" and monitor.health().state == "up"
+    monitor.close()
     with pytest.raises(canlink.CanLinkError, match="vcan0 cannot take a bitrate"):
         canlink.set_bitrate(vcan0, 1_000_000)
 
