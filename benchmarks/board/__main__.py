@@ -108,6 +108,7 @@ def table(result: dict[str, Any]) -> str:
     row("watchdog state at end", *pair("derived", "watchdog_state_end"))
     row("watchdog reason", *pair("derived", "watchdog_reason_end"))
     row("read_lag_max_ms (since start)", *pair("derived", "read_lag_max_ms"))
+    row("frames the watchdog read in window", *pair("derived", "watchdog_frames_read"))
     row("recorder written / dropped", _rec(g), _rec(n))
     row(
         "loop_stalled in window",

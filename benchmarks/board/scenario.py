@@ -306,6 +306,8 @@ def derived(m: dict[str, Any]) -> dict[str, Any]:
     if "trips" in wd0 and "trips" in wd1:
         out["watchdog_trips_in_window"] = wd1["trips"] - wd0["trips"]
     out["read_lag_max_ms"] = wd1.get("read_lag_max_ms")
+    if "frames_read" in wd0 and "frames_read" in wd1:
+        out["watchdog_frames_read"] = wd1["frames_read"] - wd0["frames_read"]
     r0, r1 = b.get("h2_reader", {}), a.get("h2_reader", {})
     if isinstance(r0.get("missing"), dict) and isinstance(r1.get("missing"), dict):
         out["h2_reader_missing"] = {
