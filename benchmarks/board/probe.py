@@ -26,8 +26,11 @@ def _read(path: str) -> str:
         return f.read()
 
 
-def find_appliance(supervisor: int) -> dict[str, int]:
-    """``{"supervisor": pid, "<node>": pid, ...}``: the node processes are its children."""
+def find_appliance(supervisor: int, nodes: list[str] | None = None) -> dict[str, int]:
+    """``{"supervisor": pid, "zygote": pid, "<node>": pid, ...}``: the node processes are its
+    children. A node started by exec has ``node run NAME`` in its argv; one forked by the zygote
+    keeps the zygote's argv and is named ``exo-NAME`` (15 characters at most: ``nodes``, the
+    configured names, complete it)."""
     found = {"supervisor": supervisor}
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
@@ -35,11 +38,20 @@ def find_appliance(supervisor: int) -> dict[str, int]:
         try:
             stat = _read(f"/proc/{entry}/stat")
             argv = _read(f"/proc/{entry}/cmdline").split("\0")
+            comm = _read(f"/proc/{entry}/comm").strip()
         except OSError:
             continue
         ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        if ppid == supervisor and "node" in argv and "run" in argv:
+        if ppid != supervisor:
+            continue
+        if "node" in argv and "run" in argv:
             found[argv[argv.index("run") + 1]] = int(entry)
+        elif comm.startswith("exo-"):
+            short = comm[4:]
+            full = [n for n in nodes or [] if n.startswith(short)]
+            found[full[0] if len(full) == 1 else short] = int(entry)
+        elif any(a.endswith("exolink.zygote") for a in argv):
+            found["zygote"] = int(entry)
     return found
 
 
@@ -195,12 +207,14 @@ def main() -> int:
     who.add_argument("--unit", help="the systemd unit whose main process is the supervisor")
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--channel", default="", help="CAN link to count frames on (vcan0)")
+    p.add_argument("--nodes", default="", help="configured node names, comma-separated")
     args = p.parse_args()
     sup = args.pid if args.pid else _systemd_main_pid(args.unit)
     if not sup:
         sys.stdout.write(json.dumps({"error": f"no main pid for {args.unit}"}) + "\n")
         return 1
-    pids = find_appliance(sup)
+    nodes = [n for n in args.nodes.split(",") if n]
+    pids = find_appliance(sup, nodes)
     first = snapshot(pids, args.channel)
     sys.stdout.write(f"PROBE_T0 {json.dumps(sorted(pids))}\n")
     sys.stdout.flush()
@@ -208,7 +222,7 @@ def main() -> int:
     second = snapshot(pids, args.channel)
     out = compare(first, second)
     out["pids"] = pids
-    out["nodes_now"] = sorted(find_appliance(sup))
+    out["nodes_now"] = sorted(find_appliance(sup, nodes))
     sys.stdout.write("PROBE_RESULT " + json.dumps(out) + "\n")
     return 0
 

@@ -193,7 +193,8 @@ def run_guest(
         log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
         time.sleep(SETTLE_S)
         probe_cmd = guest.ssh_cmd(
-            f"taskset -c 1 python3 - --unit exolink.service --seconds {seconds:g} --channel vcan0"
+            f"taskset -c 1 python3 - --unit exolink.service --seconds {seconds:g} --channel vcan0 "
+            f"--nodes {','.join(sorted(scenario.enabled_nodes(cfg)))}"
         )
         result["supervisor_restarts_by_systemd_before_load"] = _nrestarts(guest)
         profiler = None
@@ -373,6 +374,8 @@ def run_native(repo: Path, seconds: float, start_grace_ms: int, timings: str) ->
             str(proc.pid),
             "--seconds",
             f"{seconds:g}",
+            "--nodes",
+            ",".join(sorted(scenario.enabled_nodes(cfg))),
         ]
         size0 = up_log.stat().st_size
         result |= _run_load(laptop, probe_cmd, seconds, subprocess.DEVNULL)
