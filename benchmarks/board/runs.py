@@ -208,7 +208,7 @@ def run_guest(
             if laptop is not None and "laptop_error" not in result:
                 result |= _run_load(laptop, probe_cmd, seconds, stdin, profiler)
             else:  # no load from the laptop: the guest's own figures, said to be without it
-                result["window"] = _probe_only(probe_cmd, seconds, stdin)
+                result["window"] = _probe_only(probe_cmd, seconds, stdin, profiler, result)
         result["supervisor_restarts_by_systemd_at_end"] = _nrestarts(guest)
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
@@ -266,14 +266,22 @@ def _nrestarts(guest: Guest) -> int | None:
     return int(out) if out.isdigit() else None
 
 
-def _probe_only(probe_cmd: list[str], seconds: float, stdin: Any) -> dict[str, Any]:
+def _probe_only(
+    probe_cmd: list[str],
+    seconds: float,
+    stdin: Any,
+    profiler: list[str] | None,
+    out: dict[str, Any],
+) -> dict[str, Any]:
     log.info("measuring without the laptop", seconds=seconds)
     probe = subprocess.Popen(probe_cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
+    prof = _start_profiler(profiler)
     try:
         return scenario.measure(None, probe, seconds)
     finally:
         if probe.poll() is None:
             probe.kill()
+        _end_profiler(prof, out)
 
 
 def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
