@@ -28,7 +28,8 @@ def _read(path: str) -> str:
 
 def find_appliance(supervisor: int, nodes: list[str] | None = None) -> dict[str, int]:
     """``{"supervisor": pid, "zygote": pid, "<node>": pid, ...}``: the node processes are its
-    children. A node started by exec has ``node run NAME`` in its argv; one forked by the zygote
+    children. A node started by exec has ``exolink.runtime NAME`` (or the CLI's ``node run
+    NAME``) in its argv; one forked by the zygote
     keeps the zygote's argv and is named ``exo-NAME`` (15 characters at most: ``nodes``, the
     configured names, complete it)."""
     found = {"supervisor": supervisor}
@@ -44,7 +45,9 @@ def find_appliance(supervisor: int, nodes: list[str] | None = None) -> dict[str,
         ppid = int(stat.rsplit(")", 1)[1].split()[1])
         if ppid != supervisor:
             continue
-        if "node" in argv and "run" in argv:
+        if "exolink.runtime" in argv and argv.index("exolink.runtime") + 1 < len(argv):
+            found[argv[argv.index("exolink.runtime") + 1]] = int(entry)  # started by exec
+        elif "node" in argv and "run" in argv:
             found[argv[argv.index("run") + 1]] = int(entry)
         elif comm.startswith("exo-"):
             short = comm[4:]
