@@ -65,10 +65,7 @@ echo "exolink-bench: ready"
 BENCH_UNIT = """\
 [Unit]
 Description=exolink bench: vcan0 and the checkout's exolink wheel (bench copy of the card only)
-# Before the card's setup: the checkout's exolink applies the card's settings (the image's own
-# version refused a settings file of a newer schema, and the board kept its old login).
-Before=exolink-setup.service
-After=local-fs.target
+After=exolink-setup.service local-fs.target
 RequiresMountsFor=/boot/firmware
 
 [Service]
