@@ -159,33 +159,6 @@ class HeartbeatCdr:
         return CDR_LE + self._s.pack(sec, nsec, self._a, count, self.pid, self._b)
 
 
-def diagnostics(
-    ns: int, name: str, level: int, message: str, hardware_id: str, values: dict[str, Any]
-) -> bytes:
-    """A one-status diagnostic_msgs/DiagnosticArray (once a second: laid out on each call)."""
-    lay = _Layout()
-    _header(lay)
-    lay.u32(1)
-    lay.const(bytes([level]))
-    for text in (name, message, hardware_id):
-        lay.string(text)
-    lay.u32(len(values))
-    for k, v in values.items():
-        lay.string(str(k))
-        lay.string(str(v))
-    s, consts = lay.done()
-    sec, nsec = divmod(ns, 1_000_000_000)
-    return CDR_LE + s.pack(sec, nsec, *consts)
-
-
-def string_msg(text: str) -> bytes:
-    """A std_msgs/String (the command log's JSON lines)."""
-    lay = _Layout()
-    lay.string(text)
-    s, consts = lay.done()
-    return CDR_LE + s.pack(*consts)
-
-
 class _Writer:
     """CDR written field by field, for messages whose strings change with every message."""
 
@@ -204,6 +177,31 @@ class _Writer:
 
     def stamp(self, ns: int) -> None:
         self.put("iI", *divmod(ns, 1_000_000_000))
+
+
+def diagnostics(
+    ns: int, name: str, level: int, message: str, hardware_id: str, values: dict[str, Any]
+) -> bytes:
+    """A one-status diagnostic_msgs/DiagnosticArray (once a second: written field by field)."""
+    w = _Writer()
+    w.stamp(ns)
+    w.string("")  # frame_id
+    w.put("I", 1)
+    w.put("B", level)
+    for text in (name, message, hardware_id):
+        w.string(text)
+    w.put("I", len(values))
+    for k, v in values.items():
+        w.string(str(k))
+        w.string(str(v))
+    return bytes(w.buf)
+
+
+def string_msg(text: str) -> bytes:
+    """A std_msgs/String (the command log's JSON lines)."""
+    w = _Writer()
+    w.string(text)
+    return bytes(w.buf)
 
 
 def joint_command(

@@ -21,8 +21,9 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import structlog
 import zenoh
-from exolink import roles
+from exolink import cdr, roles
 from exolink.config import ApplianceConfig, ConfigError, ZenohConfig
 
 MSG_DIR = Path(__file__).with_name("msgs")
@@ -380,6 +381,7 @@ Needs = str | Callable[[dict[str, Any]], str]
 COMMANDS_TOPIC = "commands"
 COMMANDS_TYPE = "std_msgs/msg/String"
 _LOGGED_VALUE_CHARS = 200
+_log = structlog.get_logger("exolink.commands")
 
 
 def _summary(request: dict[str, Any]) -> dict[str, Any]:
@@ -407,20 +409,11 @@ class CommandLog:
         entry = {"by": user, "key": key, "request": _summary(request), "ok": reply["ok"]}
         if not reply["ok"]:
             entry["error"] = reply.get("error", "")
-        _log().info("command", **entry)
+        _log.info("command", **entry)
         with self._lock:
             if self._pub is None:
                 self._pub = self._msg.publisher(COMMANDS_TOPIC, COMMANDS_TYPE, raw=True)
-        from exolink import cdr
-
         self._pub.put(cdr.string_msg(json.dumps(entry)))
-
-
-@cache
-def _log() -> Any:
-    import structlog
-
-    return structlog.get_logger("exolink.commands")
 
 
 def serve(

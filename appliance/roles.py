@@ -64,13 +64,6 @@ def status_or(role: str) -> Callable[[dict[str, Any]], str]:
     return needs
 
 
-def login_user(zenoh_json: dict[str, Any] | None) -> str | None:
-    """The usrpwd user of a Zenoh config (a laptop's login file), None without one."""
-    usrpwd = ((zenoh_json or {}).get("transport") or {}).get("auth", {}).get("usrpwd") or {}
-    user = usrpwd.get("user")
-    return str(user) if user else None
-
-
 def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> dict[str, Any]:
     return {
         "id": rid,

@@ -266,11 +266,10 @@ class Zygote:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.proc = Forked(_fork_zygote(self._sock, theirs), None)
-        theirs.close()
         plain_priority(self.proc.pid)  # its forks must not inherit the supervisor's nice
         self._lock = threading.Lock()
         self.broken = False
-        self._sock.settimeout(ZYGOTE_READY_S)  # its imports: seconds on one A8 core
+        self._sock.settimeout(ZYGOTE_READY_S)  # its gc.collect of the forked heap, then ready
         try:
             ready = json.loads(self._sock.recv(4096) or b"{}").get("ready")
         except (OSError, ValueError) as exc:
