@@ -293,10 +293,11 @@ class Manager:
                     raise ManagerRefused(
                         f"{n} refused to activate: {type(exc).__name__}: {exc}"
                     ) from None
+                written = list(self.last_pos)  # before the releases clear them
                 for n in sw.deactivate:
                     self._release(self.slots[n], "")
                 for slot in started:
-                    self._claim(slot, state)  # type: ignore[arg-type]
+                    self._claim(slot, state, written)  # type: ignore[arg-type]
             except ManagerRefused as exc:
                 sw.error = str(exc)
             sw.done.set()
@@ -308,13 +309,15 @@ class Manager:
             )
         self.pending = keep
 
-    def _claim(self, slot: Slot, state: State) -> None:
+    def _claim(self, slot: Slot, state: State, written: list[int | None]) -> None:
+        """The step limit of a joint handed over in this switch continues from the position
+        its previous owner last wrote; a joint nobody was writing starts from where it is."""
         slot.state, slot.error = "active", ""
         for c in slot.claims:
             self.owners[c] = slot.name
             j, kind = split(c)
-            if kind == "position":  # the step limit starts from where the joint is
-                self.last_pos[j] = state.position[j]
+            if kind == "position":
+                self.last_pos[j] = written[j] if written[j] is not None else state.position[j]
 
     def _safe_deactivate(self, slot: Slot) -> None:
         try:
