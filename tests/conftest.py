@@ -21,7 +21,7 @@ import pytest
 import yaml
 import zenoh
 from exolink import messaging
-from exolink.canbus import open_bus
+from exolink.canbus import Frame, FrameReader, open_reader
 from exolink.config import CanConfig, bundled, load
 from exolink.supervisor import canlink
 
@@ -64,38 +64,43 @@ def write_config(tmp_path: Path, group: str) -> Callable[..., Path]:
 
 
 class DrainedBus:
-    """A python-can bus read continuously by a thread into a queue.
+    """A bus listener read continuously by a thread into a queue, with an exact loss count.
 
-    At 600 frames/s a UDP socket left unread while a test waits on a CLI call overflows its
-    kernel buffer and silently drops the newest frames: exactly the ones a test looks for.
-    """
+    At 600 frames/s a socket left unread while a test waits on a CLI call overflows its kernel
+    buffer and silently drops the newest frames: exactly the ones a test looks for. The thread
+    reads through the appliance's own FrameReader (its large receive queue), and ``dropped``
+    is the kernel's count of what this listener lost, so a test can tell "not on the bus"
+    from "not seen"."""
 
-    def __init__(self, bus: can.BusABC) -> None:
-        self.bus = bus
-        self.q: queue.Queue[can.Message] = queue.Queue()
+    def __init__(self, reader: FrameReader) -> None:
+        self.reader = reader
+        self.q: queue.Queue[Frame] = queue.Queue()
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._drain, daemon=True)
         self._t.start()
 
     def _drain(self) -> None:
         while not self._stop.is_set():
-            m = self.bus.recv(timeout=0.05)
-            if m is not None:
+            for m in self.reader.read(0.05):
                 self.q.put(m)
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
+    @property
+    def dropped(self) -> int:
+        return self.reader.dropped or 0
+
+    def recv(self, timeout: float | None = None) -> Frame | None:
         try:
             return self.q.get(timeout=timeout)
         except queue.Empty:
             return None
 
     def send(self, msg: can.Message) -> None:
-        self.bus.send(msg)
+        self.reader.bus.send(msg)
 
     def shutdown(self) -> None:
         self._stop.set()
         self._t.join(1)
-        self.bus.shutdown()
+        self.reader.bus.shutdown()
 
 
 @pytest.fixture
@@ -119,7 +124,7 @@ def in_node(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[[str, s
 @pytest.fixture
 def mbus(group: str) -> Iterator[DrainedBus]:
     """An independent listener on the test's udp_multicast bus."""
-    bus = DrainedBus(open_bus(CanConfig(interface="udp_multicast", channel=group)))
+    bus = DrainedBus(open_reader(CanConfig(interface="udp_multicast", channel=group)))
     yield bus
     bus.shutdown()
 

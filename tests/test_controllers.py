@@ -7,8 +7,9 @@ import contextlib
 import json
 import os
 import signal
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import pytest
 from conftest import Appliance, collect, wait_for
@@ -323,6 +324,39 @@ def joint_frames(frames: list[Any], motor: int) -> list[h2.JointControl]:
     ]
 
 
+class SwitchWindow(NamedTuple):
+    points: list[int]  # r_knee set-points on the bus in the half second after the switch
+    angles: int  # angle frames in that half second
+    gaps_before: int
+    gaps_after: int
+    void: str | None  # why this window says nothing about the switch (None: it counts)
+
+
+def switch_window(app: Appliance, mbus: Any) -> SwitchWindow:
+    """a holds r_knee at 30, then a -> b in one switch, watched by the bus listener.
+
+    A window counts only if the listener lost no frame and the watchdog did not trip in it: a
+    stalled test machine does both (seen in CI: the listener missed b's ramp and an H2 silence
+    trip disabled the joint), and then the frames say nothing about the switch itself."""
+    assert ctl(app, "command", "a", "r_knee=30").returncode == 0
+    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [30])
+    mbus.q.queue.clear()
+    dropped = mbus.dropped
+    before = json.loads(ctl(app, "list", "--json").stdout)["gaps"]
+    assert ctl(app, "switch", "--activate", "b", "--deactivate", "a").returncode == 0
+    frames = collect(mbus, 0.5, {70, 110})
+    knee = joint_frames(frames, 2)
+    after = json.loads(ctl(app, "list", "--json").stdout)["gaps"]
+    void = None
+    if mbus.dropped != dropped:
+        void = f"the bus listener lost {mbus.dropped - dropped} frames"
+    elif any(f.mode == h2.MODES["disabled"] for f in knee):
+        void = "the watchdog tripped in the window"
+    points = [f.setpoint for f in knee]
+    angles = sum(m.arbitration_id == 110 for m in frames)
+    return SwitchWindow(points, angles, before, after, void)
+
+
 def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignore[no-untyped-def]
     r = ctl(app, "activate", "a")
     assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
@@ -331,23 +365,27 @@ def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignor
     # one owner per interface: refused with the owner named
     r = ctl(app, "activate", "b")
     assert r.returncode == 5 and "cannot activate b: r_knee/position is owned by a" in r.stderr
-    assert ctl(app, "command", "a", "r_knee=30").returncode == 0
-    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [30])
     # the switch: b's ramp to 45 follows a's 30 with no cycle where both or neither wrote.
     # On the bus: no interleaving (a both-write cycle would put a 30 after b's first value) and
     # one r_knee frame per angle frame (frames in flight at the window's ends aside: a loaded
     # machine delays a command past the next angle frame, which shifts it, never drops it);
     # in the manager: no cycle in which a claimed joint went unwritten.
-    mbus.q.queue.clear()
-    before = json.loads(ctl(app, "list", "--json").stdout)["gaps"]
-    assert ctl(app, "switch", "--activate", "b", "--deactivate", "a").returncode == 0
-    frames = collect(mbus, 0.5, {70, 110})
-    points = [f.setpoint for f in joint_frames(frames, 2)]
-    angles = sum(m.arbitration_id == 110 for m in frames)
+    for attempt in range(3):
+        window = switch_window(app, mbus)
+        if window.void is None:
+            break
+        warnings.warn(f"switch window {attempt} void: {window.void}; measured again", stacklevel=1)
+        for name in ("a", "b", "left"):  # whatever the trip left active
+            ctl(app, "deactivate", name)
+        app.arm()
+        assert ctl(app, "activate", "a", "left").returncode == 0
+    else:
+        pytest.fail(f"no switch window with a seeing listener and no trip: {window.void}")
+    points, angles = window.points, window.angles
     assert points == sorted(points) and points[0] == 30 and points[-1] == 45, points
     assert {p for p in points if p not in (30, 45)} <= {33, 36, 39, 42}  # step limit 3 deg
     assert abs(len(points) - angles) <= 2, (len(points), angles)
-    assert json.loads(ctl(app, "list", "--json").stdout)["gaps"] == before
+    assert window.gaps_after == window.gaps_before
     # a lab controller that raises: deactivated, its joint disabled, the other keeps writing
     assert (
         ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 5
