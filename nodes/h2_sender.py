@@ -18,11 +18,12 @@ from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_bus
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
-from exolink.messaging import CommandRefused
+from exolink.messaging import CommandRefused, Unreachable
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
+MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
 MOTION = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 
 
@@ -36,6 +37,10 @@ class SenderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # The protocol allows 127 and 100; a lab sets what its motors and its patients tolerate.
     torque_cap: Caps = msgspec.field(default_factory=lambda: [127] * 6)
     stiffness_cap: Caps = msgspec.field(default_factory=lambda: [100] * 6)
+    # Motion (position, stiffness, torque) goes to the controller manager, which writes it as the
+    # joint's operator controller (one writer per joint); this node sends no motion frame then.
+    # Disable, stop, limits and stream stay here.
+    motion_via_manager: bool = False
 
 
 class H2Sender(Node):
@@ -139,6 +144,8 @@ class H2Sender(Node):
     def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
         try:
             frames = self.build(req)
+            if self.params.motion_via_manager and self._motion(frames):
+                return self._via_manager(frames[0])
         except CommandRefused as exc:
             self.refused += 1
             self.log.warning("command_refused", request=req, reason=str(exc))
@@ -153,6 +160,32 @@ class H2Sender(Node):
                 self.h2_max = list(lim)
         self.log.info("command_sent", request=req, frames=len(frames))
         return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
+
+    @staticmethod
+    def _motion(frames: list[can.Message]) -> bool:
+        d = h2.decode(frames[0]) if len(frames) == 1 else None
+        return isinstance(d, h2.JointControl) and d.mode in MOTION
+
+    def _via_manager(self, frame: can.Message) -> dict[str, Any]:
+        """The checked command, for the controller manager to write; its refusal (another
+        controller drives the joint, say) reaches the caller verbatim."""
+        jc = h2.decode(frame)
+        assert isinstance(jc, h2.JointControl)
+        body = {
+            "action": "operator",
+            "joint": h2.JOINTS[jc.motor - 1],
+            "mode": h2.MODE_NAMES[jc.mode],
+            "setpoint": jc.setpoint,
+            "stiffness": jc.stiffness,
+        }
+        try:
+            reply = self.ctx.messaging.request("controllers", body=body, timeout_s=MANAGER_WAIT_S)
+        except Unreachable as exc:
+            raise CommandRefused(f"the controller manager does not answer: {exc}") from None
+        if not reply.get("ok"):
+            raise CommandRefused(str(reply.get("error", "refused by the controller manager")))
+        self.log.info("command_forwarded", request=body, controller=reply.get("controller"))
+        return {"controller": reply.get("controller"), "frames": []}
 
     def _record(self, frame: can.Message) -> None:
         jc = h2.decode(frame)

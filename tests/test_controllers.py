@@ -461,3 +461,60 @@ def test_h2_silent_claimed_joints_get_the_safe_action(app, mbus) -> None:  # typ
     after = frames[frames.index(h2.JointControl(2, 4, 0, 0)) :]  # before it: frames in flight
     assert [f for f in after if f.mode == 1] == []  # type: ignore[union-attr]
     assert "no H2 joint angles" in listing(app)["a"]["error"]
+
+
+@pytest.fixture
+def routed(write_config, spawn):  # type: ignore[no-untyped-def]
+    """h2_sender with motion_via_manager: `exolink send` motion becomes operator controllers."""
+    gait = {"name": "gait", "type": "forward_command", "params": {"joints": ["r_knee"]}}
+    sender = {
+        "name": "h2_sender",
+        "plugin": "h2_sender",
+        "critical": True,
+        "params": {"motion_via_manager": True},
+    }
+    ns = nodes([gait])
+    ns[2]["heartbeat_deadline_ms"] = (
+        300  # not about hung detection: above a loaded machine's stalls
+    )
+    cfg = write_config(nodes=[*ns, sender], watchdog={"h2_silence_ms": 500})
+    return Appliance(cfg, spawn)
+
+
+def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type: ignore[no-untyped-def]
+    app = routed
+    app.arm()
+    r = app.cli("send", "position", "r_knee", "20")
+    assert r.returncode == 0 and "held by controller operator.r_knee.position" in r.stdout, r
+    # held every cycle by the manager (one writer), ramped by its step limit, until told else
+    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [20])
+    assert {f.setpoint for f in joint_frames(collect(mbus, 0.3, {70}), 2)} == {20}
+    # another mode on the same joint: one switch, no cycle with both
+    assert app.cli("send", "torque", "r_knee", "5").returncode == 0
+    wait_for(lambda: [f.mode for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [3])
+    s = listing(app)
+    assert s["operator.r_knee.torque"]["state"] == "active"
+    assert s["operator.r_knee.position"]["state"] == "inactive"
+    # an operator's disable (still sent by h2_sender) releases the joint at once
+    assert app.cli("send", "disable", "r_knee").returncode == 0
+    collect(mbus, 0.3)
+    assert joint_frames(collect(mbus, 0.3, {70}), 2) == []
+    assert listing(app)["operator.r_knee.torque"]["state"] == "inactive"
+    # a joint another controller drives: refused with that controller named, nothing sent
+    assert ctl(app, "activate", "gait").returncode == 0
+    assert ctl(app, "command", "gait", "r_knee=10").returncode == 0
+    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [10])
+    r = app.cli("send", "position", "r_knee", "30")
+    assert r.returncode == 5 and "r_knee is driven by controller gait" in r.stderr, r.stderr
+    assert {f.setpoint for f in joint_frames(collect(mbus, 0.3, {70}), 2)} == {10}
+    # the sender's own checks still come first (refused there, the manager never asked)
+    r = app.cli("send", "position", "r_hip", "500")
+    assert r.returncode != 0 and "r_hip" in r.stderr
+    # the watchdog stops an operator-held joint: after e-stop no set-point follows the disable
+    assert ctl(app, "deactivate", "gait").returncode == 0
+    assert app.cli("send", "position", "r_hip", "5").returncode == 0
+    wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 1))
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)  # the trip's frames and anything in flight
+    assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
+    assert listing(app)["operator.r_hip.position"]["state"] == "inactive"

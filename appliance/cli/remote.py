@@ -276,7 +276,10 @@ def _angles(text: str) -> list[float]:
 def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
     with remote(args) as r:
         reply = r.call("h2", "command", body=body)
-    sys.stdout.write("ok " + " ".join(reply.get("frames", [])) + "\n")
+    if reply.get("controller"):  # motion through the controller manager: it writes each cycle
+        sys.stdout.write(f"ok held by controller {reply['controller']}\n")
+    else:
+        sys.stdout.write("ok " + " ".join(reply.get("frames", [])) + "\n")
     return 0
 
 

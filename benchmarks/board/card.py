@@ -4,9 +4,10 @@ Nothing here touches the built image: it is copied (sparse) and only the copy is
 partition with mtools and the ext4 root with debugfs at its byte offset (no loop devices, as in
 tests/image/test_built_image.py). The copy gets, and a flashed card never has:
 
-- ``bench/`` on the FAT partition: the checkout's pure-Python wheel and ``prep.sh``, which
-  ``exolink-bench.service`` runs before the supervisor: vcan0 (modprobe vcan can-bcm) and
-  ``pip install --no-deps --force-reinstall`` of the wheel into /opt/exolink's venv;
+- ``bench/`` on the FAT partition: the checkout's pure-Python wheel; ``install.sh``, which an
+  ``exolink-setup.service`` drop-in runs before the card's settings are applied (``pip install
+  --no-deps --force-reinstall`` into /opt/exolink's venv); ``prep.sh``, which
+  ``exolink-bench.service`` runs before the supervisor: vcan0 (modprobe vcan can-bcm);
 - an ``exolink.service`` drop-in: requires that unit and sets ``CPUAffinity=0``;
 - ``/etc/exolink/appliance.yaml``: the bench config (scenario.bench_config);
 - root's authorized_keys for the bench's throwaway ssh key, and a known Zenoh password.
@@ -40,16 +41,14 @@ GUEST_CAN = {
     "require_overlay": False,
 }
 
-PREP_SH = """\
+INSTALL_SH = """\
 #!/bin/sh
-# exolink bench (a copy of the card only, never a flashed card): the bench's CAN bus and the
-# checkout's exolink, before exolink.service starts.
+# exolink bench (a copy of the card only, never a flashed card): the checkout's exolink, run by
+# exolink-setup.service before it applies the card's settings, so that the checkout's boardsetup
+# reads them (the image's older one refused a settings file of a newer schema and the board kept
+# its old login). Early boot: no /tmp yet.
 set -eu
-modprobe vcan
-modprobe can_raw
-modprobe can_bcm
-ip link show vcan0 >/dev/null 2>&1 || ip link add vcan0 type vcan
-ip link set vcan0 up
+export TMPDIR=/run
 out=/run/exolink-bench-installed
 : > "$out"
 for w in /boot/firmware/bench/*.whl; do
@@ -59,12 +58,32 @@ done
 /opt/exolink/bin/python -c 'import exolink, importlib.metadata as m
 print("exolink", m.version("exolink"), exolink.__file__)' >> "$out"
 cat "$out"
+"""
+
+PREP_SH = """\
+#!/bin/sh
+# exolink bench (a copy of the card only, never a flashed card): the bench's CAN bus, before
+# exolink.service starts.
+set -eu
+modprobe vcan
+modprobe can_raw
+modprobe can_bcm
+ip link show vcan0 >/dev/null 2>&1 || ip link add vcan0 type vcan
+ip link set vcan0 up
+cat /run/exolink-bench-installed
 echo "exolink-bench: ready"
+"""
+
+SETUP_DROP_IN = """\
+# exolink bench (a copy of the card only): the checkout's wheel before the card's settings.
+[Service]
+ExecStartPre=/bin/sh /boot/firmware/bench/install.sh
+TimeoutStartSec=20min
 """
 
 BENCH_UNIT = """\
 [Unit]
-Description=exolink bench: vcan0 and the checkout's exolink wheel (bench copy of the card only)
+Description=exolink bench: vcan0 (bench copy of the card only; the wheel: exolink-setup)
 After=exolink-setup.service local-fs.target
 RequiresMountsFor=/boot/firmware
 
@@ -229,8 +248,9 @@ def prepare(
     (work / "exolink-settings.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))
     card.fat_write(work / "exolink-settings.yaml")
     card.fat_mkdir("bench")
-    (work / "prep.sh").write_text(PREP_SH)
-    card.fat_write(work / "prep.sh", "/bench/")
+    for name, text in (("prep.sh", PREP_SH), ("install.sh", INSTALL_SH)):
+        (work / name).write_text(text)
+        card.fat_write(work / name, "/bench/")
     for w in (wheel, *extra_wheels):
         card.fat_write(w, "/bench/")
 
@@ -246,6 +266,7 @@ def prepare(
     (work / "exolink-bench.service").write_text(BENCH_UNIT)
     wd_s = TIMINGS[timings]["systemd_watchdog_s"]
     (work / "bench.conf").write_text(DROP_IN + (f"WatchdogSec={wd_s}s\n" if wd_s else ""))
+    (work / "setup-bench.conf").write_text(SETUP_DROP_IN)
     (work / "authorized_keys").write_text(ssh_pubkey + "\n")
     gid = card.group_id("exolink")
     cmds = [
@@ -254,6 +275,15 @@ def prepare(
             card,
             work / "exolink-bench.service",
             "/etc/systemd/system/exolink-bench.service",
+            0o644,
+            0,
+            0,
+        ),
+        "mkdir /etc/systemd/system/exolink-setup.service.d",
+        *_write_file(
+            card,
+            work / "setup-bench.conf",
+            "/etc/systemd/system/exolink-setup.service.d/bench.conf",
             0o644,
             0,
             0,

@@ -39,6 +39,8 @@ from exolink.protocol import h2
 BEAT_S = 0.02
 SWITCH_WAIT_S = 1.0
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
+OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
+OPERATOR_MODES = ("position", "stiffness", "torque")
 READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES, h2.JOINT_CONTROL]
 
 
@@ -129,12 +131,42 @@ class ControllerManagerNode(Node):
                 return self.manager.command(str(req.get("name", "")), body)
             if action in ("activate", "deactivate", "switch"):
                 return self._switch(action, req)
+            if action == "operator":
+                return self._operator(req)
         except ManagerRefused as exc:
             raise CommandRefused(str(exc)) from None
         raise CommandRefused(
             f"unknown controllers action {action!r} "
-            "(list, types, load, unload, activate, deactivate, switch, command)"
+            "(list, types, load, unload, activate, deactivate, switch, command, operator)"
         )
+
+    def _operator(self, req: dict[str, Any]) -> dict[str, Any]:
+        """An operator's joint command (``exolink send``, through h2_sender, which has checked
+        it): held by that joint's own operator controller, made on first use. A joint another
+        controller drives is refused with that controller named; a joint the operator drove in
+        another mode changes mode at one cycle boundary."""
+        joint, mode = req.get("joint"), req.get("mode")
+        if joint not in h2.JOINTS or mode not in OPERATOR_MODES:
+            raise CommandRefused(
+                f"operator commands need a joint ({', '.join(h2.JOINTS)}) and a mode "
+                f"({', '.join(OPERATOR_MODES)}), not {joint!r} / {mode!r}"
+            )
+        name = f"{OPERATOR}.{joint}.{mode}"
+        if name not in self.manager.names():
+            self.manager.load(name, "operator", {"joint": joint, "mode": mode})
+        mine = f"{OPERATOR}.{joint}."
+        for key, owner in self.manager.owners_of(joint).items():
+            if not owner.startswith(mine):
+                raise CommandRefused(
+                    f"{joint} is driven by controller {owner} ({key}): "
+                    f"`exolink controllers deactivate {owner}` first"
+                )
+        body = {"setpoint": req.get("setpoint", 0), "stiffness": req.get("stiffness", 0)}
+        reply = self.manager.command(name, body)
+        if name not in self.manager.active():
+            before = [n for n in self.manager.active() if n.startswith(mine)]
+            self._switch("switch", {"activate": [name], "deactivate": before})
+        return {"controller": name, **reply}
 
     def _switch(self, action: str, req: dict[str, Any]) -> dict[str, Any]:
         def names(key: str) -> list[str]:

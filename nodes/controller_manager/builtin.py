@@ -4,6 +4,7 @@
   command timeout either holds the last value or asks for the safe action.
 - ``pid``: position set-point -> torque set-point (torque mode), with anti-windup (the
   integral stops growing while the output is saturated, and is clamped) and an output cap.
+- ``operator``: one joint held at what ``exolink send`` last asked (made by the manager).
 - ``joint_trajectory``: time-stamped way-points, linearly interpolated from where the joints are
   at activation; the gait pattern becomes one of these later.
 """
@@ -96,6 +97,59 @@ class ForwardCommand(Controller):
 
     def status(self) -> dict[str, Any]:
         return {"command": dict(self.values), "timed_out": self.timed_out}
+
+
+# --- operator -----------------------------------------------------------------------------------
+
+
+class OperatorParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    joint: Joint
+    mode: Literal["position", "stiffness", "torque"]
+
+
+class Operator(Controller):
+    """One joint in one mode, held at what an operator last sent (``exolink send``).
+
+    The manager makes one per joint and mode on demand (``operator.<joint>.<mode>``), so an
+    operator's command claims only the joint it names, and a joint some other controller drives
+    (a gait trajectory, say) refuses it with that owner named."""
+
+    Params = OperatorParams
+
+    def configure(self) -> None:
+        j, mode = self.params.joint, self.params.mode
+        kinds = {"position": ["position"], "stiffness": ["position", "stiffness"]}
+        self.keys = [interface(j, k) for k in kinds.get(mode, ["torque"])]
+        self.target: dict[str, float] = {}
+
+    def claims(self) -> list[str]:
+        return list(self.keys)
+
+    def activate(self, state: State) -> None:
+        if not self.target:  # activated without a command: hold where it is, no torque
+            hold = self.params.mode != "torque"
+            self.target = {
+                k: float(state.of(self.params.joint)) if hold else 0.0 for k in self.keys
+            }
+            if self.params.mode == "stiffness":
+                self.target[self.keys[1]] = 0.0
+
+    def command(self, request: dict[str, Any]) -> dict[str, Any]:
+        sp, st = request.get("setpoint", 0), request.get("stiffness", 0)
+        for what, v in (("setpoint", sp), ("stiffness", st)):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise Refused(f"{self.name}: {what} {v!r} is not a finite number")
+        new = {self.keys[0]: float(sp)}
+        if self.params.mode == "stiffness":
+            new[self.keys[1]] = float(st)
+        self.target = new  # one assignment: the loop sees the old or the new
+        return {"command": new}
+
+    def update(self, state: State, time_s: float, period: float) -> dict[str, float]:
+        return self.target
+
+    def status(self) -> dict[str, Any]:
+        return {"command": dict(self.target)}
 
 
 # --- PID ----------------------------------------------------------------------------------------

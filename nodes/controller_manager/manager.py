@@ -192,6 +192,15 @@ class Manager:
             raise ManagerRefused(f"no controller {name!r} (loaded: {names})")
         return slot
 
+    def names(self) -> list[str]:
+        with self.lock:
+            return list(self.slots)
+
+    def owners_of(self, joint: str) -> dict[str, str]:
+        """The interfaces of ``joint`` that an active controller owns, and who owns them."""
+        with self.lock:
+            return {k: v for k, v in self.owners.items() if k.split("/")[0] == joint}
+
     def command(self, name: str, request: dict[str, Any]) -> dict[str, Any]:
         with self.lock:
             slot = self._slot(name)
