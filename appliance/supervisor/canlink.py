@@ -7,6 +7,7 @@ failure names the fix a lab engineer can apply on the board.
 from __future__ import annotations
 
 import errno
+import socket
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,13 +60,15 @@ def check_overlay(status_file: Path = DCAN1_STATUS) -> None:
 
 
 def _index(ip: object, ifname: str) -> int:
-    found = ip.link_lookup(ifname=ifname)  # type: ignore[attr-defined]
-    if not found:
+    """By name through one ioctl (``if_nametoindex``), not pyroute2's lookup, which dumps and
+    parses every link."""
+    try:
+        return socket.if_nametoindex(ifname)
+    except OSError:
         raise CanLinkError(
             f"no network interface {ifname!r}: on the board check the DCAN1 overlay and that the "
             "c_can_platform module is loaded (`modprobe c_can_platform`); for tests create a vcan"
-        )
-    return int(found[0])
+        ) from None
 
 
 def bring_up(cfg: CanConfig) -> None:
