@@ -15,6 +15,11 @@ Timing modes:
   even if the process hangs: the supervisor therefore SIGKILLs a node whose heartbeat is late,
   which closes the socket and ends the task.
 
+- ``manager``: the controller manager plays the pattern as its ``gait_pattern`` controller named
+  ``pattern`` (one writer per joint: an operator's ``send position`` to a joint the pattern
+  drives is refused with the owner named). This node keeps the CLI, the selection, the state
+  it publishes and the stops below, and writes no set-point itself.
+
 Nothing is sent while no joint is selected or while the watchdog is not armed; a trip stops the
 pattern (it does not resume by itself).
 
@@ -40,7 +45,7 @@ import msgspec
 from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
-from exolink.messaging import CommandRefused
+from exolink.messaging import CommandRefused, Unreachable
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 
@@ -50,6 +55,8 @@ MAX_POINTS = 10_000
 BCM_MAX_FRAMES = 256
 SPIN_S = 0.0003
 MAX_UPLOAD = 1 << 20
+GAIT = "pattern"  # the controller the manager runs the gait as (timing: manager)
+MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
 # A motion node: its loop beats at least this often, running or idle, so the supervisor can hold
 # it to a short liveness deadline (heartbeat_deadline_ms: 50 in the shipped configs).
 BEAT_S = 0.02
@@ -66,7 +73,7 @@ class PlayerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     patterns_dir: str = str(DEFAULT_PATTERN.parent)
     speed: Annotated[int, msgspec.Meta(ge=1, le=10)] = 5
     selected: list[Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]] = []
-    timing: Literal["thread", "periodic"] = "thread"
+    timing: Literal["thread", "periodic", "manager"] = "thread"
     min_angles: Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)] = msgspec.field(
         default_factory=lambda: [h2.RANGES[j][0] for j in h2.JOINTS]
     )
@@ -161,6 +168,8 @@ class PatternPlayer(Node):
         self.operator = ""
         self.timing = p.timing
         self.task: Any = None
+        self._op: tuple[Any, ...] | None = None  # what to ask the manager (timing: manager)
+        self._periodic_t0, self._periodic_i0 = time.monotonic(), 0
         self.sent = 0
         self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True)
         self._q = self.ctx.messaging.serve(
@@ -188,7 +197,17 @@ class PatternPlayer(Node):
             )
         with self.lock:
             handler(req)
+            op, self._op = self._op, None
             self.wake.set()
+        if op is not None:  # outside the lock: the loop must keep beating while the manager works
+            try:
+                self._manager(op)
+            except CommandRefused as exc:
+                with self.lock:
+                    self._halt("stopped", str(exc), tell_manager=False)
+                self._publish()
+                raise
+        with self.lock:
             status = self.status()
         self._publish()
         self.log.info("pattern_command", action=action, state=status["state"])
@@ -227,10 +246,14 @@ class PatternPlayer(Node):
         self.state, self.reason = "running", ""
         self._start_periodic()
 
-    def _halt(self, state: str, reason: str = "") -> None:
+    def _halt(self, state: str, reason: str = "", tell_manager: bool = True) -> None:
+        """``tell_manager`` False where the manager stops the gait itself (a trip, a disable
+        frame on the bus) or never started it."""
         if self.task is not None:
             self.task.stop()
             self.task = None
+        if self.timing == "manager" and tell_manager and self.state == "running":
+            self._op = ("halt",)
         self.state, self.reason = state, reason
 
     def _stop(self, _req: dict[str, Any]) -> None:
@@ -246,6 +269,8 @@ class PatternPlayer(Node):
         self.index = 0
         if self.state == "running":
             self._start_periodic()
+            if self.timing == "manager":
+                self._op = ("command", {"index": 0})
 
     def _speed(self, req: dict[str, Any]) -> None:
         level = req.get("speed")
@@ -254,6 +279,8 @@ class PatternPlayer(Node):
         self.speed = level
         if self.state == "running":
             self._start_periodic()
+            if self.timing == "manager":
+                self._op = ("command", {"speed": level})
 
     def _joints(self, req: dict[str, Any]) -> list[int]:
         names = req.get("joints")
@@ -310,7 +337,12 @@ class PatternPlayer(Node):
         return [row[j] for j in range(6) if self.selected[j]]
 
     def _start_periodic(self) -> None:
-        """periodic mode: hand the whole sequence (from the current row) to python-can / the kernel."""
+        """periodic mode: hand the whole sequence (from the current row) to python-can / the kernel;
+        manager mode: to the controller manager."""
+        if self.timing == "manager":
+            self._op = ("engage",)
+            self._periodic_t0, self._periodic_i0 = time.monotonic(), self.index
+            return
         if self.timing != "periodic":
             return
         if self.task is not None:
@@ -328,6 +360,36 @@ class PatternPlayer(Node):
         self.sent += len(frames)
         self.index = (self.index + 1) % len(self.pattern.points)
 
+    def _manager(self, op: tuple[Any, ...]) -> None:
+        """One change of the gait controller in the manager; its refusal (a joint another
+        controller drives, not armed) refuses the command that asked for it."""
+
+        def call(body: dict[str, Any], tolerate: tuple[str, ...] = ()) -> None:
+            try:
+                r = self.ctx.messaging.request("controllers", body=body, timeout_s=MANAGER_WAIT_S)
+            except Unreachable as exc:
+                raise CommandRefused(f"the controller manager does not answer: {exc}") from None
+            if not r.get("ok") and not any(t in str(r.get("error")) for t in tolerate):
+                raise CommandRefused(str(r.get("error", "refused by the controller manager")))
+
+        gone = ("is not active", "no controller")
+        if op[0] == "halt":
+            call({"action": "deactivate", "names": [GAIT]}, gone)
+        elif op[0] == "command":
+            call({"action": "command", "name": GAIT, **op[1]})
+        else:
+            with self.lock:
+                params = {
+                    "rows": self.pattern.points,
+                    "joints": [j for j, s in zip(h2.JOINTS, self.selected, strict=True) if s],
+                    "speed": self.speed,
+                    "start": self.index,
+                }
+            call({"action": "deactivate", "names": [GAIT]}, gone)
+            call({"action": "unload", "name": GAIT}, gone)
+            call({"action": "load", "name": GAIT, "type": "gait_pattern", "params": params})
+            call({"action": "activate", "names": [GAIT]})
+
     def _guard(self) -> bool:
         """False (and the pattern stopped) when the watchdog no longer allows motion."""
         if self.arming is None:
@@ -337,7 +399,7 @@ class PatternPlayer(Node):
             return True
         with self.lock:
             if self.state == "running":
-                self._halt("stopped", why)
+                self._halt("stopped", why, tell_manager=False)  # a trip stops every controller
                 self.log.warning("pattern_stopped_by_watchdog", reason=why)
         self._publish()
         return False
@@ -362,7 +424,7 @@ class PatternPlayer(Node):
             if self.state == "stopped" or not 0 <= joint < 6 or not self.selected[joint]:
                 return
             why = f"{h2.JOINTS[joint]} {h2.MODE_NAMES[frame.mode]} by a frame on the bus"
-            self._halt("stopped", why)
+            self._halt("stopped", why, tell_manager=False)  # the manager saw the frame too
         self.log.warning("pattern_stopped_by_bus", reason=why)
         self._publish()
 
@@ -385,8 +447,8 @@ class PatternPlayer(Node):
                 self._publish()
             with self.lock:
                 running, period, mode = self.state == "running", period_s(self.speed), self.timing
-            if not running or mode == "periodic":
-                if running and mode == "periodic":
+            if not running or mode != "thread":
+                if running:
                     self._guard()
                     self._track_periodic_index()
                 if self.wake.wait(0.005 if running else BEAT_S):
@@ -412,7 +474,7 @@ class PatternPlayer(Node):
 
     def _track_periodic_index(self) -> None:
         with self.lock:
-            if self.task is None:
+            if self.task is None and self.timing != "manager":
                 return
             elapsed = time.monotonic() - self._periodic_t0
             rows = int(elapsed / period_s(self.speed))

@@ -518,3 +518,80 @@ def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type
     collect(mbus, 0.3)  # the trip's frames and anything in flight
     assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
     assert listing(app)["operator.r_hip.position"]["state"] == "inactive"
+
+
+def dedup(values: list[int]) -> list[int]:
+    return [v for i, v in enumerate(values) if i == 0 or v != values[i - 1]]
+
+
+@pytest.fixture
+def gait(write_config, spawn):  # type: ignore[no-untyped-def]
+    """The pattern player with timing: manager and the sender routed: one writer, the manager."""
+    ns = nodes([])
+    ns[2]["heartbeat_deadline_ms"] = (
+        300  # not about hung detection: above a loaded machine's stalls
+    )
+    extra = [
+        {
+            "name": "h2_sender",
+            "plugin": "h2_sender",
+            "critical": True,
+            "params": {"motion_via_manager": True},
+        },
+        {
+            "name": "pattern_player",
+            "plugin": "pattern_player",
+            "critical": True,
+            "params": {"timing": "manager", "speed": 10, "selected": ["r_hip", "r_knee"]},
+        },
+    ]
+    return Appliance(write_config(nodes=[*ns, *extra], watchdog={"h2_silence_ms": 500}), spawn)
+
+
+def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # type: ignore[no-untyped-def]
+    from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
+
+    app = gait
+    r = app.cli("pattern", "start", "--detach")
+    assert r.returncode == 5 and "not armed" in r.stderr, r.stderr
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0, "start"
+    mbus.q.queue.clear()
+    frames = collect(mbus, 1.0, {70, 110})
+    hips = [f.setpoint for f in joint_frames(frames, 1)]
+    angles = sum(m.arbitration_id == 110 for m in frames)
+    # one set-point per H2 cycle, each the row due then: at speed 10 (20 ms a row) each row
+    # twice, in the pattern's order (the step limit may shorten the first swing)
+    points = load_pattern(str(DEFAULT_PATTERN), [-90] * 6, [120] * 6).points
+    rows = [p[0] for p in points]
+    assert abs(len(hips) - angles) <= 2, (len(hips), angles)
+    runs = dedup(hips[20:])  # rows repeat and values repeat: compare runs of equal values
+    cycle = dedup(rows * 4)
+    # in the pattern's order: each run the next row's value, or one a row or two further on (a
+    # cycle that comes late on a loaded machine skips the rows already past, never replays one)
+    at = next(i for i in range(len(rows)) if cycle[i : i + 3] == runs[:3])
+    skipped = 0
+    for v in runs[1:]:
+        step = cycle[at + 1 : at + 4].index(v) + 1  # ValueError: out of order
+        skipped, at = skipped + step - 1, at + step
+    assert skipped <= len(runs) // 10, (skipped, runs)
+    # the operator cannot write a joint the pattern drives; the owner is named, nothing sent
+    r = app.cli("send", "position", "r_knee", "30")
+    assert r.returncode == 5 and "driven by controller pattern" in r.stderr, r.stderr
+    assert "operator.r_knee.position" not in listing(app)  # refused before anything was made
+    s = listing(app)["pattern"]
+    assert s["state"] == "active" and s["type"] == "gait_pattern"
+    # speed and pause through the same CLI; pause stops the manager writing
+    assert app.cli("pattern", "speed", "5").returncode == 0
+    assert listing(app)["pattern"]["speed"] == 5
+    assert app.cli("pattern", "pause").returncode == 0
+    collect(mbus, 0.2)
+    assert joint_frames(collect(mbus, 0.3, {70}), 1) == []
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 1))
+    # the watchdog stops it: after e-stop nothing but the safe action, pattern stopped
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)
+    assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
+    assert "stopped" in app.cli("pattern", "status").stdout
+    assert listing(app)["pattern"]["state"] == "inactive"

@@ -151,16 +151,15 @@ class ControllerManagerNode(Node):
                 f"operator commands need a joint ({', '.join(h2.JOINTS)}) and a mode "
                 f"({', '.join(OPERATOR_MODES)}), not {joint!r} / {mode!r}"
             )
-        name = f"{OPERATOR}.{joint}.{mode}"
-        if name not in self.manager.names():
-            self.manager.load(name, "operator", {"joint": joint, "mode": mode})
-        mine = f"{OPERATOR}.{joint}."
+        name, mine = f"{OPERATOR}.{joint}.{mode}", f"{OPERATOR}.{joint}."
         for key, owner in self.manager.owners_of(joint).items():
             if not owner.startswith(mine):
                 raise CommandRefused(
                     f"{joint} is driven by controller {owner} ({key}): "
                     f"`exolink controllers deactivate {owner}` first"
                 )
+        if name not in self.manager.names():
+            self.manager.load(name, "operator", {"joint": joint, "mode": mode})
         body = {"setpoint": req.get("setpoint", 0), "stiffness": req.get("stiffness", 0)}
         reply = self.manager.command(name, body)
         if name not in self.manager.active():

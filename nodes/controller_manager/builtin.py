@@ -5,6 +5,7 @@
 - ``pid``: position set-point -> torque set-point (torque mode), with anti-windup (the
   integral stops growing while the output is saturated, and is clamped) and an output cap.
 - ``operator``: one joint held at what ``exolink send`` last asked (made by the manager).
+- ``gait_pattern``: the pattern player's rows at its speed levels (``timing: manager``).
 - ``joint_trajectory``: time-stamped way-points, linearly interpolated from where the joints are
   at activation; the gait pattern becomes one of these later.
 """
@@ -150,6 +151,72 @@ class Operator(Controller):
 
     def status(self) -> dict[str, Any]:
         return {"command": dict(self.target)}
+
+
+# --- gait pattern -------------------------------------------------------------------------------
+
+Row = Annotated[list[int], msgspec.Meta(min_length=6, max_length=6)]
+
+
+class GaitParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    rows: Annotated[list[Row], msgspec.Meta(min_length=2, max_length=10_000)]  # deg, r_hip..l_ankle
+    joints: JointList
+    speed: Annotated[int, msgspec.Meta(ge=1, le=10)] = 5
+    start: Annotated[int, msgspec.Meta(ge=0)] = 0
+
+
+class GaitPattern(Controller):
+    """The pattern player's gait (``timing: manager``): row k of the pattern at controller time
+    t0 + k x period(speed), so the frame's kernel timestamp, not this process's wake-up, sets
+    the pace, and each H2 cycle writes the row due then (a late cycle skips rows, never
+    bunches them)."""
+
+    Params = GaitParams
+
+    def configure(self) -> None:
+        from exolink.nodes.pattern_player import period_s
+
+        _unique(self.name, list(self.params.joints))
+        if self.params.start >= len(self.params.rows):
+            raise ValueError(f"{self.name}: start {self.params.start} is past the last row")
+        self.period_s = period_s
+        self.cols = [(interface(j, "position"), JOINTS.index(j)) for j in self.params.joints]
+        self.speed, self.index = self.params.speed, self.params.start
+        self._anchor(self.index)
+
+    def _anchor(self, index: int) -> None:
+        self.i0, self.t0 = index, None  # the next update's time is row i0's
+
+    def claims(self) -> list[str]:
+        return [k for k, _ in self.cols]
+
+    def activate(self, state: State) -> None:
+        self._anchor(self.index)
+
+    def command(self, request: dict[str, Any]) -> dict[str, Any]:
+        if "speed" in request:
+            level = request["speed"]
+            if isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= 10:
+                raise Refused(f"{self.name}: speed must be a whole level 1..10, got {level!r}")
+            self.speed = level
+        if "index" in request:
+            i = request["index"]
+            if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < len(self.params.rows):
+                raise Refused(f"{self.name}: index must be 0..{len(self.params.rows) - 1}")
+            self.index = i
+        self._anchor(self.index)
+        return {"index": self.index, "speed": self.speed}
+
+    def update(self, state: State, time_s: float, period: float) -> dict[str, float]:
+        if self.t0 is None:
+            self.t0 = time_s
+        k = int((time_s - self.t0) / self.period_s(self.speed))
+        self.index = (self.i0 + k) % len(self.params.rows)
+        row = self.params.rows[self.index]
+        return {key: row[j] for key, j in self.cols}
+
+    def status(self) -> dict[str, Any]:
+        return {"index": self.index, "speed": self.speed, "length": len(self.params.rows)}
 
 
 # --- PID ----------------------------------------------------------------------------------------
