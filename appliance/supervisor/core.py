@@ -89,7 +89,7 @@ class Supervisor:
         self.reader = open_reader(cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL])
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
-        self.msg = messaging.Messaging(self.session, cfg)
+        self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
         self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog)
         self.watchdog.start()  # safe action before anything else can move
