@@ -41,6 +41,7 @@ CLIENT_CONNECT_TIMEOUT_MS = 3000
 @cache
 def typestore() -> Any:
     """ROS 2 Jazzy's standard types plus every exolink_msgs .msg file."""
+    from exolink import rosservices
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
@@ -48,6 +49,8 @@ def typestore() -> Any:
     for path in sorted(MSG_DIR.glob("*/msg/*.msg")):
         name = f"{path.parent.parent.name}/msg/{path.stem}"
         types.update(get_types_from_msg(path.read_text(), name))
+    for name, (request, response) in rosservices.srv_definitions(MSG_DIR).items():
+        types.update(rosservices.service_fielddefs(name, request, response))
     store.register(types)
     return store
 
@@ -88,8 +91,18 @@ def type_hash(typename: str) -> str:
 
 def write_hash_table() -> int:
     """``make msgs``: the table for every type in the typestore (after editing a .msg file)."""
+    from exolink import rosservices
+
     store = typestore()
-    table = {name: str(store.hash_rihs01(name)) for name in sorted(store.types)}
+    services = list(rosservices.srv_definitions(MSG_DIR))
+    parts = {f"{s}_{p}" for s in services for p in ("Request", "Response", "Event")}
+    table = {
+        name: str(store.hash_rihs01(name))
+        for name in sorted(store.types)
+        if name not in parts and name not in services
+    }
+    table.update(rosservices.service_hashes(store, services))
+    table = dict(sorted(table.items()))
     TYPE_HASHES.write_text(json.dumps(table, indent=0, sort_keys=True) + "\n")
     return len(table)
 
@@ -204,7 +217,8 @@ def session_config(
             json.dumps({"router": -1, "peer": -1, "client": CLIENT_CONNECT_TIMEOUT_MS}),
         )
     if mode == "router" and roles.enforced(json.loads(cfg.get_json("transport/auth/usrpwd"))):
-        cfg.insert_json5("access_control", json.dumps(roles.access_control(zcfg.domain_id)))
+        acl = roles.access_control(zcfg.domain_id, zcfg.namespace)
+        cfg.insert_json5("access_control", json.dumps(acl))
     return cfg
 
 
@@ -406,6 +420,14 @@ class Messaging:
 
     def mgmt(self, *path: str) -> str:
         return mgmt_key(self.device, *path)
+
+    def log_command(
+        self, user: str, key: str, request: dict[str, Any], reply: dict[str, Any]
+    ) -> None:
+        """A command that came another way than ``serve`` (a ROS 2 service or topic)."""
+        if self._commands is None:
+            self._commands = CommandLog(self)
+        self._commands.write(user, key, request, reply)
 
     def serve(
         self,

@@ -30,6 +30,7 @@ from exolink.protocol import h2
 from exolink.runtime import stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.processes import Exit, NodeProcess, Zygote, apply_priority, relay
+from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
@@ -99,6 +100,7 @@ class Supervisor:
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE)
         self._serve_api()
+        self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
         self._decls.append(
             self.msg.subscribe("pattern_state", PATTERN_TYPE, self._on_pattern_state)
         )
@@ -392,6 +394,11 @@ class Supervisor:
         for d in self._decls:
             with contextlib.suppress(Exception):
                 d.undeclare()
+        if hasattr(self, "ros2"):
+            with contextlib.suppress(Exception):
+                self.ros2.close()
+        if hasattr(self, "msg"):
+            self.msg.close()
         if hasattr(self, "session"):
             self.session.close()
         if hasattr(self, "bus"):
