@@ -143,14 +143,20 @@ def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
         services, topics = ros_keys(ROS2_SERVICES, role), ros_keys(ROS2_TOPICS_IN, role)
         rules += [
             _rule(f"{role} ros2 calls", ["query"], ["ingress"], services),
-            _rule(f"{role} ros2 answers", ["reply"], ["egress"], services),
+            # A ROS 2 client queries ALL_COMPLETE: it sends only where it was told a complete
+            # queryable is, so the router must announce the service (egress, not ingress).
+            _rule(f"{role} ros2 answers", ["reply", "declare_queryable"], ["egress"], services),
         ]
         granted = [f"{role} queries", f"{role} replies", "read data", "receive data"]
         granted += ["see nodes", "node tokens", "ros graph", "see ros graph"]
         granted += [f"{role} ros2 calls", f"{role} ros2 answers"]
-        if topics:
-            rules.append(_rule(f"{role} ros2 topics", ["put"], ["ingress"], topics))
-            granted.append(f"{role} ros2 topics")
+        if topics:  # put, and the appliance's subscription announced (a publisher sends
+            # only where the router said a subscriber is)
+            rules += [
+                _rule(f"{role} ros2 topics", ["put"], ["ingress"], topics),
+                _rule(f"{role} ros2 readers", ["declare_subscriber"], ["egress"], topics),
+            ]
+            granted += [f"{role} ros2 topics", f"{role} ros2 readers"]
         if _RANK[role] >= _RANK[OPERATOR]:
             granted += ["hold a pattern", "replay"]
         if role == ADMIN:
