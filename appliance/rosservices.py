@@ -153,8 +153,13 @@ class ServiceServer:
         except (ValueError, KeyError, IndexError) as exc:  # not a ROS 2 call: say so, no reply
             query.reply_err(f"{self.key}: not a ROS 2 request: {exc}".encode())
             return
-        fields = self.handler(request)
-        body = bytes(self._ser(self._response(**fields), self.response_type))
+        try:
+            fields = self.handler(request)
+            body = bytes(self._ser(self._response(**fields), self.response_type))
+        except Exception as exc:  # a caller never waits out its timeout on a bug of ours
+            _log.exception("ros2_service_failed", service=self.name)
+            query.reply_err(f"{self.name}: internal error: {type(exc).__name__}: {exc}".encode())
+            return
         query.reply(self.key, body, attachment=rosgraph.encode_attachment(seq, time.time_ns(), gid))
 
     def close(self) -> None:
