@@ -191,3 +191,45 @@ def test_the_graph_goes_away_with_a_node(appliance) -> None:  # type: ignore[no-
     after = wait_for(lambda: of("timing_monitor"), timeout=30)
     # A new process, a new session: new zid, so new tokens and GIDs.
     assert {k.split("/")[2] for k in after} != {k.split("/")[2] for k in before}  # type: ignore[union-attr]
+
+
+def test_humble_switch(tmp_path: Path, write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """zenoh.ros_distro: humble: keys and tokens carry Humble's TypeHashNotSupported, GIDs
+    Humble's 24 bytes; a client that sends 16-byte GIDs (Jazzy's form) is still answered."""
+    nodes = [n for n in yaml.safe_load(bundled("sim").read_text())["nodes"]
+             if n["name"] in ("simulator", "h2_reader", "h2_sender")]  # fmt: skip
+    app = Appliance(write_config(nodes=nodes, zenoh={"ros_distro": "humble"}), spawn)
+    port = int(app.at.rsplit(":", 1)[1])
+    try:
+        session = _sdk_session(port)
+        info = wait_for(
+            lambda: (
+                (i := sdk.get_topic_info("/h2/joint_states", router_port=port, verbose=True))
+                and i.publishers
+                and i
+            ),
+            timeout=30,
+        )
+        assert [p.type_hash for p in info.publishers] == ["TypeHashNotSupported"]  # type: ignore[union-attr]
+        raw: list[bytes] = []
+        z = session.session.declare_subscriber(
+            "0/h2/joint_states/sensor_msgs::msg::dds_::JointState_/TypeHashNotSupported",
+            lambda s: raw.append(s.attachment.to_bytes()),
+        )
+        wait_for(lambda: raw, timeout=10)
+        z.undeclare()
+        assert len(raw[0]) == 41 and raw[0][16] == 24 and raw[0][33:] == bytes(8)
+        client = sdk.ROS2ServiceClient(
+            "/h2/estop", "std_srvs/srv/Trigger", request_definition="# empty\n",
+            response_definition=TRIGGER_RESPONSE, router_port=port, timeout=10,
+            type_hash="TypeHashNotSupported",
+        )  # fmt: skip
+        r = client.call()
+        client.close()
+        assert r is not None and r.success and r.message.startswith("tripped"), r
+    finally:
+        app.proc.stop()
+        s = sdk.ZenohSession._instance
+        if s is not None:
+            s.close()
+            sdk.ZenohSession._instance = None
