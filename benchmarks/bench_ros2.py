@@ -32,19 +32,26 @@ t = time.perf_counter()
 m = messaging.Messaging(s, cfg, ros_node="bench_node")
 node_ms = (time.perf_counter() - t) * 1e3
 n = int(sys.argv[2])
-t = time.perf_counter()
-pubs = [m.publisher(f"t{i}", "sensor_msgs/msg/JointState", raw=True) for i in range(n)]
-with_tokens = (time.perf_counter() - t) / n * 1e6
-t = time.perf_counter()
-plain = [messaging.Publisher(s, m.key(f"u{i}", "sensor_msgs/msg/JointState"),
-                             "sensor_msgs/msg/JointState", raw=True) for i in range(n)]
-without = (time.perf_counter() - t) / n * 1e6
+import statistics
+def each(make):  # per call, median: a loaded host's stalls land in a few calls, not all
+    out, made = [], []
+    for i in range(n):
+        t = time.perf_counter()
+        made.append(make(i))
+        out.append(time.perf_counter() - t)
+    return made, statistics.median(out) * 1e6
+pubs, with_tokens = each(lambda i: m.publisher(f"t{i}", "sensor_msgs/msg/JointState", raw=True))
+plain, without = each(lambda i: messaging.Publisher(
+    s, m.key(f"u{i}", "sensor_msgs/msg/JointState"), "sensor_msgs/msg/JointState", raw=True))
+tokens, token_only = each(lambda i: m.graph.declare(
+    rosgraph.PUBLISHER, f"/h2/v{i}", "sensor_msgs/msg/JointState", "RIHS01_x"))
 for p in pubs + plain:
     p.close()
 m.close()
 s.close()
 print(json.dumps({"import_rosgraph_ms": imported, "node_token_ms": node_ms,
-                  "publisher_with_token_us": with_tokens, "publisher_without_us": without}))
+                  "publisher_with_token_us_p50": with_tokens,
+                  "publisher_without_us_p50": without, "token_alone_us_p50": token_only}))
 """
 
 
@@ -64,9 +71,6 @@ def token_cost(quick: bool) -> dict[str, Any]:
         r.check_returncode()
         out = {k: round(v, 2) for k, v in json.loads(r.stdout).items()}
         out["publishers"] = n
-        out["token_extra_us_per_publisher"] = round(
-            out["publisher_with_token_us"] - out["publisher_without_us"], 1
-        )
         return out
     finally:
         hub.close()
