@@ -23,14 +23,14 @@ from typing import Any
 
 import structlog
 import zenoh
-from exolink import cdr, roles
+from exolink import cdr, roles, rosgraph
 from exolink.config import ApplianceConfig, ConfigError, ZenohConfig
 
 MSG_DIR = Path(__file__).with_name("msgs")
 # Every type's RIHS01 hash, written by `make msgs` and checked against rosbags by the tests: a
 # key needs the hash, and rosbags' typestore costs ~140 ms of imports (seconds on the board).
 TYPE_HASHES = MSG_DIR / "type_hashes.json"
-ATTACHMENT = struct.Struct("<qqB16s")
+ATTACHMENT = struct.Struct("<qqB16s")  # Jazzy and later; rosgraph reads Humble's too
 DEFAULT_QUERY_TIMEOUT_S = 2.0
 CLIENT_CONNECT_TIMEOUT_MS = 3000
 
@@ -41,6 +41,7 @@ CLIENT_CONNECT_TIMEOUT_MS = 3000
 @cache
 def typestore() -> Any:
     """ROS 2 Jazzy's standard types plus every exolink_msgs .msg file."""
+    from exolink import rosservices
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
@@ -48,6 +49,8 @@ def typestore() -> Any:
     for path in sorted(MSG_DIR.glob("*/msg/*.msg")):
         name = f"{path.parent.parent.name}/msg/{path.stem}"
         types.update(get_types_from_msg(path.read_text(), name))
+    for name, (request, response) in rosservices.srv_definitions(MSG_DIR).items():
+        types.update(rosservices.service_fielddefs(name, request, response))
     store.register(types)
     return store
 
@@ -88,16 +91,29 @@ def type_hash(typename: str) -> str:
 
 def write_hash_table() -> int:
     """``make msgs``: the table for every type in the typestore (after editing a .msg file)."""
+    from exolink import rosservices
+
     store = typestore()
-    table = {name: str(store.hash_rihs01(name)) for name in sorted(store.types)}
+    services = list(rosservices.srv_definitions(MSG_DIR))
+    parts = {f"{s}_{p}" for s in services for p in ("Request", "Response", "Event")}
+    table = {
+        name: str(store.hash_rihs01(name))
+        for name in sorted(store.types)
+        if name not in parts and name not in services
+    }
+    table.update(rosservices.service_hashes(store, services))
+    table = dict(sorted(table.items()))
     TYPE_HASHES.write_text(json.dumps(table, indent=0, sort_keys=True) + "\n")
     return len(table)
 
 
-def topic_key(domain_id: int, namespace: str, topic: str, typename: str) -> str:
-    """The only place a data key expression is built."""
+def topic_key(
+    domain_id: int, namespace: str, topic: str, typename: str, distro: str = "jazzy"
+) -> str:
+    """The only place a data key expression is built (Humble's rmw_zenoh has no type hashes)."""
     path = "/".join(p for p in (namespace.strip("/"), topic.strip("/")) if p)
-    return f"{domain_id}/{path}/{dds_name(typename)}/{type_hash(typename)}"
+    th = rosgraph.HUMBLE_TYPE_HASH if distro == "humble" else type_hash(typename)
+    return f"{domain_id}/{path}/{dds_name(typename)}/{th}"
 
 
 def topic_selector(domain_id: int, namespace: str, topic: str = "**") -> str:
@@ -109,7 +125,8 @@ def topic_selector(domain_id: int, namespace: str, topic: str = "**") -> str:
 def parse_key(key: str) -> tuple[str, str]:
     """A data key -> (topic path incl. namespace, typename); ValueError for other keys."""
     parts = key.split("/")
-    if len(parts) < 4 or not parts[-1].startswith("RIHS01_") or "::dds_::" not in parts[-2]:
+    hashed = parts[-1].startswith("RIHS01_") or parts[-1] == rosgraph.HUMBLE_TYPE_HASH
+    if len(parts) < 4 or not hashed or "::dds_::" not in parts[-2]:
         raise ValueError(f"not a data key: {key}")
     pkg, kind, _, name = parts[-2].split("::")
     return "/".join(parts[1:-2]), f"{pkg}/{kind}/{name.rstrip('_')}"
@@ -200,7 +217,8 @@ def session_config(
             json.dumps({"router": -1, "peer": -1, "client": CLIENT_CONNECT_TIMEOUT_MS}),
         )
     if mode == "router" and roles.enforced(json.loads(cfg.get_json("transport/auth/usrpwd"))):
-        cfg.insert_json5("access_control", json.dumps(roles.access_control(zcfg.domain_id)))
+        acl = roles.access_control(zcfg.domain_id, zcfg.namespace)
+        cfg.insert_json5("access_control", json.dumps(acl))
     return cfg
 
 
@@ -271,24 +289,34 @@ class Meta:
 
 
 def encode_attachment(seq: int, source_ns: int, gid: bytes) -> bytes:
-    return ATTACHMENT.pack(seq, source_ns, 16, gid)
+    return rosgraph.encode_attachment(seq, source_ns, gid)
 
 
 def decode_attachment(raw: bytes) -> tuple[int, int, bytes]:
-    seq, ts, n, gid = ATTACHMENT.unpack(raw)
-    if n != 16:
-        raise ValueError(f"attachment GID length {n} != 16")
-    return seq, ts, gid
+    """Any supported distro's attachment (16-byte GID, or Humble's 24); ValueError else."""
+    return rosgraph.decode_attachment(raw)
 
 
 class Publisher:
     """A typed publisher: node code hands it message objects (or, from an ``exolink.cdr``
     template, their CDR bytes), never keys or attachments."""
 
-    def __init__(self, session: zenoh.Session, key: str, typename: str, raw: bool = False) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        typename: str,
+        raw: bool = False,
+        token: rosgraph.Token | None = None,
+        graph: rosgraph.RosNode | None = None,
+    ) -> None:
         self.key, self.typename = key, typename
         self._pub = session.declare_publisher(key)
-        self._gid = os.urandom(16)
+        # With a graph token (an appliance node's publisher) the GID is the token's, as
+        # rmw_zenoh derives it; a publisher outside the ROS graph (a tool) keeps a random one.
+        self._token, self._graph = token, graph
+        self._gid = token.gid if token is not None else os.urandom(16)
+        self._head = struct.Struct(f"<qqB{len(self._gid)}s")
         self._seq = 0
         # A raw publisher never serializes: rosbags (and numpy) stay out of its process.
         self._ser = None if raw else prepare(typename).serialize_cdr
@@ -303,33 +331,75 @@ class Publisher:
         """CDR bytes (with their encapsulation header) of one message of this type."""
         with self._lock:
             self._seq += 1
-            att = ATTACHMENT.pack(self._seq, source_ns or time.time_ns(), 16, self._gid)
+            att = self._head.pack(self._seq, source_ns or time.time_ns(), len(self._gid), self._gid)
             self._pub.put(payload, attachment=att)
+
+    @property
+    def gid(self) -> bytes:
+        return self._gid
 
     def close(self) -> None:
         self._pub.undeclare()
+        if self._token is not None and self._graph is not None:
+            self._graph.release(self._token)
 
 
 class Messaging:
-    """Binds a session to the appliance's domain and namespace."""
+    """Binds a session to the appliance's domain and namespace.
 
-    def __init__(self, session: zenoh.Session, cfg: ApplianceConfig) -> None:
+    With ``ros_node`` (every appliance process names one) the session is also that ROS 2 node
+    in the graph rmw_zenoh laptops read: each publisher and subscription declared here gets its
+    graph token and its GID from it (exolink.rosgraph); ``close`` takes the node out.
+    """
+
+    def __init__(
+        self, session: zenoh.Session, cfg: ApplianceConfig, ros_node: str | None = None
+    ) -> None:
         self.session = session
         self.domain_id = cfg.zenoh.domain_id
         self.namespace = cfg.zenoh.namespace
         self.device = cfg.device
+        self.distro = cfg.zenoh.ros_distro
         self._commands: CommandLog | None = None
+        self.graph = (
+            rosgraph.RosNode(session, self.domain_id, self.namespace, ros_node, self.distro)
+            if ros_node
+            else None
+        )
+
+    def close(self) -> None:
+        """Leave the ROS graph (every token of this node); the session stays the caller's."""
+        if self.graph is not None:
+            self.graph.close()
 
     def key(self, topic: str, typename: str) -> str:
-        return topic_key(self.domain_id, self.namespace, topic, typename)
+        return topic_key(self.domain_id, self.namespace, topic, typename, self.distro)
 
-    def publisher(self, topic: str, typename: str, raw: bool = False) -> Publisher:
-        return Publisher(self.session, self.key(topic, typename), typename, raw)
+    def _token(
+        self, kind: str, topic: str, typename: str, qos: rosgraph.Qos | None
+    ) -> rosgraph.Token | None:
+        if self.graph is None or "*" in topic:  # a wildcard subscription is no ROS entity
+            return None
+        key = self.key(topic, typename)
+        return self.graph.declare(
+            kind,
+            rosgraph.fq_name(self.namespace, topic),
+            typename,
+            key.rsplit("/", 1)[-1],
+            qos or rosgraph.DEFAULT_QOS,
+        )
+
+    def publisher(
+        self, topic: str, typename: str, raw: bool = False, qos: rosgraph.Qos | None = None
+    ) -> Publisher:
+        token = self._token(rosgraph.PUBLISHER, topic, typename, qos)
+        return Publisher(self.session, self.key(topic, typename), typename, raw, token, self.graph)
 
     def subscribe(
         self, topic: str, typename: str, callback: Callable[[Any, Meta], None]
     ) -> zenoh.Subscriber:
         des = prepare(typename).deserialize_cdr
+        self._token(rosgraph.SUBSCRIPTION, topic, typename, None)
 
         def on_sample(sample: zenoh.Sample) -> None:
             att = sample.attachment
@@ -343,12 +413,21 @@ class Messaging:
         self, topic: str, typename: str, callback: Callable[[bytes], None]
     ) -> zenoh.Subscriber:
         """CDR bytes to a decoder of the caller's (exolink.cdr): no typestore in the process."""
+        self._token(rosgraph.SUBSCRIPTION, topic, typename, None)
         return self.session.declare_subscriber(
             self.key(topic, typename), lambda sample: callback(sample.payload.to_bytes())
         )
 
     def mgmt(self, *path: str) -> str:
         return mgmt_key(self.device, *path)
+
+    def log_command(
+        self, user: str, key: str, request: dict[str, Any], reply: dict[str, Any]
+    ) -> None:
+        """A command that came another way than ``serve`` (a ROS 2 service or topic)."""
+        if self._commands is None:
+            self._commands = CommandLog(self)
+        self._commands.write(user, key, request, reply)
 
     def serve(
         self,

@@ -13,7 +13,8 @@ Zenoh has already proven it. What a role may do is then decided here (``allows``
   the service only); they declare queryables and publish data, which no laptop login may.
 
 No laptop login may put data (except under ``<domain>/replay/``, where ``exolink play`` puts a
-recording) or declare queryables: a forged ``watchdog`` state or joint state would otherwise
+recording, and the operator on the ROS 2 command topics in ``ROS2_TOPICS_IN``, which go through
+the same validation as the CLI's commands) or declare queryables: a forged ``watchdog`` state or joint state would otherwise
 reach the nodes that act on them. An appliance without logins (``make sim``, a
 closed lab network) enforces nothing: any key suffix is believed.
 """
@@ -29,6 +30,22 @@ APPLIANCE_USER = "exolink"
 # A caller without a login (open appliance) speaks as admin: nothing is enforced there anyway.
 ANONYMOUS_USER = ADMIN
 _RANK = {OBSERVER: 0, OPERATOR: 1, ADMIN: 2, APPLIANCE_USER: 3}
+
+# ROS 2 services the supervisor serves (exolink.supervisor.ros2api) and the role each needs;
+# topics a ROS 2 node may publish to the appliance. A ROS 2 client cannot add its login to a
+# key, so the router's access control decides: each login may query exactly these.
+ROS2_SERVICES: dict[str, str] = {
+    "estop": OBSERVER,
+    "arm": OPERATOR,
+    "disarm": OPERATOR,
+    "record": OPERATOR,
+    "pattern/stop": OPERATOR,
+    "pattern/pause": OPERATOR,
+    "joint_command": OPERATOR,
+    "node_control": ADMIN,
+}
+ROS2_TOPICS_IN: dict[str, str] = {"cmd/joint": OPERATOR}
+ROS_GRAPH = "@ros2_lv/{domain}/**"
 
 ALL_MESSAGES = [
     "put",
@@ -74,9 +91,16 @@ def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> d
     }
 
 
-def access_control(domain_id: int) -> dict[str, Any]:
+def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
     """Zenoh's ``access_control`` section for the supervisor's router."""
     data = [f"{domain_id}/**"]
+    graph = [ROS_GRAPH.format(domain=domain_id)]
+
+    def ros_keys(names: dict[str, str], role: str) -> list[str]:
+        """Keys of the ROS 2 services or topics a role may use (any type and hash)."""
+        ns = namespace.strip("/")
+        return [f"{domain_id}/{ns}/{n}/*/*" for n, r in names.items() if _RANK[role] >= _RANK[r]]
+
     rules = [
         _rule("appliance", ALL_MESSAGES, ["ingress", "egress"], ["**"]),
         # Data and presence, for every login (egress: what the router sends the laptop).
@@ -97,6 +121,15 @@ def access_control(domain_id: int) -> dict[str, Any]:
         _rule("hold a pattern", ["liveliness_token"], ["ingress"], ["exolink/*/operators/*"]),
         # `exolink play` (operator and up) republishes a recording under replay/, never live keys.
         _rule("replay", ["put", "delete"], ["ingress"], [f"{domain_id}/replay/**"]),
+        # The ROS 2 graph (rmw_zenoh): every login reads it and declares its own node and
+        # entity tokens (a ROS 2 tool's session is a node too). Tokens carry no data.
+        _rule(
+            "ros graph",
+            ["liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
+            ["ingress"],
+            graph,
+        ),
+        _rule("see ros graph", ["liveliness_token", "reply"], ["egress"], graph),
         _rule("logs", ["declare_subscriber"], ["ingress"], ["exolink/*/log/*"]),
         _rule("receive logs", ["put"], ["egress"], ["exolink/*/log/*"]),
     ]
@@ -107,8 +140,23 @@ def access_control(domain_id: int) -> dict[str, Any]:
             _rule(f"{role} queries", ["query"], ["ingress"], own),
             _rule(f"{role} replies", ["reply"], ["egress"], own),
         ]
+        services, topics = ros_keys(ROS2_SERVICES, role), ros_keys(ROS2_TOPICS_IN, role)
+        rules += [
+            _rule(f"{role} ros2 calls", ["query"], ["ingress"], services),
+            # A ROS 2 client queries ALL_COMPLETE: it sends only where it was told a complete
+            # queryable is, so the router must announce the service (egress, not ingress).
+            _rule(f"{role} ros2 answers", ["reply", "declare_queryable"], ["egress"], services),
+        ]
         granted = [f"{role} queries", f"{role} replies", "read data", "receive data"]
-        granted += ["see nodes", "node tokens"]
+        granted += ["see nodes", "node tokens", "ros graph", "see ros graph"]
+        granted += [f"{role} ros2 calls", f"{role} ros2 answers"]
+        if topics:  # put, and the appliance's subscription announced (a publisher sends
+            # only where the router said a subscriber is)
+            rules += [
+                _rule(f"{role} ros2 topics", ["put"], ["ingress"], topics),
+                _rule(f"{role} ros2 readers", ["declare_subscriber"], ["egress"], topics),
+            ]
+            granted += [f"{role} ros2 topics", f"{role} ros2 readers"]
         if _RANK[role] >= _RANK[OPERATOR]:
             granted += ["hold a pattern", "replay"]
         if role == ADMIN:

@@ -44,7 +44,9 @@ class NodeRunner:
         self.stop = threading.Event()
         self._own_session = session is None
         self.session = session or messaging.open_node_session(cfg)
-        self.msg = messaging.Messaging(self.session, cfg)
+        # The node is also a ROS 2 node of that name: its graph token now, before configure()
+        # declares the publishers whose tokens hang under it.
+        self.msg = messaging.Messaging(self.session, cfg, ros_node=name)
         log = structlog.get_logger().bind(node=name)
         ctx = NodeContext(name, cfg, self.session, self.msg, log)
         self.node = cls(ctx, node_params(cfg, name))
@@ -122,6 +124,7 @@ class NodeRunner:
             hb.join(1.0)
             for d in self._decls:
                 d.undeclare()
+            self.msg.close()
             if self._own_session:
                 self.session.close()
             self.log.info("node_stopped", code=code)

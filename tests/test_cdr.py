@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from exolink import cdr, messaging
+from exolink import cdr, messaging, rosservices
 from exolink.protocol import h2
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -189,6 +189,11 @@ def test_string_is_rosbags_cdr(text: str) -> None:
 def test_type_hash_table_matches_rosbags() -> None:
     table = json.loads(messaging.TYPE_HASHES.read_text())
     store = messaging.typestore()
-    assert set(table) == set(store.types), "run `make msgs` after editing a .msg file"
+    # Services are in the table as the whole service type (the key's hash), not their parts;
+    # they are hashed with ServiceEventInfo corrected (tests/test_exolink_msgs.py checks them).
+    services = set(rosservices.srv_definitions(messaging.MSG_DIR))
+    parts = {f"{s}_{p}" for s in services for p in ("Request", "Response", "Event")}
+    assert set(table) == set(store.types) - parts, "run `make msgs` after editing a .msg file"
     for name, value in table.items():
-        assert value == str(store.hash_rihs01(name)), name
+        if name not in services:
+            assert value == str(store.hash_rihs01(name)), name

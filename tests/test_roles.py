@@ -197,3 +197,94 @@ def test_commands_are_written_into_the_recording(guarded) -> None:  # type: igno
         ("operator", "arm"),
         ("operator", "start"),
     }
+
+
+def test_ros2_services_and_topics_follow_the_roles(guarded, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A ROS 2 client (zenoh-ros2-sdk, not this project's code) with a role's login file: the
+    router lets each login query exactly the ROS 2 services its role may call, and put only on
+    the command topics its role may use; a refused call gets no answer at all."""
+    sdk = pytest.importorskip("zenoh_ros2_sdk")
+    app, board_file, logins = guarded
+    port = int(app.at.rsplit(":", 1)[1])
+    inside = messaging.open_client_session(app.at, str(board_file))
+    log = Inbox(inside, messaging.topic_selector(0, "h2", "commands"))
+    empty, reply = "# empty\n", "bool success\nstring message\n"
+
+    def as_role(role: str) -> None:
+        if sdk.ZenohSession._instance is not None:
+            sdk.ZenohSession._instance.close()
+            sdk.ZenohSession._instance = None
+        monkeypatch.setenv("ZENOH_SESSION_CONFIG_URI", str(logins[role]))
+        sdk.ZenohSession.get_instance("127.0.0.1", port)
+
+    def call(name: str, srv: str, request: str, **fields: Any) -> Any:
+        c = sdk.ROS2ServiceClient(
+            name, srv, request_definition=request, response_definition=reply,
+            router_port=port, timeout=3,
+        )  # fmt: skip
+        try:
+            return c.call(**fields)
+        finally:
+            c.close()
+
+    control = "string node\nstring action\n"
+    try:
+        as_role("observer")
+        r = call("/h2/estop", "std_srvs/srv/Trigger", empty)
+        assert r is not None and r.success, r
+        assert call("/h2/arm", "std_srvs/srv/Trigger", empty) is None
+        as_role("operator")
+        r = wait_for(lambda: (x := call("/h2/arm", "std_srvs/srv/Trigger", empty)) and x.success)
+        assert call("/h2/node_control", "exolink_msgs/srv/NodeControl", control,
+                    node="timing_monitor", action="restart") is None  # fmt: skip
+        as_role("admin")
+        r = call("/h2/node_control", "exolink_msgs/srv/NodeControl", control,
+                 node="timing_monitor", action="restart")  # fmt: skip
+        assert r is not None and r.success, r
+        got = [(e["by"], e["request"].get("action")) for e in commands(log)]
+        assert ("ros2", "estop") in got and ("ros2", "arm") in got and ("ros2", "restart") in got
+        assert got.count(("ros2", "arm")) == 1  # the observer's call never reached a handler
+
+        # Topics: an observer's joint command is dropped at the router, an operator's arrives.
+        header = (
+            "builtin_interfaces/Time stamp\nstring frame_id\n",
+            "int32 sec\nuint32 nanosec\n",
+        )
+        definition = (
+            "std_msgs/Header header\nstring joint\nuint8 mode\nint16 setpoint\n"
+            "uint8 stiffness\nstring source\n"
+        )
+        type_hash = messaging.type_hash("exolink_msgs/msg/JointCommand")
+
+        def publish(role: str, setpoint: int) -> Any:
+            as_role(role)
+            s = sdk.ZenohSession._instance
+            s.register_message_type(header[1], "builtin_interfaces/msg/Time")
+            s.register_message_type(header[0], "std_msgs/msg/Header")
+            pub = sdk.ROS2Publisher(
+                "/h2/cmd/joint", "exolink_msgs/msg/JointCommand", msg_definition=definition,
+                type_hash=type_hash, router_port=port,
+            )  # fmt: skip
+            t = s.store.types
+            stamp = t["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+            h = t["std_msgs/msg/Header"](stamp=stamp, frame_id="")
+            return lambda: pub.publish(
+                header=h, joint="l_knee", mode=1, setpoint=setpoint, stiffness=0, source="t"
+            )
+
+        def setpoints() -> list[int]:
+            return [e["request"].get("setpoint") for e in commands(log) if "cmd/joint" in e["key"]]
+
+        send = publish("observer", 22)
+        for _ in range(10):
+            send()
+            time.sleep(0.02)
+        send = publish("operator", 21)
+        wait_for(lambda: send() or 21 in setpoints(), timeout=15, step=0.3)
+        time.sleep(0.5)
+        assert 22 not in setpoints()
+    finally:
+        if sdk.ZenohSession._instance is not None:
+            sdk.ZenohSession._instance.close()
+            sdk.ZenohSession._instance = None
+        inside.close()

@@ -30,6 +30,7 @@ from exolink.protocol import h2
 from exolink.runtime import stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.processes import Exit, NodeProcess, Zygote, apply_priority, relay
+from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
@@ -90,7 +91,7 @@ class Supervisor:
         self.reader = open_reader(cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL])
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
-        self.msg = messaging.Messaging(self.session, cfg)
+        self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
         self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog)
         self.watchdog.start()  # safe action before anything else can move
@@ -103,6 +104,7 @@ class Supervisor:
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE)
         self._serve_api()
+        self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
         self._decls.append(
             self.msg.subscribe("pattern_state", PATTERN_TYPE, self._on_pattern_state)
         )
@@ -403,6 +405,11 @@ class Supervisor:
         for d in self._decls:
             with contextlib.suppress(Exception):
                 d.undeclare()
+        if hasattr(self, "ros2"):
+            with contextlib.suppress(Exception):
+                self.ros2.close()
+        if hasattr(self, "msg"):
+            self.msg.close()
         if hasattr(self, "session"):
             self.session.close()
         if hasattr(self, "bus"):
