@@ -581,6 +581,8 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     assert "operator.r_knee.position" not in listing(app)  # refused before anything was made
     s = listing(app)["pattern"]
     assert s["state"] == "active" and s["type"] == "gait_pattern"
+    shown = app.cli("status").stdout  # each controller's state, claims, update times, overruns
+    assert "pattern" in shown and "gait_pattern" in shown and "r_knee/position" in shown, shown
     # speed and pause through the same CLI; pause stops the manager writing
     assert app.cli("pattern", "speed", "5").returncode == 0
     assert listing(app)["pattern"]["speed"] == 5

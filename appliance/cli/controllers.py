@@ -11,7 +11,7 @@ from typing import Any
 from exolink.cli.remote import _guard, _Leaves, common, remote
 
 
-def _show(s: dict[str, Any]) -> str:
+def show(s: dict[str, Any]) -> str:
     lines = [f"cycles {s['cycles']}  written {s['written']}  safe-action frames {s['safe']}"]
     for c in s["controllers"]:
         why = f" ({c['error']})" if c.get("error") else ""
@@ -67,7 +67,7 @@ def cmd_controllers(args: argparse.Namespace) -> int:
     if getattr(args, "json", False):
         sys.stdout.write(json.dumps(reply) + "\n")
     elif a == "list":
-        sys.stdout.write(_show(reply) + "\n")
+        sys.stdout.write(show(reply) + "\n")
     elif a == "types":
         for name, where in sorted(reply["types"].items()):
             sys.stdout.write(f"{name:<20} {where}\n")

@@ -532,8 +532,12 @@ def _node_table(nodes: list[dict[str, Any]]) -> str:
 def cmd_status(args: argparse.Namespace) -> int:
     with remote(args) as r:
         s = r.call("status")
+        manager = any(
+            n.get("plugin") == "controller_manager" and n["state"] == "running" for n in s["nodes"]
+        )
+        ctrl = r.call("controllers") if manager else None
     if args.json:
-        _print_json(s)
+        _print_json(s if ctrl is None else {**s, "controllers": ctrl})
         return 0
     wd, bus, trig = s["watchdog"], s["bus"], s["trigger"]
     why = (
@@ -550,6 +554,10 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n" + _node_table(s["nodes"])
     )
+    if ctrl is not None:
+        from exolink.cli.controllers import show
+
+        sys.stdout.write("controllers  " + show(ctrl) + "\n")
     return 0
 
 
