@@ -162,3 +162,52 @@ def test_simulated_buses_on_different_groups_do_not_hear_each_other(group: str) 
     finally:
         for bus in (a, a2, b):
             bus.shutdown()
+
+
+def test_the_loop_sleeps_until_the_nearest_deadline() -> None:
+    """No 100 Hz tick: the supervisor wakes when a heartbeat would be late (the pattern player's
+    50 ms deadline in board.yaml is the nearest), a restart is due, or the watchdog has work."""
+    from exolink.config import bundled, parse
+    from exolink.supervisor.core import MAX_SLEEP_S, Supervisor
+    from exolink.supervisor.processes import NodeProcess
+
+    cfg = parse(bundled("board").read_text(), "board.yaml")
+    sup = Supervisor(cfg)
+
+    class Idle:  # a watchdog with nothing to do
+        def next_due(self) -> float:
+            return float("inf")
+
+    sup.watchdog = Idle()  # type: ignore[assignment]
+    now = 1000.0
+    for ncfg in cfg.nodes:
+        node = NodeProcess(ncfg, "", lambda _e: None, lambda _n, _l: None)
+        node.state, node.heartbeat_at = "running", now
+        sup.nodes[ncfg.name] = node
+    assert sup._next_due(now) == now + 0.05  # pattern_player's heartbeat_deadline_ms
+    del sup.nodes["pattern_player"]
+    assert sup._next_due(now) == now + MAX_SLEEP_S  # 500 ms deadlines: the cap comes first
+    sup.nodes["recorder"].state, sup.nodes["recorder"].next_start = "backoff", now + 0.03
+    assert sup._next_due(now) == now + 0.03
+
+
+def test_a_trip_wakes_the_supervisor_for_its_repeats() -> None:
+    import threading
+
+    from exolink.canbus import open_reader
+    from exolink.config import CanConfig, WatchdogConfig
+    from exolink.supervisor.watchdog import REPEAT_AFTER_S, Watchdog
+
+    reader = open_reader(CanConfig(interface="virtual", channel="wake-test"), [110, 70])
+    wd = Watchdog(WatchdogConfig(), reader, lambda _s: None)
+    woken = threading.Event()
+    wd.wake = woken.set
+    try:
+        assert wd.next_due() == float("inf")
+        before = time.monotonic()
+        wd.trip("operator e-stop")
+        assert woken.is_set()
+        assert before + REPEAT_AFTER_S[0] <= wd.next_due() <= time.monotonic() + REPEAT_AFTER_S[0]
+    finally:
+        wd.close()
+        reader.bus.shutdown()

@@ -34,9 +34,10 @@ from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
-TICK_S = 0.01
+MAX_SLEEP_S = 0.1  # the loop looks at least this often, whatever its deadlines say
+STARTING_SLEEP_S = 0.02  # while a node awaits its first beat (its priority comes with it)
 HEALTH_PERIOD_S = 2.0
-SLOW_LOOP_S = 0.5  # one pass of the 10 ms loop taking this long is logged (a CPU starved of it)
+SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU starved of it)
 STATE_PERIOD_S = 1.0
 TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
 DIAGNOSTICS_TYPE = messaging.DIAGNOSTICS_TYPE
@@ -60,11 +61,25 @@ def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
     return msgspec.structs.replace(cfg, can=can, trigger=trig, nodes=nodes)
 
 
+class _Stop(threading.Event):
+    """Set on a stop request; wakes the supervisor's loop too."""
+
+    def __init__(self, wake: threading.Event) -> None:
+        super().__init__()
+        self._wake = wake
+
+    def set(self) -> None:
+        super().set()
+        self._wake.set()
+
+
 class Supervisor:
     def __init__(self, cfg: ApplianceConfig) -> None:
         self.cfg = cfg
         self.log = structlog.get_logger().bind(node="supervisor")
-        self.stop_event = threading.Event()
+        # The loop sleeps until its next deadline; whatever moves one closer sets this.
+        self.wake = threading.Event()
+        self.stop_event = _Stop(self.wake)
         self.stopping = False
         self.notifier = Notifier()
         self.trigger_count = 0
@@ -94,6 +109,7 @@ class Supervisor:
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
         self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog)
+        self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
         # The first link check imports pyroute2 (~4 s on an emulated A8): here, before READY, not
         # in the loop systemd watches (with bring_up false it killed the supervisor at each start).
@@ -171,6 +187,7 @@ class Supervisor:
                     )
             else:
                 node.state = "exited"
+        self.wake.set()  # a restart may be due before the loop's next deadline
 
     def _on_line(self, name: str, line: str) -> None:
         relay(self.log, name, line)
@@ -181,7 +198,7 @@ class Supervisor:
 
     def _node_up(self, node: NodeProcess, now: float) -> None:
         """A spawn's first liveness beat: it imported and configured, its loop runs."""
-        node.start_s = now - node.started_at
+        node.start_s = (node.heartbeat_at or now) - node.started_at  # the beat's own time
         if (pid := node.pid) is not None:
             apply_priority(node.cfg, pid)  # only now: see plain_priority
         self.log.info("node_up", node_name=node.name, start_s=round(node.start_s, 2))
@@ -269,7 +286,9 @@ class Supervisor:
             node.health = f"{level}: {worst.message}" if level != "ok" else "ok"
 
     def _on_pattern_state(self, msg: Any, _meta: messaging.Meta) -> None:
-        self.pattern_state = (msg.state, msg.operator)
+        if (msg.state, msg.operator) != self.pattern_state:
+            self.pattern_state = (msg.state, msg.operator)
+            self.wake.set()
 
     def _on_operator(self, sample: Any) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -278,6 +297,7 @@ class Supervisor:
         else:
             self.operators.discard(name)
             self.operator_lost_at.setdefault(name, time.monotonic())
+            self.wake.set()
 
     def _check_operator(self, now: float) -> None:
         """A pattern started from a laptop stops if that laptop's session is gone (DESIGN)."""
@@ -335,10 +355,14 @@ class Supervisor:
         return out
 
     def run(self) -> int:
+        """The periodic checks, each when it is due: the loop sleeps until the nearest deadline
+        (a heartbeat's, a restart's, a trip's repeat, ...), never longer than MAX_SLEEP_S, and
+        another thread that moves a deadline closer wakes it. A 100 Hz tick cost the supervisor
+        its largest share of one A8 core with nothing due."""
         next_state = time.monotonic()
         ping = self.notifier.ping_interval_s
         next_ping = time.monotonic()
-        while not self.stop_event.wait(TICK_S):
+        while not self.stop_event.is_set():
             now = time.monotonic()
             self.watchdog.check()
             self._check_nodes(now)
@@ -352,7 +376,32 @@ class Supervisor:
                 self.notifier.ping()
             if (took := time.monotonic() - now) > SLOW_LOOP_S:
                 self.log.warning("supervisor_loop_slow", took_s=round(took, 3))
+            due = min(
+                self._next_due(now),
+                next_state,
+                next_ping if ping else next_state,
+            )
+            self.wake.wait(max(0.001, due - time.monotonic()))
+            self.wake.clear()
         return 0
+
+    def _next_due(self, now: float) -> float:
+        """The nearest deadline of the nodes, the watchdog and the operator check."""
+        due = min(now + MAX_SLEEP_S, self.watchdog.next_due())
+        grace = self.cfg.watchdog.start_grace_ms / 1000
+        for node in self.nodes.values():
+            if node.state == "backoff":
+                due = min(due, node.next_start)
+            elif node.state == "running":
+                hb = node.heartbeat_at
+                if hb is None:  # starting: its first beat brings its priority
+                    due = min(due, now + STARTING_SLEEP_S, node.started_at + grace)
+                else:  # late just after this; the beats in its pipe are read then
+                    due = min(due, hb + self.deadline_s(node.cfg))
+        state, operator = self.pattern_state
+        if state == "running" and (lost := self.operator_lost_at.get(operator)) is not None:
+            due = min(due, lost + self.cfg.watchdog.operator_lost_ms / 1000)
+        return due
 
     def _link_loop(self) -> None:
         """The CAN link's state and error counters, polled off the safety loop: one netlink

@@ -78,6 +78,7 @@ class Watchdog:
         self._armed_at: float | None = None  # monotonic; None while not armed
         self._left_armed_at = time.monotonic()
         self.first_trip_ns: int | None = None
+        self.wake: Callable[[], None] = lambda: None  # the periodic check is due sooner
         self._stop = threading.Event()
         self._rx = threading.Thread(target=self._listen, daemon=True, name="watchdog-rx")
 
@@ -122,6 +123,7 @@ class Watchdog:
                 self._s.since_ns = time.time_ns()
                 self._s.trips += 1
             self._repeats = [now + d for d in REPEAT_AFTER_S]
+        self.wake()
         if first:
             self.log.error("watchdog_tripped", reason=reason, detail=detail)
             self.publish(self.snapshot())
@@ -170,6 +172,13 @@ class Watchdog:
                 f"watchdog bus reader stalled: no joint-angle frame read for {silent * 1000:.0f} ms "
                 f"(limit {self.cfg.h2_silence_ms} ms)",
             )
+
+    def next_due(self) -> float:
+        """When ``check`` has something to do next (monotonic): a repeat, or the backstop."""
+        due = min(self._repeats, default=float("inf"))
+        if self.armed and self.last_h2 is not None:
+            due = min(due, self.last_h2 + self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S)
+        return due
 
     def _arrival(self, msg: Frame) -> float:
         """When the frame reached the socket, on the monotonic clock. Its timestamp is wall time
