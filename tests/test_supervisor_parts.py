@@ -184,8 +184,9 @@ def test_the_loop_sleeps_until_the_nearest_deadline() -> None:
         node = NodeProcess(ncfg, "", lambda _e: None, lambda _n, _l: None)
         node.state, node.heartbeat_at = "running", now
         sup.nodes[ncfg.name] = node
-    assert sup._next_due(now) == now + 0.05  # pattern_player's heartbeat_deadline_ms
-    del sup.nodes["pattern_player"]
+    assert sup._next_due(now) == now + 0.05  # the motion nodes' heartbeat_deadline_ms
+    for name in [n.name for n in cfg.nodes if n.heartbeat_deadline_ms == 50]:
+        del sup.nodes[name]
     assert sup._next_due(now) == now + MAX_SLEEP_S  # 500 ms deadlines: the cap comes first
     sup.nodes["recorder"].state, sup.nodes["recorder"].next_start = "backoff", now + 0.03
     assert sup._next_due(now) == now + 0.03
