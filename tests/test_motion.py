@@ -109,7 +109,7 @@ def test_pattern_reaches_joints_in_order_at_speed(app, mbus) -> None:  # type: i
     )
     assert hips == [expected[(start + k) % 51][0] for k in range(len(hips))]  # in order, no gaps
     t = [m.timestamp for m in frames if getattr(h2.decode(m), "motor", None) == 1]
-    assert np.median(np.diff(t)) == pytest.approx(0.020, abs=0.002)
+    assert np.median(np.diff(t)) == pytest.approx(0.020, rel=0.1)  # speed 10 (benchmarked)
     # the simulated right knee follows the pattern
     angles = [h2.decode(m).r_knee for m in collect(mbus, 1.0, {110})]
     assert max(angles) - min(angles) > 20  # a 60 deg swing, low-passed by the joint dynamics
@@ -121,7 +121,8 @@ def test_speed_change_without_restart_and_pause(app, mbus) -> None:  # type: ign
     assert app.cli("pattern", "speed", "5").returncode == 0
     collect(mbus, 0.2)
     t = [m.timestamp for m in collect(mbus, 1.5, {70}) if getattr(h2.decode(m), "motor", None) == 1]
-    assert np.median(np.diff(t)) == pytest.approx(period_s(5), abs=0.003)
+    # the level's period, not speed 10's 20 ms (10 % apart: the timing itself is benchmarked)
+    assert np.median(np.diff(t)) == pytest.approx(period_s(5), rel=0.1)
     r = app.cli("pattern", "speed", "11")
     assert r.returncode == 5 and "speed must be a whole level 1..10" in r.stderr
     r = app.cli("pattern", "select", "l_knee")
