@@ -280,43 +280,38 @@ def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
     return 0
 
 
-@_guard
-def cmd_send(args: argparse.Namespace) -> int:
+def h2_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The h2_sender request of a parsed `exolink send ...` (also what the dashboard sends)."""
     what = args.what
-    if what in ("joint", "position"):
-        mode = args.mode if what == "joint" else "position"
-        body = {
+    if what in ("joint", "position", "stiffness"):
+        return {
             "kind": "joint",
             "joint": args.joint,
-            "mode": mode,
+            "mode": args.mode if what == "joint" else what,
             "setpoint": args.value,
             "stiffness": args.stiffness,
         }
-    elif what == "stiffness":
-        body = {
-            "kind": "joint",
-            "joint": args.joint,
-            "mode": "stiffness",
-            "setpoint": args.value,
-            "stiffness": args.stiffness,
-        }
-    elif what == "torque":
-        body = {"kind": "joint", "joint": args.joint, "mode": "torque", "setpoint": args.value}
-    elif what in ("disable", "stop"):
-        body = {
+    if what == "torque":
+        return {"kind": "joint", "joint": args.joint, "mode": "torque", "setpoint": args.value}
+    if what in ("disable", "stop"):
+        return {
             "kind": "joint",
             "joint": args.joint,
             "mode": "disabled" if what == "disable" else "stopped",
         }
-    elif what == "limits":
-        body = {"kind": "limits"}
+    if what == "limits":
+        body: dict[str, Any] = {"kind": "limits"}
         if args.min is not None:
             body["min"] = args.min
         if args.max is not None:
             body["max"] = args.max
-    else:  # stream
-        body = {"kind": "stream", "on": args.state == "on"}
-    return _h2_command(args, body)
+        return body
+    return {"kind": "stream", "on": args.state == "on"}
+
+
+@_guard
+def cmd_send(args: argparse.Namespace) -> int:
+    return _h2_command(args, h2_body(args))
 
 
 # --- registration ----------------------------------------------------------------------------
