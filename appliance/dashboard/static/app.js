@@ -106,7 +106,8 @@ window.addEventListener("hashchange", route);
 
 // --- plots -----------------------------------------------------------------------------------
 
-let plots = {};
+const plots = {};
+window.exolinkPlots = plots;  // read by the browser tests
 
 function triggerMarkers(u) {
   const ctx = u.ctx, { top, height } = u.bbox;
@@ -293,7 +294,7 @@ function renderNodes(nodes) {
     const td = document.createElement("td");
     for (const action of ["restart", "stop", "start"]) {
       const b = document.createElement("button");
-      b.textContent = action; b.className = "cmd small"; b.dataset.action = action;
+      b.textContent = action; b.className = "cmd admin small"; b.dataset.action = action;
       b.addEventListener("click", () => run([action, n.name]));
       td.appendChild(b);
     }
@@ -443,12 +444,14 @@ function onRecord(r) {
 // --- roles -----------------------------------------------------------------------------------
 
 function applyRole() {
-  const observer = S.role === "observer";
+  // What this login may do (exolink.roles): .cmd needs operator, .admin needs admin; E-STOP any.
+  const rank = { observer: 0, operator: 1, admin: 2 }[S.role] ?? 0;
   for (const b of $$(".cmd")) {
-    b.disabled = observer;
-    b.title = observer ? "this login is an observer: commands need operator (E-STOP works)" : "";
+    const need = b.classList.contains("admin") ? 2 : 1;
+    b.disabled = rank < need;
+    b.title = rank < need ? `this login is ${S.role}: needs ${need === 2 ? "admin" : "operator"} (E-STOP works)` : "";
   }
-  for (const f of $$("form.card")) for (const el of f.elements) el.disabled = observer;
+  for (const f of $$("form.card")) for (const el of f.elements) el.disabled = rank < 1;
 }
 
 // --- connection ------------------------------------------------------------------------------
