@@ -295,8 +295,13 @@ def test_an_observer_sees_everything_and_may_only_estop(  # type: ignore[no-unty
     tmp_path, write_config, spawn, browser, mbus
 ) -> None:
     board_file, logins = board_logins(tmp_path)
+    port = free_port()  # the board's own dashboard node, beside the laptop's `exolink dashboard`
+    board_dash = {"host": "127.0.0.1", "port": port, "role": "observer"}
     cfg = write_config(
-        nodes=_nodes(tmp_path),
+        nodes=[
+            *_nodes(tmp_path),
+            {"name": "dashboard", "plugin": "dashboard", "params": board_dash},
+        ],
         zenoh={"config_file": str(board_file)},
         watchdog={"h2_silence_ms": 2000},
     )
@@ -321,3 +326,16 @@ def test_an_observer_sees_everything_and_may_only_estop(  # type: ignore[no-unty
     assert {f.motor for f in got if f.mode == h2.MODES["disabled"]} == set(range(1, 7))
     assert d.errors == []
     d.close()
+
+    # The same app served by the node on the board: the role of its params, live data, e-stop.
+    board = browser.new_page()
+    errors: list[str] = []
+    board.on("pageerror", lambda e: errors.append(str(e)))
+    board.goto(f"http://127.0.0.1:{port}/")
+    board.wait_for_function("document.querySelector('#role').textContent === 'observer'")
+    assert "board sim" in (board.text_content("#device") or "")
+    board.wait_for_function("document.querySelector('#joints td.num').textContent !== '-'")
+    assert board.is_disabled("#arm")
+    board.wait_for_selector("#nodes tr[data-node=dashboard]", state="attached")
+    board.close()
+    assert errors == []
