@@ -20,6 +20,7 @@ SUITES = [
     "pattern",
     "recorder",
     "controllers",
+    "dashboard",
 ]
 
 

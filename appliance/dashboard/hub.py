@@ -272,6 +272,8 @@ class Hub:
                     for k, v in counts.items()
                 }
                 rate_at, rate_counts = now, counts
+            if not self.clients:
+                continue  # nobody to draw for: Zenoh's callbacks only keep the newest sample
             frame = self._frame()
             if frame is not None or rates:
                 self._broadcast({"t": "live", **(frame or {}), "rates": rates})
