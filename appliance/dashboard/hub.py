@@ -1,9 +1,11 @@
 """What the dashboard knows of one appliance, and the one way it sends commands.
 
-Data arrives at 100 Hz on Zenoh; the page needs a few tens of frames a second. Zenoh's callbacks
-only keep the newest payload of each topic (a dict assignment: cheap at any rate); a tick at the
-display rate decodes those and sends one JSON frame to every page. So the server's cost follows
-the display rate, not the data rate, and a slow page never queues 100 Hz of data.
+Data arrives at 100 Hz on Zenoh; the page needs a few tens of frames a second. The data topics'
+subscribers keep only their newest samples in Zenoh's own ring buffer (Rust: no Python runs per
+sample); a tick at the display rate takes the newest of each topic, decodes it and sends one JSON
+frame to every page. So the server's cost follows the display rate, not the data rate (what
+matters on the board), and a slow page never queues 100 Hz of data. Rates come from the
+publishers' sequence numbers (the rmw_zenoh attachment), not from counting samples.
 
 Events a person must not miss (watchdog state, trigger edges, pattern state) go out at once.
 The supervisor's status (nodes, bus, watchdog details) is polled once a second.
@@ -21,14 +23,13 @@ import csv
 import json
 import math
 import os
-import threading
 import time
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import structlog
+import zenoh
 from exolink import cdr, messaging, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.cli.remote import Refused, Remote
@@ -41,6 +42,9 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 TRIGGER = "exolink_msgs/msg/TriggerEvent"
 PATTERN_STATE = "exolink_msgs/msg/PatternState"
+# Samples a data subscriber keeps between ticks (the newest win): one per topic it matches,
+# with room for MACCEPA boards' three topics each.
+RING = 64
 
 
 def _patterns_dir() -> Path:
@@ -59,11 +63,9 @@ class Hub:
         self.status_period_s = status_period_s
         self.role = remote.user if remote.user in roles.ROLES else roles.ADMIN
         self.clients: set[Any] = set()
-        self._latest: dict[str, tuple[bytes, int]] = {}  # key -> (payload, arrival counter)
-        self._arrivals: dict[str, int] = {}  # topic -> samples received (rates on the page)
-        self._sent_arrival: dict[str, int] = {}
-        self._latest_types: dict[str, str] = {}  # MACCEPA topics: their message types
-        self._lock = threading.Lock()
+        self._rings: list[Any] = []  # data subscribers with a ring buffer, drained per tick
+        self._seq: dict[str, int] = {}  # topic -> newest publisher sequence number seen
+        self._names: dict[str, tuple[str, str]] = {}  # key -> (topic, type), parsed once
         self._subs: list[Any] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -101,13 +103,12 @@ class Hub:
         device = r.device  # discovered here, in a thread: it waits for the appliance
         key = lambda topic, typename: messaging.topic_key(r.domain, r.ns, topic, typename)  # noqa: E731
         s = r.session
-        for topic, typename in (("joint_states", JOINT_STATE), ("foot_switches", FOOT_SWITCHES)):
-            self._subs.append(s.declare_subscriber(key(topic, typename), self._keeper(topic)))
-        self._subs.append(
-            s.declare_subscriber(
-                messaging.topic_selector(r.domain, r.ns, "maccepa/*/*"), self._maccepa
-            )
-        )
+        for selector in (
+            key("joint_states", JOINT_STATE),
+            key("foot_switches", FOOT_SWITCHES),
+            messaging.topic_selector(r.domain, r.ns, "maccepa/*/*"),
+        ):
+            self._rings.append(s.declare_subscriber(selector, zenoh.handlers.RingChannel(RING)))
         self._subs.append(
             s.declare_subscriber(key(WATCHDOG_TOPIC, WATCHDOG_TYPE), self._on_watchdog)
         )
@@ -118,34 +119,14 @@ class Hub:
         log.info("dashboard_connected", device=device, at=r.at, role=self.role)
 
     def _unsubscribe(self) -> None:
-        for sub in self._subs:
+        for sub in self._subs + self._rings:
             with contextlib.suppress(Exception):  # the session may already be closed
                 sub.undeclare()
         self._subs.clear()
+        self._rings.clear()
         self._drop_token()
 
     # --- Zenoh callbacks (Zenoh's threads: keep them short) -------------------------------
-
-    def _keeper(self, topic: str) -> Callable[[Any], None]:
-        def keep(sample: Any) -> None:
-            with self._lock:
-                n = self._arrivals.get(topic, 0) + 1
-                self._arrivals[topic] = n
-                self._latest[topic] = (sample.payload.to_bytes(), n)
-
-        return keep
-
-    def _maccepa(self, sample: Any) -> None:
-        try:
-            topic, typename = messaging.parse_key(str(sample.key_expr))
-        except ValueError:
-            return
-        name = topic.split("maccepa/", 1)[-1]  # h2/maccepa/b0/positions -> b0/positions
-        with self._lock:
-            n = self._arrivals.get(name, 0) + 1
-            self._arrivals[name] = n
-            self._latest[name] = (sample.payload.to_bytes(), n)
-            self._latest_types[name] = typename
 
     def _emit(self, message: dict[str, Any]) -> None:
         """From a Zenoh thread: send an event to every page now."""
@@ -256,46 +237,64 @@ class Hub:
     async def _tick(self) -> None:
         period = 1.0 / self.rate_hz
         next_at = time.monotonic()
-        rate_at, rate_counts = time.monotonic(), dict(self._arrivals)
+        rate_at, rate_seq = time.monotonic(), dict(self._seq)
         rates: dict[str, float] = {}
         while True:
             next_at += period
             await asyncio.sleep(max(0.0, next_at - time.monotonic()))
             if time.monotonic() - next_at > period:  # fell behind (a busy CPU): skip, not burst
                 next_at = time.monotonic()
+            newest = self._drain()
             now = time.monotonic()
             if now - rate_at >= 1.0:
-                with self._lock:
-                    counts = dict(self._arrivals)
                 rates = {
-                    k: round((v - rate_counts.get(k, 0)) / (now - rate_at), 1)
-                    for k, v in counts.items()
+                    k: round(max(0, v - rate_seq.get(k, v)) / (now - rate_at), 1)
+                    for k, v in self._seq.items()
                 }
-                rate_at, rate_counts = now, counts
+                rate_at, rate_seq = now, dict(self._seq)
             if not self.clients:
-                continue  # nobody to draw for: Zenoh's callbacks only keep the newest sample
-            frame = self._frame()
+                continue  # nobody to draw for: nothing decoded
+            frame = self._frame(newest)
             if frame is not None or rates:
                 self._broadcast({"t": "live", **(frame or {}), "rates": rates})
 
-    def _frame(self) -> dict[str, Any] | None:
-        with self._lock:
-            fresh = {k: v for k, v in self._latest.items() if self._sent_arrival.get(k) != v[1]}
-            for k, (_p, n) in fresh.items():
-                self._sent_arrival[k] = n
-            types = dict(self._latest_types)
-        if not fresh:
+    def _drain(self) -> dict[str, tuple[str, Any]]:
+        """The newest sample of each data topic since the last tick: topic -> (type, sample)."""
+        newest: dict[str, tuple[str, Any]] = {}
+        for sub in self._rings:
+            while (sample := sub.try_recv()) is not None:
+                key = str(sample.key_expr)
+                if (named := self._names.get(key)) is None:
+                    try:
+                        topic, typename = messaging.parse_key(key)
+                    except ValueError:
+                        continue
+                    # h2/maccepa/b0/positions -> maccepa/b0/positions
+                    named = self._names[key] = (topic.split("/", 1)[-1], typename)
+                name, typename = named
+                newest[name] = (typename, sample)
+                if sample.attachment is not None:
+                    with contextlib.suppress(ValueError):
+                        self._seq[name] = messaging.decode_attachment(sample.attachment.to_bytes())[
+                            0
+                        ]
+        return newest
+
+    def _frame(self, newest: dict[str, tuple[str, Any]]) -> dict[str, Any] | None:
+        if not newest:
             return None
         out: dict[str, Any] = {"now_ns": time.time_ns()}
-        for name, (payload, _n) in fresh.items():
+        for name, (typename, sample) in newest.items():
+            payload = sample.payload.to_bytes()
             try:
                 if name == "joint_states":
                     out["js"] = _joint_state(payload)
                 elif name == "foot_switches":
                     out["fs"] = _foot_switches(payload)
-                elif name in types:
-                    out.setdefault("maccepa", {})[name] = _plain(
-                        messaging.deserialize(payload, types[name])
+                elif name.startswith("maccepa/"):
+                    board_topic = name.removeprefix("maccepa/")  # b0/positions
+                    out.setdefault("maccepa", {})[board_topic] = _plain(
+                        messaging.deserialize(payload, typename)
                     )
             except Exception as exc:  # one bad sample must not stop the page
                 log.warning("dashboard_decode_failed", topic=name, error=str(exc))
