@@ -191,8 +191,13 @@ def test_pages_load_and_the_pattern_moves_numbers_and_plot(dash: Dash) -> None:
     values = page.evaluate("exolinkPlots.angles.data[1].filter(v => v != null)")
     assert max(values) - min(values) > 5, values[-20:]
 
+    # A trigger edge: counted, time since it shown (the thesis' "reset to zero"), marked.
+    page.click("#fire")
+    page.wait_for_function("document.querySelector('#since-trigger').textContent.endsWith(' s')")
+    assert dash.text("#trigger-count") == "1"
+    page.wait_for_timeout(1000)
     dash.shot("live")
-    for name in PAGES[1:]:
+    for name in PAGES[1:-1]:
         dash.go(name)
         page.wait_for_timeout(500)  # let the page's plot settle for the picture
         dash.shot(name)
@@ -286,6 +291,12 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     assert href
     body = page.request.get(dash.url.rstrip("/") + href).body()
     assert body[:8] == b"\x89MCAP0\r\n"
+    page.click("#rec-files button.plot-file")
+    page.wait_for_function(
+        "document.querySelector('#rec-plot-file').textContent.includes('points')"
+    )
+    assert page.evaluate("exolinkPlots.recording.data[0].length") > 10
+    dash.shot("recording")
     # A file the recorder did not list is never served.
     assert page.request.get(dash.url + "api/recordings/download?file=/etc/passwd").status == 404
     assert dash.errors == []

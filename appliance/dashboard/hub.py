@@ -392,6 +392,35 @@ class Hub:
         return [[int(r[i]) for i in order] for r in rows[1:] if len(r) == 6]
 
 
+def recording_plot(path: str, max_points: int = 2000) -> dict[str, Any]:
+    """A finished recording's joint angles (deg, every n-th message up to max_points) and its
+    trigger edges, seconds from the first message: the Recording page's plot."""
+    from exolink.recording import decode, info, iter_messages
+
+    i = info(path)
+    topics = [t for t in i.topics if t.endswith("/joint_states") and "/replay/" not in t]
+    if not topics:
+        return {"t": [], "pos_deg": [], "triggers_s": [], "joints": []}
+    step = max(1, i.topics[topics[0]]["count"] // max_points)
+    t: list[float] = []
+    pos: list[list[float]] = []
+    names: list[str] = []
+    for n, (schema, _channel, m) in enumerate(iter_messages(path, topics=topics[:1])):
+        if n % step:
+            continue
+        msg = decode(schema, m.data)
+        t.append(messaging.stamp_ns(msg.header.stamp) / 1e9)
+        pos.append([round(math.degrees(v), 2) for v in msg.position.tolist()])
+        names = names or list(msg.name)
+    t0 = t[0] if t else 0.0
+    return {
+        "t": [round(x - t0, 3) for x in t],
+        "joints": names,
+        "pos_deg": [list(col) for col in zip(*pos, strict=True)] if pos else [],
+        "triggers_s": [round(x / 1e9 - t0, 3) for x in i.triggers],
+    }
+
+
 def _ignore_result(task: asyncio.Future[Any]) -> None:
     if not task.cancelled():
         task.exception()  # a page gone mid-send: its socket's close handler removes it

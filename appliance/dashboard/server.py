@@ -17,6 +17,7 @@ from typing import Any
 
 import structlog
 from aiohttp import WSMsgType, web
+from exolink.dashboard import hub as hub_module
 from exolink.dashboard.hub import Hub
 
 log = structlog.get_logger("exolink.dashboard")
@@ -101,7 +102,7 @@ async def pattern_points(request: web.Request) -> web.StreamResponse:
     return web.json_response({"ok": points is not None, "points": points})
 
 
-async def download(request: web.Request) -> web.StreamResponse:
+def _recording(request: web.Request) -> Path:
     """A recording the recorder lists, when its file is on this machine (the board node, or
     a laptop running the sim); a name the recorder did not list is never opened."""
     hub = request.app[HUB]
@@ -115,9 +116,25 @@ async def download(request: web.Request) -> web.StreamResponse:
             text=f"{name} is on the board, not here: copy it with "
             f"scp exo@<board>:{name} . (the board's own dashboard serves it)"
         )
+    return path
+
+
+async def download(request: web.Request) -> web.StreamResponse:
+    path = _recording(request)
     return web.FileResponse(
         path, headers={"Content-Disposition": f'attachment; filename="{path.name}"'}
     )
+
+
+async def recording_plot(request: web.Request) -> web.StreamResponse:
+    from exolink.recording import RecordingError
+
+    path = _recording(request)
+    try:
+        data = await asyncio.to_thread(hub_module.recording_plot, str(path))
+    except RecordingError as exc:
+        return web.json_response({"ok": False, "error": str(exc)})
+    return web.json_response({"ok": True, **data})
 
 
 def make_app(hub: Hub) -> web.Application:
@@ -131,6 +148,7 @@ def make_app(hub: Hub) -> web.Application:
     app.router.add_get("/api/params", params)
     app.router.add_get("/api/pattern/points", pattern_points)
     app.router.add_get("/api/recordings/download", download)
+    app.router.add_get("/api/recordings/plot", recording_plot)
     app.router.add_static("/static/", STATIC, append_version=False)
 
     async def on_startup(_app: web.Application) -> None:

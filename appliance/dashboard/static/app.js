@@ -143,7 +143,7 @@ function setupPlots() {
 
 function resizePlots() {
   for (const [k, p] of Object.entries(plots)) {
-    const el = $(k === "angles" ? "#plot-angles" : k === "torques" ? "#plot-torques" : "#plot-pattern");
+    const el = $({ angles: "#plot-angles", torques: "#plot-torques", pattern: "#plot-pattern", recording: "#plot-recording" }[k]);
     if (el.clientWidth) p.setSize({ width: el.clientWidth, height: p.height });
   }
 }
@@ -436,9 +436,36 @@ function onRecord(r) {
     const li = document.createElement("li"), a = document.createElement("a");
     a.href = "/api/recordings/download?file=" + encodeURIComponent(f);
     a.textContent = f;
-    li.appendChild(a);
+    const b = document.createElement("button");
+    b.textContent = "plot"; b.className = "small plot-file";
+    b.addEventListener("click", () => plotRecording(f));
+    li.append(a, " ", b);
     return li;
   }));
+}
+
+async function plotRecording(file) {
+  $("#rec-plot-file").textContent = "loading " + file;
+  const r = await (await fetch("/api/recordings/plot?file=" + encodeURIComponent(file))).json();
+  if (!r.ok) { $("#rec-plot-file").textContent = "cannot plot: " + r.error; return; }
+  $("#rec-plot-file").textContent = `${file}: ${r.t.length} points, ${r.triggers_s.length} triggers`;
+  const el = $("#plot-recording");
+  if (plots.recording) plots.recording.destroy();
+  const marks = (u) => {
+    const ctx = u.ctx;
+    ctx.save(); ctx.strokeStyle = "#111"; ctx.setLineDash([4, 4]);
+    for (const t of r.triggers_s) {
+      const x = u.valToPos(t, "x", true);
+      ctx.beginPath(); ctx.moveTo(x, u.bbox.top); ctx.lineTo(x, u.bbox.top + u.bbox.height); ctx.stroke();
+    }
+    ctx.restore();
+  };
+  plots.recording = new uPlot({
+    width: el.clientWidth || 600, height: 220, scales: { x: { time: false } },
+    series: [{ label: "s" }].concat(r.joints.map((j, i) => ({ label: j, stroke: COLORS[i] }))),
+    axes: [{ label: "s since start" }, { label: "deg", size: 50 }],
+    legend: { live: false }, hooks: { draw: [marks] },
+  }, [r.t].concat(r.pos_deg), el);
 }
 
 // --- roles -----------------------------------------------------------------------------------
