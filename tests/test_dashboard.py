@@ -150,7 +150,8 @@ class Dash:
         return self.text("#cmd-result")
 
     def close(self) -> None:
-        self.page.close()
+        if not self.page.is_closed():
+            self.page.close()
 
 
 @pytest.fixture
@@ -209,6 +210,14 @@ def test_pages_load_and_the_pattern_moves_numbers_and_plot(dash: Dash) -> None:
     page.click("#page-pattern button[data-argv*=stop]")
     page.wait_for_function("document.querySelector('#pattern-state dd').textContent === 'stopped'")
     assert dash.errors == []
+
+    # The open page is the operator's presence: closing it while the pattern runs trips.
+    page.click("#page-pattern button[data-argv*=start]")
+    dash.confirm()
+    page.wait_for_function("document.querySelector('#pattern-state dd').textContent === 'running'")
+    assert dash.app.status()["watchdog"]["state"] == "armed"
+    page.close()
+    wait_for(lambda: dash.app.status()["watchdog"]["reason"] == "operator lost", timeout=15)
 
 
 def test_refused_command_sends_nothing_and_estop_disables_on_the_bus(dash: Dash, mbus) -> None:  # type: ignore[no-untyped-def]
