@@ -145,6 +145,11 @@ class Dash:
         self.page.wait_for_selector("#confirm[open]")
         self.page.click("#confirm-yes")
 
+    def send(self, button: str) -> None:
+        """Click a command button; result() then waits for this command's answer."""
+        self.page.evaluate("document.querySelector('#cmd-result').dataset.ok = ''")
+        self.page.click(button)
+
     def result(self) -> str:
         self.page.wait_for_function("document.querySelector('#cmd-result').dataset.ok")
         return self.text("#cmd-result")
@@ -229,15 +234,14 @@ def test_refused_command_sends_nothing_and_estop_disables_on_the_bus(dash: Dash,
 
     # Not a number: the CLI's parser refuses it in the dashboard, nothing is asked or sent.
     page.fill("#f-joint input[name=value]", "abc")
-    page.click("#f-joint button")
+    dash.send("#f-joint button")
     assert "'abc' is not a number" in dash.result()
     assert not page.is_visible("#confirm")
 
     # Out of range: asked (it is motion), then refused by the H2 sender, nothing on the bus.
-    page.evaluate("document.querySelector('#cmd-result').dataset.ok = ''")
     mbus.q.queue.clear()
     page.fill("#f-joint input[name=value]", "300")
-    page.click("#f-joint button")
+    dash.send("#f-joint button")
     dash.confirm()
     out = dash.result()
     assert "refused" in out and "r_knee" in out, out
@@ -283,6 +287,20 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
         " !== String(pid)",
         arg=[row, pid],
     )
+    # A stopped critical node blocks arming: the refusal lists it; started again, Arm works.
+    sender = "#nodes tr[data-node=h2_sender]"
+    page.click(f"{sender} button[data-action=stop]")
+    wait_for(lambda: app.node("h2_sender")["state"] == "stopped", timeout=20)
+    page.click("#arm")
+    page.wait_for_function(
+        "document.querySelector('#notice').textContent.includes('critical node h2_sender is stopped')"
+    )
+    assert "Arm refused. Blockers:" in dash.text("#notice")
+    dash.shot("arm-refused")
+    page.click(f"{sender} button[data-action=start]")
+    wait_for(lambda: app.node("h2_sender")["state"] == "running", timeout=20)
+    wait_for(lambda: app.cli("arm").returncode == 0, timeout=20)
+
     page.select_option("#log-node", "timing_monitor")
     page.click("#log-load")
     page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
@@ -306,6 +324,14 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     )
     assert page.evaluate("exolinkPlots.recording.data[0].length") > 10
     dash.shot("recording")
+    # Another web site in the same browser can neither command nor read the live socket.
+    foreign = {"Origin": "http://evil.example", "Content-Type": "application/json"}
+    r = page.request.post(dash.url + "api/estop", data="{}", headers=foreign)
+    assert r.status == 403
+    assert (
+        page.request.get(dash.url + "ws", headers={"Origin": "http://evil.example"}).status == 403
+    )
+    assert page.request.post(dash.url + "api/estop", data="{}").status == 415  # not JSON typed
     # A file the recorder did not list is never served.
     assert page.request.get(dash.url + "api/recordings/download?file=/etc/passwd").status == 404
     assert dash.errors == []

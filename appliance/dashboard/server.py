@@ -27,16 +27,20 @@ HUB: web.AppKey[Hub] = web.AppKey("hub", Hub)
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
+def _foreign(request: web.Request) -> bool:
+    origin = request.headers.get("Origin")
+    return origin is not None and origin.split("://", 1)[-1] != request.host
+
+
 @web.middleware
 async def same_origin(request: web.Request, handler: Handler) -> web.StreamResponse:
-    """Commands only from the dashboard's own page: a JSON body and no foreign Origin, so
-    another web site open in the same browser cannot post an e-stop or a motion command."""
-    if request.method == "POST":
-        origin = request.headers.get("Origin")
-        if origin is not None and origin.split("://", 1)[-1] != request.host:
-            return web.json_response({"ok": False, "error": "cross-origin request"}, status=403)
-        if request.content_type != "application/json":
-            return web.json_response({"ok": False, "error": "JSON body expected"}, status=415)
+    """Commands and the live socket only for the dashboard's own page: a JSON body and no
+    foreign Origin, so another web site open in the same browser can neither post a command
+    (an e-stop, a motion) nor read the live data (WebSockets are not bound by CORS)."""
+    if (request.method == "POST" or request.path == "/ws") and _foreign(request):
+        return web.json_response({"ok": False, "error": "cross-origin request"}, status=403)
+    if request.method == "POST" and request.content_type != "application/json":
+        return web.json_response({"ok": False, "error": "JSON body expected"}, status=415)
     return await handler(request)
 
 

@@ -237,7 +237,14 @@ function kv(dl, k, v) {
 }
 
 function onStatus(m) {
-  if (m.error) { $("#conn").textContent = "appliance: " + m.error; return; }
+  if (m.error) {
+    // A stale "ARMED" is worse than none: without an answer the state is unknown.
+    $("#conn").textContent = "appliance: " + m.error;
+    $("#banner").className = "banner unknown";
+    $("#wd-state").textContent = "NO ANSWER FROM THE APPLIANCE";
+    $("#wd-why").textContent = "(" + m.error + ")";
+    return;
+  }
   const s = m.status;
   if (!s) return;
   S.status = s;
