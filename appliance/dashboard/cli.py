@@ -1,13 +1,11 @@
 """`exolink dashboard`: the web app on this laptop, talking to the appliance like the CLI.
 
-aiohttp is imported when the command runs, not when `exolink` starts.
+asyncio and aiohttp are imported when the command runs, not whenever `exolink` starts.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
-import signal
 import sys
 
 from exolink.cli.errors import EXIT_USAGE, fail
@@ -16,6 +14,9 @@ from exolink.cli.remote import _guard, common
 
 @_guard
 def cmd_dashboard(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
     from exolink.cli.remote import remote
     from exolink.dashboard import server
     from exolink.dashboard.hub import Hub
