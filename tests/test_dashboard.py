@@ -305,6 +305,14 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     page.click("#log-load")
     page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
     assert "refused" not in dash.text("#logs")
+    # Params: read, then one set through the CLI's parser; a bad value is the node's refusal.
+    page.click("#params-load")
+    page.wait_for_function("document.querySelector('#logs').textContent.includes('ids')")
+    page.fill("#f-param input[name=key]", "nosuch")
+    page.fill("#f-param input[name=value]", "1")
+    page.click("#f-param button")
+    page.wait_for_function("document.querySelector('#logs').textContent.includes('refused')")
+    assert "no param 'nosuch'" in dash.text("#logs") or "nosuch" in dash.text("#logs")
 
     dash.go("recording")
     page.fill("#labels", "subject=S01 session=dash")

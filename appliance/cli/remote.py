@@ -605,6 +605,19 @@ def cmd_watchdog(args: argparse.Namespace) -> int:
     return 0
 
 
+def params_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The params request of a parsed `exolink params NODE [--set KEY VALUE]`: a VALUE that
+    is JSON is taken as such (3, true, [1, 2]), anything else as text."""
+    if not args.set:
+        return {}
+    key, raw = args.set
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return {"set": {"key": key, "value": value}}
+
+
 @_guard
 def cmd_params(args: argparse.Namespace) -> int:
     with remote(args) as r:
@@ -612,12 +625,7 @@ def cmd_params(args: argparse.Namespace) -> int:
         if args.node not in names:
             return fail(f"no node {args.node} (nodes: {', '.join(names)})", EXIT_REFUSED)
         if args.set:
-            key, raw = args.set
-            try:
-                value = json.loads(raw)
-            except json.JSONDecodeError:
-                value = raw
-            reply = r.call("nodes", args.node, "params", body={"set": {"key": key, "value": value}})
+            reply = r.call("nodes", args.node, "params", body=params_body(args))
             sys.stdout.write(f"{args.node}.{reply['key']} = {json.dumps(reply['value'])}\n")
         else:
             _print_json(r.call("nodes", args.node, "params")["params"])

@@ -16,7 +16,7 @@ from typing import Any
 from exolink.cli import main as cli_main
 from exolink.cli.motion import maccepa_body, pattern_body, timing_body
 from exolink.cli.recordings import record_body
-from exolink.cli.remote import h2_body
+from exolink.cli.remote import h2_body, params_body
 
 
 class CommandError(Exception):
@@ -37,7 +37,7 @@ class _RaisingParser(cli_main.Parser):
 _FORBIDDEN_FLAGS = ("--at", "--device", "--zenoh-config", "--timeout", "--domain", "--ns", "-h")
 # Commands the page may send (the rest of the CLI reads files or holds a terminal).
 ALLOWED = {"send", "maccepa", "pattern", "record", "arm", "disarm", "estop"}
-ALLOWED |= {"start", "stop", "restart", "trigger", "timing"}
+ALLOWED |= {"start", "stop", "restart", "trigger", "timing", "params"}
 # Sub-actions with nothing to do in a page: a terminal plot, a local file upload.
 _REFUSED_ACTIONS = {("maccepa", "watch"), ("pattern", "load"), ("record", "status")}
 
@@ -108,6 +108,8 @@ def _route(argv: tuple[str, ...], args: argparse.Namespace) -> Command:
         return Command(argv, ("watchdog",), {"action": cmd}, False)
     if cmd in ("start", "stop", "restart"):
         return Command(argv, ("control",), {"action": cmd, "node": args.node}, False)
+    if cmd == "params":
+        return Command(argv, ("nodes", args.node, "params"), params_body(args), False)
     if cmd == "trigger":
         return Command(argv, ("trigger",), {"action": "fire"} if args.action else {}, False)
     # timing: the monitor measures for `seconds` before it answers

@@ -325,6 +325,12 @@ $("#params-load").addEventListener("click", async () => {
   const r = await (await fetch(`/api/params?node=${encodeURIComponent(node)}`)).json();
   $("#logs").textContent = r.ok ? JSON.stringify(r.params, null, 2) : "refused: " + r.error;
 });
+$("#f-param").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  const f = e.target, node = $("#log-node").value;
+  const r = await run(["params", node, "--set", val(f, "key"), val(f, "value")], $("#logs"));
+  if (r.ok) $("#logs").textContent = `${node}.${r.reply.key} = ${JSON.stringify(r.reply.value)}`;
+});
 $("#log-follow").addEventListener("change", (e) => {
   clearInterval(S.followTimer);
   if (e.target.checked) { loadLogs(); S.followTimer = setInterval(loadLogs, 2000); }
@@ -486,6 +492,7 @@ function applyRole() {
     b.title = rank < need ? `this login is ${S.role}: needs ${need === 2 ? "admin" : "operator"} (E-STOP works)` : "";
   }
   for (const f of $$("form.card")) for (const el of f.elements) el.disabled = rank < 1;
+  for (const el of $("#f-param").elements) el.disabled = rank < 2;
 }
 
 // --- connection ------------------------------------------------------------------------------
