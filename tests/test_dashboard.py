@@ -305,6 +305,17 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     page.click("#log-load")
     page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
     assert "refused" not in dash.text("#logs")
+    # Follow: a line the node writes after the box is ticked arrives by itself.
+    page.select_option("#log-node", "h2_sender")
+    page.check("#log-follow")
+    page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
+    assert "command_sent" not in dash.text("#logs")
+    app.cli("send", "stream", "on")  # h2_sender logs each command it sends
+    page.wait_for_function(
+        "document.querySelector('#logs').textContent.includes('command_sent')", timeout=20_000
+    )
+    page.uncheck("#log-follow")
+    page.select_option("#log-node", "timing_monitor")
     # Params: read, then one set through the CLI's parser; a bad value is the node's refusal.
     page.click("#params-load")
     page.wait_for_function("document.querySelector('#logs').textContent.includes('ids')")

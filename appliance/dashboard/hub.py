@@ -25,6 +25,7 @@ import math
 import os
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,7 @@ class Hub:
         self._rings: list[Any] = []  # data subscribers with a ring buffer, drained per tick
         self._seq: dict[str, int] = {}  # topic -> newest publisher sequence number seen
         self._names: dict[str, tuple[str, str]] = {}  # key -> (topic, type), parsed once
+        self._follows: dict[str, tuple[Any, set[Any]]] = {}  # node -> (log subscriber, pages)
         self._subs: list[Any] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -122,6 +124,10 @@ class Hub:
         for sub in self._subs + self._rings:
             with contextlib.suppress(Exception):  # the session may already be closed
                 sub.undeclare()
+        for sub, _pages in self._follows.values():
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._follows.clear()
         self._subs.clear()
         self._rings.clear()
         self._drop_token()
@@ -199,9 +205,44 @@ class Hub:
 
     def detach(self, ws: Any) -> None:
         self.clients.discard(ws)
+        self.follow(ws, None)
         if not self.clients:
             # Nobody is watching: a running pattern must not go on without its operator.
             self._drop_token()
+
+    def follow(self, ws: Any, node: str | None) -> None:
+        """Send ``node``'s log lines to this page as they come (None: stop). One subscriber
+        per followed node, shared by the pages following it; the board's access control gives
+        the log keys to admin logins only (`exolink logs -f` does the same)."""
+        for name, (sub, pages) in list(self._follows.items()):
+            if ws in pages and name != node:
+                pages.discard(ws)
+                if not pages:
+                    with contextlib.suppress(Exception):
+                        sub.undeclare()
+                    del self._follows[name]
+        if node is None or not node.isidentifier():
+            return
+        if node not in self._follows:
+            key = messaging.mgmt_key(self.remote.device, "log", node)
+            sub = self.remote.session.declare_subscriber(key, self._log_line(node))
+            self._follows[node] = (sub, set())
+        self._follows[node][1].add(ws)
+
+    def _log_line(self, node: str) -> Callable[[Any], None]:
+        def on(sample: Any) -> None:
+            line = sample.payload.to_bytes().decode(errors="replace")
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.call_soon_threadsafe(self._send_log, node, line)
+
+        return on
+
+    def _send_log(self, node: str, line: str) -> None:
+        pages = self._follows.get(node, (None, set()))[1]
+        text = json.dumps({"t": "log", "node": node, "line": line})
+        for ws in list(pages):
+            if not ws.closed:
+                asyncio.ensure_future(ws.send_str(text)).add_done_callback(_ignore_result)
 
     def _declare_token(self) -> None:
         """The operator's presence, held while a page is open (as `exolink pattern start`

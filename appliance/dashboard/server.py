@@ -58,9 +58,22 @@ async def websocket(request: web.Request) -> web.StreamResponse:
         async for msg in ws:
             if msg.type == WSMsgType.ERROR:
                 break
+            if msg.type == WSMsgType.TEXT:
+                _from_page(hub, ws, msg.data)
     finally:
         hub.detach(ws)
     return ws
+
+
+def _from_page(hub: Hub, ws: web.WebSocketResponse, text: str) -> None:
+    """What a page asks over its socket: only which node's log it follows."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError:
+        return
+    if isinstance(data, dict) and data.get("t") == "follow":
+        node = data.get("node")
+        hub.follow(ws, node if isinstance(node, str) else None)
 
 
 async def _body(request: web.Request) -> dict[str, Any]:

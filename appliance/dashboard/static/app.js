@@ -11,7 +11,7 @@ const S = {
   role: null, joints: [], windowS: 10, ws: null, triggers: [], lastTrigger: null,
   t: [], pos: [[], [], [], [], [], []], eff: [[], [], [], [], [], []], dirty: false,
   latestJs: null, pattern: null, patternPoints: null, patternFile: null, status: null,
-  record: null, followTimer: null,
+  record: null,
 };
 // Read by the browser tests and the benchmark: updates drawn and CAN frame -> drawn latency.
 window.exolinkStats = { frames: 0, drawn: 0, lat: [], errors: 0 };
@@ -331,10 +331,23 @@ $("#f-param").addEventListener("submit", async (e) => {
   const r = await run(["params", node, "--set", val(f, "key"), val(f, "value")], $("#logs"));
   if (r.ok) $("#logs").textContent = `${node}.${r.reply.key} = ${JSON.stringify(r.reply.value)}`;
 });
-$("#log-follow").addEventListener("change", (e) => {
-  clearInterval(S.followTimer);
-  if (e.target.checked) { loadLogs(); S.followTimer = setInterval(loadLogs, 2000); }
-});
+// Follow: the recent lines once, then each new line as the node writes it (over the socket).
+async function follow() {
+  const on = $("#log-follow").checked;
+  if (on) await loadLogs();  // first, so a streamed line is never overwritten by the fetch
+  if (S.ws && S.ws.readyState === 1) S.ws.send(JSON.stringify({ t: "follow", node: on ? $("#log-node").value : null }));
+}
+$("#log-follow").addEventListener("change", follow);
+$("#log-node").addEventListener("change", () => { if ($("#log-follow").checked) follow(); });
+
+function onLog(m) {
+  if (!$("#log-follow").checked || m.node !== $("#log-node").value) return;
+  const pre = $("#logs");
+  const atEnd = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
+  pre.textContent += "\n" + m.line;
+  if (pre.textContent.length > 200000) pre.textContent = pre.textContent.slice(-100000);
+  if (atEnd) pre.scrollTop = pre.scrollHeight;
+}
 
 // --- commands --------------------------------------------------------------------------------
 
@@ -538,9 +551,10 @@ function connect() {
       case "trigger": onTrigger(m); break;
       case "pattern": onPattern(m); break;
       case "record": onRecord(m); break;
+      case "log": onLog(m); break;
     }
   };
-  ws.onopen = () => { $("#conn").textContent = "online"; };
+  ws.onopen = () => { $("#conn").textContent = "online"; if ($("#log-follow").checked) follow(); };
   ws.onclose = () => {
     $("#conn").textContent = "offline: reconnecting";
     $("#banner").className = "banner unknown";
