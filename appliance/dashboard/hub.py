@@ -10,9 +10,9 @@ publishers' sequence numbers (the rmw_zenoh attachment), not from counting sampl
 Events a person must not miss (watchdog state, trigger edges, pattern state) go out at once.
 The supervisor's status (nodes, bus, watchdog details) is polled once a second.
 
-Commands go through the laptop client (exolink.cli.remote.Remote.call), parsed by the CLI's own
-parser (exolink.dashboard.commands): a refusal is the appliance's own text, and a command the
-parser refuses is never sent.
+Commands go out on the laptop client's session and login (exolink.cli.remote.Remote), parsed by
+the CLI's own parser (exolink.dashboard.commands): a refusal is the appliance's own text, and a
+command the parser refuses is never sent.
 """
 
 from __future__ import annotations
@@ -79,7 +79,6 @@ class Hub:
         self.trigger: dict[str, Any] | None = None
         self._token: Any = None
         self.operator = f"dashboard-{uuid.uuid4().hex[:8]}"
-        self.frames_sent = 0
 
     # --- lifecycle ------------------------------------------------------------------------
 
@@ -103,8 +102,11 @@ class Hub:
     def _subscribe(self) -> None:
         r = self.remote
         device = r.device  # discovered here, in a thread: it waits for the appliance
-        key = lambda topic, typename: messaging.topic_key(r.domain, r.ns, topic, typename)  # noqa: E731
         s = r.session
+
+        def key(topic: str, typename: str) -> str:
+            return messaging.topic_key(r.domain, r.ns, topic, typename)
+
         for selector in (
             key("joint_states", JOINT_STATE),
             key("foot_switches", FOOT_SWITCHES),
@@ -271,7 +273,6 @@ class Hub:
             # send_str only queues on a healthy socket; a stalled page is dropped, not waited for
             task = asyncio.ensure_future(ws.send_str(text))
             task.add_done_callback(_ignore_result)
-        self.frames_sent += 1
 
     # --- decimation -----------------------------------------------------------------------
 
