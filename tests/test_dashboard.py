@@ -196,6 +196,8 @@ def test_pages_load_and_the_pattern_moves_numbers_and_plot(dash: Dash) -> None:
     wait_for(lambda: page.evaluate("exolinkPlots.angles.data[1].length") != span0, timeout=10)
     values = page.evaluate("exolinkPlots.angles.data[1].filter(v => v != null)")
     assert max(values) - min(values) > 5, values[-20:]
+    # MACCEPA board 0's link and lever plotted as they come (the thesis' positionsGraph).
+    wait_for(lambda: page.evaluate("exolinkPlots.maccepa?.data[0].length ?? 0") > 5, timeout=10)
 
     # A trigger edge: counted, time since it shown (the thesis' "reset to zero"), marked.
     page.click("#fire")

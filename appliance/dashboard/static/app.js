@@ -143,7 +143,10 @@ function setupPlots() {
 
 function resizePlots() {
   for (const [k, p] of Object.entries(plots)) {
-    const el = $({ angles: "#plot-angles", torques: "#plot-torques", pattern: "#plot-pattern", recording: "#plot-recording" }[k]);
+    const el = $({
+      angles: "#plot-angles", torques: "#plot-torques", pattern: "#plot-pattern",
+      recording: "#plot-recording", maccepa: "#plot-maccepa",
+    }[k]);
     if (el.clientWidth) p.setSize({ width: el.clientWidth, height: p.height });
   }
 }
@@ -226,8 +229,45 @@ function onLive(m) {
       kv(dl, k, vals);
     }
     $("#maccepa").appendChild(dl);
+    maccepaPoints(m.maccepa);
   }
   if (m.rates) S.rates = m.rates;
+}
+
+// The thesis' positionsGraph: each MACCEPA board's link 2 and lever arm over the last 10 s.
+const MAC = { boards: [], t: [], cols: [] };
+
+function maccepaPoints(update) {
+  const boards = Object.keys(update).filter((k) => k.endsWith("/positions")).sort();
+  if (!boards.length) return;
+  for (const b of boards) {
+    if (!MAC.boards.includes(b)) {  // a new board: start the plot again with its two lines
+      MAC.boards.push(b); MAC.boards.sort();
+      MAC.t = []; MAC.cols = MAC.boards.flatMap(() => [[], []]);
+      if (plots.maccepa) { plots.maccepa.destroy(); delete plots.maccepa; }
+    }
+  }
+  const stamp = update[boards[0]].stamp_ns / 1e9;
+  MAC.t.push(stamp);
+  MAC.boards.forEach((b, i) => {
+    const v = update[b] || (S.maccepa || {})[b] || {};
+    MAC.cols[2 * i].push(v.link_deg ?? null);
+    MAC.cols[2 * i + 1].push(v.lever_deg ?? null);
+  });
+  while (MAC.t.length && MAC.t[0] < stamp - 10) { MAC.t.shift(); for (const c of MAC.cols) c.shift(); }
+  const el = $("#plot-maccepa");
+  if (!plots.maccepa) {
+    const series = [{}].concat(MAC.boards.flatMap((b, i) => [
+      { label: b.split("/")[0] + " link", stroke: COLORS[(2 * i) % 6] },
+      { label: b.split("/")[0] + " lever", stroke: COLORS[(2 * i + 1) % 6], dash: [5, 3] },
+    ]));
+    plots.maccepa = new uPlot({
+      width: el.clientWidth || 300, height: 160, series, scales: { x: { time: true } },
+      axes: [{}, { label: "deg", size: 45 }], legend: { live: false },
+    }, [MAC.t].concat(MAC.cols), el);
+  } else if (!$("#page-live").hidden) {
+    plots.maccepa.setData([MAC.t].concat(MAC.cols));
+  }
 }
 
 function kv(dl, k, v) {
@@ -384,6 +424,11 @@ $("#pattern-select").addEventListener("click", () => {
   const js = $$("#pattern-joints input:checked").map((c) => c.value);
   if (!js.length) { notice("select at least one joint"); return; }
   run(["pattern", "select", ...js]);
+});
+$("#pattern-disable").addEventListener("click", () => {
+  const js = $$("#pattern-joints input:checked").map((c) => c.value);
+  if (!js.length) { notice("tick the joints to disable"); return; }
+  run(["pattern", "disable", ...js]);
 });
 $("#timing").addEventListener("click", async () => {
   const out = $("#timing-result");
