@@ -8,7 +8,7 @@ PYTEST_ARGS ?=
 # Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
 APT_WAIT := -o DPkg::Lock::Timeout=600
 
-.PHONY: install sim dist test test-kernel test-image image image-lock test-image-built overlays lint format bench bench-board lock dbc msgs clean
+.PHONY: install sim dist test browser test-kernel test-image image image-lock test-image-built overlays lint format bench bench-board lock dbc msgs clean
 
 install: $(STAMP)
 
@@ -30,7 +30,12 @@ dist: $(STAMP)
 	$(BIN)/python -m build --outdir dist .
 	@echo "laptop: pipx install $$(ls dist/exolink-*.whl)"
 
-test: $(STAMP)
+# Debian's chromium: the dashboard's browser tests drive it (tests/test_dashboard.py, playwright).
+browser:
+	@command -v chromium >/dev/null || { echo "chromium missing: installing Debian's"; \
+	  apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq chromium; }
+
+test: $(STAMP) browser
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

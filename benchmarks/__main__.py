@@ -21,6 +21,7 @@ SUITES = [
     "recorder",
     "controllers",
     "ros2",
+    "dashboard",
 ]
 
 

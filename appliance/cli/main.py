@@ -43,10 +43,11 @@ class Parser(argparse.ArgumentParser):
         self._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser:
+    """The whole command line; the dashboard parses its forms with a parser_class that raises."""
     from exolink.cli import board, bus_tools, motion, recordings, remote
 
-    parser = Parser(prog="exolink", description=__doc__)
+    parser = parser_class(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
     remote.add_global_options(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -99,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     motion.register(sub)
     recordings.register(sub)
     __import__("exolink.cli.controllers").cli.controllers.register(sub)
+    __import__("exolink.dashboard.cli").dashboard.cli.register(sub)
     return parser
 
 

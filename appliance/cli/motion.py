@@ -26,8 +26,8 @@ def _show(s: dict[str, Any]) -> str:
     )
 
 
-@_guard
-def cmd_pattern(args: argparse.Namespace) -> int:
+def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The pattern player request of a parsed `exolink pattern ...` (also the dashboard's)."""
     action = args.action
     body: dict[str, Any] = {"action": action}
     if action == "speed":
@@ -41,6 +41,12 @@ def cmd_pattern(args: argparse.Namespace) -> int:
             body["name"] = local.name
         else:
             body["file"] = args.file
+    return body
+
+
+@_guard
+def cmd_pattern(args: argparse.Namespace) -> int:
+    action, body = args.action, pattern_body(args)
     with remote(args) as r:
         if action != "start" or args.detach:
             sys.stdout.write(_show(r.call("pattern", body=body)) + "\n")
@@ -99,10 +105,8 @@ class _FakeCfg:
 # --- MACCEPA ----------------------------------------------------------------------------------
 
 
-@_guard
-def cmd_maccepa(args: argparse.Namespace) -> int:
-    if args.kind == "watch":
-        return _watch(args)
+def maccepa_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The MACCEPA bridge request of a parsed `exolink maccepa ...` (also the dashboard's)."""
     body: dict[str, Any] = {"board": args.board, "kind": args.kind}
     if args.kind == "gains":
         body |= {"kp": args.kp, "ki": args.ki, "kd": args.kd, "controller": args.controller}
@@ -110,8 +114,15 @@ def cmd_maccepa(args: argparse.Namespace) -> int:
         body |= {"value": args.value, "controller": args.controller}
     elif args.kind == "duty":
         body["value"] = args.value
+    return body
+
+
+@_guard
+def cmd_maccepa(args: argparse.Namespace) -> int:
+    if args.kind == "watch":
+        return _watch(args)
     with remote(args) as r:
-        reply = r.call("maccepa", body=body)
+        reply = r.call("maccepa", body=maccepa_body(args))
     sys.stdout.write("ok " + " ".join(reply["frames"]) + "\n")
     return 0
 
@@ -159,8 +170,8 @@ def _watch(args: argparse.Namespace) -> int:
 # --- timing -----------------------------------------------------------------------------------
 
 
-@_guard
-def cmd_timing(args: argparse.Namespace) -> int:
+def timing_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The timing monitor request of a parsed `exolink timing ...` (also the dashboard's)."""
     body: dict[str, Any] = {
         "id": args.id,
         "seconds": args.seconds,
@@ -169,6 +180,12 @@ def cmd_timing(args: argparse.Namespace) -> int:
     }
     if args.expected_ms is not None:
         body["expected_ms"] = args.expected_ms
+    return body
+
+
+@_guard
+def cmd_timing(args: argparse.Namespace) -> int:
+    body = timing_body(args)
     args.timeout = max(args.timeout, args.seconds + 5)
     with remote(args) as r:
         s = r.call("timing", body=body)

@@ -24,14 +24,20 @@ def _labels(items: list[str]) -> dict[str, str]:
     return out
 
 
-@_guard
-def cmd_record(args: argparse.Namespace) -> int:
+def record_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The recorder request of a parsed `exolink record ...`; ValueError names a bad label."""
     body: dict[str, Any] = {"action": args.action}
     if args.action == "start":
-        try:
-            body["labels"] = _labels(args.label or [])
-        except ValueError as exc:
-            return fail(str(exc), EXIT_USAGE)
+        body["labels"] = _labels(args.label or [])
+    return body
+
+
+@_guard
+def cmd_record(args: argparse.Namespace) -> int:
+    try:
+        body = record_body(args)
+    except ValueError as exc:
+        return fail(str(exc), EXIT_USAGE)
     with remote(args) as r:
         s = r.call("record", body=body)
     s.pop("ok", None)

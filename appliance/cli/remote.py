@@ -283,43 +283,38 @@ def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
     return 0
 
 
-@_guard
-def cmd_send(args: argparse.Namespace) -> int:
+def h2_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The h2_sender request of a parsed `exolink send ...` (also what the dashboard sends)."""
     what = args.what
-    if what in ("joint", "position"):
-        mode = args.mode if what == "joint" else "position"
-        body = {
+    if what in ("joint", "position", "stiffness"):
+        return {
             "kind": "joint",
             "joint": args.joint,
-            "mode": mode,
+            "mode": args.mode if what == "joint" else what,
             "setpoint": args.value,
             "stiffness": args.stiffness,
         }
-    elif what == "stiffness":
-        body = {
-            "kind": "joint",
-            "joint": args.joint,
-            "mode": "stiffness",
-            "setpoint": args.value,
-            "stiffness": args.stiffness,
-        }
-    elif what == "torque":
-        body = {"kind": "joint", "joint": args.joint, "mode": "torque", "setpoint": args.value}
-    elif what in ("disable", "stop"):
-        body = {
+    if what == "torque":
+        return {"kind": "joint", "joint": args.joint, "mode": "torque", "setpoint": args.value}
+    if what in ("disable", "stop"):
+        return {
             "kind": "joint",
             "joint": args.joint,
             "mode": "disabled" if what == "disable" else "stopped",
         }
-    elif what == "limits":
-        body = {"kind": "limits"}
+    if what == "limits":
+        body: dict[str, Any] = {"kind": "limits"}
         if args.min is not None:
             body["min"] = args.min
         if args.max is not None:
             body["max"] = args.max
-    else:  # stream
-        body = {"kind": "stream", "on": args.state == "on"}
-    return _h2_command(args, body)
+        return body
+    return {"kind": "stream", "on": args.state == "on"}
+
+
+@_guard
+def cmd_send(args: argparse.Namespace) -> int:
+    return _h2_command(args, h2_body(args))
 
 
 # --- registration ----------------------------------------------------------------------------
@@ -621,6 +616,19 @@ def cmd_watchdog(args: argparse.Namespace) -> int:
     return 0
 
 
+def params_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The params request of a parsed `exolink params NODE [--set KEY VALUE]`: a VALUE that
+    is JSON is taken as such (3, true, [1, 2]), anything else as text."""
+    if not args.set:
+        return {}
+    key, raw = args.set
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return {"set": {"key": key, "value": value}}
+
+
 @_guard
 def cmd_params(args: argparse.Namespace) -> int:
     with remote(args) as r:
@@ -628,12 +636,7 @@ def cmd_params(args: argparse.Namespace) -> int:
         if args.node not in names:
             return fail(f"no node {args.node} (nodes: {', '.join(names)})", EXIT_REFUSED)
         if args.set:
-            key, raw = args.set
-            try:
-                value = json.loads(raw)
-            except json.JSONDecodeError:
-                value = raw
-            reply = r.call("nodes", args.node, "params", body={"set": {"key": key, "value": value}})
+            reply = r.call("nodes", args.node, "params", body=params_body(args))
             sys.stdout.write(f"{args.node}.{reply['key']} = {json.dumps(reply['value'])}\n")
         else:
             _print_json(r.call("nodes", args.node, "params")["params"])

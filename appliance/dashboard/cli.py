@@ -1,0 +1,59 @@
+"""`exolink dashboard`: the web app on this laptop, talking to the appliance like the CLI.
+
+asyncio and aiohttp are imported when the command runs, not whenever `exolink` starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from exolink.cli.errors import EXIT_USAGE, fail
+from exolink.cli.remote import _guard, common
+
+
+@_guard
+def cmd_dashboard(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
+    from exolink.cli.remote import remote
+    from exolink.dashboard import server
+    from exolink.dashboard.hub import Hub
+
+    with remote(args) as r:
+        hub = Hub(r, rate_hz=args.rate)
+
+        def ready(url: str) -> None:
+            sys.stdout.write(f"dashboard on {url} (appliance {r.device} at {r.at}, {hub.role})\n")
+            sys.stdout.flush()
+            if not args.no_browser:
+                server.open_browser(url)
+
+        async def main() -> None:
+            stop = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, stop.set)
+            await server.serve(hub, args.host, args.port, stop, ready)
+
+        try:
+            asyncio.run(main())
+        except OSError as exc:  # the port is taken, the address is not this machine's
+            return fail(
+                f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}", EXIT_USAGE
+            )
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "dashboard",
+        parents=[common()],
+        help="the web dashboard on this laptop (http://127.0.0.1:8080)",
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="port to serve on (8080)")
+    p.add_argument("--no-browser", action="store_true", help="do not open a browser")
+    p.add_argument("--rate", type=float, default=25.0, help="frames per second to each page (25)")
+    p.set_defaults(func=cmd_dashboard)

@@ -1,0 +1,408 @@
+"""The dashboard in a real headless Chromium (Debian's), against a real sim appliance: what a
+person clicks reaches the bus, and what reaches the bus shows on the page. Frames are checked by
+an independent listener on the test's bus; screenshots of every page go to build/screenshots/."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from conftest import REPO, Appliance, collect, free_port, wait_for
+from exolink.config import bundled
+from exolink.dashboard import commands
+from exolink.protocol import h2
+from test_roles import board_logins
+
+SHOTS = REPO / "build" / "screenshots"
+PAGES = ["live", "commands", "pattern", "nodes", "recording"]
+
+
+# --- the command path without a browser -------------------------------------------------------
+
+
+def test_commands_are_parsed_by_the_cli_parser() -> None:
+    c = commands.parse(["send", "position", "r_knee", "30"])
+    assert c.path == ("h2", "command") and c.motion
+    assert c.body == {
+        "kind": "joint",
+        "joint": "r_knee",
+        "mode": "position",
+        "setpoint": 30,
+        "stiffness": 0,
+    }
+    assert not commands.parse(["send", "disable", "all"]).motion
+    assert commands.parse(["maccepa", "0", "gains", "--kp", "2"]).body["kp"] == 2
+    assert commands.parse(["record", "start", "--label", "s=1"]).body["labels"] == {"s": "1"}
+    assert commands.parse(["restart", "h2_reader"]).body == {
+        "action": "restart",
+        "node": "h2_reader",
+    }
+    bad = [
+        (["send", "position", "r_knee", "abc"], "'abc' is not a number"),
+        (["send", "limits", "--min", "1,2"], "need six comma-separated angles"),
+        (["record", "start", "--label", "nolabel"], "must be KEY=VALUE"),
+        (["up"], "not a dashboard command"),
+        (["status", "--at", "tcp/1.2.3.4:7447"], "not a dashboard command"),
+        (["send", "position", "r_knee", "3", "--at", "tcp/1.2.3.4:7447"], "own options"),
+        (["maccepa", "0", "watch"], "not a dashboard command"),
+        (["send", "--help"], "own options"),
+    ]
+    for argv, why in bad:
+        with pytest.raises(commands.CommandError, match=why):
+            commands.parse(argv)
+
+
+# --- a sim appliance, a dashboard and a browser ----------------------------------------------
+
+
+def _chromium() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        why = "Debian's chromium is not installed (make test installs it)"
+        if os.environ.get("CI"):
+            pytest.fail(why)
+        pytest.skip(why)
+    return exe
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    exe = _chromium()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
+        yield b
+        b.close()
+
+
+def _nodes(tmp_path: Path) -> list[dict[str, Any]]:
+    """The sim appliance, with deadlines for a loaded test host: the dashboard is under test."""
+    nodes = yaml.safe_load(bundled("sim").read_text())["nodes"]
+    for n in nodes:
+        if n["name"] == "recorder":
+            n["params"]["directory"] = str(tmp_path / "rec")
+        if n["name"] == "pattern_player":
+            n["heartbeat_deadline_ms"] = 500
+    return nodes
+
+
+class Dash:
+    """A running `exolink dashboard` and one page of it in the browser."""
+
+    def __init__(self, app: Appliance, spawn: Any, browser: Any, login: Path | None = None):
+        self.app = app
+        port = free_port()
+        self.url = f"http://127.0.0.1:{port}/"
+        opts = ["--zenoh-config", str(login)] if login else []
+        self.proc = spawn(
+            "dashboard", "--at", app.at, "--port", str(port), "--no-browser", *opts, name="dash"
+        )
+        wait_for(self._up, timeout=30, step=0.2)
+        self.errors: list[str] = []
+        self.page = browser.new_page(viewport={"width": 1280, "height": 900})
+        self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error" else None)
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        self.page.set_default_timeout(20_000)
+        self.page.goto(self.url)
+        self.page.wait_for_function("document.querySelector('#role').textContent !== '-'")
+
+    def _up(self) -> bool:
+        assert self.proc.p.poll() is None, self.proc.output()
+        try:
+            with urllib.request.urlopen(self.url, timeout=1) as r:
+                return r.status == 200
+        except OSError:
+            return False
+
+    def go(self, page: str) -> None:
+        self.page.click(f"nav a[data-page={page}]")
+        self.page.wait_for_selector(f"#page-{page}:not([hidden])")
+
+    def text(self, sel: str) -> str:
+        return str(self.page.text_content(sel) or "")
+
+    def shot(self, name: str) -> None:
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        self.page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
+
+    def banner(self, state: str) -> None:
+        self.page.wait_for_function(
+            f"document.querySelector('#banner').classList.contains('{state}')"
+        )
+
+    def arm(self) -> None:
+        self.page.click("#arm")
+        self.banner("armed")
+
+    def confirm(self) -> None:
+        self.page.wait_for_selector("#confirm[open]")
+        self.page.click("#confirm-yes")
+
+    def send(self, button: str) -> None:
+        """Click a command button; result() then waits for this command's answer."""
+        self.page.evaluate("document.querySelector('#cmd-result').dataset.ok = ''")
+        self.page.click(button)
+
+    def result(self) -> str:
+        self.page.wait_for_function("document.querySelector('#cmd-result').dataset.ok")
+        return self.text("#cmd-result")
+
+    def close(self) -> None:
+        if not self.page.is_closed():
+            self.page.close()
+
+
+@pytest.fixture
+def dash(tmp_path, write_config, spawn, browser) -> Iterator[Dash]:  # type: ignore[no-untyped-def]
+    cfg = write_config(nodes=_nodes(tmp_path), watchdog={"h2_silence_ms": 2000})
+    d = Dash(Appliance(cfg, spawn), spawn, browser)
+    yield d
+    d.close()
+
+
+def joint_frames(frames: list[Any]) -> list[h2.JointControl]:
+    return [f for f in (h2.decode(m) for m in frames) if isinstance(f, h2.JointControl)]
+
+
+def test_pages_load_and_the_pattern_moves_numbers_and_plot(dash: Dash) -> None:
+    page = dash.page
+    assert dash.text("#role") == "admin"
+    dash.arm()
+    dash.go("pattern")
+    page.click("#page-pattern button[data-argv*=start]")
+    dash.confirm()
+    page.wait_for_function("document.querySelector('#pattern-state dd').textContent === 'running'")
+    dash.go("live")
+
+    # The numbers: r_hip's angle shown changes as the pattern drives it.
+    seen: set[str] = set()
+
+    def moving() -> bool:
+        seen.add(dash.text("#joints tbody tr:nth-child(1) td:nth-child(2)"))
+        return len(seen) >= 4
+
+    wait_for(moving, timeout=20, step=0.1)
+    # The plot: what its canvas shows is different a moment later, and so is its data.
+    before = page.locator("#plot-angles canvas").screenshot()
+    span0 = page.evaluate("exolinkPlots.angles.data[1].length")
+    wait_for(lambda: page.locator("#plot-angles canvas").screenshot() != before, timeout=10)
+    wait_for(lambda: page.evaluate("exolinkPlots.angles.data[1].length") != span0, timeout=10)
+    values = page.evaluate("exolinkPlots.angles.data[1].filter(v => v != null)")
+    assert max(values) - min(values) > 5, values[-20:]
+    # MACCEPA board 0's link and lever plotted as they come (the thesis' positionsGraph).
+    wait_for(lambda: page.evaluate("exolinkPlots.maccepa?.data[0].length ?? 0") > 5, timeout=10)
+
+    # A trigger edge: counted, time since it shown (the thesis' "reset to zero"), marked.
+    page.click("#fire")
+    page.wait_for_function("document.querySelector('#since-trigger').textContent.endsWith(' s')")
+    assert dash.text("#trigger-count") == "1"
+    page.wait_for_timeout(1000)
+    dash.shot("live")
+    for name in PAGES[1:-1]:
+        dash.go(name)
+        page.wait_for_timeout(500)  # let the page's plot settle for the picture
+        dash.shot(name)
+    page.set_viewport_size({"width": 390, "height": 844})
+    dash.go("live")
+    page.wait_for_timeout(500)
+    page.screenshot(path=str(SHOTS / "phone.png"))
+    dash.go("pattern")
+    page.click("#page-pattern button[data-argv*=stop]")
+    page.wait_for_function("document.querySelector('#pattern-state dd').textContent === 'stopped'")
+    assert dash.errors == []
+
+    # The open page is the operator's presence: closing it while the pattern runs trips.
+    page.click("#page-pattern button[data-argv*=start]")
+    dash.confirm()
+    page.wait_for_function("document.querySelector('#pattern-state dd').textContent === 'running'")
+    assert dash.app.status()["watchdog"]["state"] == "armed"
+    page.close()
+    wait_for(lambda: dash.app.status()["watchdog"]["reason"] == "operator lost", timeout=15)
+
+
+def test_refused_command_sends_nothing_and_estop_disables_on_the_bus(dash: Dash, mbus) -> None:  # type: ignore[no-untyped-def]
+    page = dash.page
+    dash.arm()
+    dash.go("commands")
+    page.select_option("#f-joint select[name=joint]", "r_knee")
+    page.select_option("#f-joint select[name=mode]", "position")
+
+    # Not a number: the CLI's parser refuses it in the dashboard, nothing is asked or sent.
+    page.fill("#f-joint input[name=value]", "abc")
+    dash.send("#f-joint button")
+    assert "'abc' is not a number" in dash.result()
+    assert not page.is_visible("#confirm")
+
+    # Out of range: asked (it is motion), then refused by the H2 sender, nothing on the bus.
+    mbus.q.queue.clear()
+    page.fill("#f-joint input[name=value]", "300")
+    dash.send("#f-joint button")
+    dash.confirm()
+    out = dash.result()
+    assert "refused" in out and "r_knee" in out, out
+    assert "refused" in dash.text("#notice")
+    frames = joint_frames(collect(mbus, 1.0, {h2.JOINT_CONTROL}))
+    assert [f for f in frames if f.motor == 2] == []
+
+    # E-STOP: disable frames for all six joints on the bus, and the banner says tripped.
+    mbus.q.queue.clear()
+    page.click("#estop")
+    dash.banner("tripped")
+    assert "TRIPPED" in dash.text("#wd-state")
+
+    def disabled() -> set[int]:
+        got.extend(joint_frames(collect(mbus, 0.2, {h2.JOINT_CONTROL})))
+        return {f.motor for f in got if f.mode == h2.MODES["disabled"]} >= set(range(1, 7))
+
+    got: list[h2.JointControl] = []
+    wait_for(disabled, timeout=10)
+    dash.shot("estop")
+
+    # The keyboard shortcut does the same.
+    dash.arm()
+    page.keyboard.press("Escape")
+    dash.banner("tripped")
+    assert dash.errors == []
+
+
+def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> None:
+    page = dash.page
+    app = dash.app
+    dash.go("nodes")
+    row = "#nodes tr[data-node=timing_monitor]"
+    page.wait_for_selector(row)
+    pid = app.node("timing_monitor")["pid"]
+    page.click(f"{row} button[data-action=restart]")
+    page.wait_for_function(
+        "document.querySelector('#notice').textContent.includes('restart timing_monitor: ok')"
+    )
+    wait_for(lambda: app.node("timing_monitor")["pid"] not in (None, pid), timeout=20)
+    page.wait_for_function(
+        "([sel, pid]) => document.querySelector(sel + ' td:nth-child(3)').textContent"
+        " !== String(pid)",
+        arg=[row, pid],
+    )
+    # A stopped critical node blocks arming: the refusal lists it; started again, Arm works.
+    sender = "#nodes tr[data-node=h2_sender]"
+    page.click(f"{sender} button[data-action=stop]")
+    wait_for(lambda: app.node("h2_sender")["state"] == "stopped", timeout=20)
+    page.click("#arm")
+    page.wait_for_function(
+        "document.querySelector('#notice').textContent.includes('critical node h2_sender is stopped')"
+    )
+    assert "Arm refused. Blockers:" in dash.text("#notice")
+    dash.shot("arm-refused")
+    page.click(f"{sender} button[data-action=start]")
+    wait_for(lambda: app.node("h2_sender")["state"] == "running", timeout=20)
+    wait_for(lambda: app.cli("arm").returncode == 0, timeout=20)
+
+    page.select_option("#log-node", "timing_monitor")
+    page.click("#log-load")
+    page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
+    assert "refused" not in dash.text("#logs")
+    # Follow: a line the node writes after the box is ticked arrives by itself.
+    page.select_option("#log-node", "h2_sender")
+    page.check("#log-follow")
+    page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
+    assert "command_sent" not in dash.text("#logs")
+    app.cli("send", "stream", "on")  # h2_sender logs each command it sends
+    page.wait_for_function(
+        "document.querySelector('#logs').textContent.includes('command_sent')", timeout=20_000
+    )
+    page.uncheck("#log-follow")
+    page.select_option("#log-node", "timing_monitor")
+    # Params: read, then one set through the CLI's parser; a bad value is the node's refusal.
+    page.click("#params-load")
+    page.wait_for_function("document.querySelector('#logs').textContent.includes('ids')")
+    page.fill("#f-param input[name=key]", "nosuch")
+    page.fill("#f-param input[name=value]", "1")
+    page.click("#f-param button")
+    page.wait_for_function("document.querySelector('#logs').textContent.includes('refused')")
+    assert "no param 'nosuch'" in dash.text("#logs") or "nosuch" in dash.text("#logs")
+
+    dash.go("recording")
+    page.fill("#labels", "subject=S01 session=dash")
+    page.click("#rec-start")
+    page.wait_for_function(
+        "document.querySelector('#rec-state dd').textContent.startsWith('recording')"
+    )
+    page.click("#page-recording button[data-argv*=stop]")
+    link = page.wait_for_selector("#rec-files a")
+    href = link.get_attribute("href")
+    assert href
+    body = page.request.get(dash.url.rstrip("/") + href).body()
+    assert body[:8] == b"\x89MCAP0\r\n"
+    page.click("#rec-files button.plot-file")
+    page.wait_for_function(
+        "document.querySelector('#rec-plot-file').textContent.includes('points')"
+    )
+    assert page.evaluate("exolinkPlots.recording.data[0].length") > 10
+    dash.shot("recording")
+    # Another web site in the same browser can neither command nor read the live socket.
+    foreign = {"Origin": "http://evil.example", "Content-Type": "application/json"}
+    r = page.request.post(dash.url + "api/estop", data="{}", headers=foreign)
+    assert r.status == 403
+    assert (
+        page.request.get(dash.url + "ws", headers={"Origin": "http://evil.example"}).status == 403
+    )
+    assert page.request.post(dash.url + "api/estop", data="{}").status == 415  # not JSON typed
+    # A file the recorder did not list is never served.
+    assert page.request.get(dash.url + "api/recordings/download?file=/etc/passwd").status == 404
+    assert dash.errors == []
+
+
+def test_an_observer_sees_everything_and_may_only_estop(  # type: ignore[no-untyped-def]
+    tmp_path, write_config, spawn, browser, mbus
+) -> None:
+    board_file, logins = board_logins(tmp_path)
+    port = free_port()  # the board's own dashboard node, beside the laptop's `exolink dashboard`
+    board_dash = {"host": "127.0.0.1", "port": port, "role": "observer"}
+    cfg = write_config(
+        nodes=[
+            *_nodes(tmp_path),
+            {"name": "dashboard", "plugin": "dashboard", "params": board_dash},
+        ],
+        zenoh={"config_file": str(board_file)},
+        watchdog={"h2_silence_ms": 2000},
+    )
+    app = Appliance(cfg, spawn, login=logins["admin"])
+    app.arm()
+    d = Dash(app, spawn, browser, login=logins["observer"])
+    page = d.page
+    assert d.text("#role") == "observer"
+    page.wait_for_function("document.querySelector('#joints td.num').textContent !== '-'")
+    page.wait_for_selector("#nodes tr[data-node=h2_reader]", state="attached")
+    assert page.is_disabled("#arm") and page.is_disabled("#fire")
+    d.go("commands")
+    assert page.is_disabled("#f-joint button")
+    d.go("nodes")
+    assert page.is_disabled("#nodes tr[data-node=h2_reader] button[data-action=restart]")
+    assert page.is_disabled("#log-load")
+    d.shot("observer")
+    mbus.q.queue.clear()
+    page.click("#estop")
+    d.banner("tripped")
+    got = joint_frames(collect(mbus, 1.0, {h2.JOINT_CONTROL}))
+    assert {f.motor for f in got if f.mode == h2.MODES["disabled"]} == set(range(1, 7))
+    assert d.errors == []
+    d.close()
+
+    # The same app served by the node on the board: the role of its params, live data, e-stop.
+    board = browser.new_page()
+    errors: list[str] = []
+    board.on("pageerror", lambda e: errors.append(str(e)))
+    board.goto(f"http://127.0.0.1:{port}/")
+    board.wait_for_function("document.querySelector('#role').textContent === 'observer'")
+    assert "board sim" in (board.text_content("#device") or "")
+    board.wait_for_function("document.querySelector('#joints td.num').textContent !== '-'")
+    assert board.is_disabled("#arm")
+    board.wait_for_selector("#nodes tr[data-node=dashboard]", state="attached")
+    board.close()
+    assert errors == []
