@@ -51,6 +51,11 @@ set -eu
 export TMPDIR=/run
 out=/run/exolink-bench-installed
 : > "$out"
+# Pinned dependencies the checkout has and the image predates (armv7 wheels fetched by the host).
+if ls /boot/firmware/bench/deps/*.whl >/dev/null 2>&1; then
+  /opt/exolink/bin/pip install -q --no-deps --no-index --no-cache-dir /boot/firmware/bench/deps/*.whl
+  ls /boot/firmware/bench/deps >> "$out"
+fi
 for w in /boot/firmware/bench/*.whl; do
   /opt/exolink/bin/pip install -q --no-deps --no-index --no-cache-dir --force-reinstall "$w"
   sha256sum "$w" >> "$out"
@@ -199,6 +204,12 @@ class Card:
             capture_output=True,
         )
 
+    def root_names(self, path: str) -> list[str]:
+        r = subprocess.run(
+            ["debugfs", "-R", f"ls -p {path}", self.root], capture_output=True, text=True
+        )
+        return [f.split("/")[5] for f in r.stdout.splitlines() if f.count("/") >= 6]
+
     def group_id(self, name: str) -> int:
         for line in self.root_read("/etc/group").splitlines():
             parts = line.split(":")
@@ -213,6 +224,49 @@ def copy_card(image: Path, dest: Path) -> Card:
     with open(dest, "r+b") as f:  # a "bigger card": the first boot grows the root, as on a card
         f.truncate(dest.stat().st_size + 256 * MIB)
     return Card(dest)
+
+
+def _norm(name: str) -> str:
+    return name.lower().replace("-", "_").replace(".", "_")
+
+
+def missing_pins(card: Card, repo: Path) -> list[str]:
+    """Lines of the checkout's image/python-requirements.txt that the card's venv lacks at that
+    version: what the wheel under test needs and an older image does not have."""
+    (lib,) = [n for n in card.root_names("/opt/exolink/lib") if n.startswith("python3.")] or [
+        "python3"
+    ]
+    have = {}
+    for n in card.root_names(f"/opt/exolink/lib/{lib}/site-packages"):
+        if n.endswith(".dist-info"):
+            name, _, version = n[: -len(".dist-info")].partition("-")
+            have[_norm(name)] = version
+    out = []
+    for line in (repo / "image/python-requirements.txt").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if "==" in line:
+            name, version = line.split("==")
+            if have.get(_norm(name)) != version:
+                out.append(line)
+    return out
+
+
+def download_pins(pins: list[str], dest: Path, python: str = "3.13") -> list[Path]:
+    """armv7l / pure-Python wheels of ``pins`` for the card's CPython (as image/build.sh)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    for old in dest.glob("*.whl"):
+        old.unlink()
+    if not pins:
+        return []
+    cp = "cp" + python.replace(".", "")
+    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:"]
+    cmd += ["--python-version", python, "--implementation", "cp", "--abi", cp, "--abi", "abi3"]
+    cmd += ["--abi", "none", "--platform", "manylinux_2_17_armv7l"]
+    cmd += ["--platform", "manylinux2014_armv7l", "--platform", "any", "-d", str(dest), *pins]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"pip download of {pins} for armv7 failed:\n{r.stderr[-2000:]}")
+    return sorted(dest.glob("*.whl"))
 
 
 def _write_file(card: Card, local: Path, path: str, mode: int, uid: int, gid: int) -> list[str]:
@@ -253,6 +307,13 @@ def prepare(
         card.fat_write(work / name, "/bench/")
     for w in (wheel, *extra_wheels):
         card.fat_write(w, "/bench/")
+    pins = missing_pins(card, Path(__file__).resolve().parents[2])
+    deps = download_pins(pins, work / "deps")
+    if deps:
+        card.fat_mkdir("bench/deps")
+        for w in deps:
+            card.fat_write(w, "/bench/deps/")
+    log.info("dependencies the image lacks", pins=pins, wheels=[w.name for w in deps])
 
     from benchmarks.board.scenario import TIMINGS, bench_config
 
