@@ -6,6 +6,7 @@ nothing here needs editing (the python-can interface model).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING
@@ -26,21 +27,32 @@ def available() -> dict[str, str]:
     return {ep.name: ep.value for ep in entry_points(group=GROUP)}
 
 
+def _load(
+    group: str, name: str, what: str, names: Callable[[], dict[str, str]]
+) -> tuple[type, str]:
+    """The class entry point ``name`` of ``group`` names, imported; PluginError says what is
+    installed when it is missing, and a broken third-party plugin must not look like a missing
+    one. ``what`` is how errors call it ("node plugin", "controller type"). Returns the class and
+    its ``module:Class``."""
+    eps = [ep for ep in entry_points(group=group) if ep.name == name]
+    if not eps:
+        listed = ", ".join(sorted(names())) or "none installed"
+        raise PluginError(f"unknown {what} {name!r} (available: {listed})")
+    try:
+        cls = eps[0].load()
+    except Exception as exc:
+        raise PluginError(f"{what} {name!r} failed to import: {exc}") from exc
+    return cls, eps[0].value
+
+
 @cache
 def find_node_class(plugin: str) -> type[Node]:
     """Import only the node that is asked for: other nodes' dependencies stay unloaded."""
-    eps = [ep for ep in entry_points(group=GROUP) if ep.name == plugin]
-    if not eps:
-        names = ", ".join(sorted(available())) or "none installed"
-        raise PluginError(f"unknown node plugin {plugin!r} (available: {names})")
-    try:
-        cls = eps[0].load()
-    except Exception as exc:  # a broken third-party plugin must not look like a missing one
-        raise PluginError(f"node plugin {plugin!r} failed to import: {exc}") from exc
+    cls, where = _load(GROUP, plugin, "node plugin", available)
     from exolink.node import Node
 
     if not (isinstance(cls, type) and issubclass(cls, Node)):
-        raise PluginError(f"node plugin {plugin!r} ({eps[0].value}) is not an exolink Node")
+        raise PluginError(f"node plugin {plugin!r} ({where}) is not an exolink Node")
     return cls
 
 
@@ -55,16 +67,9 @@ def controller_types() -> dict[str, str]:
 
 def find_controller_class(kind: str) -> type:
     """Import the controller type asked for; PluginError names what is installed."""
-    eps = [ep for ep in entry_points(group=CONTROLLER_GROUP) if ep.name == kind]
-    if not eps:
-        names = ", ".join(sorted(controller_types())) or "none installed"
-        raise PluginError(f"unknown controller type {kind!r} (available: {names})")
-    try:
-        cls = eps[0].load()
-    except Exception as exc:
-        raise PluginError(f"controller type {kind!r} failed to import: {exc}") from exc
+    cls, where = _load(CONTROLLER_GROUP, kind, "controller type", controller_types)
     from exolink.controller import Controller
 
     if not (isinstance(cls, type) and issubclass(cls, Controller)):
-        raise PluginError(f"controller type {kind!r} ({eps[0].value}) is not an exolink Controller")
+        raise PluginError(f"controller type {kind!r} ({where}) is not an exolink Controller")
     return cls
