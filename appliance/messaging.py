@@ -447,6 +447,25 @@ class Messaging:
         """A query from inside the appliance, as its own login."""
         return request(self.session, self.mgmt(*path), body, timeout_s, roles.APPLIANCE_USER)
 
+    def command(
+        self,
+        *path: str,
+        body: dict[str, Any],
+        timeout_s: float,
+        tolerate: tuple[str, ...] = (),
+    ) -> dict[str, Any]:
+        """One node asking another to act: the answer, or CommandRefused with the other's
+        refusal verbatim (or that nothing answered), so the caller's own caller sees why.
+        A refusal containing one of ``tolerate`` counts as done (e.g. "is not active")."""
+        try:
+            reply = self.request(*path, body=body, timeout_s=timeout_s)
+        except Unreachable as exc:
+            raise CommandRefused(f"nothing answers at {'/'.join(path)}: {exc}") from None
+        error = str(reply.get("error", f"refused by {'/'.join(path)}"))
+        if not reply.get("ok") and not any(t in error for t in tolerate):
+            raise CommandRefused(error)
+        return reply
+
 
 # --- JSON queries (commands and management) --------------------------------------------------
 

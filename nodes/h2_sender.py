@@ -18,7 +18,7 @@ from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_bus
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
-from exolink.messaging import CommandRefused, Unreachable
+from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 
@@ -144,8 +144,10 @@ class H2Sender(Node):
     def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
         try:
             frames = self.build(req)
-            if self.params.motion_via_manager and self._motion(frames):
-                return self._via_manager(frames[0])
+            if self.params.motion_via_manager and len(frames) == 1:
+                jc = h2.decode(frames[0])
+                if isinstance(jc, h2.JointControl) and jc.mode in MOTION:
+                    return self._via_manager(jc)
         except CommandRefused as exc:
             self.refused += 1
             self.log.warning("command_refused", request=req, reason=str(exc))
@@ -161,16 +163,9 @@ class H2Sender(Node):
         self.log.info("command_sent", request=req, frames=len(frames))
         return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
 
-    @staticmethod
-    def _motion(frames: list[can.Message]) -> bool:
-        d = h2.decode(frames[0]) if len(frames) == 1 else None
-        return isinstance(d, h2.JointControl) and d.mode in MOTION
-
-    def _via_manager(self, frame: can.Message) -> dict[str, Any]:
+    def _via_manager(self, jc: h2.JointControl) -> dict[str, Any]:
         """The checked command, for the controller manager to write; its refusal (another
         controller drives the joint, say) reaches the caller verbatim."""
-        jc = h2.decode(frame)
-        assert isinstance(jc, h2.JointControl)
         body = {
             "action": "operator",
             "joint": h2.JOINTS[jc.motor - 1],
@@ -178,12 +173,7 @@ class H2Sender(Node):
             "setpoint": jc.setpoint,
             "stiffness": jc.stiffness,
         }
-        try:
-            reply = self.ctx.messaging.request("controllers", body=body, timeout_s=MANAGER_WAIT_S)
-        except Unreachable as exc:
-            raise CommandRefused(f"the controller manager does not answer: {exc}") from None
-        if not reply.get("ok"):
-            raise CommandRefused(str(reply.get("error", "refused by the controller manager")))
+        reply = self.ctx.messaging.command("controllers", body=body, timeout_s=MANAGER_WAIT_S)
         self.log.info("command_forwarded", request=body, controller=reply.get("controller"))
         return {"controller": reply.get("controller"), "frames": []}
 

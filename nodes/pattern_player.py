@@ -45,7 +45,7 @@ import msgspec
 from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
-from exolink.messaging import CommandRefused, Unreachable
+from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 
@@ -365,12 +365,9 @@ class PatternPlayer(Node):
         controller drives, not armed) refuses the command that asked for it."""
 
         def call(body: dict[str, Any], tolerate: tuple[str, ...] = ()) -> None:
-            try:
-                r = self.ctx.messaging.request("controllers", body=body, timeout_s=MANAGER_WAIT_S)
-            except Unreachable as exc:
-                raise CommandRefused(f"the controller manager does not answer: {exc}") from None
-            if not r.get("ok") and not any(t in str(r.get("error")) for t in tolerate):
-                raise CommandRefused(str(r.get("error", "refused by the controller manager")))
+            self.ctx.messaging.command(
+                "controllers", body=body, timeout_s=MANAGER_WAIT_S, tolerate=tolerate
+            )
 
         gone = ("is not active", "no controller")
         if op[0] == "halt":
