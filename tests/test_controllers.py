@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import pytest
 from conftest import Appliance, collect, wait_for
+from exolink import messaging, roles
 from exolink.controller import State
 from exolink.jointlimits import Limits, default_max, default_min
 from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
@@ -269,7 +270,18 @@ CTRL = [
 ]
 
 
-def nodes(controllers: list[dict[str, Any]]) -> list[dict[str, Any]]:
+# h2_sender handing motion to the manager (operator controllers)
+ROUTED_SENDER = {
+    "name": "h2_sender",
+    "plugin": "h2_sender",
+    "critical": True,
+    "params": {"motion_via_manager": True},
+}
+
+
+def nodes(controllers: list[dict[str, Any]], deadline_ms: int = 50) -> list[dict[str, Any]]:
+    """``deadline_ms``: the manager's heartbeat deadline (300 where a test is not about hung
+    detection: above a loaded machine's stalls)."""
     return [
         {"name": "simulator", "plugin": "simulator"},
         {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
@@ -277,7 +289,7 @@ def nodes(controllers: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "name": "controller_manager",
             "plugin": "controller_manager",
             "critical": True,
-            "heartbeat_deadline_ms": 50,
+            "heartbeat_deadline_ms": deadline_ms,
             # Silence limits above a loaded test machine's stalls: these tests are not about them.
             "params": {"controllers": controllers, "max_step_deg": 3, "h2_timeout_ms": 300},
         },
@@ -467,17 +479,9 @@ def test_h2_silent_claimed_joints_get_the_safe_action(app, mbus) -> None:  # typ
 def routed(write_config, spawn):  # type: ignore[no-untyped-def]
     """h2_sender with motion_via_manager: `exolink send` motion becomes operator controllers."""
     gait = {"name": "gait", "type": "forward_command", "params": {"joints": ["r_knee"]}}
-    sender = {
-        "name": "h2_sender",
-        "plugin": "h2_sender",
-        "critical": True,
-        "params": {"motion_via_manager": True},
-    }
-    ns = nodes([gait])
-    ns[2]["heartbeat_deadline_ms"] = (
-        300  # not about hung detection: above a loaded machine's stalls
+    cfg = write_config(
+        nodes=[*nodes([gait], deadline_ms=300), ROUTED_SENDER], watchdog={"h2_silence_ms": 500}
     )
-    cfg = write_config(nodes=[*ns, sender], watchdog={"h2_silence_ms": 500})
     return Appliance(cfg, spawn)
 
 
@@ -507,6 +511,17 @@ def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type
     r = app.cli("send", "position", "r_knee", "30")
     assert r.returncode == 5 and "r_knee is driven by controller gait" in r.stderr, r.stderr
     assert {f.setpoint for f in joint_frames(collect(mbus, 0.3, {70}), 2)} == {10}
+    # a laptop cannot hold a joint past the sender's checks: the manager's operator action is
+    # for the appliance's own login only (an open sim believes any login; this one is admin)
+    laptop = messaging.open_client_session(app.at)
+    try:
+        key = messaging.mgmt_key("sim", "controllers")
+        body = {"action": "operator", "joint": "r_hip", "mode": "position", "setpoint": 5}
+        r = messaging.request(laptop, key, body, 5.0, roles.ADMIN)
+        assert not r["ok"] and "needs the exolink role" in r["error"], r
+    finally:
+        laptop.close()
+    assert "operator.r_hip.position" not in listing(app)
     # the sender's own checks still come first (refused there, the manager never asked)
     r = app.cli("send", "position", "r_hip", "500")
     assert r.returncode != 0 and "r_hip" in r.stderr
@@ -527,17 +542,8 @@ def dedup(values: list[int]) -> list[int]:
 @pytest.fixture
 def gait(write_config, spawn):  # type: ignore[no-untyped-def]
     """The pattern player with timing: manager and the sender routed: one writer, the manager."""
-    ns = nodes([])
-    ns[2]["heartbeat_deadline_ms"] = (
-        300  # not about hung detection: above a loaded machine's stalls
-    )
     extra = [
-        {
-            "name": "h2_sender",
-            "plugin": "h2_sender",
-            "critical": True,
-            "params": {"motion_via_manager": True},
-        },
+        ROUTED_SENDER,
         {
             "name": "pattern_player",
             "plugin": "pattern_player",
@@ -545,7 +551,8 @@ def gait(write_config, spawn):  # type: ignore[no-untyped-def]
             "params": {"timing": "manager", "speed": 10, "selected": ["r_hip", "r_knee"]},
         },
     ]
-    return Appliance(write_config(nodes=[*ns, *extra], watchdog={"h2_silence_ms": 500}), spawn)
+    cfg = write_config(nodes=[*nodes([], deadline_ms=300), *extra], watchdog={"h2_silence_ms": 500})
+    return Appliance(cfg, spawn)
 
 
 def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # type: ignore[no-untyped-def]

@@ -100,11 +100,13 @@ class ControllerManagerNode(Node):
 
     @staticmethod
     def _needs(request: dict[str, Any]) -> str:
-        return (
-            roles.OBSERVER
-            if request.get("action", "list") in ("list", "types")
-            else (roles.OPERATOR)
-        )
+        """``operator`` holds what h2_sender checked (limits the operator sent to the H2
+        included), so only the appliance's own login may ask it: a laptop goes through
+        ``exolink send``."""
+        action = request.get("action", "list")
+        if action == OPERATOR:
+            return roles.APPLIANCE_USER
+        return roles.OBSERVER if action in ("list", "types") else roles.OPERATOR
 
     # --- management ---------------------------------------------------------------------------
 
