@@ -39,6 +39,9 @@ def _values(f: Any) -> list[int]:
     return [getattr(f, name) for name in _FIELDS[type(f)]]
 
 
+READ_EVERY_S = 0.01
+
+
 class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     boards: list[Annotated[int, msgspec.Meta(ge=0, le=9)]] = msgspec.field(
         default_factory=lambda: [0]
@@ -51,7 +54,11 @@ class MaccepaBridge(Node):
 
     def configure(self) -> None:
         m = self.ctx.messaging
-        self.reader = open_reader(self.ctx.config.can, maccepa.data_ids(self.params.boards))
+        # Board state is for people and recordings, stamped with the kernel's receive time: a
+        # wake per 10 ms, not per frame (FrameReader.every_s).
+        self.reader = open_reader(
+            self.ctx.config.can, maccepa.data_ids(self.params.boards), every_s=READ_EVERY_S
+        )
         self.bus = self.reader.bus
         self.pubs = {
             (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename, raw=True)

@@ -2,9 +2,16 @@
 
 Subscribes to every data topic of the appliance (or a configured subset) and writes MCAP files
 with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
-PlotJuggler open them. The Zenoh callback only enqueues; a writer thread writes, so a slow SD card
-never stalls the session. Nothing is lost silently: a full queue counts a drop, and the counters
-go out on diagnostics (which are recorded too) and into each file's ``exolink.stats`` metadata.
+PlotJuggler open them. Samples wait in Zenoh's own ring buffer (no Python runs per sample on
+Zenoh's threads) and the node's loop takes them in batches every ``INTAKE_PERIOD_S``: on the board
+a Python callback and a thread wake-up per sample were the recorder's CPU. A slow SD card never
+stalls the session; the ring holds minutes of data. Nothing is lost silently: every appliance
+publisher numbers its samples, so a sample the ring overwrote (or the network lost) is a gap in
+its publisher's sequence, counted as dropped. The counters go out on diagnostics (which are
+recorded too) and into each file's ``exolink.stats`` metadata. A message's log time is its
+publisher's stamp (for bus data the CAN frame's kernel receive time), so plots and ``exolink
+play`` see the trial's own timing, not the recorder's batches; without an attachment, the time it
+was taken from the ring.
 What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
 reader's receive counters (its ``nodes/<name>/stats``) when the file was opened and closed.
 Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs
@@ -19,7 +26,6 @@ import errno
 import fnmatch
 import json
 import os
-import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -28,16 +34,19 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 import yaml
+import zenoh
 from exolink import __version__, messaging, roles
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
-QUEUE_MAX = 50_000
-# Drain the queue in slices of wall time, not of messages, with beat() between them: sharing one
-# core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
+INTAKE_PERIOD_S = 0.05  # how often the loop takes what the rings hold
+# Take from the rings in slices of wall time, not of messages, with beat() between them: sharing
+# one core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
+
+Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publish ns, sequence
 # A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
 # file: the reply then says "stopping", which is true, instead of the CLI timing out.
 STOP_REPLY_S = 2.0
@@ -58,6 +67,9 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     split_size_mb: Annotated[float, msgspec.Meta(ge=0)] = 1024.0  # 0 = no split by size
     split_duration_s: Annotated[float, msgspec.Meta(ge=0)] = 3600.0  # 0 = no split by time
     labels: dict[str, str] = msgspec.field(default_factory=dict)
+    # Samples each subscription's ring holds while the card pauses: minutes of the appliance's
+    # data (~600 samples/s). Overwritten samples are counted as dropped, never hidden.
+    ring: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 50_000
 
 
 @dataclass
@@ -129,7 +141,6 @@ class Recorder(Node):
     def configure(self) -> None:
         self.dir = Path(self.params.directory)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.q: queue.Queue[tuple[str, str, bytes, int, int, int]] = queue.Queue(QUEUE_MAX)
         self.lock = threading.Lock()
         self.stats = Stats()
         self.state, self.error = "idle", ""
@@ -138,6 +149,8 @@ class Recorder(Node):
         self.index = 0
         self.session_stamp = ""
         self._receive_at_open: dict[str, dict[str, Any]] = {}
+        self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
+        self._pending = 0  # taken from the rings, not yet written
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
         self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
@@ -145,7 +158,7 @@ class Recorder(Node):
         self.subs = [
             self.ctx.session.declare_subscriber(
                 messaging.topic_selector(m.domain_id, m.namespace, t),
-                self._on_sample,
+                zenoh.handlers.RingChannel(self.params.ring),
             )
             for t in self.params.topics
         ]
@@ -154,34 +167,53 @@ class Recorder(Node):
         if self.params.autostart:
             self.start_recording(dict(self.params.labels))
 
-    # --- intake (Zenoh threads) -----------------------------------------------------------
+    # --- intake (the node's loop, in batches) ---------------------------------------------
 
-    def _on_sample(self, sample: Any) -> None:
-        if self.state != "recording":
-            return
-        try:
-            topic, typename = messaging.parse_key(str(sample.key_expr))
-        except ValueError:
-            return
-        if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
-            return
-        att = sample.attachment
-        seq, src = (0, 0)
-        if att is not None:
-            with contextlib.suppress(Exception):
-                seq, src, _ = messaging.decode_attachment(att.to_bytes())
-        now = time.time_ns()
-        item = (topic, typename, sample.payload.to_bytes(), now, src or now, seq)
-        # Check and enqueue under the lock that stop() takes: once a stop is seen, nothing more
-        # enters the queue, so the final drain writes every message that was counted.
-        with self.lock:
-            if self.state != "recording":
-                return
-            self.stats.received += 1
-            try:
-                self.q.put_nowait(item)
-            except queue.Full:
-                self.stats.dropped += 1
+    def _take(self, until: float) -> list[Item]:
+        """What the rings hold now (until the wall-time slice ends), minus excluded topics; the
+        publishers' sequence gaps are counted as dropped while recording. The state is read per
+        sample: a start drains the rings first, so what is taken after it belongs to it."""
+        out: list[Item] = []
+        gaps = 0
+        for sub in self.subs:
+            while (sample := sub.try_recv()) is not None:
+                try:
+                    topic, typename = messaging.parse_key(str(sample.key_expr))
+                except ValueError:
+                    continue
+                if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
+                    continue
+                seq, src, gid = 0, 0, b""
+                att = sample.attachment
+                if att is not None:
+                    with contextlib.suppress(Exception):
+                        seq, src, gid = messaging.decode_attachment(att.to_bytes())
+                recording = self.state in ("recording", "stopping")
+                if gid:
+                    last = self._last_seq.get(gid)
+                    if recording and last is not None and seq > last + 1:
+                        gaps += seq - last - 1
+                    self._last_seq[gid] = seq
+                if recording:
+                    stamp = src or time.time_ns()
+                    out.append((topic, typename, sample.payload.to_bytes(), stamp, stamp, seq))
+                    if len(out) % 64 == 0 and time.monotonic() >= until:
+                        break
+        if out or gaps:
+            with self.lock:
+                self.stats.received += len(out)
+                self.stats.dropped += gaps
+        return out
+
+    def _discard(self) -> None:
+        """Empty the rings, keeping the publishers' sequence numbers (gaps start from here)."""
+        for sub in self.subs:
+            while (sample := sub.try_recv()) is not None:
+                att = sample.attachment
+                if att is not None:
+                    with contextlib.suppress(Exception):
+                        seq, _src, gid = messaging.decode_attachment(att.to_bytes())
+                        self._last_seq[gid] = seq
 
     # --- commands -------------------------------------------------------------------------
 
@@ -217,15 +249,14 @@ class Recorder(Node):
             "file": str(f.path) if f else None,
             "size": f.size() if f else 0,
             "labels": self.labels,
-            "queue": self.q.qsize(),
+            "queue": self._pending,
             **s,
         }
 
     def start_recording(self, labels: dict[str, str]) -> None:
         with self.lock:
             self.stats = Stats()  # counters are per recording session
-        while not self.q.empty():  # nothing from an earlier session leaks into this one
-            self.q.get_nowait()
+        self._discard()  # nothing from before leaks into this session
         self.labels = labels
         self.index = 0
         self.session_stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -306,7 +337,7 @@ class Recorder(Node):
         by_time = p.split_duration_s and time.monotonic() - f.opened >= p.split_duration_s
         return bool(by_size or by_time)
 
-    def _write(self, item: tuple[str, str, bytes, int, int, int]) -> None:
+    def _write(self, item: Item) -> None:
         assert self.file is not None
         topic, typename, data, log_ns, pub_ns, seq = item
         cid = self.file.channel(topic, typename)
@@ -329,31 +360,21 @@ class Recorder(Node):
             with contextlib.suppress(Exception):
                 self.file.f.close()
             self.file = None
-        while not self.q.empty():  # what can no longer be written is counted, not hidden
-            self.q.get_nowait()
-            with self.lock:
-                self.stats.dropped += 1
+        with self.lock:  # what can no longer be written is counted, not hidden
+            self.stats.dropped += self._pending
+        self._pending = 0
         self._diagnostics()
 
     def run(self, stop: threading.Event) -> None:
         next_sync = next_diag = time.monotonic()
         while not stop.is_set():
             self.beat()
+            stopping = self.state == "stopping"  # seen before the take: it holds all until now
             try:
-                try:
-                    item = self.q.get(timeout=0.05)
-                except queue.Empty:
-                    item = None
-                if self.file is None and (item is not None or self.state == "recording"):
-                    self._open()  # only the intake fills the queue, and only while recording
-                if item is not None:
-                    self._write(item)
-                    until = time.monotonic() + DRAIN_SLICE_S
-                    while time.monotonic() < until:
-                        try:
-                            self._write(self.q.get_nowait())
-                        except queue.Empty:
-                            break
+                items = self._take(time.monotonic() + DRAIN_SLICE_S)
+                if self.file is None and (items or self.state == "recording"):
+                    self._open()  # only while recording does the take keep anything
+                self._write_all(items)
                 now = time.monotonic()
                 if self.file is not None and now >= next_sync:
                     next_sync = now + self.params.fsync_interval_s
@@ -361,9 +382,8 @@ class Recorder(Node):
                 if self._need_split():
                     self._close()
                     self.index += 1
-                if self.state == "stopping":
-                    while not self.q.empty():
-                        self._write(self.q.get_nowait())
+                if stopping:
+                    self._write_all(self._take(float("inf")))
                     self._close()
                     self.state = "idle"
                     self.log.info(
@@ -375,6 +395,13 @@ class Recorder(Node):
             if time.monotonic() >= next_diag:
                 next_diag = time.monotonic() + 1.0
                 self._diagnostics()
+            stop.wait(INTAKE_PERIOD_S)
+
+    def _write_all(self, items: list[Item]) -> None:
+        self._pending = len(items)
+        for item in items:
+            self._write(item)
+            self._pending -= 1
 
     def _diagnostics(self) -> None:
         s = self.status()
@@ -389,16 +416,15 @@ class Recorder(Node):
         self.pub_diag.publish(msg, now)
 
     def shutdown(self) -> None:
+        if getattr(self, "file", None) is not None:
+            try:  # what the rings still hold goes into the file before they go
+                self._write_all(self._take(float("inf")))
+                self._close()
+            except OSError as exc:
+                self.log.error("recording_close_failed", error=str(exc))
         for s in getattr(self, "subs", []):
             s.undeclare()
         if hasattr(self, "_q"):
             self._q.undeclare()
-        if getattr(self, "file", None) is not None:
-            try:
-                while not self.q.empty():
-                    self._write(self.q.get_nowait())
-                self._close()
-            except OSError as exc:
-                self.log.error("recording_close_failed", error=str(exc))
         if hasattr(self, "pub_diag"):
             self.pub_diag.close()

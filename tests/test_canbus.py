@@ -23,6 +23,34 @@ def _raw_to_group(group: str, data: bytes, source: str) -> None:
         s.close()
 
 
+def test_a_reader_with_every_s_takes_frames_arriving_meanwhile_as_one_batch(group: str) -> None:
+    """Why the watchdog, timing monitor and MACCEPA bridge use ``every_s``: one wake for the
+    frames of a period, each keeping its own kernel time, none counted late for the wait."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    reader = open_reader(cfg, [110], every_s=0.2)
+    tx = open_bus(cfg)
+    msg = can.Message(arbitration_id=110, data=b"\x01" * 6, is_extended_id=False)
+    try:
+        tx.send(msg)
+        assert len(reader.read(1.0)) == 1  # the first frame after a quiet bus: at once
+        sent = []
+        for _ in range(3):  # arrive while the reader waits out its 200 ms
+            sent.append(time.time())
+            tx.send(msg)
+            time.sleep(0.02)
+        frames = reader.read(1.0)
+        assert len(frames) == 3
+        # each its own arrival (before the next was sent), not the time of the batched read
+        ts = [f.timestamp for f in frames]
+        assert sent[0] <= ts[0] < sent[1] <= ts[1] < sent[2] <= ts[2]
+        c = reader.counters()
+        assert c["frames"] == 4 and c["batch_max"] == 3
+        assert c["late"] == 0 and c["dropped"] == 0
+    finally:
+        reader.bus.shutdown()
+        tx.shutdown()
+
+
 def test_sim_kernel_filter_keeps_only_the_ids_asked_for(group: str) -> None:
     cfg = CanConfig(interface="udp_multicast", channel=group)
     reader = open_reader(cfg, [5, 110, 1100])

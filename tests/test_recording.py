@@ -4,6 +4,7 @@ container, and rosbags (with the schema stored in the file) for the CDR payloads
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import os
 import signal
@@ -168,6 +169,42 @@ os.fsync = fsync
     st = info(path).metadata["exolink.stats"]
     assert st["dropped"] == "0" and st["received"] == st["written"]
     assert info(path).topics["/h2/joint_states"]["count"] > 400
+
+
+def test_samples_the_ring_overwrote_are_counted_as_dropped(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path, in_node
+) -> None:
+    """The recorder takes samples from Zenoh's ring in batches; when the card stalls longer
+    than the ring holds, the oldest are overwritten. Each publisher numbers its samples, so the
+    file's sequence gaps are exactly what the recorder says it dropped. A slow card (fsync
+    sleeps 1 s, as above) and a ring of 32 samples make the overwrite happen."""
+    in_node(
+        "recorder",
+        """
+import os, time
+_fsync = os.fsync
+def fsync(fd):
+    time.sleep(1.0)
+    _fsync(fd)
+os.fsync = fsync
+""",
+    )
+    rec_dir = tmp_path / "rec"
+    app = Appliance(
+        write_config(nodes=nodes(rec_dir, fsync_interval_s=0.3, autostart=True, ring=32)), spawn
+    )
+    time.sleep(4)
+    assert app.cli("record", "stop").returncode == 0
+    wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+    [path] = recordings(rec_dir)
+    st = info(path).metadata["exolink.stats"]
+    seqs: dict[int, list[int]] = {}
+    with open(path, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            seqs.setdefault(channel.id, []).append(message.sequence)
+    gaps = sum(b - a - 1 for s in seqs.values() for a, b in itertools.pairwise(s))
+    assert int(st["dropped"]) == gaps > 0
+    assert st["received"] == st["written"]
 
 
 @pytest.fixture

@@ -82,6 +82,31 @@ def _kb(text: str, key: str) -> int | None:
     return None
 
 
+def _threads(pid: int) -> tuple[dict[str, int], int]:
+    """CPU ticks per thread name (digits dropped, so Zenoh's ``rx-0``..``rx-3`` add up) and the
+    context switches of all threads: whether a process's CPU is Python's or Zenoh's runtime's,
+    and how often it wakes."""
+    ticks: dict[str, int] = {}
+    switches = 0
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return ticks, switches
+    for tid in tids:
+        try:
+            f = _read(f"/proc/{pid}/task/{tid}/stat").rsplit(")", 1)[1].split()
+            comm = _read(f"/proc/{pid}/task/{tid}/comm").strip()
+            status = _read(f"/proc/{pid}/task/{tid}/status")
+        except OSError:
+            continue
+        name = "main" if tid == str(pid) else comm.rstrip("0123456789").rstrip("-_") or comm
+        ticks[name] = ticks.get(name, 0) + int(f[11]) + int(f[12])
+        switches += (_kb(status, "voluntary_ctxt_switches") or 0) + (
+            _kb(status, "nonvoluntary_ctxt_switches") or 0
+        )
+    return ticks, switches
+
+
 def process(pid: int) -> dict[str, Any] | None:
     try:
         fields = _read(f"/proc/{pid}/stat").rsplit(")", 1)[1].split()
@@ -92,8 +117,11 @@ def process(pid: int) -> dict[str, Any] | None:
         rollup = _read(f"/proc/{pid}/smaps_rollup")
     except OSError:
         rollup = ""
+    thread_ticks, switches = _threads(pid)
     return {
         "pid": pid,
+        "thread_ticks": thread_ticks,
+        "switches": switches,
         "cpu_ticks": int(fields[11]) + int(fields[12]),
         "start_ticks": int(fields[19]),
         "nice": int(fields[16]),
@@ -174,6 +202,12 @@ def compare(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
             "pss_mb": None if p1["pss_kb"] is None else round(p1["pss_kb"] / 1024, 1),
             "rss_mb": None if p1["rss_kb"] is None else round(p1["rss_kb"] / 1024, 1),
             "threads": p1["threads"],
+            "thread_cpu_pct": {
+                t: round(100.0 * (v - p0["thread_ticks"].get(t, 0)) / CLK / wall, 2)
+                for t, v in sorted(p1["thread_ticks"].items())
+                if v - p0["thread_ticks"].get(t, 0) > 0
+            },
+            "switches_per_s": round((p1["switches"] - p0["switches"]) / wall),
             "nice": p1["nice"],
             "policy": {0: "other", 1: "fifo", 2: "rr", 3: "batch", 5: "idle"}.get(
                 p1["policy"], p1["policy"]
