@@ -310,15 +310,19 @@ class ControllerManagerNode(Node):
         """H2 first, then MACCEPA (ids 70/75/80/85 are both; the length tells): a frame neither
         contract reads is counted by id and reason, never fatal."""
         d = h2.decode(f)
-        if isinstance(d, h2.Unknown) and self.board_ids:
+        if not isinstance(d, h2.Unknown):
+            return d
+        reason = d.reason
+        if self.board_ids:
             m = maccepa.decode(f)
             if not isinstance(m, maccepa.Unknown):
                 return m
-        if isinstance(d, h2.Unknown):
-            key = f"{f.arbitration_id} {d.reason}"
-            n = self.malformed[key] = self.malformed.get(key, 0) + 1
-            if n == 1 or n % 1000 == 0:
-                self.log.warning("malformed_frame", id=f.arbitration_id, reason=d.reason, count=n)
+            if m.reason != "unknown id":  # a MACCEPA id: its contract's reason
+                reason = m.reason
+        key = f"{f.arbitration_id} {reason}"
+        n = self.malformed[key] = self.malformed.get(key, 0) + 1
+        if n == 1 or n % 1000 == 0:
+            self.log.warning("malformed_frame", id=f.arbitration_id, reason=reason, count=n)
         return d
 
     def _on_frames(self, frames: list[Any]) -> None:
