@@ -15,7 +15,12 @@ from conftest import Appliance, collect, wait_for
 from exolink.controller import BoardState, State
 from exolink.jointlimits import Limits, default_max, default_min
 from exolink.maccepalimits import BoardLimits
-from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.nodes.controller_manager.manager import (
+    MACCEPA_REFRESH_CYCLES,
+    Manager,
+    ManagerRefused,
+    Switch,
+)
 from exolink.protocol import maccepa
 
 BOARD0 = BoardState(0, (10, 12, 0, 0), (0, 30, 0, 0), (0, 0, 12))
@@ -68,18 +73,22 @@ def test_claims_one_owner_per_board_interface_and_configured_boards_only() -> No
 def test_setpoint_held_from_the_lever_refused_out_of_range_saturated_by_step() -> None:
     m = manager()
     m.load("m0", "maccepa_setpoint", {"board": 0, "gains": {"kp": 2}})
-    switch(m, ["m0"])
-    # activation holds the lever (12) and writes the three gains once
-    assert writes(m) == [("setpoint", 12.0)]  # gains went out in the activating cycle
+    m.request(Switch(["m0"], []))
+    # the activating cycle: the three gains once, the set-point holding the lever (12)
+    first = [("kp", 2.0), ("ki", 0.0), ("kd", 0.0), ("setpoint", 12.0)]
+    assert writes(m) == first
     assert m.status()["maccepa"]["maccepa0"]["gains"] == [2.0, 0.0, 0.0]
     with pytest.raises(ManagerRefused, match=r"set-point 500 is outside the board's range"):
         m.command("m0", {"values": {"maccepa0": 500}})
     with pytest.raises(ManagerRefused, match=r"kp 11 is outside 0..10"):
         m.command("m0", {"values": {"maccepa0/kp": 11}})
-    assert writes(m) == [("setpoint", 12.0)]  # the refused ones changed nothing
+    assert writes(m) == []  # the refused ones changed nothing (and 12 holds)
     m.command("m0", {"values": {"maccepa0": 20, "maccepa0/kd": 0.5}})
     assert writes(m) == [("kd", 0.5), ("setpoint", 15.0)]  # only the changed gain
-    assert [v for _, v in writes(m) + writes(m) + writes(m)] == [18.0, 20.0, 20.0]
+    assert [v for _, v in writes(m) + writes(m)] == [18.0, 20.0]
+    # held: re-sent every MACCEPA_REFRESH_CYCLES cycles only (a lost frame repaired soon)
+    held = [writes(m) for _ in range(MACCEPA_REFRESH_CYCLES)]
+    assert held == [[]] * (MACCEPA_REFRESH_CYCLES - 1) + [[("setpoint", 20.0)]]
     # a plugin that ignores the range is saturated anyway
     m.slots["m0"].ctrl.values = {"maccepa0/setpoint": 1e6}  # type: ignore[attr-defined]
     assert writes(m) == [("setpoint", 23.0)] and m.slots["m0"].limited >= 1

@@ -26,6 +26,11 @@ from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol.h2 import JOINTS
 
 log = structlog.get_logger()
+# An unchanged MACCEPA set-point or duty is re-sent every this many H2 cycles (100 ms), so a
+# frame lost on the bus is repaired soon; a changed one goes out in its own cycle. Every cycle
+# would be 100 frames/s per board for no news: one bus send per cycle doubled the manager's
+# overhead on this machine (benchmarks/bench_controllers.py).
+MACCEPA_REFRESH_CYCLES = 10
 
 
 class ManagerRefused(Exception):
@@ -168,6 +173,8 @@ class Manager:
         self.boards: dict[int, BoardLimits] = {b.board: b for b in boards or []}
         self.last_sp: dict[int, float] = {}  # board -> last set-point written
         self.gains_written: dict[int, tuple[float, float, float]] = {}  # board -> last gains
+        # board -> (kind, value) last written and cycles since, for the refresh above
+        self.drive_written: dict[int, tuple[str, float, int]] = {}
         self.max_step = max_step_deg
         self.default_budget_s = budget_ms / 1e3
         self.lock = threading.Lock()
@@ -424,8 +431,9 @@ class Manager:
                 target, _, kind = c.partition("/")
                 b = board_of(target)
                 if b is not None:
-                    if kind == "setpoint":
+                    if kind in ("setpoint", "duty"):
                         self.last_sp.pop(b, None)
+                        self.drive_written.pop(b, None)  # the next owner writes at once
                     elif kind == "gains":
                         self.gains_written.pop(b, None)  # the next owner writes all three
                     continue
@@ -597,10 +605,9 @@ class Manager:
             self._compose_maccepa(out)
 
     def _compose_maccepa(self, out: Cycle) -> None:
-        """Per owned board: the set-point (or duty) every cycle, inside the board's range and
-        step, so a frame lost on the bus is replaced 10 ms later; gains only when they change
-        (a gain frame resets nothing on the board, but three a cycle would be bus load for no
-        news). A board whose value is not known yet gets no frame."""
+        """Per owned board: the set-point (or duty) inside the board's range and step, written
+        when it changes and re-sent every ``MACCEPA_REFRESH_CYCLES`` while it holds; gains only
+        when they change. A board whose value is not known yet gets no frame."""
         owners, held = self.owners, self.held
         for b, lim in self.boards.items():
             if b in out.safe_boards:
@@ -632,7 +639,7 @@ class Manager:
                 if lim.violation("setpoint", sp) is not None:  # cannot happen: belt
                     continue
                 self.last_sp[b] = sp
-                out.maccepa.append(MaccepaWrite(b, "setpoint", sp, lim.controller))
+                self._drive(out, b, "setpoint", sp, lim.controller)
                 continue
             duty_owner = owners.get(key + "duty")
             if duty_owner is not None:
@@ -643,7 +650,15 @@ class Manager:
                 d = lim.saturate_duty(v)
                 if d != v:
                     self.slots[duty_owner].limited += 1
-                out.maccepa.append(MaccepaWrite(b, "duty", d, lim.controller))
+                self._drive(out, b, "duty", d, lim.controller)
+
+    def _drive(self, out: Cycle, board: int, kind: str, value: float, controller: str) -> None:
+        last = self.drive_written.get(board)
+        if last is not None and last[:2] == (kind, value) and last[2] + 1 < MACCEPA_REFRESH_CYCLES:
+            self.drive_written[board] = (kind, value, last[2] + 1)
+            return
+        self.drive_written[board] = (kind, value, 0)
+        out.maccepa.append(MaccepaWrite(board, kind, value, controller))
 
 
 def _finite(v: Any) -> bool:
