@@ -291,7 +291,7 @@ def test_raising_controller_deactivated_and_its_board_stopped(app, mbus) -> None
     r = ctl(app, "load", "lab", "board_raiser")
     assert r.returncode == 0, r.stderr
     assert ctl(app, "switch", "--activate", "lab", "--deactivate", "m0").returncode == 0
-    wait_for(lambda: any(listing(app)["owners"].get("maccepa0/setpoint") == "lab" for _ in [0]))
+    wait_for(lambda: listing(app)["owners"].get("maccepa0/setpoint") == "lab")
     mbus.q.queue.clear()
     assert ctl(app, "command", "lab", "maccepa0=0").returncode == 0
     frames = collect(mbus, 0.5, {40, 80})
