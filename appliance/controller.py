@@ -2,16 +2,19 @@
 
 Kept apart from the manager (and light: msgspec and the H2 joint names) because a lab's own
 controller package imports only this, exactly as a node imports ``exolink.node``. A controller
-never touches the bus, Zenoh or the watchdog: it gets the H2 state once per H2 cycle and returns
-values for the command interfaces it claimed; the manager checks limits, encodes and writes.
+never touches the bus, Zenoh or the watchdog: it gets the H2 state (and the configured MACCEPA
+boards' last status frames) once per H2 cycle and returns values for the command interfaces it
+claimed; the manager checks limits, encodes and writes.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import msgspec
+from exolink.maccepalimits import KINDS as MACCEPA_INTERFACES
+from exolink.maccepalimits import BoardLimits
 from exolink.protocol.h2 import JOINTS
 
 INTERFACES = ("position", "torque", "stiffness")
@@ -31,16 +34,43 @@ class Refused(Exception):
 
 
 @dataclass(frozen=True, slots=True)
+class BoardState:
+    """A MACCEPA board's last status frames, as its codec decoded them (None until the first of
+    that kind): positions (link 2, lever arm, extra position, extra sensor), sensors (current mA,
+    temperature degC, motor velocity rpm, load cell N) and its controller (set-point, actuation,
+    process variable); ``stamp``: the newest of those frames' kernel receive time (s)."""
+
+    board: int
+    positions: tuple[int, int, int, int] | None = None
+    sensors: tuple[int, int, int, int] | None = None
+    controller: tuple[int, int, int] | None = None
+    stamp: float = 0.0
+
+    @property
+    def lever(self) -> int | None:
+        return self.positions[1] if self.positions is not None else None
+
+    @property
+    def link(self) -> int | None:
+        return self.positions[0] if self.positions is not None else None
+
+
+@dataclass(frozen=True, slots=True)
 class State:
     """One H2 cycle: whole degrees and raw torque counts in joint order (``JOINTS``), foot
-    switches (r_heel, r_toe, l_heel, l_toe; None until the first foot-switch frame)."""
+    switches (r_heel, r_toe, l_heel, l_toe; None until the first foot-switch frame), and the
+    configured MACCEPA boards that have sent a status frame, by board id."""
 
     position: tuple[int, ...]
     torque: tuple[int, ...]
     feet: tuple[int, int, int, int] | None = None
+    maccepa: dict[int, BoardState] = field(default_factory=dict)
 
     def of(self, joint: str) -> int:
         return self.position[JOINTS.index(joint)]
+
+    def board(self, board: int) -> BoardState | None:
+        return self.maccepa.get(board)
 
 
 def interface(joint: str, kind: str) -> str:
@@ -50,6 +80,18 @@ def interface(joint: str, kind: str) -> str:
     if kind not in INTERFACES:
         raise Refused(f"unknown interface {kind!r} (valid: {', '.join(INTERFACES)})")
     return f"{joint}/{kind}"
+
+
+def maccepa_interface(board: int, kind: str) -> str:
+    """``maccepa0/setpoint``: a MACCEPA board's command interface (kinds: setpoint, duty, gains).
+    A ``gains`` value is the triple (kp, ki, kd); the others are numbers."""
+    if isinstance(board, bool) or not isinstance(board, int) or not 0 <= board <= 9:
+        raise Refused(f"MACCEPA board id {board!r} is outside 0..9")
+    if kind not in MACCEPA_INTERFACES:
+        raise Refused(
+            f"unknown MACCEPA interface {kind!r} (valid: {', '.join(MACCEPA_INTERFACES)})"
+        )
+    return f"maccepa{board}/{kind}"
 
 
 class Controller:
@@ -68,6 +110,9 @@ class Controller:
     def __init__(self, name: str, params: Any) -> None:
         self.name = name
         self.params = params
+        # The MACCEPA boards the manager drives and their limits (set by the manager before
+        # ``configure``), so a controller can refuse a command the manager would saturate.
+        self.boards: dict[int, BoardLimits] = {}
 
     def claims(self) -> list[str]:
         raise NotImplementedError
@@ -81,9 +126,10 @@ class Controller:
     def deactivate(self) -> None:
         pass
 
-    def update(self, state: State, time: float, period: float) -> dict[str, float]:
+    def update(self, state: State, time: float, period: float) -> dict[str, Any]:
         """``time``: the angle frame's kernel receive time (s since the epoch); ``period``: the
-        measured time since the previous cycle's frame (s)."""
+        measured time since the previous cycle's frame (s). Values are numbers, except a
+        ``maccepa<N>/gains`` value: the triple (kp, ki, kd)."""
         raise NotImplementedError
 
     def command(self, request: dict[str, Any]) -> dict[str, Any]:

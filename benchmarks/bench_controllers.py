@@ -4,6 +4,13 @@ the controllers' (``overhead_us``, measured inside the node: read -> frames sent
 
 Goal (issue 20): p99 < 1 ms on x86 on the sim bus. Both frames are stamped by the listener's
 kernel on the same socket, so the figure is bus to bus, including the udp_multicast path.
+
+``controllers_1_maccepa``: the 1-controller case plus a ``maccepa_setpoint`` controller holding a
+simulated MACCEPA board (its status frames read and decoded every 10 ms; the held set-point
+re-sent every ``MACCEPA_REFRESH_CYCLES`` cycles): its ``overhead_us`` against ``controllers_1`` is
+the MACCEPA interface's cost per cycle inside ``cycle`` and the writes (the status frames' decoding
+is outside that figure), ``board_frame_to_setpoint_ms`` the angle frame -> MACCEPA set-point frame
+latency of the cycles that write one.
 """
 
 from __future__ import annotations
@@ -11,20 +18,30 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from exolink.protocol import h2
+from exolink.protocol import h2, maccepa
 
 from benchmarks.harness import Appliance, Drained, pct
 
 JOINTS3 = ["r_knee", "l_knee", "r_hip"]
 
 
-def measure(n_controllers: int, seconds: float) -> dict[str, Any]:
+def measure(n_controllers: int, seconds: float, board: bool = False) -> dict[str, Any]:
     controllers = [
         {"name": f"c{i}", "type": "forward_command", "params": {"joints": [j]}}
         for i, j in enumerate(JOINTS3[:n_controllers])
     ]
+    manager: dict[str, Any] = {"controllers": controllers}
+    if board:
+        controllers.append(
+            {"name": "m0", "type": "maccepa_setpoint", "params": {"board": 0, "gains": {"kp": 2}}}
+        )
+        manager["maccepa"] = [{"board": 0}]
     nodes = [
-        {"name": "simulator", "plugin": "simulator"},
+        {
+            "name": "simulator",
+            "plugin": "simulator",
+            "params": {"maccepa_boards": [0] if board else []},
+        },
         {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
         {
             "name": "controller_manager",
@@ -32,10 +49,10 @@ def measure(n_controllers: int, seconds: float) -> dict[str, Any]:
             "critical": True,
             "heartbeat_deadline_ms": 50,
             "priority": {"fifo": 50},
-            "params": {"controllers": controllers},
+            "params": manager,
         },
     ]
-    app = Appliance(nodes=nodes)
+    app = Appliance(nodes=nodes, watchdog={"maccepa_boards": [0]})
     bus = Drained(app.group)
     try:
         app.arm()
@@ -43,6 +60,9 @@ def measure(n_controllers: int, seconds: float) -> dict[str, Any]:
         reply = app.call("controllers", {"action": "activate", "names": names})
         if not reply.get("ok"):
             raise RuntimeError(f"activate: {reply}")
+        if board:
+            body = {"action": "command", "name": "m0", "values": {"maccepa0": 20}}
+            app.call("controllers", body)
         time.sleep(0.3)
         bus.clear()
         frames = bus.collect(seconds)
@@ -52,14 +72,27 @@ def measure(n_controllers: int, seconds: float) -> dict[str, Any]:
         app.close()
     # first command frame after each angle frame, before the next angle frame
     latency, pending = [], None
+    board_latency, board_pending = [], None
     for m in frames:
         if m.arbitration_id == h2.JOINT_ANGLES:
-            pending = m.timestamp
+            pending = board_pending = m.timestamp
         elif m.arbitration_id == h2.JOINT_CONTROL and pending is not None and len(m.data) == 6:
             latency.append(m.timestamp - pending)
             pending = None
+        elif m.arbitration_id == maccepa.SETPOINT_BASE and board_pending is not None:
+            board_latency.append(m.timestamp - board_pending)
+            board_pending = None
     cycles = sum(1 for m in frames if m.arbitration_id == h2.JOINT_ANGLES)
+    extra = {}
+    if board:
+        extra = {
+            "board_frame_to_setpoint_ms": pct(board_latency, 1e3),
+            "setpoint_frames": len(board_latency),
+            "maccepa_written": status.get("maccepa_written"),
+            "malformed": status.get("malformed"),
+        }
     return {
+        **extra,
         "frame_to_command_ms": pct(latency, 1e3),
         "cycles_without_command": cycles - len(latency),
         "overhead_us": status["overhead_us"],
@@ -71,4 +104,6 @@ def measure(n_controllers: int, seconds: float) -> dict[str, Any]:
 
 def run(quick: bool) -> dict[str, Any]:
     seconds = 3.0 if quick else 15.0
-    return {f"controllers_{n}": measure(n, seconds) for n in (1, 3)}
+    out = {f"controllers_{n}": measure(n, seconds) for n in (1, 3)}
+    out["controllers_1_maccepa"] = measure(1, seconds, board=True)
+    return out

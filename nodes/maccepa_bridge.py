@@ -4,6 +4,14 @@ commands -> frames.
 Topics ``maccepa/b<N>/sensors``, ``.../positions``, ``.../controller``. Commands arrive as Zenoh
 queries (``exolink maccepa ...``): gains with controller type, set-point, duty cycle, stop control.
 Set-point and duty move the actuator and need the watchdog armed; gains and stop do not.
+
+With ``motion_via_manager`` (for boards the controller manager drives: its ``params.maccepa``)
+set-point, duty and gains are checked here as always, then handed to the manager, which holds
+them in that board's operator controller and writes them each H2 cycle inside the board's
+limits (one writer per board; a board another controller drives refuses them, naming it). Stop
+control stays here and goes straight to the bus: it can only make things safer, and the manager
+releases the board when it sees it. Without it (the shipped configs, where the manager is off)
+the bridge writes every command itself, as before.
 """
 
 from __future__ import annotations
@@ -20,6 +28,8 @@ from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, maccepa
 
+MANAGED_KINDS = ("setpoint", "duty", "gains")  # what motion_via_manager hands the manager
+MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
 TYPES = {
     maccepa.Sensors: ("sensors", "exolink_msgs/msg/MaccepaSensors"),
     maccepa.Positions: ("positions", "exolink_msgs/msg/MaccepaPositions"),
@@ -47,6 +57,9 @@ class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         default_factory=lambda: [0]
     )
     require_armed: bool = True
+    # Set-point, duty and gains go to the controller manager (``exolink controllers``), which
+    # writes them; stop stays here. For the boards in the manager's params.maccepa.
+    motion_via_manager: bool = False
 
 
 class MaccepaBridge(Node):
@@ -103,11 +116,33 @@ class MaccepaBridge(Node):
 
     def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
         frames = self.build(req)
+        if self.params.motion_via_manager and req.get("kind") in MANAGED_KINDS:
+            return self._via_manager(req)
         with self.lock:
             for f in frames:
                 self.bus.send(f)
         self.log.info("maccepa_command", request=req)
         return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
+
+    def _via_manager(self, req: dict[str, Any]) -> dict[str, Any]:
+        """The checked command, for the controller manager to hold and write; its refusal
+        (another controller drives the board, a set-point outside the board's limits, not
+        armed) reaches the caller verbatim."""
+        body: dict[str, Any] = {
+            "action": "maccepa",
+            "board": req["board"],
+            "kind": req["kind"],
+            "controller": req.get("controller", "position"),
+        }
+        if req["kind"] == "gains":
+            body |= {g: req.get(g) for g in ("kp", "ki", "kd")}
+        else:
+            body["value"] = req.get("value")
+            if req["kind"] == "duty":
+                body.pop("controller")  # a duty frame carries no controller type
+        reply = self.ctx.messaging.command("controllers", body=body, timeout_s=MANAGER_WAIT_S)
+        self.log.info("maccepa_command_forwarded", request=body, controller=reply.get("controller"))
+        return {"controller": reply.get("controller"), "frames": []}
 
     def handle(self, msg: can.Message) -> None:
         f = maccepa.decode(msg)

@@ -13,6 +13,21 @@ from exolink.cli.remote import _guard, _Leaves, common, remote
 
 def show(s: dict[str, Any]) -> str:
     lines = [f"cycles {s['cycles']}  written {s['written']}  safe-action frames {s['safe']}"]
+    if s.get("maccepa"):  # boards the manager drives: who owns what, what it last wrote
+        lines.append(
+            f"maccepa frames written {s.get('maccepa_written', 0)}  "
+            f"stop-control frames {s.get('maccepa_safe', 0)}  "
+            f"malformed {sum(s.get('malformed', {}).values())}"
+        )
+        owners = s.get("owners", {})
+        for name, b in sorted(s["maccepa"].items()):
+            held = {k.split("/")[1]: v for k, v in owners.items() if k.split("/")[0] == name}
+            gains = "-" if b["gains"] is None else ",".join(f"{g:g}" for g in b["gains"])
+            sp = "-" if b["setpoint"] is None else f"{b['setpoint']:g}"
+            lines.append(
+                f"{name:<16} {b['controller']} controller  set-point {sp}  gains {gains}  "
+                + (", ".join(f"{k} by {v}" for k, v in sorted(held.items())) or "not claimed")
+            )
     for c in s["controllers"]:
         why = f" ({c['error']})" if c.get("error") else ""
         mean = c["update_ms_mean"]
@@ -98,7 +113,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q = s.add_parser("switch", help="deactivate some and activate others at one H2 cycle")
     q.add_argument("--activate", nargs="+", default=[], metavar="NAME")
     q.add_argument("--deactivate", nargs="+", default=[], metavar="NAME")
-    q = s.add_parser("command", help="command NAME JOINT=VALUE... (forward_command, pid)")
+    q = s.add_parser(
+        "command",
+        help="command NAME JOINT=VALUE... (forward_command, pid; maccepa_setpoint: maccepa0=30)",
+    )
     q.add_argument("name")
     q.add_argument("values", nargs="+", type=_value)
     p.set_defaults(func=cmd_controllers)

@@ -123,7 +123,10 @@ def cmd_maccepa(args: argparse.Namespace) -> int:
         return _watch(args)
     with remote(args) as r:
         reply = r.call("maccepa", body=maccepa_body(args))
-    sys.stdout.write("ok " + " ".join(reply["frames"]) + "\n")
+    if reply.get("controller"):  # the bridge handed it to the controller manager
+        sys.stdout.write(f"ok held by controller {reply['controller']}\n")
+    else:
+        sys.stdout.write("ok " + " ".join(reply["frames"]) + "\n")
     return 0
 
 

@@ -2,14 +2,21 @@
 per H2 cycle, paced by the joint-angle frame (id 110).
 
 The node reads the H2 frames itself (one FrameReader: angles, torques, foot switches, and joint
-control so it sees a disable from anyone), hands each cycle to ``Manager`` with the angle frame's
-kernel timestamp and the measured period, and writes what comes back. Safety around the loop:
+control so it sees a disable from anyone), and the status frames of the MACCEPA boards in
+``params.maccepa`` (sensors, positions, controller; their duty/stop frame too, so it sees a stop
+from anyone), hands each cycle to ``Manager`` with the angle frame's kernel timestamp and the
+measured period, and writes what comes back. MACCEPA frames are decoded by the MACCEPA codec
+after the H2 codec had its say (the ids overlap: protocol/README.md); a frame neither decodes is
+counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safety around the loop:
 
 - nothing is written unless the watchdog is armed; a trip (seen on Zenoh, or as its disable
   frames on the bus, whichever comes first) deactivates every controller, and they stay inactive
   until an operator re-arms and activates them again;
 - a type 4/5 frame for a claimed joint from any sender stops the controllers driving it (their
-  next set-point would switch the joint back on);
+  next set-point would switch the joint back on); so does "stop control" for a claimed board;
+- the safe action of a MACCEPA board is "stop control", sent by this node whenever a controller
+  on it fails or stops, and on a trip (the watchdog also stops ``watchdog.maccepa_boards``, which
+  must include every board configured here: checked at start);
 - no angle frame for ``h2_timeout_ms`` while controllers are active: their joints get the safe
   action and every controller stops (the watchdog trips on the same silence a little later);
 - the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
@@ -28,13 +35,14 @@ import msgspec
 from exolink import roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_reader
-from exolink.controller import State
+from exolink.controller import BoardState, State
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
+from exolink.maccepalimits import GAINS, KINDS, BoardLimits
 from exolink.messaging import CommandRefused
 from exolink.node import Node
-from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused, Switch
 from exolink.plugins import controller_types
-from exolink.protocol import h2
+from exolink.protocol import ProtocolError, h2, maccepa
 
 BEAT_S = 0.02
 SWITCH_WAIT_S = 1.0
@@ -42,6 +50,8 @@ SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
 OPERATOR_MODES = ("position", "stiffness", "torque")
 READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES, h2.JOINT_CONTROL]
+MACCEPA_OPERATOR = "maccepa"  # the action the MACCEPA bridge forwards a board command with
+DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
 
 
 class ControllerSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -63,6 +73,8 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     h2_timeout_ms: Annotated[int, msgspec.Meta(ge=15, le=1000)] = 50
     safe_action: Literal["disable", "stop"] = "disable"
     require_armed: bool = True
+    # MACCEPA boards this manager drives (maccepa<N>/setpoint|duty|gains) and their limits.
+    maccepa: list[BoardLimits] = []
     controllers: list[ControllerSpec] = []  # loaded (inactive) at start
 
 
@@ -73,6 +85,17 @@ def _frame(motor: int, mode: int, setpoint: int, stiffness: int) -> can.Message:
     return h2.encode_joint_control(motor, mode, setpoint, stiffness)
 
 
+@lru_cache(maxsize=4096)
+def _mframe(board: int, kind: str, value: float, controller: str) -> can.Message:
+    """A MACCEPA command through the MACCEPA codec (which checks ranges again), cached like
+    ``_frame``: a held set-point costs a look-up per cycle."""
+    if kind == "setpoint":
+        return maccepa.encode_setpoint(board, value, controller)
+    if kind == "duty":
+        return maccepa.encode_duty(board, value)
+    return maccepa.encode_gain(board, kind, value, controller)
+
+
 class ControllerManagerNode(Node):
     Params = ManagerParams
     stall_s = 2 * BEAT_S
@@ -80,15 +103,33 @@ class ControllerManagerNode(Node):
     def configure(self) -> None:
         p = self.params
         limits = Limits.of(p.min_angles, p.max_angles, p.torque_cap, p.stiffness_cap, self.name)
-        self.manager = Manager(limits, p.max_step_deg, p.update_budget_ms)
+        boards = [b.board for b in p.maccepa]
+        if len(set(boards)) != len(boards):
+            raise ValueError(f"{self.name} params: maccepa lists a board twice ({boards})")
+        guarded = self.ctx.config.watchdog.maccepa_boards
+        if missing := sorted(set(boards) - set(guarded)):
+            raise ValueError(
+                f"{self.name} params: maccepa boards {missing} are not in watchdog.maccepa_boards "
+                f"({guarded}): the watchdog would not stop them on a trip"
+            )
+        self.manager = Manager(limits, p.max_step_deg, p.update_budget_ms, list(p.maccepa))
         for n, spec in enumerate(p.controllers):
             try:
                 self.manager.load(spec.name, spec.type, spec.params, spec.budget_ms)
             except ManagerRefused as exc:
                 raise ValueError(f"{self.name} params: controllers[{n}]: {exc}") from None
         self.safe_mode = h2.MODES["disabled" if p.safe_action == "disable" else "stopped"]
-        self.reader = open_reader(self.ctx.config.can, READ_IDS)
+        self.board_ids = set(boards)
+        # Status frames (50/60/70 + board) and duty/stop (80 + board): a stop from anyone.
+        mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
+        self.reader = open_reader(self.ctx.config.can, sorted({*READ_IDS, *mc_ids}))
         self.bus = self.reader.bus
+        self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame
+        self.mview: dict[int, BoardState] = {}  # what cycles see: a copy taken when it changed
+        self.mchanged = False
+        self.malformed: dict[str, int] = {}  # "<id> <reason>" -> count
+        self.mc_written = 0
+        self.mc_safe_sent = 0
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
         self.torque: tuple[int, ...] = (0,) * 6
         self.feet: tuple[int, int, int, int] | None = None
@@ -104,7 +145,7 @@ class ControllerManagerNode(Node):
         included), so only the appliance's own login may ask it: a laptop goes through
         ``exolink send``."""
         action = request.get("action", "list")
-        if action == OPERATOR:
+        if action in (OPERATOR, MACCEPA_OPERATOR):
             return roles.APPLIANCE_USER
         return roles.OBSERVER if action in ("list", "types") else roles.OPERATOR
 
@@ -114,7 +155,14 @@ class ControllerManagerNode(Node):
         action = req.get("action", "list")
         try:
             if action == "list":
-                return {**self.manager.status(), "written": self.written, "safe": self.safe_sent}
+                return {
+                    **self.manager.status(),
+                    "written": self.written,
+                    "safe": self.safe_sent,
+                    "maccepa_written": self.mc_written,
+                    "maccepa_safe": self.mc_safe_sent,
+                    "malformed": dict(self.malformed),
+                }
             if action == "types":
                 return {"types": controller_types()}
             if action == "load":
@@ -135,12 +183,55 @@ class ControllerManagerNode(Node):
                 return self._switch(action, req)
             if action == "operator":
                 return self._operator(req)
+            if action == MACCEPA_OPERATOR:
+                return self._maccepa(req)
         except ManagerRefused as exc:
             raise CommandRefused(str(exc)) from None
         raise CommandRefused(
             f"unknown controllers action {action!r} "
-            "(list, types, load, unload, activate, deactivate, switch, command, operator)"
+            "(list, types, load, unload, activate, deactivate, switch, command, operator, maccepa)"
         )
+
+    def _maccepa(self, req: dict[str, Any]) -> dict[str, Any]:
+        """A MACCEPA board command the bridge forwards (``motion_via_manager``): held by that
+        board's operator controller for the kind (``operator.maccepa0.setpoint``), made on
+        first use. Set-point and duty drive the board and replace each other at one cycle
+        boundary; gains are their own interface (tuning while something else drives the board).
+        An interface another controller owns is refused with that controller named."""
+        board, kind = req.get("board"), req.get("kind")
+        if board not in self.board_ids or kind not in KINDS:
+            configured = ", ".join(str(b) for b in sorted(self.board_ids)) or "none"
+            raise CommandRefused(
+                f"MACCEPA board {board!r} / command {kind!r}: the controller manager drives "
+                f"boards {configured} (params.maccepa) with {', '.join(KINDS)}"
+            )
+        lim = self.manager.boards[board]  # type: ignore[index]
+        ctl = req.get("controller", lim.controller)
+        if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
+            raise CommandRefused(
+                f"maccepa{board} runs its {lim.controller} controller under the controller "
+                f"manager (params.maccepa), not {ctl!r}"
+            )
+        group = DRIVE if kind in DRIVE else ("gains",)
+        name, mine = f"{OPERATOR}.maccepa{board}.{kind}", f"{OPERATOR}.maccepa{board}."
+        for key, owner in self.manager.owners_of(f"maccepa{board}").items():
+            if key.split("/")[1] in group and not owner.startswith(mine):
+                raise CommandRefused(
+                    f"maccepa{board} is driven by controller {owner} ({key}): "
+                    f"`exolink controllers deactivate {owner}` first"
+                )
+        if name not in self.manager.names():
+            self.manager.load(name, "maccepa_operator", {"board": board, "kind": kind})
+        body = {g: req.get(g) for g in GAINS} if kind == "gains" else {"value": req.get("value")}
+        reply = self.manager.command(name, body)
+        if name not in self.manager.active():
+            before = [
+                n
+                for n in self.manager.active()
+                if n.startswith(mine) and n.rpartition(".")[2] in group
+            ]
+            self._switch("switch", {"activate": [name], "deactivate": before})
+        return {"controller": name, **reply}
 
     def _operator(self, req: dict[str, Any]) -> dict[str, Any]:
         """An operator's joint command (``exolink send``, through h2_sender, which has checked
@@ -215,8 +306,27 @@ class ControllerManagerNode(Node):
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
                 self.manager.idle(self._not_armed())
 
+    def _decode(self, f: Any) -> Any:
+        """H2 first, then MACCEPA (ids 70/75/80/85 are both; the length tells): a frame neither
+        contract reads is counted by id and reason, never fatal."""
+        d = h2.decode(f)
+        if not isinstance(d, h2.Unknown):
+            return d
+        reason = d.reason
+        if self.board_ids:
+            m = maccepa.decode(f)
+            if not isinstance(m, maccepa.Unknown):
+                return m
+            if m.reason != "unknown id":  # a MACCEPA id: its contract's reason
+                reason = m.reason
+        key = f"{f.arbitration_id} {reason}"
+        n = self.malformed[key] = self.malformed.get(key, 0) + 1
+        if n == 1 or n % 1000 == 0:
+            self.log.warning("malformed_frame", id=f.arbitration_id, reason=reason, count=n)
+        return d
+
     def _on_frames(self, frames: list[Any]) -> None:
-        decoded = [(f, h2.decode(f)) for f in frames]
+        decoded = [(f, self._decode(f)) for f in frames]
         # Safety first: a disable/stop anywhere in the batch stops its joints' controllers
         # before any set-point of this batch is computed.
         stopped = {
@@ -227,13 +337,43 @@ class ControllerManagerNode(Node):
         if stopped:
             names = ", ".join(h2.JOINTS[j] for j in sorted(stopped))
             self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
+        if self.board_ids:
+            halted = {
+                d.board
+                for _f, d in decoded
+                if isinstance(d, maccepa.Duty) and d.action == 0 and d.board in self.board_ids
+            }
+            if halted:
+                names = ", ".join(f"maccepa{b}" for b in sorted(halted))
+                self.manager.boards_stopped(halted, f"{names} stopped on the bus")
         for f, d in decoded:
             if isinstance(d, h2.JointTorques):
                 self.torque = tuple(d)
             elif isinstance(d, h2.FootSwitches):
                 self.feet = (d.r_heel, d.r_toe, d.l_heel, d.l_toe)
             elif isinstance(d, h2.JointAngles):
-                self._cycle(f.timestamp, State(tuple(d), self.torque, self.feet))
+                if self.mchanged:
+                    self.mview, self.mchanged = dict(self.mstate), False
+                self._cycle(f.timestamp, State(tuple(d), self.torque, self.feet, self.mview))
+            elif isinstance(d, maccepa.Sensors | maccepa.Positions | maccepa.Controller):
+                self._board_frame(d, f.timestamp)
+
+    def _board_frame(self, d: Any, stamp: float) -> None:
+        """A board's status frame: that board's state replaced whole (cycles hold immutable
+        ones), only for configured boards."""
+        b = d.board
+        if b not in self.board_ids:
+            return
+        old = self.mstate.get(b) or BoardState(b)
+        pos, sens, ctl = old.positions, old.sensors, old.controller
+        if isinstance(d, maccepa.Positions):
+            pos = (d.link, d.lever, d.extra_position, d.extra_sensor)
+        elif isinstance(d, maccepa.Sensors):
+            sens = (d.current, d.temperature, d.velocity, d.load)
+        else:
+            ctl = (d.setpoint, d.actuation, d.process_variable)
+        self.mstate[b] = BoardState(b, pos, sens, ctl, stamp)
+        self.mchanged = True
 
     def _cycle(self, stamp: float, state: State) -> None:
         """One H2 cycle (every angle frame, in order, so a late batch still gets one write per
@@ -242,13 +382,28 @@ class ControllerManagerNode(Node):
         period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
         self.last_angle_ts, self.last_angle_mono = stamp, time.monotonic()
         out = self.manager.cycle(state, stamp, period, self._not_armed())
-        for j in sorted(out.safe):
-            self._send(_frame(j + 1, self.safe_mode, 0, 0))
-            self.safe_sent += 1
+        self._safe(out)
         for w in out.writes:
             self._send(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
             self.written += 1
+        for m in out.maccepa:
+            try:
+                frame = _mframe(m.board, m.kind, m.value, m.controller)
+            except ProtocolError as exc:  # cannot happen after the limits: belt
+                self.log.error("maccepa_encode_refused", write=str(m), error=str(exc))
+                continue
+            self._send(frame)
+            self.mc_written += 1
         self.manager.overhead_s.append(time.perf_counter() - t0 - out.controller_s)
+
+    def _safe(self, out: Cycle) -> None:
+        """The safe action of the joints and boards ``out`` names."""
+        for j in sorted(out.safe):
+            self._send(_frame(j + 1, self.safe_mode, 0, 0))
+            self.safe_sent += 1
+        for b in sorted(out.safe_boards):
+            self._send(maccepa.encode_stop(b))
+            self.mc_safe_sent += 1
 
     def _send(self, msg: can.Message) -> None:
         try:
@@ -257,19 +412,18 @@ class ControllerManagerNode(Node):
             self.log.error("send_failed", error=str(exc))
 
     def _silent(self, reason: str) -> None:
-        joints = self.manager.stop_all(reason) if self.manager.active() else set()
-        for j in sorted(joints):
-            self._send(_frame(j + 1, self.safe_mode, 0, 0))
-            self.safe_sent += 1
-        if joints:
+        if not self.manager.active():
+            return
+        out = self.manager.stop_all(reason)
+        self._safe(out)
+        if out.safe or out.safe_boards:
             self.log.warning("controllers_stopped_h2_silent", reason=reason)
 
     def shutdown(self) -> None:
         if hasattr(self, "manager"):
-            joints = self.manager.stop_all("controller manager shutting down")
+            out = self.manager.stop_all("controller manager shutting down")
             if hasattr(self, "bus"):
-                for j in sorted(joints):
-                    self._send(_frame(j + 1, self.safe_mode, 0, 0))
+                self._safe(out)
         if hasattr(self, "_q"):
             self._q.undeclare()
         if getattr(self, "arming", None) is not None:

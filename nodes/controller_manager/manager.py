@@ -1,8 +1,9 @@
 """The controller manager's logic, free of any bus or Zenoh session (so tests feed it states).
 
 One ``Manager`` owns the loaded controllers, the claims on command interfaces (one owner each),
-the switches waiting for a cycle boundary, and turns one H2 cycle into the joint commands to
-write. The node around it (``ControllerManagerNode``) reads the bus, checks arming and writes.
+the switches waiting for a cycle boundary, and turns one H2 cycle into the joint commands and the
+MACCEPA board commands to write (``maccepa<N>/setpoint|duty|gains``, each inside that board's
+``BoardLimits``). The node around it (``ControllerManagerNode``) reads the bus, checks arming and writes.
 Everything that changes what is active happens inside ``cycle`` (or ``stop_all`` /
 ``joints_disabled``) under one lock, so no cycle ever sees half a switch.
 """
@@ -18,12 +19,18 @@ from typing import Any
 
 import msgspec
 import structlog
-from exolink.controller import INTERFACES, Controller, Refused, SafeStop, State
+from exolink.controller import INTERFACES, MACCEPA_INTERFACES, Controller, Refused, SafeStop, State
 from exolink.jointlimits import POSITION, STIFFNESS, TORQUE, Limits
+from exolink.maccepalimits import GAINS, BoardLimits, board_of
 from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol.h2 import JOINTS
 
 log = structlog.get_logger()
+# An unchanged MACCEPA set-point or duty is re-sent every this many H2 cycles (100 ms), so a
+# frame lost on the bus is repaired soon; a changed one goes out in its own cycle. Every cycle
+# would be 100 frames/s per board for no news: one bus send per cycle doubled the manager's
+# overhead on this machine (benchmarks/bench_controllers.py).
+MACCEPA_REFRESH_CYCLES = 10
 
 
 class ManagerRefused(Exception):
@@ -48,7 +55,11 @@ class Slot:
     limited: int = 0
 
     def joints(self) -> set[int]:
-        return {JOINTS.index(c.split("/")[0]) for c in self.claims}
+        return {JOINTS.index(t) for t in (c.split("/")[0] for c in self.claims) if t in JOINTS}
+
+    def boards(self) -> set[int]:
+        """The MACCEPA boards this controller writes (any of their interfaces)."""
+        return {b for c in self.claims if (b := board_of(c.split("/")[0])) is not None}
 
     def status(self) -> dict[str, Any]:
         return {
@@ -79,6 +90,17 @@ class Write:
     stiffness: int
 
 
+@dataclass(frozen=True, slots=True)
+class MaccepaWrite:
+    """One MACCEPA frame for this cycle, inside the board's limits: ``kind`` is setpoint, duty,
+    kp, ki or kd; ``controller`` the board's configured controller type (setpoint and gains)."""
+
+    board: int
+    kind: str
+    value: float
+    controller: str
+
+
 @dataclass
 class Switch:
     """Deactivate some, activate others: applied whole at one cycle boundary, or refused whole."""
@@ -95,6 +117,8 @@ class Cycle:
 
     writes: list[Write] = field(default_factory=list)
     safe: set[int] = field(default_factory=set)
+    maccepa: list[MaccepaWrite] = field(default_factory=list)
+    safe_boards: set[int] = field(default_factory=set)  # MACCEPA boards to stop
     controller_s: float = 0.0  # wall time inside controllers' update (the rest is overhead)
 
 
@@ -103,16 +127,27 @@ def split(interface: str) -> tuple[int, str]:
     return JOINTS.index(joint), kind
 
 
-def check_claims(name: str, claims: list[str]) -> tuple[str, ...]:
+def check_claims(name: str, claims: list[str], boards: Any = ()) -> tuple[str, ...]:
     """A controller's own claims: known interfaces, no repeats, not torque and position on one
-    joint (the H2 runs one mode per joint)."""
+    joint (the H2 runs one mode per joint), not set-point and duty on one MACCEPA board (a
+    set-point frame switches the board to closed loop, a duty frame to open loop); ``boards``:
+    the MACCEPA boards the manager is configured to drive."""
     seen: set[str] = set()
     for c in claims:
-        joint, _, kind = c.partition("/")
-        if joint not in JOINTS or kind not in INTERFACES:
+        target, _, kind = c.partition("/") if isinstance(c, str) else (c, "", "")
+        b = board_of(target)
+        if b is not None and kind in MACCEPA_INTERFACES:
+            if b not in boards:
+                configured = ", ".join(f"maccepa{x}" for x in sorted(boards)) or "none"
+                raise ManagerRefused(
+                    f"{name} claims {c}: MACCEPA board {b} is not in the manager's "
+                    f"params.maccepa (configured: {configured})"
+                )
+        elif target not in JOINTS or kind not in INTERFACES:
             raise ManagerRefused(
                 f"{name} claims {c!r}: interfaces are <joint>/<{'|'.join(INTERFACES)}> "
-                f"with joint one of {', '.join(JOINTS)}"
+                f"with joint one of {', '.join(JOINTS)}, or "
+                f"maccepa<board>/<{'|'.join(MACCEPA_INTERFACES)}>"
             )
         if c in seen:
             raise ManagerRefused(f"{name} claims {c} twice")
@@ -120,18 +155,32 @@ def check_claims(name: str, claims: list[str]) -> tuple[str, ...]:
     for j in JOINTS:
         if f"{j}/torque" in seen and ({f"{j}/position", f"{j}/stiffness"} & seen):
             raise ManagerRefused(f"{name} claims {j}/torque with {j}'s position or stiffness")
+    for b in boards:
+        if {f"maccepa{b}/setpoint", f"maccepa{b}/duty"} <= seen:
+            raise ManagerRefused(f"{name} claims maccepa{b}/setpoint with maccepa{b}/duty")
     return tuple(claims)
 
 
 class Manager:
-    def __init__(self, limits: Limits, max_step_deg: int, budget_ms: float) -> None:
+    def __init__(
+        self,
+        limits: Limits,
+        max_step_deg: int,
+        budget_ms: float,
+        boards: list[BoardLimits] | None = None,
+    ) -> None:
         self.limits = limits
+        self.boards: dict[int, BoardLimits] = {b.board: b for b in boards or []}
+        self.last_sp: dict[int, float] = {}  # board -> last set-point written
+        self.gains_written: dict[int, tuple[float, float, float]] = {}  # board -> last gains
+        # board -> (kind, value) last written and cycles since, for the refresh above
+        self.drive_written: dict[int, tuple[str, float, int]] = {}
         self.max_step = max_step_deg
         self.default_budget_s = budget_ms / 1e3
         self.lock = threading.Lock()
         self.slots: dict[str, Slot] = {}
         self.owners: dict[str, str] = {}  # interface -> active controller
-        self.held: dict[str, float] = {}  # interface -> last value a controller gave
+        self.held: dict[str, Any] = {}  # interface -> last value (a gains triple for gains)
         self.last_pos: list[int | None] = [None] * len(JOINTS)  # last position written
         self.pending: list[Switch] = []
         self.cycles = 0
@@ -163,9 +212,10 @@ class Manager:
         ):
             raise ManagerRefused(f"controller {name}: budget_ms must be in (0, 1000]")
         ctrl: Controller = cls(name, p)
+        ctrl.boards = dict(self.boards)
         try:
             ctrl.configure()
-            claims = check_claims(name, ctrl.claims())
+            claims = check_claims(name, ctrl.claims(), self.boards)
         except (Refused, ValueError) as exc:
             raise ManagerRefused(f"controller {name} ({kind}): {exc}") from None
         budget = budget_ms / 1e3 if budget_ms is not None else self.default_budget_s
@@ -197,7 +247,8 @@ class Manager:
             return list(self.slots)
 
     def owners_of(self, joint: str) -> dict[str, str]:
-        """The interfaces of ``joint`` that an active controller owns, and who owns them."""
+        """The interfaces of ``joint`` (or of a board, ``maccepa0``) that an active controller
+        owns, and who owns them."""
         with self.lock:
             return {k: v for k, v in self.owners.items() if k.split("/")[0] == joint}
 
@@ -214,10 +265,19 @@ class Manager:
             slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
             gaps = self.gaps
             over = list(self.overhead_s)
+            boards = {
+                f"maccepa{b}": {
+                    "controller": lim.controller,
+                    "setpoint": self.last_sp.get(b),
+                    "gains": list(self.gains_written[b]) if b in self.gains_written else None,
+                }
+                for b, lim in self.boards.items()
+            }
         over.sort()
         return {
             "controllers": [s.status() for s in slots],
             "owners": owners,
+            "maccepa": boards,
             "cycles": cycles,
             "gaps": gaps,
             "overhead_us": {
@@ -265,6 +325,13 @@ class Manager:
                 if c in owners:
                     raise ManagerRefused(f"cannot activate {n}: {c} is owned by {owners[c]}")
                 owners[c] = n
+        for b in self.boards:
+            sp, duty = owners.get(f"maccepa{b}/setpoint"), owners.get(f"maccepa{b}/duty")
+            if sp and duty:
+                raise ManagerRefused(
+                    f"cannot switch: maccepa{b}/setpoint ({sp}) and maccepa{b}/duty ({duty}) "
+                    f"would both drive MACCEPA board {b}"
+                )
         for j in JOINTS:
             t, p, s = (owners.get(f"{j}/{k}") for k in ("torque", "position", "stiffness"))
             if t and (p or s):
@@ -290,6 +357,14 @@ class Manager:
                 self._precheck(sw)
                 if sw.activate and not_armed:
                     raise ManagerRefused(not_armed)
+                for n in sw.activate:
+                    for b in sorted(self.slots[n].boards()):
+                        got = state.board(b)  # type: ignore[union-attr]
+                        if got is None or got.positions is None:
+                            raise ManagerRefused(
+                                f"cannot activate {n}: no position frame from MACCEPA board {b} "
+                                "yet (is it powered and on the bus?)"
+                            )
                 started: list[Slot] = []
                 try:
                     for n in sw.activate:
@@ -303,10 +378,11 @@ class Manager:
                         f"{n} refused to activate: {type(exc).__name__}: {exc}"
                     ) from None
                 written = list(self.last_pos)  # before the releases clear them
+                written_sp = dict(self.last_sp)
                 for n in sw.deactivate:
                     self._release(self.slots[n], "")
                 for slot in started:
-                    self._claim(slot, state, written)  # type: ignore[arg-type]
+                    self._claim(slot, state, written, written_sp)  # type: ignore[arg-type]
             except ManagerRefused as exc:
                 sw.error = str(exc)
             sw.done.set()
@@ -318,13 +394,24 @@ class Manager:
             )
         self.pending = keep
 
-    def _claim(self, slot: Slot, state: State, written: list[int | None]) -> None:
-        """The step limit of a joint handed over in this switch continues from the position
-        its previous owner last wrote; a joint nobody was writing starts from where it is."""
+    def _claim(
+        self, slot: Slot, state: State, written: list[int | None], written_sp: dict[int, float]
+    ) -> None:
+        """The step limit of a joint (or a MACCEPA set-point) handed over in this switch
+        continues from what its previous owner last wrote; one nobody was writing starts from
+        where it is (a board's lever; 0 for a velocity controller)."""
         slot.state, slot.error = "active", ""
         for c in slot.claims:
             self.owners[c] = slot.name
-            j, kind = split(c)
+            target, _, kind = c.partition("/")
+            b = board_of(target)
+            if b is not None:
+                if kind == "setpoint":
+                    lever = state.board(b).lever  # type: ignore[union-attr]
+                    here = float(lever or 0) if self.boards[b].controller == "position" else 0.0
+                    self.last_sp[b] = written_sp.get(b, here)
+                continue
+            j = JOINTS.index(target)
             if kind == "position":
                 self.last_pos[j] = written[j] if written[j] is not None else state.position[j]
 
@@ -341,9 +428,17 @@ class Manager:
             if self.owners.get(c) == slot.name:
                 del self.owners[c]
                 self.held.pop(c, None)
-                j, kind = split(c)
+                target, _, kind = c.partition("/")
+                b = board_of(target)
+                if b is not None:
+                    if kind in ("setpoint", "duty"):
+                        self.last_sp.pop(b, None)
+                        self.drive_written.pop(b, None)  # the next owner writes at once
+                    elif kind == "gains":
+                        self.gains_written.pop(b, None)  # the next owner writes all three
+                    continue
                 if kind == "position":
-                    self.last_pos[j] = None
+                    self.last_pos[JOINTS.index(target)] = None
 
     # --- the loop ---------------------------------------------------------------------------
 
@@ -357,17 +452,18 @@ class Manager:
         with self.lock:
             return [s.name for s in self.slots.values() if s.state == "active"]
 
-    def stop_all(self, reason: str) -> set[int]:
+    def stop_all(self, reason: str) -> Cycle:
         """A trip or a silent H2: every controller inactive until an operator activates it
-        again. Returns the joints that were claimed (for the safe action)."""
+        again. Returns the joints and MACCEPA boards that were claimed (for the safe action)."""
+        out = Cycle()
         with self.lock:
-            joints: set[int] = set()
             for slot in self.slots.values():
                 if slot.state == "active":
-                    joints |= slot.joints()
+                    out.safe |= slot.joints()
+                    out.safe_boards |= slot.boards()
                     self._release(slot, reason)
                     log.warning("controller_stopped", controller=slot.name, reason=reason)
-            return joints
+        return out
 
     def joints_disabled(self, joints: set[int], why: str) -> None:
         """Someone (the watchdog, an operator) disabled or stopped these joints on the bus: the
@@ -378,14 +474,28 @@ class Manager:
                     self._release(slot, why)
                     log.warning("controller_stopped", controller=slot.name, reason=why)
 
+    def boards_stopped(self, boards: set[int], why: str) -> None:
+        """Someone (the watchdog, an operator through the bridge) stopped these MACCEPA boards'
+        control on the bus: the next set-point would switch them back on, so their controllers
+        stop now."""
+        with self.lock:
+            for slot in self.slots.values():
+                if slot.state == "active" and slot.boards() & boards:
+                    self._release(slot, why)
+                    log.warning("controller_stopped", controller=slot.name, reason=why)
+
     def cycle(self, state: State, t: float, period: float, not_armed: str | None) -> Cycle:
-        """One H2 cycle: apply switches, update active controllers, saturate, compose frames."""
+        """One H2 cycle: apply switches, update active controllers, saturate, compose frames.
+
+        Not armed: every active controller stops, and its MACCEPA boards get "stop control"
+        from here too (the watchdog stops only the boards in ``watchdog.maccepa_boards``)."""
         out = Cycle()
         with self.lock:
             self.cycles += 1
             if not_armed:
                 for slot in self.slots.values():
                     if slot.state == "active":
+                        out.safe_boards |= slot.boards()
                         self._release(slot, not_armed)
                         log.warning("controller_stopped", controller=slot.name, reason=not_armed)
             if self.pending:
@@ -433,23 +543,29 @@ class Manager:
         for k, v in values.items():
             if k not in slot.claims:
                 return f"wrote {k}, which it did not claim"
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            if k.endswith("/gains") and k.startswith("maccepa"):
+                if not (isinstance(v, tuple | list) and len(v) == 3 and all(map(_finite, v))):
+                    return f"wrote {k} = {v!r}, not three finite numbers (kp, ki, kd)"
+            elif not _finite(v):
                 return f"wrote {k} = {v!r}, not a finite number"
         return None
 
     def _fail(self, slot: Slot, reason: str, out: Cycle, error: bool = True) -> None:
         """Deactivate ``slot``; its joints get the safe action, so any other controller driving
         one of them stops too (a disabled joint must not be switched back on by a neighbour)."""
-        joints = slot.joints()
+        joints, boards = slot.joints(), slot.boards()
         self._release(slot, reason)
         (log.error if error else log.warning)(
             "controller_failed", controller=slot.name, reason=reason
         )
         for other in self.slots.values():
-            if other.state == "active" and other.joints() & joints:
-                self._release(other, f"shares a joint with {slot.name}, which failed")
+            if other.state == "active" and (other.joints() & joints or other.boards() & boards):
+                what = "a joint" if other.joints() & joints else "a MACCEPA board"
+                self._release(other, f"shares {what} with {slot.name}, which failed")
                 joints |= other.joints()
+                boards |= other.boards()
         out.safe |= joints
+        out.safe_boards |= boards
 
     def _compose(self, state: State, out: Cycle) -> None:
         """One frame per claimed joint, inside the limits; a joint whose values are not all
@@ -485,3 +601,65 @@ class Manager:
             if mode != TORQUE:
                 self.last_pos[j] = sp2
             out.writes.append(Write(j + 1, mode, sp2, st2))
+        if self.boards:
+            self._compose_maccepa(out)
+
+    def _compose_maccepa(self, out: Cycle) -> None:
+        """Per owned board: the set-point (or duty) inside the board's range and step, written
+        when it changes and re-sent every ``MACCEPA_REFRESH_CYCLES`` while it holds; gains only
+        when they change. A board whose value is not known yet gets no frame."""
+        owners, held = self.owners, self.held
+        for b, lim in self.boards.items():
+            if b in out.safe_boards:
+                continue
+            key = f"maccepa{b}/"
+            g_owner = owners.get(key + "gains")
+            if g_owner is not None:
+                g = held.get(key + "gains")
+                if g is None:
+                    self.gains_written.pop(b, None)
+                else:
+                    new = tuple(lim.saturate_gain(x) for x in g)
+                    if new != tuple(g):
+                        self.slots[g_owner].limited += 1
+                    old = self.gains_written.get(b)
+                    for i, which in enumerate(GAINS):
+                        if old is None or old[i] != new[i]:
+                            out.maccepa.append(MaccepaWrite(b, which, new[i], lim.controller))
+                    self.gains_written[b] = new  # type: ignore[assignment]
+            sp_owner = owners.get(key + "setpoint")
+            if sp_owner is not None:
+                v = held.get(key + "setpoint")
+                if v is None:
+                    self.gaps += 1
+                    continue
+                sp = lim.saturate_setpoint(v, self.last_sp.get(b))
+                if sp != v:
+                    self.slots[sp_owner].limited += 1
+                if lim.violation("setpoint", sp) is not None:  # cannot happen: belt
+                    continue
+                self.last_sp[b] = sp
+                self._drive(out, b, "setpoint", sp, lim.controller)
+                continue
+            duty_owner = owners.get(key + "duty")
+            if duty_owner is not None:
+                v = held.get(key + "duty")
+                if v is None:
+                    self.gaps += 1
+                    continue
+                d = lim.saturate_duty(v)
+                if d != v:
+                    self.slots[duty_owner].limited += 1
+                self._drive(out, b, "duty", d, lim.controller)
+
+    def _drive(self, out: Cycle, board: int, kind: str, value: float, controller: str) -> None:
+        last = self.drive_written.get(board)
+        if last is not None and last[:2] == (kind, value) and last[2] + 1 < MACCEPA_REFRESH_CYCLES:
+            self.drive_written[board] = (kind, value, last[2] + 1)
+            return
+        self.drive_written[board] = (kind, value, 0)
+        out.maccepa.append(MaccepaWrite(board, kind, value, controller))
+
+
+def _finite(v: Any) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
