@@ -329,10 +329,10 @@ class FrameReader:
 
     ``every_s`` bounds how often a busy reader wakes: after a read that found frames, the next
     waits out the rest of ``every_s`` before looking, so frames arriving meanwhile are read as
-    one batch. On the board a wake-up (select, context switch, the GIL) costs more than parsing
-    the frames it brings, so a reader that does not need each frame at once (the watchdog, which
-    judges by kernel timestamps; the timing monitor; a state bridge) trades that latency for
-    CPU. Never longer than the caller's timeout; 0 (default) wakes for each frame.
+    one batch. A wake-up (select, context switch, the GIL) costs more than parsing the frames
+    it brings, so a reader that does not need each frame at once (the timing monitor, which
+    works from kernel timestamps) trades that latency for CPU. Never longer than the caller's
+    timeout; 0 (default) wakes for each frame.
     """
 
     def __init__(
