@@ -258,10 +258,20 @@ def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
     return open_session(zcfg, f"listening on {', '.join(cfg.zenoh.listen)}")
 
 
-def open_client_session(endpoint: str, config_file: str | None = None) -> zenoh.Session:
+def open_client_session(
+    endpoint: str, config_file: str | None = None, handshake_s: float | None = None
+) -> zenoh.Session:
     """A laptop tool's session to one appliance (config_file: the login file the board wrote
-    for a role; without one, an open appliance is assumed). Its queries end with client_login."""
+    for a role; without one, an open appliance is assumed). Its queries end with client_login.
+    ``handshake_s``: how long the connect and Zenoh's open handshake may take (default 3 s and
+    Zenoh's 10 s); a board whose CPU is saturated answers the handshake later than that."""
     zcfg = _client_config(endpoint, config_file)
+    if handshake_s is not None:
+        ms = int(handshake_s * 1000)
+        zcfg.insert_json5(
+            "connect/timeout_ms", json.dumps({"router": -1, "peer": -1, "client": ms})
+        )
+        zcfg.insert_json5("transport/unicast/open_timeout", json.dumps(ms))
     hint = f" as {login(zcfg)} (is the login file this board's?)" if config_file else ""
     return open_session(zcfg, f"no appliance answers at {endpoint}{hint}")
 

@@ -19,6 +19,7 @@ from exolink import messaging
 from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
 
 DEFAULT_AT = "tcp/127.0.0.1:7447"
+DEFAULT_TIMEOUT_S = 3.0
 
 
 class Remote:
@@ -28,7 +29,10 @@ class Remote:
         self.at = args.at
         self.timeout = args.timeout
         self.domain, self.ns = args.domain, args.ns
-        self.session = messaging.open_client_session(self.at, args.zenoh_config)
+        # A longer --timeout also waits longer for the session (a board with a saturated CPU
+        # answers Zenoh's handshake late); the default keeps Zenoh's own.
+        wait = args.timeout if args.timeout > DEFAULT_TIMEOUT_S else None
+        self.session = messaging.open_client_session(self.at, args.zenoh_config, handshake_s=wait)
         self.user = messaging.client_login(args.zenoh_config)
         self._device = args.device
 
@@ -347,7 +351,12 @@ def _appliance_options() -> list[tuple[str, dict[str, Any]]]:
         ),
         (
             "--timeout",
-            {"type": float, "default": 3.0, "help": "seconds to wait for an answer (default 3)"},
+            {
+                "type": float,
+                "default": DEFAULT_TIMEOUT_S,
+                "help": "seconds to wait for an answer (default 3); a longer one also waits "
+                "that long for the connection",
+            },
         ),
         ("--domain", {"type": int, "default": 0, "help": "ROS domain id of data topics (0)"}),
         ("--ns", {"default": "h2", "help": "namespace of data topics (h2)"}),

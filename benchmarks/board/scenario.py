@@ -27,6 +27,7 @@ from exolink import messaging
 log = structlog.get_logger("bench-board")
 
 SIMULATOR_CPU = 1
+HANDSHAKE_S = 60.0
 PATTERN_JOINTS = ["r_hip", "r_knee", "l_hip", "l_knee"]
 PATTERN_SPEED = 10
 TIMING_QUERY = {"id": 70, "byte0": 1, "dlc": 6}  # r_hip's set-points (H2 joint control)
@@ -145,7 +146,9 @@ class Laptop:
 
     def __init__(self, at: str, zenoh_config: str | None, device: str) -> None:
         self.at, self.zenoh_config, self.device = at, zenoh_config, device
-        self.session = messaging.open_client_session(at, zenoh_config)
+        # A saturated guest answers Zenoh's handshake late: with the CLI's 3 s the bench laptop
+        # never connected to the proxy (600 s of retries, last stop).
+        self.session = messaging.open_client_session(at, zenoh_config, handshake_s=HANDSHAKE_S)
         self.joint_states = JointStates()
         key = messaging.topic_selector(0, "h2", "joint_states")
         self._sub = self.session.declare_subscriber(key, self.joint_states.on_sample)
