@@ -30,6 +30,7 @@ from exolink import config
 log = structlog.get_logger("bench-board")
 
 MIB = 1 << 20
+IMAGE_ZENOH_CONFIG = "/etc/exolink/zenoh.json5"  # written by exolink-setup from the card
 # bring_up: the supervisor sets vcan0 up through netlink (canlink.bring_up accepts vcan) as it
 # does can0 on the board: that imports pyroute2 inside start(), before READY=1. With
 # bring_up: false the first import happens in the watchdog-pinged loop instead (_check_bus), and
@@ -320,6 +321,11 @@ def prepare(
     # The checkout's board.yaml, not the one baked into the image: the wheel under test ships it
     # (a per-node deadline, say), and the native run uses the same file.
     base = yaml.safe_load(config.bundled("board").read_text())
+    # ... with the logins the image enables (image/hooks/customize.sh uncomments this line of
+    # board.yaml): without it the guest's router ran open and every laptop login failed
+    # Zenoh's handshake ("UsrPwd extension - Recv InitSyn. Decoding error"), which the last
+    # stops' runs took for a router too starved to answer.
+    base["zenoh"]["config_file"] = IMAGE_ZENOH_CONFIG
     cfg = bench_config(base, GUEST_CAN, start_grace_ms, timings)
     text = yaml.safe_dump(cfg, sort_keys=False)
     config.parse(text, "bench appliance.yaml")  # the board would refuse a bad one
