@@ -2,16 +2,14 @@
 
 Subscribes to every data topic of the appliance (or a configured subset) and writes MCAP files
 with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
-PlotJuggler open them. Samples wait in Zenoh's own ring buffer (no Python runs per sample on
-Zenoh's threads) and the node's loop takes them in batches every ``INTAKE_PERIOD_S``: on the board
-a Python callback and a thread wake-up per sample were the recorder's CPU. A slow SD card never
-stalls the session; the ring holds minutes of data. Nothing is lost silently: every appliance
-publisher numbers its samples, so a sample the ring overwrote (or the network lost) is a gap in
-its publisher's sequence, counted as dropped. The counters go out on diagnostics (which are
-recorded too) and into each file's ``exolink.stats`` metadata. A message's log time is its
-publisher's stamp (for bus data the CAN frame's kernel receive time), so plots and ``exolink
-play`` see the trial's own timing, not the recorder's batches; without an attachment, the time it
-was taken from the ring.
+PlotJuggler open them. The Zenoh callback only copies a sample out (so no Zenoh receive buffer
+stays pinned) onto an inbox; the node's loop takes the inbox in batches every
+``INTAKE_PERIOD_S``: on the board a writer thread woken per sample was half the recorder's CPU.
+A slow SD card never stalls the session; the inbox holds minutes of data. Nothing is lost
+silently: every appliance publisher numbers its samples, so a sample that never arrived or did
+not fit the inbox is a gap in its publisher's sequence, counted as dropped (``inbox_full``
+counts the latter alone). The counters go out on diagnostics (which are recorded too) and into
+each file's ``exolink.stats`` metadata.
 What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
 reader's receive counters (its ``nodes/<name>/stats``) when the file was opened and closed.
 Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs
@@ -21,6 +19,7 @@ are never reopened.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import fnmatch
@@ -34,15 +33,14 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 import yaml
-import zenoh
 from exolink import __version__, messaging, roles
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
-INTAKE_PERIOD_S = 0.05  # how often the loop takes what the rings hold
-# Take from the rings in slices of wall time, not of messages, with beat() between them: sharing
+INTAKE_PERIOD_S = 0.05  # how often the loop takes what the inbox holds
+# Take from the inbox in slices of wall time, not of messages, with beat() between them: sharing
 # one core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
 
@@ -67,9 +65,9 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     split_size_mb: Annotated[float, msgspec.Meta(ge=0)] = 1024.0  # 0 = no split by size
     split_duration_s: Annotated[float, msgspec.Meta(ge=0)] = 3600.0  # 0 = no split by time
     labels: dict[str, str] = msgspec.field(default_factory=dict)
-    # Samples each subscription's ring holds while the card pauses: minutes of the appliance's
-    # data (~600 samples/s). Overwritten samples are counted as dropped, never hidden.
-    ring: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 50_000
+    # Samples the inbox holds while the card pauses: minutes of the appliance's data (~600
+    # samples/s, ~200 bytes each). What does not fit is counted as dropped, never hidden.
+    inbox: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 50_000
 
 
 @dataclass
@@ -77,6 +75,7 @@ class Stats:
     received: int = 0
     written: int = 0
     dropped: int = 0
+    inbox_full: int = 0
     files: list[str] = field(default_factory=list)
     bytes: int = 0
 
@@ -150,7 +149,10 @@ class Recorder(Node):
         self.session_stamp = ""
         self._receive_at_open: dict[str, dict[str, Any]] = {}
         self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
-        self._pending = 0  # taken from the rings, not yet written
+        self._pending = 0  # taken from the inbox, not yet written
+        # (key, CDR, attachment, receive ns): deque append and popleft are atomic, so the
+        # Zenoh thread and the loop share it without a lock or a wake-up
+        self._inbox: collections.deque[tuple[str, bytes, bytes | None, int]] = collections.deque()
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
         self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
@@ -158,7 +160,7 @@ class Recorder(Node):
         self.subs = [
             self.ctx.session.declare_subscriber(
                 messaging.topic_selector(m.domain_id, m.namespace, t),
-                zenoh.handlers.RingChannel(self.params.ring),
+                self._on_sample,
             )
             for t in self.params.topics
         ]
@@ -169,36 +171,51 @@ class Recorder(Node):
 
     # --- intake (the node's loop, in batches) ---------------------------------------------
 
+    def _on_sample(self, sample: Any) -> None:
+        """Zenoh's thread: copy out and queue, nothing more (parsing is the loop's)."""
+        if self.state not in ("recording", "stopping"):
+            return
+        if len(self._inbox) >= self.params.inbox:
+            with self.lock:
+                self.stats.inbox_full += 1  # its sequence gap counts it as dropped as well
+            return
+        att = sample.attachment
+        self._inbox.append(
+            (
+                str(sample.key_expr),
+                sample.payload.to_bytes(),
+                None if att is None else att.to_bytes(),
+                time.time_ns(),
+            )
+        )
+
     def _take(self, until: float) -> list[Item]:
-        """What the rings hold now (until the wall-time slice ends), minus excluded topics; the
-        publishers' sequence gaps are counted as dropped while recording. The state is read per
-        sample: a start drains the rings first, so what is taken after it belongs to it."""
+        """What the inbox holds now (until the wall-time slice ends), minus excluded topics;
+        the publishers' sequence gaps are counted as dropped while recording."""
         out: list[Item] = []
         gaps = 0
-        for sub in self.subs:
-            while (sample := sub.try_recv()) is not None:
-                try:
-                    topic, typename = messaging.parse_key(str(sample.key_expr))
-                except ValueError:
-                    continue
-                if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
-                    continue
-                seq, src, gid = 0, 0, b""
-                att = sample.attachment
-                if att is not None:
-                    with contextlib.suppress(Exception):
-                        seq, src, gid = messaging.decode_attachment(att.to_bytes())
-                recording = self.state in ("recording", "stopping")
-                if gid:
-                    last = self._last_seq.get(gid)
-                    if recording and last is not None and seq > last + 1:
-                        gaps += seq - last - 1
-                    self._last_seq[gid] = seq
-                if recording:
-                    stamp = src or time.time_ns()
-                    out.append((topic, typename, sample.payload.to_bytes(), stamp, stamp, seq))
-                    if len(out) % 64 == 0 and time.monotonic() >= until:
-                        break
+        inbox, recording = self._inbox, self.state in ("recording", "stopping")
+        while inbox:
+            key, data, att, now = inbox.popleft()
+            try:
+                topic, typename = messaging.parse_key(key)
+            except ValueError:
+                continue
+            if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
+                continue
+            seq, src, gid = 0, 0, b""
+            if att is not None:
+                with contextlib.suppress(Exception):
+                    seq, src, gid = messaging.decode_attachment(att)
+            if gid:
+                last = self._last_seq.get(gid)
+                if recording and last is not None and seq > last + 1:
+                    gaps += seq - last - 1
+                self._last_seq[gid] = seq
+            if recording:
+                out.append((topic, typename, data, now, src or now, seq))
+                if len(out) % 64 == 0 and time.monotonic() >= until:
+                    break
         if out or gaps:
             with self.lock:
                 self.stats.received += len(out)
@@ -206,14 +223,13 @@ class Recorder(Node):
         return out
 
     def _discard(self) -> None:
-        """Empty the rings, keeping the publishers' sequence numbers (gaps start from here)."""
-        for sub in self.subs:
-            while (sample := sub.try_recv()) is not None:
-                att = sample.attachment
-                if att is not None:
-                    with contextlib.suppress(Exception):
-                        seq, _src, gid = messaging.decode_attachment(att.to_bytes())
-                        self._last_seq[gid] = seq
+        """Empty the inbox, keeping the publishers' sequence numbers (gaps start from here)."""
+        while self._inbox:
+            _key, _data, att, _now = self._inbox.popleft()
+            if att is not None:
+                with contextlib.suppress(Exception):
+                    seq, _src, gid = messaging.decode_attachment(att)
+                    self._last_seq[gid] = seq
 
     # --- commands -------------------------------------------------------------------------
 
@@ -417,7 +433,7 @@ class Recorder(Node):
 
     def shutdown(self) -> None:
         if getattr(self, "file", None) is not None:
-            try:  # what the rings still hold goes into the file before they go
+            try:  # what the inbox still holds goes into the file
                 self._write_all(self._take(float("inf")))
                 self._close()
             except OSError as exc:

@@ -171,13 +171,13 @@ os.fsync = fsync
     assert info(path).topics["/h2/joint_states"]["count"] > 400
 
 
-def test_samples_the_ring_overwrote_are_counted_as_dropped(  # type: ignore[no-untyped-def]
+def test_samples_that_did_not_fit_the_inbox_are_counted_as_dropped(  # type: ignore[no-untyped-def]
     write_config, spawn, tmp_path, in_node
 ) -> None:
-    """The recorder takes samples from Zenoh's ring in batches; when the card stalls longer
-    than the ring holds, the oldest are overwritten. Each publisher numbers its samples, so the
+    """The recorder's loop takes its inbox in batches; when the card stalls longer than the
+    inbox holds, what does not fit is dropped. Each publisher numbers its samples, so the
     file's sequence gaps are exactly what the recorder says it dropped. A slow card (fsync
-    sleeps 1 s, as above) and a ring of 32 samples make the overwrite happen."""
+    sleeps 1 s, as above) and an inbox of 32 samples make it happen."""
     in_node(
         "recorder",
         """
@@ -191,7 +191,7 @@ os.fsync = fsync
     )
     rec_dir = tmp_path / "rec"
     app = Appliance(
-        write_config(nodes=nodes(rec_dir, fsync_interval_s=0.3, autostart=True, ring=32)), spawn
+        write_config(nodes=nodes(rec_dir, fsync_interval_s=0.3, autostart=True, inbox=32)), spawn
     )
     time.sleep(4)
     assert app.cli("record", "stop").returncode == 0
@@ -203,7 +203,7 @@ os.fsync = fsync
         for _schema, channel, message in make_reader(f).iter_messages():
             seqs.setdefault(channel.id, []).append(message.sequence)
     gaps = sum(b - a - 1 for s in seqs.values() for a, b in itertools.pairwise(s))
-    assert int(st["dropped"]) == gaps > 0
+    assert int(st["dropped"]) == gaps > 0 and int(st["inbox_full"]) > 0
     assert st["received"] == st["written"]
 
 
