@@ -138,6 +138,21 @@ def test_kill9_leaves_a_recoverable_file(write_config, spawn, tmp_path) -> None:
     assert rosbags_decode(out, "/h2/joint_states")[-1][1].name[0] == "r_hip"
 
 
+def slow_card(in_node, seconds: float) -> None:  # type: ignore[no-untyped-def]
+    """An SD card that pauses while it erases: each os.fsync in the recorder sleeps first."""
+    in_node(
+        "recorder",
+        f"""
+import os, time
+_fsync = os.fsync
+def fsync(fd):
+    time.sleep({seconds})
+    _fsync(fd)
+os.fsync = fsync
+""",
+    )
+
+
 def test_slow_card_does_not_get_the_recorder_killed(  # type: ignore[no-untyped-def]
     write_config, spawn, tmp_path, in_node
 ) -> None:
@@ -145,17 +160,7 @@ def test_slow_card_does_not_get_the_recorder_killed(  # type: ignore[no-untyped-
     Such a pause cannot be made on this machine's disk, so the recorder process gets one: a
     sitecustomize makes each os.fsync sleep 2 s first. The recorder must keep beating (it is
     not hung) and keep every message."""
-    in_node(
-        "recorder",
-        """
-import os, time
-_fsync = os.fsync
-def fsync(fd):
-    time.sleep(2.0)
-    _fsync(fd)
-os.fsync = fsync
-""",
-    )
+    slow_card(in_node, 2.0)
     rec_dir = tmp_path / "rec"
     app = Appliance(write_config(nodes=nodes(rec_dir, fsync_interval_s=0.5, autostart=True)), spawn)
     time.sleep(7)  # three slow syncs at least
@@ -178,17 +183,7 @@ def test_samples_that_did_not_fit_the_inbox_are_counted_as_dropped(  # type: ign
     inbox holds, what does not fit is dropped. Each publisher numbers its samples, so the
     file's sequence gaps are exactly what the recorder says it dropped. A slow card (fsync
     sleeps 1 s, as above) and an inbox of 32 samples make it happen."""
-    in_node(
-        "recorder",
-        """
-import os, time
-_fsync = os.fsync
-def fsync(fd):
-    time.sleep(1.0)
-    _fsync(fd)
-os.fsync = fsync
-""",
-    )
+    slow_card(in_node, 1.0)
     rec_dir = tmp_path / "rec"
     app = Appliance(
         write_config(nodes=nodes(rec_dir, fsync_interval_s=0.3, autostart=True, inbox=32)), spawn
