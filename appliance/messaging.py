@@ -209,6 +209,12 @@ def session_config(
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(zcfg.multicast_scouting))
     cfg.insert_json5("scouting/delay", "0")
+    # Zenoh 1.x maps a 16 MiB shared-memory pool in each session and copies any message over
+    # 3 KiB into it (status replies, logs): 8 MB of the supervisor's PSS on x86, touched for
+    # nothing (every exolink sample is far smaller and goes over TCP). Off unless a config
+    # file turns it on.
+    if not (zcfg.config_file and "shared_memory" in Path(zcfg.config_file).read_text()):
+        cfg.insert_json5("transport/shared_memory/enabled", "false")
     cfg.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else []))
     cfg.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else []))
     if mode == "client":

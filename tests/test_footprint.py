@@ -59,6 +59,11 @@ def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, mo
         assert int(stat.rsplit(")", 1)[1].split()[1]) == st["pid"], n
         assert Path(f"/proc/{n['pid']}/comm").read_text().strip() == f"exo-{n['name']}"[:15]
         assert Path(f"/proc/{n['pid']}/cmdline").read_bytes() == sup_cmdline, n
+    # No Zenoh shared-memory pool: Zenoh 1.x maps 16 MiB per session for messages over 3 KiB
+    # (the status reply just asked for is one), 18 MB of the supervisor's PSS on x86.
+    for pid in [st["pid"], *(n["pid"] for n in st["nodes"])]:
+        shm = [ln for ln in Path(f"/proc/{pid}/maps").read_text().splitlines() if ".zenoh" in ln]
+        assert not shm, (pid, shm[:2])
     app.proc.stop()
     wait_for(lambda: all((out / f"{n}.json").exists() for n in names), timeout=15)
 
