@@ -24,8 +24,8 @@ def _raw_to_group(group: str, data: bytes, source: str) -> None:
 
 
 def test_a_reader_with_every_s_takes_frames_arriving_meanwhile_as_one_batch(group: str) -> None:
-    """Why the timing monitor uses ``every_s``: one wake for the frames of a period, each with
-    its own receive time, none counted late for the wait."""
+    """Why the timing monitor uses ``every_s``: one wake for the frames of a period, none
+    counted late for the wait."""
     cfg = CanConfig(interface="udp_multicast", channel=group)
     reader = open_reader(cfg, [110], every_s=0.5)
     tx = open_bus(cfg)
@@ -38,11 +38,10 @@ def test_a_reader_with_every_s_takes_frames_arriving_meanwhile_as_one_batch(grou
             time.sleep(0.005)
         frames = reader.read(1.0)
         assert len(frames) == 3
-        # Each keeps its own receive time (kernel timestamps), in order. Not compared with the
-        # sender's clock: right after the first timestamping socket opens, the kernel turns
-        # timestamps on asynchronously and the first frames get the read's time instead.
-        ts = [f.timestamp for f in frames]
-        assert ts == sorted(ts)
+        # Their timestamps are not checked here: right after the first timestamping socket
+        # opens, the kernel turns timestamps on asynchronously, and a frame that arrives before
+        # that carries the read's time (seen twice in full-suite runs). The kernel-time test
+        # is test_reader_batches_frames_with_kernel_timestamps.
         c = reader.counters()
         assert c["frames"] == 4 and c["batch_max"] == 3
         assert c["late"] == 0 and c["dropped"] == 0
