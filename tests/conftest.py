@@ -35,6 +35,19 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+@pytest.fixture(scope="session", autouse=True)
+def kernel_timestamps_on() -> Iterator[None]:
+    """Keep the kernel's receive timestamping on for the whole session. Linux enables it
+    asynchronously (a work item) when the first SO_TIMESTAMP socket opens and disables it when
+    the last closes, so a frame arriving in between carries the read's time instead: two
+    full-suite runs this stop saw it (a test's first socket after another test closed all of its own)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, 35, 1)  # SO_TIMESTAMPNS
+    time.sleep(0.05)  # the work item runs
+    yield
+    s.close()
+
+
 @pytest.fixture
 def group() -> str:
     """A multicast group of its own per test, so concurrent or leftover traffic never mixes."""
