@@ -223,13 +223,11 @@ class Recorder(Node):
         return out
 
     def _discard(self) -> None:
-        """Empty the inbox, keeping the publishers' sequence numbers (gaps start from here)."""
-        while self._inbox:
-            _key, _data, att, _now = self._inbox.popleft()
-            if att is not None:
-                with contextlib.suppress(Exception):
-                    seq, _src, gid = messaging.decode_attachment(att)
-                    self._last_seq[gid] = seq
+        """A new recording: nothing queued before it, and sequence gaps counted from each
+        publisher's first sample in it (between recordings the callback takes nothing, so the
+        numbers published in the pause are no loss of this one)."""
+        self._inbox.clear()
+        self._last_seq.clear()
 
     # --- commands -------------------------------------------------------------------------
 

@@ -202,6 +202,26 @@ def test_samples_that_did_not_fit_the_inbox_are_counted_as_dropped(  # type: ign
     assert st["received"] == st["written"]
 
 
+def test_a_second_recording_counts_no_drops_for_the_pause_between(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path
+) -> None:
+    """Between recordings the recorder takes nothing, so the publishers' sequence numbers
+    move on without it: what was published in the pause is not a loss of the next file."""
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir)), spawn)
+    for _ in range(2):
+        assert app.cli("record", "start").returncode == 0
+        time.sleep(1.5)
+        assert app.cli("record", "stop").returncode == 0
+        wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+        time.sleep(1.0)  # the pause: ~100 joint_states the recorder does not take
+    first, second = recordings(rec_dir)
+    for path in (first, second):
+        st = info(path).metadata["exolink.stats"]
+        assert st["dropped"] == "0" and st["received"] == st["written"], (path.name, st)
+        assert info(path).topics["/h2/joint_states"]["count"] > 50
+
+
 @pytest.fixture
 def tiny_disk(tmp_path: Path):  # type: ignore[no-untyped-def]
     d = tmp_path / "tiny"
