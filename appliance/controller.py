@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import msgspec
 from exolink.maccepalimits import KINDS as MACCEPA_INTERFACES
-from exolink.maccepalimits import BoardLimits
+from exolink.maccepalimits import BoardLimits, target
 from exolink.protocol.h2 import JOINTS
 
 INTERFACES = ("position", "torque", "stiffness")
@@ -91,7 +91,7 @@ def maccepa_interface(board: int, kind: str) -> str:
         raise Refused(
             f"unknown MACCEPA interface {kind!r} (valid: {', '.join(MACCEPA_INTERFACES)})"
         )
-    return f"maccepa{board}/{kind}"
+    return f"{target(board)}/{kind}"
 
 
 class Controller:

@@ -37,7 +37,7 @@ from exolink.arming import ArmingState
 from exolink.canbus import open_reader
 from exolink.controller import BoardState, State
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
-from exolink.maccepalimits import GAINS, KINDS, BoardLimits
+from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused, Switch
@@ -209,15 +209,15 @@ class ControllerManagerNode(Node):
         ctl = req.get("controller", lim.controller)
         if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
             raise CommandRefused(
-                f"maccepa{board} runs its {lim.controller} controller under the controller "
+                f"{target(board)} runs its {lim.controller} controller under the controller "
                 f"manager (params.maccepa), not {ctl!r}"
             )
         group = DRIVE if kind in DRIVE else ("gains",)
-        name, mine = f"{OPERATOR}.maccepa{board}.{kind}", f"{OPERATOR}.maccepa{board}."
-        for key, owner in self.manager.owners_of(f"maccepa{board}").items():
+        name, mine = f"{OPERATOR}.{target(board)}.{kind}", f"{OPERATOR}.{target(board)}."
+        for key, owner in self.manager.owners_of(target(board)).items():
             if key.split("/")[1] in group and not owner.startswith(mine):
                 raise CommandRefused(
-                    f"maccepa{board} is driven by controller {owner} ({key}): "
+                    f"{target(board)} is driven by controller {owner} ({key}): "
                     f"`exolink controllers deactivate {owner}` first"
                 )
         if name not in self.manager.names():
@@ -344,7 +344,7 @@ class ControllerManagerNode(Node):
                 if isinstance(d, maccepa.Duty) and d.action == 0 and d.board in self.board_ids
             }
             if halted:
-                names = ", ".join(f"maccepa{b}" for b in sorted(halted))
+                names = ", ".join(target(b) for b in sorted(halted))
                 self.manager.boards_stopped(halted, f"{names} stopped on the bus")
         for f, d in decoded:
             if isinstance(d, h2.JointTorques):

@@ -102,11 +102,7 @@ class ForwardCommand(Controller):
         return {"values": new}
 
     def update(self, state: State, time_s: float, period: float) -> dict[str, float]:
-        p = self.params
-        if p.timeout_s and time.monotonic() - self.last_command > p.timeout_s:
-            if p.on_timeout == "disable":
-                raise SafeStop(f"no command for {p.timeout_s:g} s (on_timeout: disable)")
-            self.timed_out = True
+        _expire(self, "disable")
         return self.values
 
     def status(self) -> dict[str, Any]:
@@ -487,11 +483,7 @@ class MaccepaSetpoint(Controller):
         return {"values": {k: list(v) if isinstance(v, tuple) else v for k, v in new.items()}}
 
     def update(self, state: State, time_s: float, period: float) -> dict[str, Any]:
-        p = self.params
-        if p.timeout_s and time.monotonic() - self.last_command > p.timeout_s:
-            if p.on_timeout == "stop":
-                raise SafeStop(f"no command for {p.timeout_s:g} s (on_timeout: stop)")
-            self.timed_out = True
+        _expire(self, "stop")
         return self.values
 
     def status(self) -> dict[str, Any]:
@@ -556,3 +548,14 @@ __all__ = [
     "MaccepaSetpoint",
     "Pid",
 ]
+
+
+def _expire(ctrl: Any, stop: str) -> None:
+    """A command controller's timeout (``params.timeout_s``, ``params.on_timeout``): past it
+    with ``on_timeout`` = ``stop`` the controller stops (its joints or board get the safe
+    action); otherwise it holds the last command and says so in its status."""
+    p = ctrl.params
+    if p.timeout_s and time.monotonic() - ctrl.last_command > p.timeout_s:
+        if p.on_timeout == stop:
+            raise SafeStop(f"no command for {p.timeout_s:g} s (on_timeout: {stop})")
+        ctrl.timed_out = True

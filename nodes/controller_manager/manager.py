@@ -22,6 +22,7 @@ import structlog
 from exolink.controller import INTERFACES, MACCEPA_INTERFACES, Controller, Refused, SafeStop, State
 from exolink.jointlimits import POSITION, STIFFNESS, TORQUE, Limits
 from exolink.maccepalimits import GAINS, BoardLimits, board_of
+from exolink.maccepalimits import target as board_name
 from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol.h2 import JOINTS
 
@@ -138,7 +139,7 @@ def check_claims(name: str, claims: list[str], boards: Any = ()) -> tuple[str, .
         b = board_of(target)
         if b is not None and kind in MACCEPA_INTERFACES:
             if b not in boards:
-                configured = ", ".join(f"maccepa{x}" for x in sorted(boards)) or "none"
+                configured = ", ".join(board_name(x) for x in sorted(boards)) or "none"
                 raise ManagerRefused(
                     f"{name} claims {c}: MACCEPA board {b} is not in the manager's "
                     f"params.maccepa (configured: {configured})"
@@ -156,8 +157,10 @@ def check_claims(name: str, claims: list[str], boards: Any = ()) -> tuple[str, .
         if f"{j}/torque" in seen and ({f"{j}/position", f"{j}/stiffness"} & seen):
             raise ManagerRefused(f"{name} claims {j}/torque with {j}'s position or stiffness")
     for b in boards:
-        if {f"maccepa{b}/setpoint", f"maccepa{b}/duty"} <= seen:
-            raise ManagerRefused(f"{name} claims maccepa{b}/setpoint with maccepa{b}/duty")
+        if {f"{board_name(b)}/setpoint", f"{board_name(b)}/duty"} <= seen:
+            raise ManagerRefused(
+                f"{name} claims {board_name(b)}/setpoint with {board_name(b)}/duty"
+            )
     return tuple(claims)
 
 
@@ -266,7 +269,7 @@ class Manager:
             gaps = self.gaps
             over = list(self.overhead_s)
             boards = {
-                f"maccepa{b}": {
+                board_name(b): {
                     "controller": lim.controller,
                     "setpoint": self.last_sp.get(b),
                     "gains": list(self.gains_written[b]) if b in self.gains_written else None,
@@ -326,10 +329,10 @@ class Manager:
                     raise ManagerRefused(f"cannot activate {n}: {c} is owned by {owners[c]}")
                 owners[c] = n
         for b in self.boards:
-            sp, duty = owners.get(f"maccepa{b}/setpoint"), owners.get(f"maccepa{b}/duty")
+            sp, duty = owners.get(f"{board_name(b)}/setpoint"), owners.get(f"{board_name(b)}/duty")
             if sp and duty:
                 raise ManagerRefused(
-                    f"cannot switch: maccepa{b}/setpoint ({sp}) and maccepa{b}/duty ({duty}) "
+                    f"cannot switch: {board_name(b)}/setpoint ({sp}) and {board_name(b)}/duty ({duty}) "
                     f"would both drive MACCEPA board {b}"
                 )
         for j in JOINTS:
@@ -612,7 +615,7 @@ class Manager:
         for b, lim in self.boards.items():
             if b in out.safe_boards:
                 continue
-            key = f"maccepa{b}/"
+            key = f"{board_name(b)}/"
             g_owner = owners.get(key + "gains")
             if g_owner is not None:
                 g = held.get(key + "gains")
