@@ -49,9 +49,6 @@ def _values(f: Any) -> list[int]:
     return [getattr(f, name) for name in _FIELDS[type(f)]]
 
 
-READ_EVERY_S = 0.0
-
-
 class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     boards: list[Annotated[int, msgspec.Meta(ge=0, le=9)]] = msgspec.field(
         default_factory=lambda: [0]
@@ -69,9 +66,7 @@ class MaccepaBridge(Node):
         m = self.ctx.messaging
         # Reads each frame as it comes: batching them every 10 ms (FrameReader.every_s) did not
         # lower this node's CPU on x86 (its wake-ups are Zenoh's, one put per frame).
-        self.reader = open_reader(
-            self.ctx.config.can, maccepa.data_ids(self.params.boards), every_s=READ_EVERY_S
-        )
+        self.reader = open_reader(self.ctx.config.can, maccepa.data_ids(self.params.boards))
         self.bus = self.reader.bus
         self.pubs = {
             (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename, raw=True)

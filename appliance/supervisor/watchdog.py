@@ -36,11 +36,6 @@ from exolink.protocol import h2, maccepa
 REPEAT_AFTER_S = (0.05, 0.25)
 STALL_BACKSTOP_S = 0.5
 IDLE_POLL_S = 0.1
-# The listener wakes for each frame (FrameReader.every_s 0). Measured on x86 with the nominal
-# load, batching its reads every 10 ms did not lower the supervisor's CPU (5.4-6.0 % -> 6.2-6.5 %
-# of a core): Zenoh's routing threads, not this reader, make its wake-ups. A motion frame while
-# disarmed is answered at once.
-READ_EVERY_S = 0.0
 MOTION_MODES = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 
 
