@@ -251,7 +251,10 @@ class Appliance:
         who = login or self.login
         opts = ["--zenoh-config", str(who)] if who else []
         return subprocess.run(
-            [*EXOLINK, *args, "--at", self.at, "--timeout", "3", *opts],
+            # 10 s, not the CLI's 3: the connect waits that long too (a --timeout above 3 s
+            # does), and on this 2-core host with chromium and an appliance running, one
+            # connect of the dashboard test timed out at 3 s twice in ~8 full-suite runs
+            [*EXOLINK, *args, "--at", self.at, "--timeout", "10", *opts],
             capture_output=True,
             text=True,
             timeout=30,
