@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import free_port
 from exolink.config import NodeConfig, Priority, TriggerConfig
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.processes import apply_priority, proc_usage
@@ -212,3 +213,34 @@ def test_a_trip_wakes_the_supervisor_for_its_repeats() -> None:
     finally:
         wd.close()
         reader.bus.shutdown()
+
+
+def test_a_node_process_starts_on_its_configured_cpus(write_config) -> None:  # type: ignore[no-untyped-def]
+    """Every thread, Zenoh's included, on the node's CPUs from the start: the supervisor's
+    per-thread pass at the first heartbeat raced with the threads a session starts (on the
+    board proxy the simulator, pinned to CPU 1, kept threads on CPU 0). Run here without a
+    supervisor, so only the runtime itself can have pinned them."""
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs 2 CPUs")
+    cpu = max(os.sched_getaffinity(0))
+    node = {"name": "tm", "plugin": "timing_monitor", "priority": {"cpus": [cpu]}}
+    path = write_config(nodes=[node])
+    port = free_port()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "exolink.runtime", "tm", "-c", str(path),
+         "--listen", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:
+            if "node_running" in line:
+                break
+        else:
+            raise AssertionError(f"the node did not start (rc {p.wait()})")
+        tids = os.listdir(f"/proc/{p.pid}/task")
+        assert len(tids) > 3  # Zenoh's threads and the heartbeat's
+        assert {frozenset(os.sched_getaffinity(int(t))) for t in tids} == {frozenset({cpu})}
+    finally:
+        p.kill()
+        p.wait()
