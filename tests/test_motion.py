@@ -3,6 +3,8 @@ hardware; every frame claim is checked by an independent listener on the bus."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import subprocess
 import time
 from pathlib import Path
@@ -177,6 +179,37 @@ def test_a_disable_from_another_sender_stops_the_pattern(app, mbus) -> None:  # 
     r = app.cli("pattern", "status")
     assert "stopped (r_knee disabled by a frame on the bus)" in r.stdout, r.stdout
     assert app.status()["watchdog"]["state"] == "armed"  # the watchdog was not involved
+
+
+def bus_sockets(pid: int) -> int:
+    """The sim-bus sockets (bound to its UDP port) a process holds, from /proc."""
+    from exolink.canbus import SIM_PORT
+
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        with contextlib.suppress(OSError):
+            if (target := os.readlink(fd)).startswith("socket:["):
+                inodes.add(target[8:-1])
+    port = f":{SIM_PORT:04X}"
+    rows = Path("/proc/net/udp").read_text().splitlines()[1:]
+    return sum(1 for r in rows if r.split()[1].endswith(port) and r.split()[9] in inodes)
+
+
+def test_the_player_reads_the_bus_only_while_a_pattern_runs(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    """Id 70 carries MACCEPA board 0's 100 Hz frames too: a stopped player has no socket they
+    could reach (reading them for nothing cost 14 % of the board proxy's CPU 0)."""
+    pid = app.node("pattern_player")["pid"]
+    idle = bus_sockets(pid)
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    assert bus_sockets(pid) == idle + 1
+    assert app.cli("pattern", "stop").returncode == 0
+    wait_for(lambda: bus_sockets(pid) == idle, timeout=5)
+    assert app.cli("pattern", "start", "--detach").returncode == 0  # and again: still watched
+    collect(mbus, 0.3)
+    mbus.send(h2.encode_joint_control("r_hip", "disabled"))
+    collect(mbus, 0.2)
+    assert positions(collect(mbus, 0.5, {70})) == []
 
 
 def test_kill9_of_pattern_player_disables_motors(app, mbus) -> None:  # type: ignore[no-untyped-def]
