@@ -6,7 +6,7 @@ import random
 
 import numpy as np
 import pytest
-from exolink.nodes.timing_monitor import HIST_EDGES_US, deviation_stats
+from exolink.nodes.timing_monitor import HIST_EDGES_US, StampRing, deviation_stats
 
 
 def reference(stamps: list[float], expected_s: float | None) -> dict:
@@ -38,3 +38,25 @@ def test_deviation_stats_match_numpy(seed: int) -> None:
     assert list(got["histogram"].values()) == ref.pop("histogram")
     for key, value in ref.items():
         assert got[key] == pytest.approx(value, abs=2e-4), key
+
+
+@pytest.mark.parametrize("added", [0, 5, 7, 20])
+def test_stamp_ring_keeps_the_last_frames_in_order_by_length_and_first_byte(added: int) -> None:
+    """Against a plain list of what was added: the ring (7 slots) keeps the newest, oldest
+    first, and answers each way of asking (any, by length, by first byte, both)."""
+    rng = random.Random(added)
+    ring, plain = StampRing(7), []
+    for i in range(added):
+        data = bytes(rng.randrange(256) % 3 for _ in range(rng.choice((0, 6, 8))))
+        ring.add(float(i), data)
+        plain.append((float(i), data))
+    kept = plain[-7:]
+    for dlc in (None, 0, 6, 8):
+        for b0 in (None, 0, 1, 2):
+            want = [
+                t
+                for t, d in kept
+                if (dlc is None or len(d) == dlc) and (b0 is None or (d and d[0] == b0))
+            ]
+            assert ring.select(dlc, b0) == want
+            assert ring.copy().select(dlc, b0) == want
