@@ -20,7 +20,7 @@ from typing import Any
 import structlog
 
 from benchmarks.board import card as cardlib
-from benchmarks.board import runs
+from benchmarks.board import ladder, runs
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -35,6 +35,8 @@ def _procs(run: dict[str, Any]) -> dict[str, Any]:
 
 def table(result: dict[str, Any]) -> str:
     g, n = result.get("guest", {}), result.get("native", {})
+    if "ladder" in g or "ladder" in n:
+        return ladder_table(result)
     gp, np_ = _procs(g), _procs(n)
     lines = [
         f"exolink {result['checkout']['describe']} ({result['checkout']['commit'][:12]}), "
@@ -150,6 +152,28 @@ def table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def ladder_table(result: dict[str, Any]) -> str:
+    lines = [
+        f"exolink {result['checkout']['describe']} ({result['checkout']['commit'][:12]}), "
+        f"{result['seconds']:g} s per step, {result['timings']} watchdog timings; base: "
+        "supervisor + h2_reader on CPU 0, simulator (H2 100 Hz + MACCEPA board 0) on CPU 1, "
+        "1 laptop subscriber. 'all enabled': node columns summed over every node but the "
+        "simulator (h2_reader included)",
+    ]
+    for run in (result.get("guest", {}), result.get("native", {})):
+        if not run:
+            continue
+        lines += ["", f"{run['kind']}:"]
+        lines += ladder.table(run.get("ladder", {})) if "ladder" in run else []
+        if run.get("qemu_command"):
+            lines.append("qemu: " + run["qemu_command"])
+        lines += [f"note: {note}" for note in run.get("notes", [])]
+        for key in ("laptop_error", "error"):
+            if run.get(key):
+                lines.append(f"ERROR: {run[key]}")
+    return "\n".join(lines)
+
+
 def _laptop(run: dict[str, Any]) -> str | None:
     if not run:
         return None
@@ -219,6 +243,12 @@ def main() -> int:
         "--only-binary=:all:): installed on the card copy; the window is profiled "
         "(build/bench-board/profile-guest*.txt, 'profile' in the JSON)",
     )
+    p.add_argument(
+        "--ladder",
+        action="store_true",
+        help="instead of the nominal load: each node's own cost, added one at a time to a base "
+        "while CPU 0 has room (benchmarks/board/ladder.py)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -253,10 +283,17 @@ def main() -> int:
             args.timings,
             args.journal_console,
             Path(args.py_spy) if args.py_spy else None,
+            args.ladder,
         )
     if args.only != "guest":
         result["native"] = _guarded(
-            "native", runs.run_native, REPO, args.seconds, args.start_grace_ms, args.timings
+            "native",
+            runs.run_native,
+            REPO,
+            args.seconds,
+            args.start_grace_ms,
+            args.timings,
+            args.ladder,
         )
     result["run_s"] = round(time.monotonic() - t0, 1)
     out = Path(args.out)

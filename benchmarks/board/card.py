@@ -280,6 +280,10 @@ def _write_file(card: Card, local: Path, path: str, mode: int, uid: int, gid: in
     ]
 
 
+def admin_password(operator_password: str) -> str:
+    return operator_password + "A"
+
+
 def prepare(
     image: Path,
     work: Path,
@@ -297,7 +301,11 @@ def prepare(
     log.info("card copied", image=str(image), copy=str(card.img))
 
     settings = yaml.safe_load(card.fat_read("exolink-settings.yaml").decode("utf-8-sig"))
-    settings["zenoh"] = {"logins": ["operator"], "passwords": {"operator": zenoh_password}}
+    # admin: the ladder starts and stops nodes (benchmarks/board/ladder.py)
+    settings["zenoh"] = {
+        "logins": ["operator", "admin"],
+        "passwords": {"operator": zenoh_password, "admin": admin_password(zenoh_password)},
+    }
     settings["ssh"] = {"authorized_keys": [ssh_pubkey], "password": ""}
     settings["simulate"] = False  # --sim would put the bus on udp_multicast: the bench uses vcan0
     (work / "exolink-settings.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))

@@ -21,6 +21,7 @@ from exolink import messaging
 from exolink.config import bundled
 
 from benchmarks.board import card as cardlib
+from benchmarks.board import ladder as ladderlib
 from benchmarks.board import profile, scenario
 from benchmarks.board.guest import Guest, free_port
 
@@ -133,6 +134,7 @@ def run_guest(
     timings: str,
     journal_console: bool = False,
     py_spy: Path | None = None,
+    ladder: bool = False,
 ) -> dict[str, Any]:
     result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": []}
     wheel = cardlib.build_wheel(repo, work / "wheel")
@@ -154,7 +156,8 @@ def run_guest(
     )
     result["config"] = cfg
     laptop_cfg = work / "exolink-operator.json5"
-    login = {"transport": {"auth": {"usrpwd": {"user": "operator", "password": password}}}}
+    user, pw = ("admin", cardlib.admin_password(password)) if ladder else ("operator", password)
+    login = {"transport": {"auth": {"usrpwd": {"user": user, "password": pw}}}}
     laptop_cfg.write_text(json.dumps(login) + "\n")
     guest = Guest(card, work, key, journal_console)
     result["qemu_command"] = " ".join(guest.cmd)
@@ -204,6 +207,19 @@ def run_guest(
                 f"--threads -r {PROFILE_RATE} -d {seconds:g} -f raw -o {GUEST_PROFILE} "
                 "-p $(systemctl show -p MainPID --value exolink.service)"
             )
+        if ladder and laptop is not None and "laptop_error" not in result:
+
+            def probe(nodes: list[str], secs: float) -> dict[str, Any]:
+                cmd = guest.ssh_cmd(
+                    f"taskset -c 1 python3 - --unit exolink.service --seconds {secs:g} "
+                    f"--channel vcan0 --nodes {','.join(nodes)}"
+                )
+                with open(PROBE) as stdin:
+                    return _probe(cmd, stdin, secs)
+
+            result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds)
+            result["logs"] = _guest_logs(guest, result)
+            return result
         with open(PROBE) as stdin:
             if laptop is not None and "laptop_error" not in result:
                 result |= _run_load(laptop, probe_cmd, seconds, stdin, profiler)
@@ -284,6 +300,16 @@ def _probe_only(
         _end_profiler(prof, out)
 
 
+def _probe(cmd: list[str], stdin: Any, seconds: float) -> dict[str, Any]:
+    """One probe window with nothing else measured: its parsed result."""
+    p = subprocess.Popen(cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
+    try:
+        return dict(scenario.measure(None, p, seconds)["probe"])
+    finally:
+        if p.poll() is None:
+            p.kill()
+
+
 def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
     """Journal lines of interest, split into the whole boot and the measurement window."""
     r = guest.ssh(
@@ -320,7 +346,9 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def run_native(repo: Path, seconds: float, start_grace_ms: int, timings: str) -> dict[str, Any]:
+def run_native(
+    repo: Path, seconds: float, start_grace_ms: int, timings: str, ladder: bool = False
+) -> dict[str, Any]:
     """The same config and load on this host: udp_multicast (no vcan module here), the
     supervisor under ``taskset -c 0``, the simulator node on CPU 1."""
     from benchmarks.harness import group
@@ -385,6 +413,14 @@ def run_native(repo: Path, seconds: float, start_grace_ms: int, timings: str) ->
             "--nodes",
             ",".join(sorted(scenario.enabled_nodes(cfg))),
         ]
+        if ladder:
+
+            def probe(nodes: list[str], secs: float) -> dict[str, Any]:
+                cmd = [*probe_cmd[:-4], "--seconds", f"{secs:g}", "--nodes", ",".join(nodes)]
+                return _probe(cmd, subprocess.DEVNULL, secs)
+
+            result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds)
+            return result
         size0 = up_log.stat().st_size
         result |= _run_load(laptop, probe_cmd, seconds, subprocess.DEVNULL)
         text = up_log.read_text(errors="replace")

@@ -117,6 +117,11 @@ class JointStates:
             self.arrivals.append(time.monotonic())
             self.seqs.append(seq)
 
+    def reset(self) -> None:
+        with self.lock:
+            self.arrivals.clear()
+            self.seqs.clear()
+
     def summary(self, t0: float, seconds: float) -> dict[str, Any]:
         with self.lock:
             arr, seqs = list(self.arrivals), list(self.seqs)
