@@ -63,11 +63,23 @@ class Channel:
 
 
 def with_beats(channels: Iterable[Channel]) -> set[Channel]:
-    """The channels holding unread beats: one select per supervisor tick, not a read per node."""
-    live = [c for c in channels if c.fileno() >= 0]
-    if not live:
-        return set()
-    return set(select.select(live, (), (), 0)[0])
+    """The channels holding unread beats: one select per supervisor tick, not a read per node.
+
+    A node is started or stopped by a management command on another thread, which closes its
+    old channel: one closed between the list and the select made select fail with EBADF, and
+    that crashed the supervisor (seen on the board proxy when a node stopped). The select is
+    then retried on the channels still open."""
+    channels = list(channels)
+    for _ in range(3):
+        live = {fd: c for c in channels if (fd := c.fileno()) >= 0}
+        if not live:
+            return set()
+        try:
+            ready = select.select(list(live), (), (), 0)[0]
+        except (OSError, ValueError):  # closed meanwhile: look again
+            continue
+        return {live[fd] for fd in ready}
+    return set()  # no beats this tick: the next one reads them
 
 
 class Beater:

@@ -44,3 +44,33 @@ def test_a_gone_supervisor_does_not_break_the_node() -> None:
     b = liveness.Beater(fd)
     b.beat(1.0)  # EPIPE is swallowed
     os.close(fd)
+
+
+class ClosedBehindItsBack(liveness.Channel):
+    """A channel whose pipe another thread closes between the supervisor listing it and
+    selecting on it: the race a management `stop`/`start` ran into on the board proxy (the fd
+    is gone while the channel still reports it, for one look)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.looks = 0
+
+    def fileno(self) -> int:
+        self.looks += 1
+        if self.looks == 1:
+            fd = self._r
+            self.close()
+            return fd  # the closed number, as in the window between os.close and _r = -1
+        return super().fileno()
+
+
+def test_a_channel_closed_meanwhile_does_not_stop_the_others_beats() -> None:
+    """Before the fix select raised EBADF and the supervisor's loop, and with it the
+    appliance, went down (exit 1, systemd restart) when a node was stopped."""
+    ok, gone = liveness.Channel(), ClosedBehindItsBack()
+    try:
+        liveness.Beater(ok.child_fd).beat(1.0)
+        assert liveness.with_beats([gone, ok]) == {ok}
+    finally:
+        ok.close()
+        gone.close()
