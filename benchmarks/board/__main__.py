@@ -245,9 +245,18 @@ def main() -> int:
     )
     p.add_argument(
         "--ladder",
-        action="store_true",
+        nargs="?",
+        const="",
+        metavar="NODES",
         help="instead of the nominal load: each node's own cost, added one at a time to a base "
-        "while CPU 0 has room (benchmarks/board/ladder.py)",
+        "while CPU 0 has room (benchmarks/board/ladder.py); NODES: only these (comma-separated)",
+    )
+    p.add_argument(
+        "--guest-env",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="environment of the appliance's service on the guest (experiments; in the JSON)",
     )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
@@ -255,6 +264,7 @@ def main() -> int:
         print(table(json.loads(Path(args.show).read_text())))
         return 0
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
+    ladder_nodes = None if args.ladder is None else tuple(filter(None, args.ladder.split(",")))
     t0 = time.monotonic()
     result: dict[str, Any] = {
         "schema": 1,
@@ -283,7 +293,8 @@ def main() -> int:
             args.timings,
             args.journal_console,
             Path(args.py_spy) if args.py_spy else None,
-            args.ladder,
+            ladder_nodes,
+            tuple(args.guest_env),
         )
     if args.only != "guest":
         result["native"] = _guarded(
@@ -293,7 +304,7 @@ def main() -> int:
             args.seconds,
             args.start_grace_ms,
             args.timings,
-            args.ladder,
+            ladder_nodes,
         )
     result["run_s"] = round(time.monotonic() - t0, 1)
     out = Path(args.out)

@@ -293,6 +293,7 @@ def prepare(
     start_grace_ms: int,
     timings: str,
     extra_wheels: tuple[Path, ...] = (),
+    env: tuple[str, ...] = (),
 ) -> tuple[Card, dict[str, Any]]:
     """The bench copy of ``image`` in ``work``; returns it and the appliance config it runs.
     ``extra_wheels`` (an armv7 py-spy, say) are installed beside exolink, without dependencies."""
@@ -340,7 +341,10 @@ def prepare(
     (work / "appliance.yaml").write_text(text)
     (work / "exolink-bench.service").write_text(BENCH_UNIT)
     wd_s = TIMINGS[timings]["systemd_watchdog_s"]
-    (work / "bench.conf").write_text(DROP_IN + (f"WatchdogSec={wd_s}s\n" if wd_s else ""))
+    environment = "".join(f'Environment="{e}"\n' for e in env)  # --guest-env: experiments
+    (work / "bench.conf").write_text(
+        DROP_IN + (f"WatchdogSec={wd_s}s\n" if wd_s else "") + environment
+    )
     (work / "setup-bench.conf").write_text(SETUP_DROP_IN)
     (work / "authorized_keys").write_text(ssh_pubkey + "\n")
     gid = card.group_id("exolink")

@@ -32,9 +32,14 @@ Probe = Callable[[list[str], float], dict[str, Any]]
 
 
 def run(
-    admin: scenario.Laptop, cfg: dict[str, Any], probe: Probe, seconds: float
+    admin: scenario.Laptop,
+    cfg: dict[str, Any],
+    probe: Probe,
+    seconds: float,
+    only: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """Steps in order, each ``{"running": [...], "probe": {...}, "joint_states": {...}}``."""
+    """Steps in order, each ``{"running": [...], "probe": {...}, "joint_states": {...}}``;
+    ``only``: step through these nodes (default: every configured one)."""
     names = [n["name"] for n in cfg["nodes"]]
     enabled = scenario.enabled_nodes(cfg)
     steps: dict[str, Any] = {}
@@ -43,7 +48,7 @@ def run(
             _control(admin, n, "stop")
     steps["base"] = _step(admin, [*BASE], probe, seconds)
     for n in names:
-        if n in BASE:
+        if n in BASE or (only and n not in only):
             continue
         if not _control(admin, n, "start") or not _wait_beating(admin, {n}):
             steps[f"+{n}"] = {"error": f"{n} did not start beating in {START_TIMEOUT_S:g} s"}

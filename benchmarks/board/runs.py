@@ -134,9 +134,12 @@ def run_guest(
     timings: str,
     journal_console: bool = False,
     py_spy: Path | None = None,
-    ladder: bool = False,
+    ladder: tuple[str, ...] | None = None,
+    env: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": []}
+    """``ladder``: the nodes to step through (empty: every one; None: the nominal load
+    instead); ``env``: KEY=VALUE for the appliance's service on the guest."""
+    result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": [], "env": env}
     wheel = cardlib.build_wheel(repo, work / "wheel")
     result["wheel"] = {"file": wheel.name, "sha256": _sha256(wheel)}
     key = work / "ssh_key"
@@ -153,10 +156,12 @@ def run_guest(
         start_grace_ms,
         timings,
         (py_spy,) if py_spy else (),
+        env,
     )
     result["config"] = cfg
     laptop_cfg = work / "exolink-operator.json5"
-    user, pw = ("admin", cardlib.admin_password(password)) if ladder else ("operator", password)
+    admin = ladder is not None
+    user, pw = ("admin", cardlib.admin_password(password)) if admin else ("operator", password)
     login = {"transport": {"auth": {"usrpwd": {"user": user, "password": pw}}}}
     laptop_cfg.write_text(json.dumps(login) + "\n")
     guest = Guest(card, work, key, journal_console)
@@ -207,7 +212,7 @@ def run_guest(
                 f"--threads -r {PROFILE_RATE} -d {seconds:g} -f raw -o {GUEST_PROFILE} "
                 "-p $(systemctl show -p MainPID --value exolink.service)"
             )
-        if ladder and laptop is not None and "laptop_error" not in result:
+        if ladder is not None and laptop is not None and "laptop_error" not in result:
 
             def probe(nodes: list[str], secs: float) -> dict[str, Any]:
                 cmd = guest.ssh_cmd(
@@ -217,7 +222,7 @@ def run_guest(
                 with open(PROBE) as stdin:
                     return _probe(cmd, stdin, secs)
 
-            result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds)
+            result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds, ladder)
             result["logs"] = _guest_logs(guest, result)
             return result
         with open(PROBE) as stdin:
@@ -347,7 +352,11 @@ def _sha256(path: Path) -> str:
 
 
 def run_native(
-    repo: Path, seconds: float, start_grace_ms: int, timings: str, ladder: bool = False
+    repo: Path,
+    seconds: float,
+    start_grace_ms: int,
+    timings: str,
+    ladder: tuple[str, ...] | None = None,
 ) -> dict[str, Any]:
     """The same config and load on this host: udp_multicast (no vcan module here), the
     supervisor under ``taskset -c 0``, the simulator node on CPU 1."""
@@ -413,13 +422,13 @@ def run_native(
             "--nodes",
             ",".join(sorted(scenario.enabled_nodes(cfg))),
         ]
-        if ladder:
+        if ladder is not None:
 
             def probe(nodes: list[str], secs: float) -> dict[str, Any]:
                 cmd = [*probe_cmd[:-4], "--seconds", f"{secs:g}", "--nodes", ",".join(nodes)]
                 return _probe(cmd, subprocess.DEVNULL, secs)
 
-            result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds)
+            result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds, ladder)
             return result
         size0 = up_log.stat().st_size
         result |= _run_load(laptop, probe_cmd, seconds, subprocess.DEVNULL)
