@@ -87,6 +87,7 @@ def table(result: dict[str, Any]) -> str:
         return get(run, "window", "probe", "idle_pct", cpu)
 
     row("CPU 0 idle %", idle(g, "cpu0"), idle(n, "cpu0"))
+    row("calibration (CPU ms, fixed Python loop)", *pair("window", "probe", "calibration_ms"))
     row("CPU 1 idle % (simulator's)", idle(g, "cpu1"), idle(n, "cpu1"))
     sums = []
     for procs in (gp, np_):

@@ -61,6 +61,10 @@ def run(
         steps["all enabled"] = _step(admin, sorted(enabled), probe, seconds)
     else:
         steps["all enabled"] = {"error": f"not all enabled nodes beating in {START_TIMEOUT_S:g} s"}
+    for n in names:  # the base once more: how far the CPU's speed drifted during the run
+        if n not in BASE:
+            _control(admin, n, "stop")
+    steps["base again"] = _step(admin, [*BASE], probe, seconds)
     return steps
 
 
@@ -100,11 +104,12 @@ def _step(
 
 def table(steps: dict[str, Any]) -> list[str]:
     """One row per step: the added node's CPU share and PSS, the supervisor's and the H2
-    reader's, CPU 0 idle, joint_states on the laptop."""
+    reader's, CPU 0 idle, joint_states on the laptop, and the probe's calibration (CPU ms for a
+    fixed Python loop: a higher figure is a slower CPU at that moment)."""
     lines = [
         "ladder (not armed; each node alone on top of the base):",
         f"{'step':22} {'node %cpu':>9} {'node PSS':>9} {'superv.':>8} {'h2_reader':>9} "
-        f"{'CPU0 idle':>9} {'js Hz':>7}",
+        f"{'CPU0 idle':>9} {'js Hz':>7} {'calib ms':>8}",
     ]
     for step, s in steps.items():
         if "error" in s:
@@ -129,6 +134,7 @@ def table(steps: dict[str, Any]) -> list[str]:
             f"{num(pss, ' MB') if node or step == 'all enabled' else '':>9} "
             f"{num(procs.get('supervisor', {}).get('cpu_pct')):>8} "
             f"{num(procs.get('h2_reader', {}).get('cpu_pct')):>9} {num(idle):>9} "
-            f"{num(s.get('joint_states', {}).get('rate_hz')):>7}"
+            f"{num(s.get('joint_states', {}).get('rate_hz')):>7} "
+            f"{num(s.get('probe', {}).get('calibration_ms')):>8}"
         )
     return lines

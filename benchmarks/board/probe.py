@@ -168,6 +168,21 @@ def can_stats() -> str | None:
         return None
 
 
+CALIBRATION_LOOPS = 200_000
+
+
+def calibrate() -> float:
+    """CPU ms this interpreter takes for a fixed pure-Python loop: how fast this CPU runs Python
+    right now. Runs of the same code on the proxy differed by ~30 % from one boot to the next
+    (the host's speed drifts); dividing by this puts them on one scale. CPU time, not wall:
+    a loop sharing its CPU with the simulator takes as much CPU either way."""
+    t0 = time.thread_time()
+    acc = 0
+    for i in range(CALIBRATION_LOOPS):
+        acc += i * i % 7
+    return round((time.thread_time() - t0) * 1e3, 2)
+
+
 def snapshot(pids: dict[str, int], channel: str) -> dict[str, Any]:
     return {
         "t": time.monotonic(),
@@ -252,6 +267,7 @@ def main() -> int:
         return 1
     nodes = [n for n in args.nodes.split(",") if n]
     pids = find_appliance(sup, nodes)
+    calibration_ms = calibrate()
     first = snapshot(pids, args.channel)
     sys.stdout.write(f"PROBE_T0 {json.dumps(sorted(pids))}\n")
     sys.stdout.flush()
@@ -259,6 +275,7 @@ def main() -> int:
     second = snapshot(pids, args.channel)
     out = compare(first, second)
     out["pids"] = pids
+    out["calibration_ms"] = calibration_ms
     out["nodes_now"] = sorted(find_appliance(sup, nodes))
     sys.stdout.write("PROBE_RESULT " + json.dumps(out) + "\n")
     return 0
