@@ -333,6 +333,11 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     page.wait_for_function(
         "document.querySelector('#rec-state dd').textContent.startsWith('recording')"
     )
+    # Stopped at once, the file held ~10 joint_states and the plot check below failed now and
+    # then (10 > 10): stop once the recorder reports 300 messages written (~0.6 s of traffic).
+    page.wait_for_function(
+        "parseInt(document.querySelectorAll('#rec-state dd')[3].textContent) >= 300"
+    )
     page.click("#page-recording button[data-argv*=stop]")
     link = page.wait_for_selector("#rec-files a")
     href = link.get_attribute("href")
