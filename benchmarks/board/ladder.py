@@ -43,9 +43,7 @@ def run(
     names = [n["name"] for n in cfg["nodes"]]
     enabled = scenario.enabled_nodes(cfg)
     steps: dict[str, Any] = {}
-    for n in names:
-        if n not in BASE:
-            _control(admin, n, "stop")
+    _base_only(admin, names)
     steps["base"] = _step(admin, [*BASE], probe, seconds)
     for n in names:
         if n in BASE or (only and n not in only):
@@ -61,11 +59,15 @@ def run(
         steps["all enabled"] = _step(admin, sorted(enabled), probe, seconds)
     else:
         steps["all enabled"] = {"error": f"not all enabled nodes beating in {START_TIMEOUT_S:g} s"}
-    for n in names:  # the base once more: how far the CPU's speed drifted during the run
-        if n not in BASE:
-            _control(admin, n, "stop")
+    _base_only(admin, names)  # once more: how far the CPU's speed drifted during the run
     steps["base again"] = _step(admin, [*BASE], probe, seconds)
     return steps
+
+
+def _base_only(admin: scenario.Laptop, names: list[str]) -> None:
+    for n in names:
+        if n not in BASE:
+            _control(admin, n, "stop")
 
 
 def _control(admin: scenario.Laptop, node: str, action: str) -> bool:

@@ -200,10 +200,14 @@ def run_guest(
             result["notes"].append("the checkout's wheel is NOT what the guest installed")
         log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
         time.sleep(SETTLE_S)
-        probe_cmd = guest.ssh_cmd(
-            f"taskset -c 1 python3 - --unit exolink.service --seconds {seconds:g} --channel vcan0 "
-            f"--nodes {','.join(sorted(scenario.enabled_nodes(cfg)))}"
-        )
+
+        def guest_probe(secs: float, nodes: list[str]) -> list[str]:
+            return guest.ssh_cmd(
+                f"taskset -c 1 python3 - --unit exolink.service --seconds {secs:g} "
+                f"--channel vcan0 --nodes {','.join(nodes)}"
+            )
+
+        probe_cmd = guest_probe(seconds, sorted(scenario.enabled_nodes(cfg)))
         result["supervisor_restarts_by_systemd_before_load"] = _nrestarts(guest)
         profiler = None
         if py_spy is not None:  # on CPU 1 with the simulator: CPU 0 is what is measured
@@ -215,12 +219,8 @@ def run_guest(
         if ladder is not None and laptop is not None and "laptop_error" not in result:
 
             def probe(nodes: list[str], secs: float) -> dict[str, Any]:
-                cmd = guest.ssh_cmd(
-                    f"taskset -c 1 python3 - --unit exolink.service --seconds {secs:g} "
-                    f"--channel vcan0 --nodes {','.join(nodes)}"
-                )
                 with open(PROBE) as stdin:
-                    return _probe(cmd, stdin, secs)
+                    return dict(_probe_only(guest_probe(secs, nodes), secs, stdin)["probe"])
 
             result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds, ladder)
             result["logs"] = _guest_logs(guest, result)
@@ -291,10 +291,12 @@ def _probe_only(
     probe_cmd: list[str],
     seconds: float,
     stdin: Any,
-    profiler: list[str] | None,
-    out: dict[str, Any],
+    profiler: list[str] | None = None,
+    out: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    log.info("measuring without the laptop", seconds=seconds)
+    """One probe window and nothing else the laptop measures (it could not connect, or the
+    ladder counts joint_states itself); the profiler's output, if any, goes into ``out``."""
+    log.info("probe window", seconds=seconds)
     probe = subprocess.Popen(probe_cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
     prof = _start_profiler(profiler)
     try:
@@ -302,17 +304,7 @@ def _probe_only(
     finally:
         if probe.poll() is None:
             probe.kill()
-        _end_profiler(prof, out)
-
-
-def _probe(cmd: list[str], stdin: Any, seconds: float) -> dict[str, Any]:
-    """One probe window with nothing else measured: its parsed result."""
-    p = subprocess.Popen(cmd, stdin=stdin, stdout=subprocess.PIPE, text=True)
-    try:
-        return dict(scenario.measure(None, p, seconds)["probe"])
-    finally:
-        if p.poll() is None:
-            p.kill()
+        _end_profiler(prof, out if out is not None else {})
 
 
 def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
@@ -409,24 +401,19 @@ def run_native(
             "node_start_s": {n["name"]: n["start_s"] for n in status["nodes"]},
         }
         time.sleep(SETTLE_S)
-        probe_cmd = [
-            "taskset",
-            "-c",
-            "1",
-            sys.executable,
-            str(PROBE),
-            "--pid",
-            str(proc.pid),
-            "--seconds",
-            f"{seconds:g}",
-            "--nodes",
-            ",".join(sorted(scenario.enabled_nodes(cfg))),
-        ]
+
+        def native_probe(secs: float, nodes: list[str]) -> list[str]:
+            return [
+                *("taskset", "-c", "1", sys.executable, str(PROBE), "--pid", str(proc.pid)),
+                *("--seconds", f"{secs:g}", "--nodes", ",".join(nodes)),
+            ]
+
+        probe_cmd = native_probe(seconds, sorted(scenario.enabled_nodes(cfg)))
         if ladder is not None:
 
             def probe(nodes: list[str], secs: float) -> dict[str, Any]:
-                cmd = [*probe_cmd[:-4], "--seconds", f"{secs:g}", "--nodes", ",".join(nodes)]
-                return _probe(cmd, subprocess.DEVNULL, secs)
+                cmd = native_probe(secs, nodes)
+                return dict(_probe_only(cmd, secs, subprocess.DEVNULL)["probe"])
 
             result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds, ladder)
             return result
