@@ -4,6 +4,14 @@ Commands arrive as Zenoh queries so the caller gets "ok" or the reason for a ref
 sent unless the whole command is valid; motion (position, stiffness, torque) also needs the
 watchdog armed. Disable, stop and stream on/off are always allowed: they can only make things
 safer or quieter.
+
+One writer per joint without the controller manager too: a motion command for a joint the gait
+pattern drives (running or paused) is refused, naming the pattern, instead of interleaving with
+its set-points. The pattern player is asked at each motion command; if it is configured but does
+not answer in time the command is refused (it may be playing), if nothing serves ``pattern`` the
+command goes out. Left open: a pattern started within the same few ms as the command (the check
+and the send are not one step); the pattern player's bus watch stops the pattern only on a
+disable or stop frame. With ``motion_via_manager`` the manager owns this (claims).
 """
 
 from __future__ import annotations
@@ -18,12 +26,14 @@ from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import open_bus
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
-from exolink.messaging import CommandRefused
+from exolink.messaging import CommandRefused, Unreachable
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
+PATTERN_WAIT_S = 0.5  # the pattern player's status answer (ms on x86, ~0.1 s on a busy board)
+DRIVING = ("running", "paused")  # pattern states in which it owns its selected joints
 MOTION = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 
 
@@ -148,6 +158,7 @@ class H2Sender(Node):
                 jc = h2.decode(frames[0])
                 if isinstance(jc, h2.JointControl) and jc.mode in MOTION:
                     return self._via_manager(jc)
+            self._check_pattern(frames)
         except CommandRefused as exc:
             self.refused += 1
             self.log.warning("command_refused", request=req, reason=str(exc))
@@ -162,6 +173,35 @@ class H2Sender(Node):
                 self.h2_max = list(lim)
         self.log.info("command_sent", request=req, frames=len(frames))
         return {"frames": [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]}
+
+    def _check_pattern(self, frames: list[can.Message]) -> None:
+        """Refuse motion for a joint the gait pattern drives (see the module docstring)."""
+        motion = [
+            jc
+            for jc in (h2.decode(f) for f in frames)
+            if isinstance(jc, h2.JointControl) and jc.mode in MOTION
+        ]
+        if not motion:
+            return
+        joints = [h2.JOINTS[jc.motor - 1] for jc in motion]
+        t0 = time.monotonic()
+        try:
+            st = self.ctx.messaging.request(
+                "pattern", body={"action": "status"}, timeout_s=PATTERN_WAIT_S
+            )
+        except Unreachable as exc:
+            if time.monotonic() - t0 < PATTERN_WAIT_S * 0.9:  # nothing serves it: no pattern
+                return
+            raise CommandRefused(
+                f"the pattern player did not answer within {PATTERN_WAIT_S:g} s, so it cannot be "
+                f"ruled out that the pattern drives {', '.join(joints)}: {exc}"
+            ) from None
+        driven = [j for j in joints if st.get("state") in DRIVING and j in st.get("selected", [])]
+        if driven:
+            raise CommandRefused(
+                f"{', '.join(driven)} is driven by the gait pattern ({st['state']}): "
+                f"`exolink pattern stop` (or `pattern disable {driven[0]}`) first"
+            )
 
     def _via_manager(self, jc: h2.JointControl) -> dict[str, Any]:
         """The checked command, for the controller manager to write; its refusal (another

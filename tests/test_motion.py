@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -179,6 +180,49 @@ def test_a_disable_from_another_sender_stops_the_pattern(app, mbus) -> None:  # 
     r = app.cli("pattern", "status")
     assert "stopped (r_knee disabled by a frame on the bus)" in r.stdout, r.stdout
     assert app.status()["watchdog"]["state"] == "armed"  # the watchdog was not involved
+
+
+def test_operator_motion_on_a_joint_the_pattern_drives_is_refused(
+    write_config, spawn, mbus
+) -> None:  # type: ignore[no-untyped-def]
+    """Without the controller manager too, one writer per joint: the sender asks the pattern
+    player before a motion frame (stiffness here: the pattern itself only sends positions)."""
+    nodes = [
+        *NODES[:2],
+        # not critical, a long deadline: SIGSTOPped below without a watchdog trip
+        {**NODES[2], "critical": False, "heartbeat_deadline_ms": 20_000},
+        {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+    ]
+    app = Appliance(write_config(nodes=nodes, watchdog={"maccepa_boards": [0]}), spawn)
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    collect(mbus, 0.1)
+    r = app.cli("send", "stiffness", "r_knee", "20", "50")
+    assert r.returncode == 5, r.stdout
+    assert "r_knee is driven by the gait pattern (running)" in r.stderr, r.stderr
+    assert app.cli("send", "stiffness", "l_knee", "20", "50").returncode == 0  # not driven
+    stiff = {
+        f.motor
+        for f in (h2.decode(m) for m in collect(mbus, 0.3, {70}))
+        if isinstance(f, h2.JointControl) and f.mode == h2.MODES["stiffness"]
+    }
+    assert stiff == {5}  # l_knee's; the refused r_knee (motor 2) sent nothing
+    assert app.cli("pattern", "pause").returncode == 0
+    r = app.cli("send", "position", "r_hip", "10")
+    assert r.returncode == 5 and "r_hip is driven by the gait pattern (paused)" in r.stderr
+    assert app.cli("pattern", "disable", "r_knee").returncode == 0  # the pattern lets go of it
+    assert app.cli("send", "stiffness", "r_knee", "20", "50").returncode == 0
+    pid = app.node("pattern_player")["pid"]
+    os.kill(pid, signal.SIGSTOP)  # alive, silent: it may still be playing
+    try:
+        r = app.cli("send", "position", "l_hip", "10")
+        assert r.returncode == 5 and "pattern player did not answer" in r.stderr, r.stderr
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    assert app.cli("pattern", "stop").returncode == 0
+    assert app.cli("send", "position", "r_hip", "10").returncode == 0
+    assert app.cli("stop", "pattern_player").returncode == 0
+    assert app.cli("send", "position", "r_hip", "12").returncode == 0  # nothing serves pattern
 
 
 def bus_sockets(pid: int) -> int:
