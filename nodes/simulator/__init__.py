@@ -8,6 +8,7 @@ Zenoh queryable for faults; ``exolink sim`` runs it bare on a chosen bus.
 
 from __future__ import annotations
 
+import ctypes
 import threading
 import time
 from dataclasses import dataclass
@@ -23,6 +24,9 @@ from exolink.nodes.simulator.boards import H2Board, MaccepaBoard
 from exolink.protocol import h2, maccepa
 
 FAULTS = ("none", "silent", "malformed", "flood")
+PREPARE_S = 0.002  # the models step and the frames are built this long before they are due
+SPIN_S = 0.0003  # the last stretch before a deadline is spun, not slept (as the pattern player)
+PR_SET_TIMERSLACK = 29  # linux/prctl.h
 
 
 class SimParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -124,42 +128,78 @@ class Simulator:
             self._send([junk])
 
     def run(self, stop: threading.Event, beat: Any = None) -> None:
+        """Frames go out on the deadline, as a board's hardware timer sends them: the models
+        step and the frames are built ``PREPARE_S`` ahead, the wait until ``SPIN_S`` before the
+        deadline is a sleep and the rest a spin, so neither the models' work nor a command
+        handled meanwhile nor a late timer wake-up moves the frame. (Stepping and sending in
+        one go at a slept-for deadline put 0.23 ms of p99 jitter on the H2's own frames on x86,
+        which the controller manager, paced by them, passed on to every set-point.)"""
         h2_period = h2.PERIOD_S
         mc_period = 1.0 / self.params.maccepa_rate_hz
         start = time.monotonic()
         next_h2, next_mc = start + h2_period, start + mc_period
         last = start
+        ready: tuple[list[can.Message], list[can.Message]] | None = None  # (H2, boards)
+        _precise_timers()
         while not stop.is_set():
             if beat is not None:
                 beat()
-            now = time.monotonic()
             deadline = min(next_h2, next_mc) if self.boards else next_h2
-            if now < deadline:
-                msg = self.bus.recv(timeout=deadline - now)
+            now = time.monotonic()
+            if ready is None and now >= deadline - PREPARE_S:
+                dt, last = now - last, now
+                if self.h2 is not None:
+                    self.h2.step(dt)
+                for b in self.boards.values():
+                    b.step(dt)
+                h2_frames = (
+                    self.h2.frames()
+                    if self.h2 is not None and self.h2.streaming and now >= next_h2 - PREPARE_S
+                    else []
+                )
+                mc_frames = (
+                    [f for b in self.boards.values() for f in b.frames()]
+                    if self.boards and now >= next_mc - PREPARE_S
+                    else []
+                )
+                ready = h2_frames, mc_frames
+                continue
+            if now < deadline - SPIN_S:
+                wake = deadline - (SPIN_S if ready is not None else PREPARE_S)
+                msg = self.bus.recv(timeout=max(0.0, wake - now))
                 if msg is not None:
                     self.handle(msg)
                 continue
-            dt, last = now - last, now
-            if self.h2 is not None:
-                self.h2.step(dt)
-            for b in self.boards.values():
-                b.step(dt)
-            if self.fault() == "flood":
-                self._flood(deadline + h2_period)
+            while time.monotonic() < deadline:
+                pass
+            h2_frames, mc_frames = ready or ([], [])
+            ready = None
+            now = time.monotonic()
             if now >= next_h2:
                 self.stats.periods += 1
-                if self.h2 is not None and self.h2.streaming:
-                    self._emit(self.h2.frames())
+                if h2_frames:  # not streaming (or built for a later deadline): nothing
+                    self._emit(h2_frames)
                 next_h2 += h2_period
                 if now - next_h2 > 5 * h2_period:  # fell far behind (machine stalled): resync
                     self.stats.overruns += 1
                     next_h2 = now + h2_period
             if self.boards and now >= next_mc:
-                for b in self.boards.values():
-                    self._emit(b.frames())
+                if mc_frames:
+                    self._emit(mc_frames)
                 next_mc += mc_period
                 if now - next_mc > 5 * mc_period:
                     next_mc = now + mc_period
+            if self.fault() == "flood":
+                self._flood(deadline + h2_period)
+
+
+def _precise_timers() -> None:
+    """This thread's timer slack to 1 ns (Linux' default 50 us is added to every sleep)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(1), 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux: the default slack only
+        pass
 
 
 class SimulatorNode(Node):
