@@ -3,6 +3,7 @@ and helpers to run exolink processes for real (no mocks of buses or sessions).""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -152,6 +153,20 @@ def collect(
         if m is not None and (ids is None or m.arbitration_id in ids):
             out.append(m)
     return out
+
+
+def bus_sockets(pid: int) -> int:
+    """The sim-bus sockets (bound to its UDP port) a process holds, from /proc."""
+    from exolink.canbus import SIM_PORT
+
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        with contextlib.suppress(OSError):
+            if (target := os.readlink(fd)).startswith("socket:["):
+                inodes.add(target[8:-1])
+    port = f":{SIM_PORT:04X}"
+    rows = Path("/proc/net/udp").read_text().splitlines()[1:]
+    return sum(1 for r in rows if r.split()[1].endswith(port) and r.split()[9] in inodes)
 
 
 def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.02) -> object:

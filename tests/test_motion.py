@@ -3,7 +3,6 @@ hardware; every frame claim is checked by an independent listener on the bus."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import subprocess
@@ -12,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import EXOLINK, Appliance, collect, wait_for
+from conftest import EXOLINK, Appliance, bus_sockets, collect, wait_for
 from exolink import messaging
 from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern, period_s
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -223,20 +222,6 @@ def test_operator_motion_on_a_joint_the_pattern_drives_is_refused(
     assert app.cli("send", "position", "r_hip", "10").returncode == 0
     assert app.cli("stop", "pattern_player").returncode == 0
     assert app.cli("send", "position", "r_hip", "12").returncode == 0  # nothing serves pattern
-
-
-def bus_sockets(pid: int) -> int:
-    """The sim-bus sockets (bound to its UDP port) a process holds, from /proc."""
-    from exolink.canbus import SIM_PORT
-
-    inodes = set()
-    for fd in Path(f"/proc/{pid}/fd").iterdir():
-        with contextlib.suppress(OSError):
-            if (target := os.readlink(fd)).startswith("socket:["):
-                inodes.add(target[8:-1])
-    port = f":{SIM_PORT:04X}"
-    rows = Path("/proc/net/udp").read_text().splitlines()[1:]
-    return sum(1 for r in rows if r.split()[1].endswith(port) and r.split()[9] in inodes)
 
 
 def test_the_player_reads_the_bus_only_while_a_pattern_runs(app, mbus) -> None:  # type: ignore[no-untyped-def]

@@ -21,6 +21,13 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
   action and every controller stops (the watchdog trips on the same silence a little later);
 - the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
   (``heartbeat_deadline_ms: 50`` in the configs, as for the pattern player).
+
+Off the bus while idle: with no controller active and no switch queued the node holds no socket
+that frames reach (a send-only bus stays, for safe actions): reading and decoding every H2 and
+MACCEPA frame for nothing took >= 47 % of the board proxy's CPU 0. A queued switch opens the
+reader; activations wait until it is warm (every configured board's position frame seen, or
+``WARM_S``) so a controller never starts from a stale or missing state, and the state from before
+the reader closed (boards, torques, feet) is dropped with it.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ import can
 import msgspec
 from exolink import roles
 from exolink.arming import ArmingState
-from exolink.canbus import open_reader
+from exolink.canbus import FrameReader, open_bus, open_reader
 from exolink.controller import BoardState, State
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
 from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
@@ -46,6 +53,7 @@ from exolink.protocol import ProtocolError, h2, maccepa
 
 BEAT_S = 0.02
 SWITCH_WAIT_S = 1.0
+WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
 OPERATOR_MODES = ("position", "stiffness", "torque")
@@ -122,19 +130,17 @@ class ControllerManagerNode(Node):
         self.board_ids = set(boards)
         # Status frames (50/60/70 + board) and duty/stop (80 + board): a stop from anyone.
         mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
-        self.reader = open_reader(self.ctx.config.can, sorted({*READ_IDS, *mc_ids}))
-        self.bus = self.reader.bus
-        self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame
-        self.mview: dict[int, BoardState] = {}  # what cycles see: a copy taken when it changed
-        self.mchanged = False
+        self.read_ids = sorted({*READ_IDS, *mc_ids})
+        self.bus = open_bus(self.ctx.config.can, filters=[])  # sends while the reader is closed
+        self.reader: FrameReader | None = None  # open while a controller is active or queued
+        self.opened = 0.0  # monotonic time the reader opened
+        self.wake = threading.Event()  # a queued switch: open the reader now
+        self.reader_opens = 0
+        self._forget_state()
         self.malformed: dict[str, int] = {}  # "<id> <reason>" -> count
         self.mc_written = 0
         self.mc_safe_sent = 0
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
-        self.torque: tuple[int, ...] = (0,) * 6
-        self.feet: tuple[int, int, int, int] | None = None
-        self.last_angle_ts: float | None = None
-        self.last_angle_mono = time.monotonic()
         self.written = 0
         self.safe_sent = 0
         self._q = self.ctx.messaging.serve("controllers", self.on_request, self._needs)
@@ -162,6 +168,8 @@ class ControllerManagerNode(Node):
                     "maccepa_written": self.mc_written,
                     "maccepa_safe": self.mc_safe_sent,
                     "malformed": dict(self.malformed),
+                    "reading": self.reader is not None,
+                    "reader_opens": self.reader_opens,
                 }
             if action == "types":
                 return {"types": controller_types()}
@@ -276,6 +284,7 @@ class ControllerManagerNode(Node):
         if sw.activate and self.arming is not None and (why := self.arming.check()):
             raise CommandRefused(why)
         self.manager.request(sw)
+        self.wake.set()
         if not sw.done.wait(SWITCH_WAIT_S) and self.manager.withdraw(sw):
             raise CommandRefused(
                 f"no H2 cycle within {SWITCH_WAIT_S:g} s to switch at (is the H2 streaming?)"
@@ -294,8 +303,14 @@ class ControllerManagerNode(Node):
         timeout = self.params.h2_timeout_ms / 1e3
         while not stop.is_set():
             self.beat()
+            if self.reader is None:
+                if not self.manager.busy():
+                    self.wake.wait(BEAT_S)
+                    self.wake.clear()
+                    continue
+                self._open_reader()
             try:
-                frames = self.reader.read(BEAT_S)
+                frames = self.reader.read(BEAT_S)  # type: ignore[union-attr]
             except (can.CanError, OSError) as exc:
                 self.log.error("bus_read_error", error=str(exc))
                 self._silent("CAN read error: " + str(exc))
@@ -305,6 +320,36 @@ class ControllerManagerNode(Node):
             if time.monotonic() - self.last_angle_mono > timeout:
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
                 self.manager.idle(self._not_armed())
+            if not self.manager.busy():
+                self._close_reader()
+
+    def _open_reader(self) -> None:
+        self.reader = open_reader(self.ctx.config.can, self.read_ids)
+        self.opened = self.last_angle_mono = time.monotonic()
+        self.reader_opens += 1
+
+    def _close_reader(self) -> None:
+        """Idle: frames no longer reach this process, and what it knew of the bus is dropped
+        (a controller activated later starts from fresh frames)."""
+        reader, self.reader = self.reader, None
+        if reader is not None:
+            reader.bus.shutdown()
+        self._forget_state()
+
+    def _forget_state(self) -> None:
+        self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame
+        self.mview: dict[int, BoardState] = {}  # what cycles see: a copy taken when it changed
+        self.mchanged = False
+        self.torque: tuple[int, ...] = (0,) * 6
+        self.feet: tuple[int, int, int, int] | None = None
+        self.last_angle_ts: float | None = None
+        self.last_angle_mono = time.monotonic()
+
+    def _warm(self) -> bool:
+        """A fresh reader has seen every configured board's positions (or waited WARM_S)."""
+        if time.monotonic() - self.opened >= WARM_S:
+            return True
+        return all((b := self.mstate.get(i)) and b.positions for i in self.board_ids)
 
     def _decode(self, f: Any) -> Any:
         """H2 first, then MACCEPA (ids 70/75/80/85 are both; the length tells): a frame neither
@@ -352,6 +397,10 @@ class ControllerManagerNode(Node):
             elif isinstance(d, h2.FootSwitches):
                 self.feet = (d.r_heel, d.r_toe, d.l_heel, d.l_toe)
             elif isinstance(d, h2.JointAngles):
+                if not self._warm():  # nothing is active while cold: activations wait
+                    self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
+                    self.manager.idle(self._not_armed())
+                    continue
                 if self.mchanged:
                     self.mview, self.mchanged = dict(self.mstate), False
                 self._cycle(f.timestamp, State(tuple(d), self.torque, self.feet, self.mview))
@@ -406,8 +455,11 @@ class ControllerManagerNode(Node):
             self.mc_safe_sent += 1
 
     def _send(self, msg: can.Message) -> None:
+        """Through the reader's socket while it is open: a socket does not read its own frames
+        back (another socket of this process would, six more frames per cycle to decode)."""
+        reader = self.reader
         try:
-            self.bus.send(msg)
+            (reader.bus if reader is not None else self.bus).send(msg)
         except can.CanError as exc:
             self.log.error("send_failed", error=str(exc))
 
@@ -428,5 +480,7 @@ class ControllerManagerNode(Node):
             self._q.undeclare()
         if getattr(self, "arming", None) is not None:
             self.arming.close()  # type: ignore[union-attr]
+        if getattr(self, "reader", None) is not None:
+            self._close_reader()
         if hasattr(self, "bus"):
             self.bus.shutdown()

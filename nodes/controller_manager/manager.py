@@ -451,6 +451,11 @@ class Manager:
             if self.pending:
                 self._apply(None, not_armed)
 
+    def busy(self) -> bool:
+        """A controller is active or a switch is queued: the node must be reading the bus."""
+        with self.lock:
+            return bool(self.pending) or any(s.state == "active" for s in self.slots.values())
+
     def active(self) -> list[str]:
         with self.lock:
             return [s.name for s in self.slots.values() if s.state == "active"]
