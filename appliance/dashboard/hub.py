@@ -78,6 +78,7 @@ class Hub:
         self.watchdog: dict[str, Any] | None = None
         self.trigger: dict[str, Any] | None = None
         self._token: Any = None
+        self._watched = asyncio.Event()  # a page is open: subscribe, decode and poll
         self.operator = f"dashboard-{uuid.uuid4().hex[:8]}"
 
     # --- lifecycle ------------------------------------------------------------------------
@@ -107,12 +108,6 @@ class Hub:
         def key(topic: str, typename: str) -> str:
             return messaging.topic_key(r.domain, r.ns, topic, typename)
 
-        for selector in (
-            key("joint_states", JOINT_STATE),
-            key("foot_switches", FOOT_SWITCHES),
-            messaging.topic_selector(r.domain, r.ns, "maccepa/*/*"),
-        ):
-            self._rings.append(s.declare_subscriber(selector, zenoh.handlers.RingChannel(RING)))
         self._subs.append(
             s.declare_subscriber(key(WATCHDOG_TOPIC, WATCHDOG_TYPE), self._on_watchdog)
         )
@@ -121,6 +116,26 @@ class Hub:
             s.declare_subscriber(key("pattern_state", PATTERN_STATE), self._on_pattern)
         )
         log.info("dashboard_connected", device=device, at=r.at, role=self.role)
+
+    def _open_rings(self) -> None:
+        """The 100 Hz data topics, subscribed only while a page is open: with none, the router
+        forwarded ~300 samples/s here and the tick drained them for nobody (17.5 % of the board
+        proxy's CPU 0 for a dashboard without a browser, issue 18's ladder)."""
+        r = self.remote
+        for selector in (
+            messaging.topic_key(r.domain, r.ns, "joint_states", JOINT_STATE),
+            messaging.topic_key(r.domain, r.ns, "foot_switches", FOOT_SWITCHES),
+            messaging.topic_selector(r.domain, r.ns, "maccepa/*/*"),
+        ):
+            self._rings.append(
+                r.session.declare_subscriber(selector, zenoh.handlers.RingChannel(RING))
+            )
+
+    def _close_rings(self) -> None:
+        for sub in self._rings:
+            with contextlib.suppress(Exception):  # the session may already be closed
+                sub.undeclare()
+        self._rings.clear()
 
     def _unsubscribe(self) -> None:
         for sub in self._subs + self._rings:
@@ -202,6 +217,7 @@ class Hub:
 
     def attach(self, ws: Any) -> None:
         self.clients.add(ws)
+        self._watched.set()
         if self._token is None and self.role != roles.OBSERVER:
             self._declare_token()
 
@@ -211,6 +227,7 @@ class Hub:
         if not self.clients:
             # Nobody is watching: a running pattern must not go on without its operator.
             self._drop_token()
+            self._watched.clear()
 
     def follow(self, ws: Any, node: str | None) -> None:
         """Send ``node``'s log lines to this page as they come (None: stop). One subscriber
@@ -282,6 +299,12 @@ class Hub:
         rate_at, rate_seq = time.monotonic(), dict(self._seq)
         rates: dict[str, float] = {}
         while True:
+            if not self.clients:  # nobody to draw for: no subscription, no wake-ups
+                self._close_rings()
+                await self._watched.wait()
+                self._open_rings()
+                next_at = rate_at = time.monotonic()
+                rate_seq = dict(self._seq)
             next_at += period
             await asyncio.sleep(max(0.0, next_at - time.monotonic()))
             if time.monotonic() - next_at > period:  # fell behind (a busy CPU): skip, not burst
@@ -346,6 +369,7 @@ class Hub:
 
     async def _poll_status(self) -> None:
         while True:
+            await self._watched.wait()  # polled for open pages only (a status costs the supervisor)
             try:
                 self.status = await asyncio.to_thread(self.remote.call, "status")
                 self.status_error = None
@@ -356,6 +380,7 @@ class Hub:
 
     async def _poll_record(self) -> None:
         while True:
+            await self._watched.wait()
             try:
                 reply = await asyncio.to_thread(
                     self._call, ("record",), {"action": "status"}, min(self.remote.timeout, 1.0)
