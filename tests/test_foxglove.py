@@ -12,6 +12,7 @@ from typing import Any
 
 import yaml
 from conftest import Appliance, free_port, wait_for
+from exolink import messaging
 from exolink.config import bundled
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from websockets.sync.client import connect
@@ -20,6 +21,7 @@ from websockets.sync.client import connect
 # foxglove.websocket.v1 (same messages).
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 MESSAGE_DATA = 0x01
+JOINT_STATE = "sensor_msgs/msg/JointState"
 
 
 def test_foxglove_client_receives_joint_states_at_the_stream_rate(
@@ -33,6 +35,10 @@ def test_foxglove_client_receives_joint_states_at_the_stream_rate(
     app = Appliance(write_config(nodes=nodes), spawn)
 
     ws = wait_for(lambda: _connect(port), timeout=30)
+    # Seen from outside as Zenoh's matching status of a publisher on joint_states's key (nothing
+    # else in this appliance subscribes to it): the bridge takes data only for subscribed channels.
+    zs = app_session(app)
+    probe = zs.declare_publisher(messaging.topic_key(0, "h2", "joint_states", JOINT_STATE))
     try:
         channels: dict[int, dict[str, Any]] = {}
 
@@ -47,14 +53,15 @@ def test_foxglove_client_receives_joint_states_at_the_stream_rate(
         js = wait_for(advertised, timeout=30)
         assert js["encoding"] == "cdr" and js["schemaEncoding"] == "ros2msg"  # type: ignore[index]
         assert js["schemaName"] == "sensor_msgs/msg/JointState"  # type: ignore[index]
+        assert not probe.matching_status.matching  # advertised from the graph, not the data
         store = get_typestore(Stores.EMPTY)
         store.register(get_types_from_msg(js["schema"], js["schemaName"]))  # type: ignore[index]
         ws.send(json.dumps({"op": "subscribe",  # type: ignore[union-attr]
                             "subscriptions": [{"id": 7, "channelId": js["id"]}]}))  # type: ignore[index]  # fmt: skip
 
+        wait_for(lambda: probe.matching_status.matching, timeout=10)
         # The same stream straight from Zenoh over the same window, for the ratio.
         direct: list[int] = []
-        zs = app_session(app)
         sub = zs.declare_subscriber("0/h2/joint_states/*/*", lambda s: direct.append(1))
         got: list[tuple[int, Any]] = []
         end = time.monotonic() + 5.0
@@ -65,7 +72,8 @@ def test_foxglove_client_receives_joint_states_at_the_stream_rate(
                 assert sid == 7
                 got.append((stamp, msg[13:]))
         sub.undeclare()
-        zs.close()
+        ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": [7]}))  # type: ignore[union-attr]
+        wait_for(lambda: not probe.matching_status.matching, timeout=10)
         decoded = store.deserialize_cdr(got[-1][1], "sensor_msgs/msg/JointState")
         assert list(decoded.name) == ["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]
         stamps = [s for s, _ in got]
@@ -77,6 +85,7 @@ def test_foxglove_client_receives_joint_states_at_the_stream_rate(
         assert len(got) >= 0.9 * len(direct) - 10 and len(got) > 50
     finally:
         ws.close()  # type: ignore[union-attr]
+        zs.close()
         app.proc.stop()
 
 
