@@ -10,6 +10,8 @@ silently: every appliance publisher numbers its samples, so a sample that never 
 not fit the inbox is a gap in its publisher's sequence, counted as dropped (``inbox_full``
 counts the latter alone). The counters go out on diagnostics (which are recorded too) and into
 each file's ``exolink.stats`` metadata.
+Subscribed only while recording: an idle recorder (no ``autostart``, or stopped) takes no sample
+at all, rather than dropping each one in its callback.
 What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
 reader's receive counters (its ``nodes/<name>/stats``) when the file was opened and closed.
 Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs
@@ -157,13 +159,10 @@ class Recorder(Node):
         cfg.pop("source", None)
         self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
         m = self.ctx.messaging
-        self.subs = [
-            self.ctx.session.declare_subscriber(
-                messaging.topic_selector(m.domain_id, m.namespace, t),
-                self._on_sample,
-            )
-            for t in self.params.topics
+        self.selectors = [
+            messaging.topic_selector(m.domain_id, m.namespace, t) for t in self.params.topics
         ]
+        self.subs: list[Any] = []  # declared while recording (see _subscribe)
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS)
         self._q = m.serve("record", self.on_command, roles.status_or(roles.OPERATOR))
         if self.params.autostart:
@@ -222,6 +221,21 @@ class Recorder(Node):
                 self.stats.dropped += gaps
         return out
 
+    def _subscribe(self) -> None:
+        with self.lock:
+            if not self.subs:
+                session = self.ctx.session
+                self.subs = [session.declare_subscriber(k, self._on_sample) for k in self.selectors]
+
+    def _unsubscribe_if_idle(self) -> None:
+        """The loop, once a recording ended: unless a new one started meanwhile."""
+        with self.lock:
+            if self.state in ("recording", "stopping"):
+                return
+            subs, self.subs = self.subs, []
+        for sub in subs:
+            sub.undeclare()
+
     def _discard(self) -> None:
         """A new recording: nothing queued before it, and sequence gaps counted from each
         publisher's first sample in it (between recordings the callback takes nothing, so the
@@ -271,6 +285,7 @@ class Recorder(Node):
         with self.lock:
             self.stats = Stats()  # counters are per recording session
         self._discard()  # nothing from before leaks into this session
+        self._subscribe()
         self.labels = labels
         self.index = 0
         self.session_stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -400,12 +415,14 @@ class Recorder(Node):
                     self._write_all(self._take(float("inf")))
                     self._close()
                     self.state = "idle"
+                    self._unsubscribe_if_idle()
                     self.log.info(
                         "recording_stopped",
                         **{k: v for k, v in vars(self.stats).items() if k != "files"},
                     )
             except OSError as exc:
                 self._fail(exc)
+                self._unsubscribe_if_idle()
             if time.monotonic() >= next_diag:
                 next_diag = time.monotonic() + 1.0
                 self._diagnostics()
@@ -436,8 +453,8 @@ class Recorder(Node):
                 self._close()
             except OSError as exc:
                 self.log.error("recording_close_failed", error=str(exc))
-        for s in getattr(self, "subs", []):
-            s.undeclare()
+        for sub in getattr(self, "subs", []):
+            sub.undeclare()
         if hasattr(self, "_q"):
             self._q.undeclare()
         if hasattr(self, "pub_diag"):

@@ -206,15 +206,25 @@ def test_a_second_recording_counts_no_drops_for_the_pause_between(  # type: igno
     write_config, spawn, tmp_path
 ) -> None:
     """Between recordings the recorder takes nothing, so the publishers' sequence numbers
-    move on without it: what was published in the pause is not a loss of the next file."""
+    move on without it: what was published in the pause is not a loss of the next file.
+    Idle, it is not even subscribed: seen as the Zenoh matching status of a publisher on a key
+    only the recorder's selector (every topic) matches."""
     rec_dir = tmp_path / "rec"
     app = Appliance(write_config(nodes=nodes(rec_dir)), spawn)
-    for _ in range(2):
-        assert app.cli("record", "start").returncode == 0
-        time.sleep(1.5)
-        assert app.cli("record", "stop").returncode == 0
-        wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
-        time.sleep(1.0)  # the pause: ~100 joint_states the recorder does not take
+    s = messaging.open_client_session(app.at)
+    probe = s.declare_publisher(messaging.topic_key(0, "h2", "probe", "std_msgs/msg/String"))
+    try:
+        assert not probe.matching_status.matching
+        for _ in range(2):
+            assert app.cli("record", "start").returncode == 0
+            wait_for(lambda: probe.matching_status.matching, timeout=10)
+            time.sleep(1.5)
+            assert app.cli("record", "stop").returncode == 0
+            wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+            wait_for(lambda: not probe.matching_status.matching, timeout=10)
+            time.sleep(1.0)  # the pause: ~100 joint_states the recorder does not take
+    finally:
+        s.close()
     first, second = recordings(rec_dir)
     for path in (first, second):
         st = info(path).metadata["exolink.stats"]
