@@ -244,3 +244,40 @@ def test_a_node_process_starts_on_its_configured_cpus(write_config) -> None:  # 
     finally:
         p.kill()
         p.wait()
+
+
+def test_a_stop_whose_node_is_never_reaped_returns_and_says_why(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A stop waited without end after SIGKILL, and every later management request queued
+    behind it (seen twice in native ladder runs: 206 s, 11 min). Stand-in for a process the
+    kernel does not let go (D state, which cannot be made here): a process handle whose wait
+    never returns, pointing at this test's own pid so the kernel's state can be read."""
+    import structlog
+    from exolink.supervisor import processes
+
+    monkeypatch.setattr(processes, "REAP_WAIT_S", 0.1)
+
+    class Unreaped:
+        pid = os.getpid()
+        signals: list[str] = []
+
+        def poll(self) -> None:
+            return None
+
+        def terminate(self) -> None:
+            self.signals.append("TERM")
+
+        def kill(self) -> None:
+            self.signals.append("KILL")
+
+        def wait(self, timeout: float | None = None) -> int:
+            raise subprocess.TimeoutExpired("unreaped", timeout or 0)
+
+    node = processes.NodeProcess(
+        NodeConfig(name="stuck", plugin="h2_sender"), "", lambda _e: None, lambda _n, _l: None
+    )
+    node.proc = Unreaped()  # type: ignore[assignment]
+    with structlog.testing.capture_logs() as logs:
+        node.stop(timeout=0.1)
+    assert Unreaped.signals == ["TERM", "KILL"] and node.state == "stopped"
+    (event,) = [e for e in logs if e["event"] == "node_not_reaped"]
+    assert event["node_name"] == "stuck" and event["state"].split()[0] in {"R", "S"}

@@ -26,6 +26,7 @@ from exolink import liveness
 from exolink.config import NodeConfig
 
 LOG_LINES = 500
+REAP_WAIT_S = 5.0  # after SIGKILL: a stop never holds the management API longer
 
 
 @dataclass
@@ -147,7 +148,19 @@ class NodeProcess:
             proc.wait(timeout)
         except subprocess.TimeoutExpired:
             proc.kill()
-            proc.wait()
+            try:
+                proc.wait(REAP_WAIT_S)
+            except subprocess.TimeoutExpired:
+                # Seen twice in native ladder runs (a stop that returned after 206 s / 11 min,
+                # the management API queued behind it): say what the process was doing instead
+                # of holding every later request; its waiter thread still reports the exit.
+                structlog.get_logger().error(
+                    "node_not_reaped",
+                    node_name=self.name,
+                    pid=proc.pid,
+                    seconds=timeout + REAP_WAIT_S,
+                    state=proc_state(proc.pid),
+                )
 
     def kill(self) -> None:
         """SIGKILL (a hung node); the exit is handled like a crash, restart policy included."""
@@ -391,6 +404,17 @@ def apply_priority(cfg: NodeConfig, pid: int) -> None:
 
 _CLK = os.sysconf("SC_CLK_TCK")
 _PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def proc_state(pid: int) -> str:
+    """The kernel's word on a process (``State:`` and ``wchan``), for a stop that hangs."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            state = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("State:")), "?")
+        with open(f"/proc/{pid}/wchan") as f:
+            return f"{state}, wchan {f.read().strip() or '-'}"
+    except OSError as exc:
+        return f"gone ({exc.strerror})"
 
 
 def proc_usage(pid: int) -> dict[str, float]:
