@@ -11,6 +11,11 @@ re-sent every ``MACCEPA_REFRESH_CYCLES`` cycles): its ``overhead_us`` against ``
 the MACCEPA interface's cost per cycle inside ``cycle`` and the writes (the status frames' decoding
 is outside that figure), ``board_frame_to_setpoint_ms`` the angle frame -> MACCEPA set-point frame
 latency of the cycles that write one.
+
+``cpu_us_per_cycle`` / ``cpu_pct``: the manager process's CPU over the window (its reads, decoding,
+Zenoh and the loop), per H2 cycle and as % of one core; ``controllers_0_idle`` is the manager
+with controllers loaded and none active (off the bus since issue 18's ladder showed it costing
+>= 47 % of the proxy's CPU 0 that way).
 """
 
 from __future__ import annotations
@@ -20,15 +25,16 @@ from typing import Any
 
 from exolink.protocol import h2, maccepa
 
-from benchmarks.harness import Appliance, Drained, pct
+from benchmarks.harness import Appliance, Drained, cpu_s, pct
 
 JOINTS3 = ["r_knee", "l_knee", "r_hip"]
 
 
 def measure(n_controllers: int, seconds: float, board: bool = False) -> dict[str, Any]:
+    """``n_controllers`` 0: one loaded, none activated (the idle manager)."""
     controllers = [
         {"name": f"c{i}", "type": "forward_command", "params": {"joints": [j]}}
-        for i, j in enumerate(JOINTS3[:n_controllers])
+        for i, j in enumerate(JOINTS3[: max(n_controllers, 1)])
     ]
     manager: dict[str, Any] = {"controllers": controllers}
     if board:
@@ -56,16 +62,20 @@ def measure(n_controllers: int, seconds: float, board: bool = False) -> dict[str
     bus = Drained(app.group)
     try:
         app.arm()
-        names = [c["name"] for c in controllers]
-        reply = app.call("controllers", {"action": "activate", "names": names})
-        if not reply.get("ok"):
-            raise RuntimeError(f"activate: {reply}")
+        names = [c["name"] for c in controllers] if n_controllers else []
+        if names:
+            reply = app.call("controllers", {"action": "activate", "names": names})
+            if not reply.get("ok"):
+                raise RuntimeError(f"activate: {reply}")
         if board:
             body = {"action": "command", "name": "m0", "values": {"maccepa0": 20}}
             app.call("controllers", body)
         time.sleep(0.3)
+        pid = app.node("controller_manager")["pid"]
         bus.clear()
+        c0, t0 = cpu_s(pid), time.monotonic()
         frames = bus.collect(seconds)
+        cpu, wall = cpu_s(pid) - c0, time.monotonic() - t0
         status = app.call("controllers", {"action": "list"})
     finally:
         bus.close()
@@ -91,8 +101,15 @@ def measure(n_controllers: int, seconds: float, board: bool = False) -> dict[str
             "maccepa_written": status.get("maccepa_written"),
             "malformed": status.get("malformed"),
         }
+    cpu_figures = {
+        "cpu_us_per_cycle": round(cpu / max(cycles, 1) * 1e6, 1),
+        "cpu_pct": round(cpu / wall * 100, 2),
+    }
+    if not n_controllers:
+        return {**cpu_figures, "reading": status.get("reading"), "cycles": cycles}
     return {
         **extra,
+        **cpu_figures,
         "frame_to_command_ms": pct(latency, 1e3),
         "cycles_without_command": cycles - len(latency),
         "overhead_us": status["overhead_us"],
@@ -104,6 +121,7 @@ def measure(n_controllers: int, seconds: float, board: bool = False) -> dict[str
 
 def run(quick: bool) -> dict[str, Any]:
     seconds = 3.0 if quick else 15.0
-    out = {f"controllers_{n}": measure(n, seconds) for n in (1, 3)}
+    out = {"controllers_0_idle": measure(0, seconds)}
+    out.update({f"controllers_{n}": measure(n, seconds) for n in (1, 3)})
     out["controllers_1_maccepa"] = measure(1, seconds, board=True)
     return out
