@@ -14,7 +14,7 @@ import select
 import socket
 import struct
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, NamedTuple
 
 import structlog
@@ -285,7 +285,7 @@ _CAN_FRAME = struct.Struct("=IB3x8s")  # linux/can.h struct can_frame
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _TIMESPEC = struct.Struct("@ll")
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
-_BATCH = 64
+BATCH = 64  # frames read per socket and wake-up at most
 SO_RCVBUFFORCE, SO_MEMINFO = 33, 55  # asm-generic/socket.h; not exported by Python
 _MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_alloc .. [8] drops
 # Receive queue asked for per socket: a 100 ms stall at full load loses nothing. The kernel
@@ -327,6 +327,13 @@ class FrameReader:
     ``late_s`` after they arrived, ``lag_max_s`` is the oldest a frame was when read,
     ``batches_full`` counts reads that stopped at the batch limit with frames still queued.
 
+    ``quiet``: a second bus (same interface) whose frames are read only when this one wakes.
+    A periodic source that sends several frames per cycle (the H2: 110, 120, 130 every 10 ms)
+    costs one wake-up per cycle instead of one per frame when only the cycle's last id wakes the
+    reader: on this machine and on the board proxy a wake-up (select, scheduler, the GIL) costs
+    far more CPU than the frames it brings. Frames of both sockets come out in kernel-timestamp
+    order; a cycle whose waking frame never comes is read when the caller's timeout ends.
+
     ``every_s`` bounds how often a busy reader wakes: after a read that found frames, the next
     waits out the rest of ``every_s`` before looking, so frames arriving meanwhile are read as
     one batch. A wake-up (select, context switch, the GIL) costs more than parsing the frames
@@ -343,8 +350,10 @@ class FrameReader:
         late_s: float = LATE_S,
         rcvbuf: int | None = None,
         every_s: float = 0.0,
+        quiet: can.BusABC | None = None,
     ) -> None:
         self.bus = bus
+        self.quiet_bus = quiet
         self.every_s = every_s
         self._next_read = 0.0
         late_s = max(late_s, every_s + LATE_S)  # waiting out every_s is not lateness
@@ -359,20 +368,24 @@ class FrameReader:
         self.late = 0
         self.lag_max_s = 0.0
         self.rcvbuf: int | None = None  # bytes the kernel grants this socket's queue
+        # The last read left nothing queued that arrived before it (no batch limit hit; the
+        # virtual bus reads one frame at a time, so only an empty read says so there).
+        self.complete = False
         if cfg.interface == "socketcan":
-            self._sock: socket.socket | None = bus.socket  # type: ignore[attr-defined]
             self._parse = self._parse_socketcan
         elif cfg.interface == "udp_multicast":
-            self._sock = bus._multicast._socket  # type: ignore[attr-defined]  # python-can internals
             self._parse = self._parse_udp
             import msgpack
 
             self._unpackb = msgpack.unpackb
-        else:  # the in-process virtual bus has no socket: python-can's own receive path
-            self._sock = None
+        # the in-process virtual bus has no socket: python-can's own receive path
+        self._sock = _bus_socket(bus, cfg)
+        self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
             self.rcvbuf = size_receive_buffer(self._sock, want)
+            if self._quiet is not None:
+                size_receive_buffer(self._quiet, want)
             if self.rcvbuf < 2 * want:
                 structlog.get_logger().bind(node="canbus").warning(
                     "receive_buffer_capped",
@@ -383,8 +396,24 @@ class FrameReader:
 
     @property
     def dropped(self) -> int | None:
-        """Frames the kernel dropped at this socket since it opened (None: no socket to ask)."""
-        return socket_drops(self._sock) if self._sock is not None else None
+        """Frames the kernel dropped at this reader's sockets since they opened (None: no
+        socket to ask)."""
+        if self._sock is None:
+            return None
+        counts = [socket_drops(s) for s in (self._sock, self._quiet) if s is not None]
+        return None if None in counts else sum(c for c in counts if c is not None)
+
+    def close(self) -> None:
+        """Shut down the buses this reader opened (the quiet one too)."""
+        for bus in (self.quiet_bus, self.bus):
+            if bus is not None:
+                bus.shutdown()
+
+    def __enter__(self) -> FrameReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def counters(self) -> dict[str, int | float | None]:
         """The receive-loss and backlog counters, for stats and diagnostics."""
@@ -393,32 +422,40 @@ class FrameReader:
             "frames": self.frames,
             "late": self.late,
             "lag_max_ms": round(self.lag_max_s * 1e3, 2),
+            "batches": self.batches,
             "batch_max": self.batch_max,
             "batches_full": self.batches_full,
             "filtered": self.filtered,
             "rcvbuf": self.rcvbuf,
         }
 
-    def read(self, timeout: float) -> list[Frame]:
-        """Every frame queued now (up to a batch), waiting up to ``timeout`` for the first one."""
+    def read(
+        self, timeout: float, wake_fds: Sequence[int] = (), frames_wake: bool = True
+    ) -> list[Frame]:
+        """Every frame queued now (up to a batch per socket), waiting up to ``timeout`` for the
+        first one. ``wake_fds``: other descriptors that end the wait when readable (a
+        state change); ``frames_wake=False``: no frame ends the wait, every socket is read when
+        it ends (a reader that needs the frames only by a deadline). The in-process virtual bus
+        ignores both and waits for a frame."""
         if self.every_s:
             wait = self._next_read - time.monotonic()
             if wait > 0:  # frames that come meanwhile are read together, below
                 time.sleep(min(wait, timeout))
                 timeout = max(0.0, timeout - wait)
-        out = self._read(timeout)
+        out = self._read(timeout, wake_fds, frames_wake)
         if out and self.every_s:  # a full batch left frames queued: read them at once
-            self._next_read = time.monotonic() + (self.every_s if len(out) < _BATCH else 0.0)
+            more = not self.complete and self._sock is not None
+            self._next_read = time.monotonic() + (0.0 if more else self.every_s)
         if out:
             n = len(out)
             self.frames += n
             self.batches += 1
             if n > self.batch_max:
                 self.batch_max = n
-            if n >= _BATCH:
+            if not self.complete and self._sock is not None:  # stopped at the batch limit
                 self.batches_full += 1
             now = time.time()
-            lag = now - out[0].timestamp  # the oldest of the batch (the socket is a FIFO)
+            lag = now - out[0].timestamp  # the oldest of the batch (in arrival order)
             if lag > self.lag_max_s:
                 self.lag_max_s = lag
             if lag > self.late_s:
@@ -426,27 +463,44 @@ class FrameReader:
                 self.late += sum(1 for f in out if f.timestamp < old)
         return out
 
-    def _read(self, timeout: float) -> list[Frame]:
+    def _read(self, timeout: float, wake_fds: Sequence[int], frames_wake: bool) -> list[Frame]:
+        """Every frame read, in arrival order."""
         if self._sock is None:
             msg = self.bus.recv(timeout)
+            self.complete = msg is None
             if msg is None:
                 return []
-            return [
-                Frame(
-                    msg.timestamp,
-                    msg.arbitration_id,
-                    bytes(msg.data),
-                    msg.is_extended_id,
-                    msg.is_remote_frame,
-                    msg.is_error_frame,
-                )
-            ]
-        sock = self._sock
-        if not select.select((sock,), (), (), timeout)[0]:
-            return []
+            frame = Frame(
+                msg.timestamp,
+                msg.arbitration_id,
+                bytes(msg.data),
+                msg.is_extended_id,
+                msg.is_remote_frame,
+                msg.is_error_frame,
+            )
+            return [frame]
+        sock, quiet = self._sock, self._quiet
+        watch = [sock, *wake_fds] if frames_wake else list(wake_fds)
+        if watch:
+            woke = sock in select.select(watch, (), (), timeout)[0]
+        else:
+            time.sleep(timeout)
+            woke = False
+        self.complete = True
+        waking = self._drain(sock) if woke or not frames_wake else []
+        if quiet is None:
+            return waking
+        out = self._drain(quiet)
+        if waking:
+            out += waking
+            out.sort(key=_arrival)
+        return out
+
+    def _drain(self, sock: socket.socket) -> list[Frame]:
+        """Every frame queued on ``sock`` now, up to a batch; never blocks."""
         out: list[Frame] = []
         parse = self._parse
-        for _ in range(_BATCH):
+        for _ in range(BATCH):
             try:
                 raw, anc, _flags, _addr = sock.recvmsg(256, _ANCILLARY, socket.MSG_DONTWAIT)
             except (BlockingIOError, InterruptedError):
@@ -459,6 +513,8 @@ class FrameReader:
             frame = parse(raw, ts or time.time())
             if frame is not None:
                 out.append(frame)
+        else:
+            self.complete = False  # the batch limit: more may be queued
         return out
 
     def _parse_socketcan(self, raw: bytes, ts: float) -> Frame | None:
@@ -496,6 +552,19 @@ class FrameReader:
         return frame
 
 
+def _arrival(frame: Frame) -> float:
+    return frame.timestamp
+
+
+def _bus_socket(bus: can.BusABC, cfg: CanConfig) -> socket.socket | None:
+    """The socket under a python-can bus of this interface (None: no socket, the virtual bus)."""
+    if cfg.interface == "socketcan":
+        return bus.socket  # type: ignore[attr-defined,no-any-return]
+    if cfg.interface == "udp_multicast":
+        return bus._multicast._socket  # type: ignore[attr-defined,no-any-return]  # python-can internals
+    return None
+
+
 def socket_drops(sock: socket.socket) -> int | None:
     """The socket's kernel drop counter (sk_drops, SO_MEMINFO), None if the kernel won't say."""
     try:
@@ -523,9 +592,26 @@ def open_reader(
     ids: Iterable[int] | None = None,
     rcvbuf: int | None = None,
     every_s: float = 0.0,
+    wake_on: Iterable[int] | None = None,
 ) -> FrameReader:
-    """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends and closes.
-    ``rcvbuf``: the receive queue to ask for, in bytes (default: ``RCVBUF_BYTES``); ``every_s``:
-    wake at most that often while frames flow (FrameReader)."""
-    bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
-    return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s)
+    """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends, ``close()``
+    closes. ``rcvbuf``: the receive queue to ask for, in bytes (default: ``RCVBUF_BYTES``);
+    ``every_s``: wake at most that often while frames flow; ``wake_on``: only these of ``ids``
+    wake the reader, the others are read with them (FrameReader's ``quiet``; a bus without
+    sockets, the in-process virtual one, wakes for every id)."""
+    if ids is None or wake_on is None or cfg.interface not in RCVBUF_BYTES:
+        bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
+        return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s)
+    waking = sorted(set(wake_on) & set(ids))
+    rest = sorted(set(ids) - set(waking))
+    if not waking or not rest:
+        raise ValueError(
+            f"wake_on {sorted(set(wake_on))} must name some, not all, of {sorted(set(ids))}"
+        )
+    bus = open_bus(cfg, filters=id_filters(waking))
+    try:
+        quiet = open_bus(cfg, filters=id_filters(rest))
+    except BaseException:
+        bus.shutdown()
+        raise
+    return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, quiet=quiet)

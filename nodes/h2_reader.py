@@ -15,7 +15,7 @@ import math
 import threading
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import msgspec
 from exolink import cdr, messaging
@@ -28,6 +28,8 @@ FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = math.pi / 180.0
 _RANGES = [h2.RANGES[j] for j in h2.JOINTS]
+STREAMING_S = 0.1
+WAKE_FALLBACK_S = 1.5 * h2.PERIOD_S
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -37,6 +39,10 @@ class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     torque_nm_per_count: Annotated[float, msgspec.Meta(gt=0, le=100)] = 1.0
     battery_volts_per_count: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.1
     diagnostics_period_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
+    # The id that ends each 10 ms cycle (the protocol sends 110, 120, 130): only its arrival
+    # wakes the reader, which then takes the cycle's other frames with it: one wake-up per
+    # cycle instead of three. 0: wake for every frame (firmware with another order).
+    wake_on_id: Literal[0, 110, 120, 130] = h2.FOOT_SWITCHES
 
 
 @dataclass
@@ -77,7 +83,10 @@ class H2Reader(Node):
 
     def configure(self) -> None:
         m = self.ctx.messaging
-        self.reader = open_reader(self.ctx.config.can, h2.DATA_IDS)
+        wake = self.params.wake_on_id
+        self.reader = open_reader(
+            self.ctx.config.can, h2.DATA_IDS, wake_on=[wake] if wake else None
+        )
         self.bus = self.reader.bus
         self.pub_js = m.publisher("joint_states", JOINT_STATE, raw=True)
         self.pub_fs = m.publisher("foot_switches", FOOT_SWITCHES, raw=True)
@@ -198,7 +207,10 @@ class H2Reader(Node):
         last_restart = time.monotonic()
         while not stop.is_set():
             self.beat()
-            for frame in self.reader.read(0.05):
+            # While streaming, a cycle whose waking frame is lost is read one and a half
+            # periods later at most.
+            streaming = self._silent_for() < STREAMING_S
+            for frame in self.reader.read(WAKE_FALLBACK_S if streaming else 0.05):
                 self.handle(frame)
             now = time.monotonic()
             if now >= next_diag:
@@ -221,4 +233,4 @@ class H2Reader(Node):
             if obj is not None:
                 obj.undeclare() if name == "_q" else obj.close()
         if hasattr(self, "reader"):
-            self.reader.bus.shutdown()
+            self.reader.close()

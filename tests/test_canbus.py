@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -177,3 +178,66 @@ def test_a_bus_that_only_sends_is_sent_nothing(group: str) -> None:
     finally:
         quiet.shutdown()
         tx.shutdown()
+
+
+def _send(bus: can.BusABC, *ids: int) -> None:
+    for i in ids:
+        bus.send(can.Message(arbitration_id=i, data=bytes([i & 0xFF]) * 6, is_extended_id=False))
+
+
+def test_only_the_waking_id_wakes_a_reader_and_the_cycle_comes_in_order(group: str) -> None:
+    """The h2 reader's one wake-up per H2 cycle: 110 and 120 wait, quietly, for the 130 that
+    ends the cycle; a cycle without its 130 is read when the timeout ends."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    tx = open_bus(cfg)
+    with open_reader(cfg, [110, 120, 130], wake_on=[130]) as reader:
+        _send(tx, 110, 120)
+        start = time.monotonic()
+        got = reader.read(0.4)
+        assert time.monotonic() - start >= 0.4  # nothing woke it
+        assert [f.arbitration_id for f in got] == [110, 120]
+        for _ in range(3):
+            _send(tx, 110, 120, 130)
+            start = time.monotonic()
+            got = reader.read(5.0)
+            assert time.monotonic() - start < 4.0  # the 130 woke it, not the timeout
+            while len(got) < 3:  # the three datagrams may land a moment apart
+                got += reader.read(0.2)
+            assert [f.arbitration_id for f in got] == [110, 120, 130]
+            assert got == sorted(got, key=lambda f: f.timestamp)
+        c = reader.counters()
+        assert c["frames"] == 11 and c["dropped"] == 0
+    tx.shutdown()
+
+
+def test_a_deadline_reader_sleeps_through_frames_and_a_wake_fd_ends_the_wait(group: str) -> None:
+    """The watchdog's armed mode: no frame ends the wait (frames_wake=False); a byte on a wake
+    descriptor does (arming changed), and the frames queued meanwhile come with it."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    tx = open_bus(cfg)
+    r, w = socket.socketpair()
+    try:
+        with open_reader(cfg, [70, 110], wake_on=[70]) as reader:
+            _send(tx, 110, 70)
+            time.sleep(0.05)
+            start = time.monotonic()
+            got = reader.read(0.3, wake_fds=[r.fileno()], frames_wake=False)
+            assert time.monotonic() - start >= 0.3
+            assert sorted(f.arbitration_id for f in got) == [70, 110] and reader.complete
+            _send(tx, 110)
+            threading.Timer(0.1, lambda: w.send(b"!")).start()
+            start = time.monotonic()
+            got = reader.read(5.0, wake_fds=[r.fileno()], frames_wake=False)
+            assert time.monotonic() - start < 4.0
+            assert [f.arbitration_id for f in got] == [110]
+    finally:
+        r.close()
+        w.close()
+        tx.shutdown()
+
+
+def test_wake_on_must_name_some_but_not_all_ids(group: str) -> None:
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    for wake in ([200], [110, 120]):
+        with pytest.raises(ValueError, match="wake_on"):
+            open_reader(cfg, [110, 120], wake_on=wake)
