@@ -13,7 +13,8 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from exolink.canbus import FrameReader
+from conftest import wait_for
+from exolink.canbus import FrameReader, open_bus, open_reader
 from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2, maccepa
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
@@ -191,3 +192,64 @@ def test_maccepa_traffic_on_id_70_is_neither_malformed_nor_answered(rig) -> None
     settle(wd, 0.3)
     s = wd.snapshot()
     assert s.frames_sent == sent and s.malformed == {f"{h2.JOINT_CONTROL} bad length": 1}, s
+
+
+class SimH2:
+    """Joint angles and MACCEPA board 0's id-70 frames at 100 Hz on the simulated bus (real
+    sockets, so the watchdog reads through its kernel-filtered sockets as on the board)."""
+
+    def __init__(self, cfg: CanConfig) -> None:
+        self.bus = open_bus(cfg)
+        self.sending = threading.Event()
+        self.sending.set()
+        self.stop = threading.Event()
+        self.t = threading.Thread(target=self._run, daemon=True)
+        self.t.start()
+
+    def _run(self) -> None:
+        b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
+        while not self.stop.wait(0.01):
+            if self.sending.is_set():
+                self.bus.send(ANGLES)
+                self.bus.send(b0)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.t.join()
+        self.bus.shutdown()
+
+
+def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_are_caught(
+    group: str,
+) -> None:
+    """Issue 18: the supervisor's watchdog woke for every id-110 and id-70 frame (about 200 a
+    second, most of its CPU on the board proxy). Armed, it now sleeps to the silence deadline
+    (reads per frame << 1); the silence still trips; disarmed, a motion frame is answered."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    board = SimH2(cfg)
+    reader = open_reader(cfg, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL])
+    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, lambda _s: None)
+    wd.start()
+    try:
+        assert wait_for(lambda: wd.h2_silent_for() is not None)
+        wd.arm([])
+        before = reader.counters()
+        time.sleep(1.0)
+        after = reader.counters()
+        frames = after["frames"] - before["frames"]
+        reads = after["batches"] - before["batches"]
+        assert frames >= 100 and reads <= frames / 4, (frames, reads)
+        assert wd.snapshot().state == "armed"
+        board.sending.clear()
+        assert wait_for(lambda: wd.snapshot().state == "tripped", timeout=2)
+        assert wd.snapshot().reason == "h2 data silent"
+        board.sending.set()
+        wd.disarm()
+        time.sleep(0.2)
+        assert wd.snapshot().violations == 0  # MACCEPA board 0's id-70 frames are not motion
+        board.bus.send(h2.encode_joint_control("r_knee", "position", 20))
+        assert wait_for(lambda: wd.snapshot().violations == 1, timeout=2)
+    finally:
+        wd.close()
+        reader.close()
+        board.close()

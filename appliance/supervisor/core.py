@@ -103,10 +103,11 @@ class Supervisor:
                 canlink.check_overlay()
             if cfg.can.bring_up:
                 canlink.bring_up(cfg.can)
-        # Each frame read as it comes, so a motion frame while disarmed is answered at once:
-        # batching the reads (FrameReader.every_s 10 ms) saved no supervisor CPU on x86 (its
-        # wake-ups are Zenoh's routing threads').
-        self.reader = open_reader(cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL])
+        # Joint-angle frames never wake the watchdog (it reads them by its silence deadline);
+        # joint-control frames do while not armed, to answer a motion frame at once.
+        self.reader = open_reader(
+            cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL]
+        )
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")

@@ -14,6 +14,14 @@ a violation either (the safe action went out after it). Should the reader itself
 ``STALL_BACKSTOP_S`` beyond the limit, the periodic check trips anyway: silence it cannot rule
 out counts as silence.
 
+The listener wakes as little as that allows, since each wake-up is most of its CPU on one A8
+core: joint-angle frames never wake it (their socket is read when it wakes, judged by their
+kernel timestamps); armed, it sleeps until the silence deadline of the last angle frame (about
+ten wake-ups a second while the H2 streams, none per frame); not armed, a joint-control frame
+(id 70) wakes it at once, since a motion frame then must be answered now, and it looks at least
+every half silence limit so that arming sees fresh H2 data. Arming, disarming and trips wake it
+through a socket pair to switch between the two.
+
 Only a frame that matches the DBC contract counts: an id-110 frame of the wrong length (or an
 extended / remote frame with that id) is not H2 data and does not hold off the silence trip.
 Frames neither contract can read are counted by id and reason (``malformed`` in status), never
@@ -22,6 +30,8 @@ fatal; an id-70 frame of 8 bytes is MACCEPA board 0's and is left alone.
 
 from __future__ import annotations
 
+import contextlib
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -80,6 +90,11 @@ class Watchdog:
         self.first_trip_ns: int | None = None
         self.wake: Callable[[], None] = lambda: None  # the periodic check is due sooner
         self._stop = threading.Event()
+        # Wakes the listener when arming changes what it waits for (armed: a deadline; not
+        # armed: id-70 frames too).
+        self._poke_r, self._poke_w = socket.socketpair()
+        self._poke_r.setblocking(False)
+        self._poke_w.setblocking(False)
         self._rx = threading.Thread(target=self._listen, daemon=True, name="watchdog-rx")
 
     def start(self) -> None:
@@ -124,6 +139,7 @@ class Watchdog:
                 self._s.trips += 1
             self._repeats = [now + d for d in REPEAT_AFTER_S]
         self.wake()
+        self._poke()
         if first:
             self.log.error("watchdog_tripped", reason=reason, detail=detail)
             self.publish(self.snapshot())
@@ -137,6 +153,7 @@ class Watchdog:
             self._s.state, self._s.reason, self._s.detail = "armed", "operator", ""
             self._s.since_ns = time.time_ns()
             self._armed_at = time.monotonic()
+        self._poke()
         self.log.warning("watchdog_armed")
         self.publish(self.snapshot())
 
@@ -146,6 +163,7 @@ class Watchdog:
             self._leave_armed(time.monotonic())
             self._s.state, self._s.reason, self._s.detail = "disarmed", reason, ""
             self._s.since_ns = time.time_ns()
+        self._poke()
         self.log.info("watchdog_disarmed", reason=reason)
         self.publish(self.snapshot())
 
@@ -208,29 +226,50 @@ class Watchdog:
             return not self._left_armed_at <= t < armed_at
         return t < self._left_armed_at
 
+    def _poke(self) -> None:
+        with contextlib.suppress(BlockingIOError, OSError):  # full: a wake is pending anyway
+            self._poke_w.send(b"!")
+
     def _listen(self) -> None:
         limit = self.cfg.h2_silence_ms / 1000
+        poke = [self._poke_r.fileno()]
         while not self._stop.is_set():
+            armed = self.armed
             silent = self.h2_silent_for()
-            timeout = IDLE_POLL_S if silent is None or not self.armed else limit - silent
+            if armed and silent is not None:
+                timeout = max(0.002, limit - silent)  # the last angle frame's deadline
+            else:
+                timeout = min(IDLE_POLL_S, limit / 2)  # fresh enough for arming's check
+            start = time.monotonic()
             try:
-                frames = self.reader.read(min(IDLE_POLL_S, max(0.002, timeout)))
+                frames = self.reader.read(timeout, wake_fds=poke, frames_wake=not armed)
             except (can.CanError, OSError) as exc:
                 self.log.error("watchdog_rx_error", error=str(exc))
                 time.sleep(0.1)
                 continue
-            if not frames:  # the socket was empty for the whole timeout
-                self._check_silence(time.monotonic())
-                continue
+            now = time.monotonic()
+            with contextlib.suppress(BlockingIOError, OSError):
+                self._poke_r.recv(64)
+            # How late it looked: after the deadline it slept to, or after the frame that woke it.
+            due = start + timeout
+            for msg in frames:
+                if msg.arbitration_id == h2.JOINT_CONTROL:
+                    due = min(due, self._arrival(msg))
+                    break
+            self._read_lag(now - due)
             for msg in frames:
                 self._judge(msg)
+            if self.reader.complete:  # every frame that came before now has been read
+                self._check_silence(now)
+
+    def _read_lag(self, lag_s: float) -> None:
+        lag_ms = round(lag_s * 1000, 2)
+        if lag_ms > self._s.read_lag_max_ms:
+            with self.lock:
+                self._s.read_lag_max_ms = lag_ms
 
     def _judge(self, msg: Frame) -> None:
         at = self._arrival(msg)
-        lag_ms = (time.monotonic() - at) * 1000
-        if lag_ms > self._s.read_lag_max_ms:
-            with self.lock:
-                self._s.read_lag_max_ms = round(lag_ms, 2)
         self._check_silence(at)
         frame = h2.decode(msg)
         if isinstance(frame, h2.Unknown):
@@ -267,5 +306,8 @@ class Watchdog:
 
     def close(self) -> None:
         self._stop.set()
+        self._poke()
         if self._rx.is_alive():
             self._rx.join(1)
+        self._poke_r.close()
+        self._poke_w.close()
