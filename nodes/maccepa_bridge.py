@@ -17,7 +17,7 @@ the bridge writes every command itself, as before.
 from __future__ import annotations
 
 import threading
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import can
 import msgspec
@@ -30,6 +30,8 @@ from exolink.protocol import ProtocolError, maccepa
 
 MANAGED_KINDS = ("setpoint", "duty", "gains")  # what motion_via_manager hands the manager
 MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
+WAKE_FALLBACK_S = 0.015  # one and a half board periods
+IDLE_READ_S = 0.05
 TYPES = {
     maccepa.Sensors: ("sensors", "exolink_msgs/msg/MaccepaSensors"),
     maccepa.Positions: ("positions", "exolink_msgs/msg/MaccepaPositions"),
@@ -57,6 +59,10 @@ class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Set-point, duty and gains go to the controller manager (``exolink controllers``), which
     # writes them; stop stays here. For the boards in the manager's params.maccepa.
     motion_via_manager: bool = False
+    # The frame that ends each board's 10 ms cycle (sensors 50, positions 60, controller 70 +
+    # board): only its arrival wakes the bridge, which takes the board's other frames with it,
+    # one wake-up per board and cycle instead of three. 0: wake for every frame.
+    wake_on_base: Literal[0, 50, 60, 70] = maccepa.CONTROLLER_BASE
 
 
 class MaccepaBridge(Node):
@@ -64,9 +70,12 @@ class MaccepaBridge(Node):
 
     def configure(self) -> None:
         m = self.ctx.messaging
-        # Reads each frame as it comes: batching them every 10 ms (FrameReader.every_s) did not
-        # lower this node's CPU on x86 (its wake-ups are Zenoh's, one put per frame).
-        self.reader = open_reader(self.ctx.config.can, maccepa.data_ids(self.params.boards))
+        base, boards = self.params.wake_on_base, self.params.boards
+        self.reader = open_reader(
+            self.ctx.config.can,
+            maccepa.data_ids(boards),
+            wake_on=[base + b for b in boards] if base else None,
+        )
         self.bus = self.reader.bus
         self.pubs = {
             (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename, raw=True)
@@ -149,10 +158,14 @@ class MaccepaBridge(Node):
         pub.put(self.templates[type(f)].encode(ns, f.board, _values(f)), ns)
 
     def run(self, stop: threading.Event) -> None:
+        timeout = IDLE_READ_S
         while not stop.is_set():
             self.beat()
-            for frame in self.reader.read(0.05):
+            frames = self.reader.read(timeout)
+            for frame in frames:
                 self.handle(frame)
+            # While boards stream, a cycle whose waking frame is lost is read soon after.
+            timeout = WAKE_FALLBACK_S if frames else IDLE_READ_S
 
     def shutdown(self) -> None:
         if hasattr(self, "_q"):
@@ -161,5 +174,5 @@ class MaccepaBridge(Node):
             self.arming.close()
         for p in getattr(self, "pubs", {}).values():
             p.close()
-        if hasattr(self, "bus"):
-            self.bus.shutdown()
+        if hasattr(self, "reader"):
+            self.reader.close()
