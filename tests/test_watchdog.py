@@ -52,10 +52,11 @@ class StalledReader(can.BusABC):
 
 
 class H2Board:
-    """Joint angles at 100 Hz from another thread, pausable."""
+    """Joint angles (and any other frames) at 100 Hz from another thread, pausable."""
 
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel)
+    def __init__(self, channel: str, bus: can.BusABC | None = None, *also: can.Message) -> None:
+        self.bus = bus if bus is not None else can.Bus(interface="virtual", channel=channel)
+        self.frames = [ANGLES, *also]
         self.sending = threading.Event()
         self.sending.set()
         self.stop = threading.Event()
@@ -65,7 +66,8 @@ class H2Board:
     def _run(self) -> None:
         while not self.stop.wait(0.01):
             if self.sending.is_set():
-                self.bus.send(ANGLES)
+                for f in self.frames:
+                    self.bus.send(f)
 
     def close(self) -> None:
         self.stop.set()
@@ -194,31 +196,6 @@ def test_maccepa_traffic_on_id_70_is_neither_malformed_nor_answered(rig) -> None
     assert s.frames_sent == sent and s.malformed == {f"{h2.JOINT_CONTROL} bad length": 1}, s
 
 
-class SimH2:
-    """Joint angles and MACCEPA board 0's id-70 frames at 100 Hz on the simulated bus (real
-    sockets, so the watchdog reads through its kernel-filtered sockets as on the board)."""
-
-    def __init__(self, cfg: CanConfig) -> None:
-        self.bus = open_bus(cfg)
-        self.sending = threading.Event()
-        self.sending.set()
-        self.stop = threading.Event()
-        self.t = threading.Thread(target=self._run, daemon=True)
-        self.t.start()
-
-    def _run(self) -> None:
-        b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
-        while not self.stop.wait(0.01):
-            if self.sending.is_set():
-                self.bus.send(ANGLES)
-                self.bus.send(b0)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.t.join()
-        self.bus.shutdown()
-
-
 def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_are_caught(
     group: str,
 ) -> None:
@@ -226,7 +203,8 @@ def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_
     second, most of its CPU on the board proxy). Armed, it now sleeps to the silence deadline
     (reads per frame << 1); the silence still trips; disarmed, a motion frame is answered."""
     cfg = CanConfig(interface="udp_multicast", channel=group)
-    board = SimH2(cfg)
+    maccepa_b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
+    board = H2Board(group, open_bus(cfg), maccepa_b0)  # real sockets, as on the board
     reader = open_reader(cfg, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL])
     wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, lambda _s: None)
     wd.start()

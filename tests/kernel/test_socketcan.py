@@ -14,7 +14,7 @@ from pathlib import Path
 import can
 import pytest
 import yaml
-from exolink.canbus import id_filters, open_bus
+from exolink.canbus import id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
 from exolink.protocol import h2
 from exolink.supervisor import canlink
@@ -182,4 +182,30 @@ def test_stalled_reader_counts_every_frame_it_lost(vcan0: str) -> None:
         assert {f.arbitration_id for f in received} == {110}
     finally:
         reader.bus.shutdown()
+        tx.shutdown()
+
+
+def test_only_the_cycle_end_wakes_a_reader_on_socketcan(vcan0: str) -> None:
+    """The h2 reader's and the watchdog's wake-ups on the board's kind of socket: 110 and 120
+    wait on their quiet socket for the 130, and come out with it in kernel-timestamp order."""
+    tx = listener(vcan0)
+    reader = open_reader(
+        CanConfig(interface="socketcan", channel=vcan0), [110, 120, 130], wake_on=[130]
+    )
+    try:
+        for fid in (110, 120):
+            tx.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
+        start = time.monotonic()
+        got = reader.read(0.4)
+        assert time.monotonic() - start >= 0.4  # no frame of a quiet id woke it
+        assert [f.arbitration_id for f in got] == [110, 120]
+        for fid in (110, 120, 130):
+            tx.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
+        start = time.monotonic()
+        got = reader.read(5.0)
+        assert time.monotonic() - start < 4.0  # the 130 woke it
+        assert [f.arbitration_id for f in got] == [110, 120, 130]
+        assert reader.complete and reader.dropped == 0
+    finally:
+        reader.close()
         tx.shutdown()
