@@ -351,8 +351,10 @@ class FrameReader:
         rcvbuf: int | None = None,
         every_s: float = 0.0,
         quiet: can.BusABC | None = None,
+        stale_s: float = 0.0,
     ) -> None:
         self.bus = bus
+        self.stale_s = stale_s
         self.quiet_bus = quiet
         self.every_s = every_s
         self._next_read = 0.0
@@ -366,6 +368,7 @@ class FrameReader:
         self.batch_max = 0
         self.batches_full = 0
         self.late = 0
+        self.stale = 0  # frames read more than stale_s after arrival, skipped (counted here)
         self.lag_max_s = 0.0
         self.rcvbuf: int | None = None  # bytes the kernel grants this socket's queue
         # The last read left nothing queued that arrived before it (no batch limit hit; the
@@ -426,6 +429,7 @@ class FrameReader:
             "batch_max": self.batch_max,
             "batches_full": self.batches_full,
             "filtered": self.filtered,
+            "stale": self.stale,
             "rcvbuf": self.rcvbuf,
         }
 
@@ -461,7 +465,17 @@ class FrameReader:
             if lag > self.late_s:
                 old = now - self.late_s
                 self.late += sum(1 for f in out if f.timestamp < old)
+            if self.stale_s and lag > self.stale_s:
+                out = self._skip_stale(out, now - self.stale_s)
         return out
+
+    def _skip_stale(self, out: list[Frame], cut: float) -> list[Frame]:
+        """A reader that fell behind (a CPU saturated for a while: the board proxy's h2 reader
+        read 79 s old frames and never caught up, its FIFO queue as long as its buffer) skips
+        what is older than ``stale_s`` instead of publishing it as news; counted in ``stale``."""
+        fresh = [f for f in out if f.timestamp >= cut]
+        self.stale += len(out) - len(fresh)
+        return fresh
 
     def _read(self, timeout: float, wake_fds: Sequence[int], frames_wake: bool) -> list[Frame]:
         """Every frame read, in arrival order."""
@@ -593,15 +607,17 @@ def open_reader(
     rcvbuf: int | None = None,
     every_s: float = 0.0,
     wake_on: Iterable[int] | None = None,
+    stale_s: float = 0.0,
 ) -> FrameReader:
     """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends, ``close()``
     closes. ``rcvbuf``: the receive queue to ask for, in bytes (default: ``RCVBUF_BYTES``);
     ``every_s``: wake at most that often while frames flow; ``wake_on``: only these of ``ids``
     wake the reader, the others are read with them (FrameReader's ``quiet``; a bus without
-    sockets, the in-process virtual one, wakes for every id)."""
+    sockets, the in-process virtual one, wakes for every id); ``stale_s``: skip (and count)
+    frames read later than that after arrival (0: never)."""
     if ids is None or wake_on is None or cfg.interface not in RCVBUF_BYTES:
         bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
-        return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s)
+        return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s)
     waking = sorted(set(wake_on) & set(ids))
     rest = sorted(set(ids) - set(waking))
     if not waking or not rest:
@@ -614,4 +630,4 @@ def open_reader(
     except BaseException:
         bus.shutdown()
         raise
-    return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, quiet=quiet)
+    return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, quiet=quiet, stale_s=stale_s)

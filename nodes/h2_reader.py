@@ -43,6 +43,9 @@ class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # wakes the reader, which then takes the cycle's other frames with it: one wake-up per
     # cycle instead of three. 0: wake for every frame (firmware with another order).
     wake_on_id: Literal[0, 110, 120, 130] = h2.FOOT_SWITCHES
+    # Frames read later than this after they arrived are skipped and counted (rx_stale), not
+    # published as news: a reader that fell behind catches up. 0: publish every frame.
+    stale_after_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 0.5
 
 
 @dataclass
@@ -85,7 +88,10 @@ class H2Reader(Node):
         m = self.ctx.messaging
         wake = self.params.wake_on_id
         self.reader = open_reader(
-            self.ctx.config.can, h2.DATA_IDS, wake_on=[wake] if wake else None
+            self.ctx.config.can,
+            h2.DATA_IDS,
+            wake_on=[wake] if wake else None,
+            stale_s=self.params.stale_after_s,
         )
         self.bus = self.reader.bus
         self.pub_js = m.publisher("joint_states", JOINT_STATE, raw=True)
@@ -181,8 +187,10 @@ class H2Reader(Node):
         silent = self._silent_for() > 0.1
         fault = st.out_of_range > self._reported_out_of_range
         self._reported_out_of_range = st.out_of_range
-        lost = (dropped or 0) - self._reported_dropped
-        self._reported_dropped = dropped or 0
+        # Dropped by a full queue, or skipped as stale by a reader that fell behind.
+        gone = (dropped or 0) + int(rx["stale"] or 0)
+        lost = gone - self._reported_dropped
+        self._reported_dropped = gone
         now = time.time_ns()
         level = "error" if silent or fault else "warn" if lost > 0 else "ok"
         if silent:
@@ -190,7 +198,10 @@ class H2Reader(Node):
         elif fault:
             message = "joint angle outside its mechanical range"
         elif lost > 0:
-            message = f"{lost} frames lost in the receive queue ({dropped} in all)"
+            message = (
+                f"{lost} frames lost in the receive queue ({dropped} dropped, "
+                f"{rx['stale']} skipped as stale in all)"
+            )
         else:
             message = "streaming"
         payload = cdr.diagnostics(

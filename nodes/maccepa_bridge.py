@@ -32,6 +32,7 @@ MANAGED_KINDS = ("setpoint", "duty", "gains")  # what motion_via_manager hands t
 MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
 WAKE_FALLBACK_S = 0.015  # one and a half board periods
 IDLE_READ_S = 0.05
+STALE_S = 0.5
 TYPES = {
     maccepa.Sensors: ("sensors", "exolink_msgs/msg/MaccepaSensors"),
     maccepa.Positions: ("positions", "exolink_msgs/msg/MaccepaPositions"),
@@ -75,6 +76,7 @@ class MaccepaBridge(Node):
             self.ctx.config.can,
             maccepa.data_ids(boards),
             wake_on=[base + b for b in boards] if base else None,
+            stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
         )
         self.bus = self.reader.bus
         self.pubs = {

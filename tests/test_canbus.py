@@ -241,3 +241,23 @@ def test_wake_on_must_name_some_but_not_all_ids(group: str) -> None:
     for wake in ([200], [110, 120]):
         with pytest.raises(ValueError, match="wake_on"):
             open_reader(cfg, [110, 120], wake_on=wake)
+
+
+def test_a_reader_that_fell_behind_skips_stale_frames_and_counts_them(group: str) -> None:
+    """On the board proxy the h2 reader fell 79 s behind and never caught up (a FIFO as long
+    as its buffer): with stale_s it skips what is older, counted, and reads the news."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    tx = open_bus(cfg)
+    with open_reader(cfg, [110, 120], wake_on=[120], stale_s=0.2) as reader:
+        for _ in range(5):
+            _send(tx, 110, 120)
+        time.sleep(0.4)  # the reader "busy": these ten frames go stale
+        _send(tx, 110, 120)
+        got = []
+        end = time.monotonic() + 5
+        while len(got) < 2 and time.monotonic() < end:
+            got += reader.read(0.5)
+        c = reader.counters()
+        assert [f.arbitration_id for f in got] == [110, 120]
+        assert c["stale"] == 10 and c["frames"] == 12 and c["dropped"] == 0
+    tx.shutdown()

@@ -21,7 +21,8 @@ def test_stalled_reader_losses_in_status_and_recording(write_config, spawn, tmp_
             {
                 "name": "h2_reader",
                 "plugin": "h2_reader",
-                "params": {"start_stream": False},
+                # every frame handled or counted dropped: none skipped as stale here
+                "params": {"start_stream": False, "stale_after_s": 0},
                 # stalled on purpose below: not to be killed as hung meanwhile
                 "heartbeat_deadline_ms": 60_000,
             },
