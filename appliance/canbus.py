@@ -285,7 +285,7 @@ _CAN_FRAME = struct.Struct("=IB3x8s")  # linux/can.h struct can_frame
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _TIMESPEC = struct.Struct("@ll")
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
-BATCH = 64  # frames read per socket and wake-up at most
+_BATCH = 64  # frames read per socket and wake-up at most
 SO_RCVBUFFORCE, SO_MEMINFO = 33, 55  # asm-generic/socket.h; not exported by Python
 _MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_alloc .. [8] drops
 # Receive queue asked for per socket: a 100 ms stall at full load loses nothing. The kernel
@@ -514,7 +514,7 @@ class FrameReader:
         """Every frame queued on ``sock`` now, up to a batch; never blocks."""
         out: list[Frame] = []
         parse = self._parse
-        for _ in range(BATCH):
+        for _ in range(_BATCH):
             try:
                 raw, anc, _flags, _addr = sock.recvmsg(256, _ANCILLARY, socket.MSG_DONTWAIT)
             except (BlockingIOError, InterruptedError):

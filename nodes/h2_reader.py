@@ -28,8 +28,8 @@ FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = math.pi / 180.0
 _RANGES = [h2.RANGES[j] for j in h2.JOINTS]
-STREAMING_S = 0.1
 WAKE_FALLBACK_S = 1.5 * h2.PERIOD_S
+IDLE_READ_S = 0.05
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -216,13 +216,15 @@ class H2Reader(Node):
     def run(self, stop: threading.Event) -> None:
         next_diag = time.monotonic() + self.params.diagnostics_period_s
         last_restart = time.monotonic()
+        timeout = IDLE_READ_S
         while not stop.is_set():
             self.beat()
-            # While streaming, a cycle whose waking frame is lost is read one and a half
-            # periods later at most.
-            streaming = self._silent_for() < STREAMING_S
-            for frame in self.reader.read(WAKE_FALLBACK_S if streaming else 0.05):
+            frames = self.reader.read(timeout)
+            for frame in frames:
                 self.handle(frame)
+            # While the H2 streams, a cycle whose waking frame is lost is read one and a half
+            # periods later at most (the MACCEPA bridge's rule).
+            timeout = WAKE_FALLBACK_S if frames else IDLE_READ_S
             now = time.monotonic()
             if now >= next_diag:
                 next_diag += self.params.diagnostics_period_s
