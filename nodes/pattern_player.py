@@ -57,6 +57,9 @@ SPIN_S = 0.0003
 MAX_UPLOAD = 1 << 20
 GAIT = "pattern"  # the controller the manager runs the gait as (timing: manager)
 MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
+# timing: manager: how often a running pattern's controller is looked up in the manager, which
+# stops it on a trip, a disable on the bus or a failure; this node's state follows within this.
+MANAGER_POLL_S = 0.2
 # A motion node: its loop beats at least this often, running or idle, so the supervisor can hold
 # it to a short liveness deadline (heartbeat_deadline_ms: 50 in the shipped configs).
 BEAT_S = 0.02
@@ -169,6 +172,8 @@ class PatternPlayer(Node):
         self.timing = p.timing
         self.task: Any = None
         self._op: tuple[Any, ...] | None = None  # what to ask the manager (timing: manager)
+        self._engaged = 0  # the manager accepted the running pattern: which start (0: none)
+        self._starts = 0
         self._periodic_t0, self._periodic_i0 = time.monotonic(), 0
         self.sent = 0
         self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True)
@@ -202,6 +207,10 @@ class PatternPlayer(Node):
         if op is not None:  # outside the lock: the loop must keep beating while the manager works
             try:
                 self._manager(op)
+                with self.lock:
+                    if self.state == "running" and not self._engaged:
+                        self._starts += 1
+                        self._engaged = self._starts
             except CommandRefused as exc:
                 with self.lock:
                     self._halt("stopped", str(exc), tell_manager=False)
@@ -243,7 +252,9 @@ class PatternPlayer(Node):
                     f"{BCM_MAX_FRAMES}: select fewer joints or use timing 'thread'"
                 )
         self.operator = str(req.get("operator", ""))
-        if self.watch is None:  # before the first set-point: no stop frame can slip past
+        if self.watch is None and self.timing != "manager":
+            # before the first set-point: no stop frame can slip past (the manager watches the
+            # bus for the pattern it plays, see _follow_manager)
             self.watch = open_reader(self.ctx.config.can, [h2.JOINT_CONTROL])
         self.state, self.reason = "running", ""
         self._start_periodic()
@@ -256,7 +267,7 @@ class PatternPlayer(Node):
             self.task = None
         if self.timing == "manager" and tell_manager and self.state == "running":
             self._op = ("halt",)
-        self.state, self.reason = state, reason
+        self.state, self.reason, self._engaged = state, reason, 0
 
     def _stop(self, _req: dict[str, Any]) -> None:
         self._halt("stopped")
@@ -343,6 +354,7 @@ class PatternPlayer(Node):
         manager mode: to the controller manager."""
         if self.timing == "manager":
             self._op = ("engage",)
+            self._engaged = 0  # until the manager has it: what it says meanwhile is of the last
             self._periodic_t0, self._periodic_i0 = time.monotonic(), self.index
             return
         if self.timing != "periodic":
@@ -410,6 +422,9 @@ class PatternPlayer(Node):
         controller frames, and reading them with nothing to stop cost the idle player 14 % of
         the board proxy's CPU 0. ``_start`` opens the socket before the first set-point; this
         thread, its only reader, closes it once the pattern is stopped."""
+        if self.timing == "manager":
+            self._follow_manager(stop)
+            return
         while not stop.is_set():
             with self.lock:
                 reader = self.watch
@@ -428,6 +443,43 @@ class PatternPlayer(Node):
                 continue
             for msg in frames:
                 self._on_joint_control(h2.decode(msg))
+
+    def _follow_manager(self, stop: threading.Event) -> None:
+        """timing: manager: the manager plays the pattern and stops it itself (a trip, a disable
+        or stop frame for one of its joints from anyone, a failure), so this node does not read
+        the bus (id 70 then carries the manager's 100 Hz set-points: ~500 frames/s to decode for
+        a display); it asks the manager every MANAGER_POLL_S whether the pattern still runs."""
+        while not stop.wait(MANAGER_POLL_S):
+            with self.lock:
+                engaged = self._engaged
+            if not engaged:
+                continue
+            why = self._manager_stopped()
+            if why is None:
+                continue
+            with self.lock:
+                if self._engaged != engaged:  # stopped or restarted meanwhile: not the manager's
+                    continue
+                self._halt("stopped", why, tell_manager=False)
+            self.log.warning("pattern_stopped_by_manager", reason=why)
+            self._publish()
+
+    def _manager_stopped(self) -> str | None:
+        """Why the manager no longer runs the pattern (None: it does, or it did not answer:
+        the pattern's safety is the manager's and the watchdog's, not this display's)."""
+        try:
+            reply = self.ctx.messaging.command(
+                "controllers", body={"action": "list"}, timeout_s=MANAGER_WAIT_S
+            )
+        except CommandRefused as exc:
+            self.log.warning("manager_status_unavailable", error=str(exc))
+            return None
+        gait = next((c for c in reply.get("controllers", []) if c.get("name") == GAIT), None)
+        if gait is None:
+            return "the controller manager no longer has the pattern"
+        if gait.get("state") == "active":
+            return None
+        return str(gait.get("error") or f"the pattern's controller is {gait.get('state')}")
 
     def _on_joint_control(self, frame: object) -> None:
         if not isinstance(frame, h2.JointControl) or frame.mode not in SAFE_MODES:

@@ -114,7 +114,7 @@ class DrainedBus:
     def shutdown(self) -> None:
         self._stop.set()
         self._t.join(1)
-        self.reader.bus.shutdown()
+        self.reader.close()
 
 
 @pytest.fixture

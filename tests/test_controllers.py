@@ -608,18 +608,47 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
 
 def test_the_manager_reads_the_bus_only_while_a_controller_is_active(app, mbus) -> None:  # type: ignore[no-untyped-def]
     """Idle, it holds no socket frames reach (reading ~400 frames/s for nothing took >= 47 % of
-    the board proxy's CPU 0); an activation opens one and starts from fresh frames, the last
-    deactivation closes it, and activating again works."""
+    the board proxy's CPU 0); an activation opens its reader (two sockets: the angle frame wakes
+    it, the cycle's other frames wait in the second) and starts from fresh frames, the last
+    deactivation closes it, and activating again works. While it reads, one wake-up per H2 cycle,
+    not one per frame."""
     pid = app.node("controller_manager")["pid"]
     idle = bus_sockets(pid)
     assert json.loads(ctl(app, "list", "--json").stdout)["reading"] is False
     app.arm()
     for _round in range(2):
         assert ctl(app, "activate", "a").returncode == 0
-        assert bus_sockets(pid) == idle + 1
+        assert bus_sockets(pid) == idle + 2
         assert joint_frames(collect(mbus, 0.3, {70}), 2)
+        rx = json.loads(ctl(app, "list", "--json").stdout)["receive"]
+        # >= 4 frames per cycle reach it (110, 120, 130, MACCEPA board 0's on 70)
+        assert rx["frames"] >= 3 * rx["batches"] > 0, rx
         assert ctl(app, "deactivate", "a").returncode == 0
         wait_for(lambda: bus_sockets(pid) == idle, timeout=5)
         collect(mbus, 0.1)  # frames in flight
         assert joint_frames(collect(mbus, 0.3, {70}), 2) == []
     assert json.loads(ctl(app, "list", "--json").stdout)["reader_opens"] == 2
+
+
+def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> None:  # type: ignore[no-untyped-def]
+    """With timing: manager the player reads no bus (id 70 then carries the manager's 100 Hz
+    set-points): a disable on the bus stops the manager's pattern controller, and the player's
+    state follows from the manager, with its reason."""
+    app = gait
+    pid = app.node("pattern_player")["pid"]
+    before = bus_sockets(pid)
+    app.arm()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 2))
+    assert bus_sockets(pid) == before  # only its send-only socket, as when idle
+    assert app.cli("send", "disable", "r_knee").returncode == 0
+    wait_for(lambda: listing(app)["pattern"]["state"] != "active")
+    wait_for(lambda: "stopped" in app.cli("pattern", "status").stdout, timeout=5)
+    shown = app.cli("pattern", "status").stdout
+    assert "r_knee disabled or stopped on the bus" in shown, shown
+    collect(mbus, 0.2)  # frames in flight
+    assert [f for f in joint_frames(collect(mbus, 0.3, {70}), 2) if f.mode == 1] == []
+    # a new start re-engages the manager (r_knee is switched back on by the pattern)
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: [f for f in joint_frames(collect(mbus, 0.1, {70}), 2) if f.mode == 1])
+    assert listing(app)["pattern"]["state"] == "active"

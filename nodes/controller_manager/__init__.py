@@ -161,6 +161,7 @@ class ControllerManagerNode(Node):
         action = req.get("action", "list")
         try:
             if action == "list":
+                reader = self.reader  # may close meanwhile: its counters stay readable
                 return {
                     **self.manager.status(),
                     "written": self.written,
@@ -170,6 +171,7 @@ class ControllerManagerNode(Node):
                     "malformed": dict(self.malformed),
                     "reading": self.reader is not None,
                     "reader_opens": self.reader_opens,
+                    "receive": reader.counters() if reader is not None else None,
                 }
             if action == "types":
                 return {"types": controller_types()}
@@ -324,7 +326,10 @@ class ControllerManagerNode(Node):
                 self._close_reader()
 
     def _open_reader(self) -> None:
-        self.reader = open_reader(self.ctx.config.can, self.read_ids)
+        # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
+        # (torques, feet, anyone's joint control, the boards') are read with the next one, in
+        # arrival order and before that cycle's set-points: one wake-up per cycle, not 4-6.
+        self.reader = open_reader(self.ctx.config.can, self.read_ids, wake_on=[h2.JOINT_ANGLES])
         self.opened = self.last_angle_mono = time.monotonic()
         self.reader_opens += 1
 
@@ -333,7 +338,7 @@ class ControllerManagerNode(Node):
         (a controller activated later starts from fresh frames)."""
         reader, self.reader = self.reader, None
         if reader is not None:
-            reader.bus.shutdown()
+            reader.close()
         self._forget_state()
 
     def _forget_state(self) -> None:
