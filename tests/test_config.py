@@ -27,6 +27,21 @@ def test_bundled_configs_load() -> None:
         assert cfg.nodes
 
 
+def test_shipped_configs_leave_motion_to_the_controller_manager() -> None:
+    """Issue 20: one writer of motion. In both shipped configs the manager runs and every node
+    that could write a motion frame hands it over (the pattern, operator commands, the MACCEPA
+    bridge's set-points); the watchdog keeps its own socket."""
+    for name in ("sim", "board"):
+        cfg = load(bundled(name))
+        running = {n.name: n for n in cfg.nodes if n.enabled}
+        assert "controller_manager" in running, name
+        assert node_params(cfg, "h2_sender").motion_via_manager, name
+        assert node_params(cfg, "pattern_player").timing == "manager", name
+        bridge = node_params(cfg, "maccepa_bridge")
+        managed = {b.board for b in node_params(cfg, "controller_manager").maccepa}
+        assert bridge.motion_via_manager or not managed & set(bridge.boards), name
+
+
 def test_good_config_and_typed_params() -> None:
     cfg = parse(GOOD, "a.yaml")
     assert cfg.can.bitrate == 1_000_000

@@ -86,5 +86,5 @@ def test_a_bad_param_of_any_node_still_starts_nothing(write_config, spawn) -> No
     proc = spawn("up", "-c", str(path), name="up")
     assert proc.p.wait(30) == 3
     out = proc.output()
-    assert "nosuch" in out and "nodes[6].params" in out, out
+    assert "nosuch" in out and f"nodes[{len(data['nodes']) - 1}].params" in out, out
     assert "node_running" not in out
