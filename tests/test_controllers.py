@@ -4,6 +4,7 @@ with the watchdog, every claim checked by an independent listener on the bus."""
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import signal
@@ -221,6 +222,35 @@ def test_trajectory_interpolates_from_where_the_joints_are() -> None:
     assert t.update(SITTING, 100.0, 0.01) == {"r_knee/position": 60}
     assert t.update(SITTING, 100.5, 0.01) == {"r_knee/position": 70}
     assert t.update(SITTING, 102.0, 0.01) == {"r_knee/position": 80}
+
+
+def test_gait_pattern_moves_between_rows_and_the_default_pattern_fits_the_shipped_step() -> None:
+    """The gait controller writes where the pattern is between rows, so the default pattern at
+    speed 10 moves its knees 4 deg per 10 ms cycle, inside the shipped configs' step limit
+    (8 deg per 20 ms row at once would not be); interpolate: false holds each row."""
+    from exolink.config import bundled, load, node_params
+    from exolink.nodes.controller_manager.builtin import GaitParams, GaitPattern
+    from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
+
+    rows = [[10, 20, 0, 0, 0, 0], [20, 28, 0, 0, 0, 0]]
+    for interpolate, mid in ((True, {"r_hip/position": 15, "r_knee/position": 24}), (False, None)):
+        g = GaitPattern("g", msgspec_convert({"rows": rows, "joints": ["r_hip", "r_knee"], "speed": 10, "interpolate": interpolate}, GaitParams))  # fmt: skip
+        g.configure()
+        g.activate(SITTING)
+        assert g.update(SITTING, 50.0, 0.01) == {"r_hip/position": 10, "r_knee/position": 20}
+        half = g.update(SITTING, 50.01, 0.01)  # half a 20 ms row later
+        assert half == pytest.approx(mid or {"r_hip/position": 10, "r_knee/position": 20})
+        assert g.update(SITTING, 50.02, 0.01) == pytest.approx(
+            {"r_hip/position": 20, "r_knee/position": 28}
+        )
+    points = load_pattern(str(DEFAULT_PATTERN), [-90] * 6, [120] * 6).points
+    g = GaitPattern("g", msgspec_convert({"rows": points, "joints": list(h2.JOINTS), "speed": 10}, GaitParams))  # fmt: skip
+    g.configure()
+    g.activate(SITTING)
+    out = [g.update(SITTING, 7.0 + 0.01 * k, 0.01) for k in range(3 * len(points))]
+    step = max(abs(round(b[k]) - round(a[k])) for a, b in itertools.pairwise(out) for k in a)
+    for name in ("sim", "board"):
+        assert step <= node_params(load(bundled(name)), "controller_manager").max_step_deg, name
 
 
 def msgspec_convert(data: dict[str, Any], cls: type) -> Any:
@@ -567,13 +597,15 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     frames = collect(mbus, 1.0, {70, 110})
     hips = [f.setpoint for f in joint_frames(frames, 1)]
     angles = sum(m.arbitration_id == 110 for m in frames)
-    # one set-point per H2 cycle, each the row due then: at speed 10 (20 ms a row) each row
-    # twice, in the pattern's order (the step limit may shorten the first swing)
+    # one set-point per H2 cycle, where the pattern is then: at speed 10 (20 ms a row) each row
+    # and the way to the next (interpolated), in the pattern's order (the step limit may
+    # shorten the first swing)
     points = load_pattern(str(DEFAULT_PATTERN), [-90] * 6, [120] * 6).points
     rows = [p[0] for p in points]
+    halfway = [v for a, b in zip(rows, rows[1:] + rows[:1], strict=True) for v in (a, (a + b) / 2)]
     assert abs(len(hips) - angles) <= 2, (len(hips), angles)
-    runs = dedup(hips[20:])  # rows repeat and values repeat: compare runs of equal values
-    cycle = dedup(rows * 4)
+    runs = dedup(hips[20:])  # values repeat: compare runs of equal values
+    cycle = dedup([round(v) for v in halfway] * 4)
     # in the pattern's order: each run the next row's value, or one a row or two further on (a
     # cycle that comes late on a loaded machine skips the rows already past, never replays one)
     at = next(i for i in range(len(rows)) if cycle[i : i + 3] == runs[:3])

@@ -172,13 +172,17 @@ class GaitParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     joints: JointList
     speed: Annotated[int, msgspec.Meta(ge=1, le=10)] = 5
     start: Annotated[int, msgspec.Meta(ge=0)] = 0
+    # Between rows the set-point moves linearly to the next row: the manager writes every 10 ms
+    # cycle, rows come every 20-200 ms, and a row's whole step in one cycle (the default pattern's
+    # knee: 8 deg) would meet the manager's per-cycle step limit and lag. False: hold each row.
+    interpolate: bool = True
 
 
 class GaitPattern(Controller):
     """The pattern player's gait (``timing: manager``): row k of the pattern at controller time
     t0 + k x period(speed), so the frame's kernel timestamp, not this process's wake-up, sets
-    the pace, and each H2 cycle writes the row due then (a late cycle skips rows, never
-    bunches them)."""
+    the pace; each H2 cycle writes where the pattern is then, between row k and k+1 (a late
+    cycle skips rows, never bunches them)."""
 
     Params = GaitParams
 
@@ -219,10 +223,15 @@ class GaitPattern(Controller):
     def update(self, state: State, time_s: float, period: float) -> dict[str, float]:
         if self.t0 is None:
             self.t0 = time_s
-        k = int((time_s - self.t0) / self.period_s(self.speed))
-        self.index = (self.i0 + k) % len(self.params.rows)
-        row = self.params.rows[self.index]
-        return {key: row[j] for key, j in self.cols}
+        rows = self.params.rows
+        x = max(0.0, (time_s - self.t0) / self.period_s(self.speed))
+        k = int(x)
+        self.index = (self.i0 + k) % len(rows)
+        row = rows[self.index]
+        if not self.params.interpolate:
+            return {key: row[j] for key, j in self.cols}
+        nxt, frac = rows[(self.index + 1) % len(rows)], x - k
+        return {key: row[j] + frac * (nxt[j] - row[j]) for key, j in self.cols}
 
     def status(self) -> dict[str, Any]:
         return {"index": self.index, "speed": self.speed, "length": len(self.params.rows)}
