@@ -261,3 +261,29 @@ def test_a_reader_that_fell_behind_skips_stale_frames_and_counts_them(group: str
         assert [f.arbitration_id for f in got] == [110, 120]
         assert c["stale"] == 10 and c["frames"] == 12 and c["dropped"] == 0
     tx.shutdown()
+
+
+def test_a_reader_behind_by_more_than_a_batch_reads_its_two_sockets_in_step(group: str) -> None:
+    """On the board proxy the h2 reader, behind by seconds, took 64 frames of each socket per
+    read: 64 cycles of the waking 130 but only 32 of the quiet 110/120, so the quiet socket fell
+    ever further behind, its frames went stale and overflowed, and no joint_states came out at
+    all (published 0, 130 only). Each read must end where the socket that stopped at its batch
+    ended: frames come out in kernel-time order, every one of them, across reads."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    tx = open_bus(cfg)
+    cycles = 150  # 450 frames: several batches of each socket
+    with open_reader(cfg, [110, 120, 130], wake_on=[130]) as reader:
+        for _ in range(cycles):
+            _send(tx, 110, 120, 130)
+        time.sleep(0.3)  # all queued: the reader "was busy"
+        got = []
+        end = time.monotonic() + 10
+        while len(got) < 3 * cycles and time.monotonic() < end:
+            batch = reader.read(0.2)
+            if got and batch:
+                assert batch[0].timestamp >= got[-1].timestamp, "a read went back in time"
+            got += batch
+        ids = [f.arbitration_id for f in got]
+        assert ids == [110, 120, 130] * cycles, ids[:12]
+        assert reader.counters()["dropped"] == 0
+    tx.shutdown()
