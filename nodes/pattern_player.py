@@ -468,14 +468,13 @@ class PatternPlayer(Node):
         """Why the manager no longer runs the pattern (None: it does, or it did not answer:
         the pattern's safety is the manager's and the watchdog's, not this display's)."""
         try:
-            reply = self.ctx.messaging.command(
-                "controllers", body={"action": "list"}, timeout_s=MANAGER_WAIT_S
+            gait = self.ctx.messaging.command(
+                "controllers", body={"action": "state", "name": GAIT}, timeout_s=MANAGER_WAIT_S
             )
         except CommandRefused as exc:
             self.log.warning("manager_status_unavailable", error=str(exc))
             return None
-        gait = next((c for c in reply.get("controllers", []) if c.get("name") == GAIT), None)
-        if gait is None:
+        if gait.get("state") is None:
             return "the controller manager no longer has the pattern"
         if gait.get("state") == "active":
             return None

@@ -153,7 +153,7 @@ class ControllerManagerNode(Node):
         action = request.get("action", "list")
         if action in (OPERATOR, MACCEPA_OPERATOR):
             return roles.APPLIANCE_USER
-        return roles.OBSERVER if action in ("list", "types") else roles.OPERATOR
+        return roles.OBSERVER if action in ("list", "types", "state") else roles.OPERATOR
 
     # --- management ---------------------------------------------------------------------------
 
@@ -173,6 +173,8 @@ class ControllerManagerNode(Node):
                     "reader_opens": self.reader_opens,
                     "receive": reader.counters() if reader is not None else None,
                 }
+            if action == "state":
+                return self.manager.state_of(str(req.get("name", "")))
             if action == "types":
                 return {"types": controller_types()}
             if action == "load":

@@ -263,6 +263,16 @@ class Manager:
         except Refused as exc:
             raise ManagerRefused(str(exc)) from None
 
+    def state_of(self, name: str) -> dict[str, Any]:
+        """One controller's state and why it stopped: what a node that follows a controller
+        (the pattern player) asks several times a second. ``status`` sorts the overhead window
+        and describes every controller, a millisecond of the manager's GIL its loop waited on."""
+        with self.lock:
+            slot = self.slots.get(name)
+            if slot is None:
+                return {"name": name, "state": None, "error": f"no controller {name!r}"}
+            return {"name": name, "state": slot.state, "error": slot.error}
+
     def status(self) -> dict[str, Any]:
         with self.lock:  # copies only: the loop waits on this lock, so no work inside it
             slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
