@@ -246,6 +246,7 @@ def counters(laptop: Laptop) -> dict[str, Any]:
         ("h2_reader", ("nodes", "h2_reader", "stats"), {}),
         ("pattern", ("pattern",), {"action": "status"}),
         ("recorder", ("record",), {"action": "status"}),
+        ("controllers", ("controllers",), {"action": "list"}),
     ):
         try:
             out[name] = laptop.call(*path, body=body, timeout=15)
@@ -334,6 +335,9 @@ def derived(m: dict[str, Any]) -> dict[str, Any]:
     if "sent" in p0 and "sent" in p1:
         out["pattern_state_end"] = p1.get("state")
         out["pattern_sent"] = p1["sent"] - p0["sent"]
+    c0, c1 = b.get("controllers", {}), a.get("controllers", {})
+    if p1.get("timing") == "manager" and "written" in c0 and "written" in c1:
+        out["pattern_sent"] = c1["written"] - c0["written"]  # the manager writes the pattern
     rec0, rec1 = b.get("recorder", {}), a.get("recorder", {})
     for k in ("received", "written", "dropped"):
         if k in rec0 and k in rec1:
