@@ -371,6 +371,10 @@ class FrameReader:
         self.late = 0
         self.stale = 0  # frames read more than stale_s after arrival, skipped (counted here)
         self.lag_max_s = 0.0
+        # How far behind the bus the last read was: the age of the newest frame it returned
+        # when it left frames queued (0: it read all there was). A watchdog that is behind
+        # cannot tell a silent H2 from its own backlog.
+        self.behind_s = 0.0
         self.rcvbuf: int | None = None  # bytes the kernel grants this socket's queue
         # The last read left nothing queued that arrived before it (no batch limit hit; the
         # virtual bus reads one frame at a time, so only an empty read says so there).
@@ -455,15 +459,19 @@ class FrameReader:
         if out and self.every_s:  # a full batch left frames queued: read them at once
             more = not self.complete and self._sock is not None
             self._next_read = time.monotonic() + (0.0 if more else self.every_s)
-        if out:
+        if not out:
+            self.behind_s = 0.0
+        else:
             n = len(out)
             self.frames += n
             self.batches += 1
             if n > self.batch_max:
                 self.batch_max = n
+            now = time.time()
+            self.behind_s = 0.0
             if not self.complete and self._sock is not None:  # stopped at the batch limit
                 self.batches_full += 1
-            now = time.time()
+                self.behind_s = now - out[-1].timestamp
             lag = now - out[0].timestamp  # the oldest of the batch (in arrival order)
             if lag > self.lag_max_s:
                 self.lag_max_s = lag

@@ -276,7 +276,8 @@ def test_a_reader_behind_by_more_than_a_batch_reads_its_two_sockets_in_step(grou
         for _ in range(cycles):
             _send(tx, 110, 120, 130)
         time.sleep(0.3)  # all queued: the reader "was busy"
-        got = []
+        got = reader.read(0.2)
+        assert not reader.complete and reader.behind_s > 0.25, reader.behind_s  # says it is behind
         end = time.monotonic() + 10
         while len(got) < 3 * cycles and time.monotonic() < end:
             batch = reader.read(0.2)
@@ -285,5 +286,6 @@ def test_a_reader_behind_by_more_than_a_batch_reads_its_two_sockets_in_step(grou
             got += batch
         ids = [f.arbitration_id for f in got]
         assert ids == [110, 120, 130] * cycles, ids[:12]
+        assert reader.read(0.05) == [] and reader.behind_s == 0.0
         assert reader.counters()["dropped"] == 0
     tx.shutdown()

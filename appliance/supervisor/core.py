@@ -350,7 +350,13 @@ class Supervisor:
                 out.append(f"critical node {n.name} has no recent heartbeat")
         silent = self.watchdog.h2_silent_for()
         limit = self.cfg.watchdog.h2_silence_ms / 1000
-        if silent is None or silent > limit:
+        behind = self.watchdog.behind_s()
+        if behind > limit:  # the bus may stream: the watchdog cannot see it in time
+            out.append(
+                f"the watchdog reads the bus {behind:.1f} s late (CPU saturated): it cannot "
+                "judge H2 silence"
+            )
+        elif silent is None or silent > limit:
             out.append(
                 "no H2 data on the bus" if silent is None else f"no H2 data for {silent:.1f} s"
             )

@@ -174,6 +174,10 @@ class Watchdog:
     def h2_silent_for(self) -> float | None:
         return None if self.last_h2 is None else time.monotonic() - self.last_h2
 
+    def behind_s(self) -> float:
+        """How far behind the bus its reader is (0: current): a CPU too busy to let it read."""
+        return self.reader.behind_s
+
     def check(self) -> None:
         """Periodic: repeat the safe action after a trip; the backstop for a stalled reader."""
         now = time.monotonic()
