@@ -17,14 +17,15 @@ Timing modes:
 
 - ``manager``: the controller manager plays the pattern as its ``gait_pattern`` controller named
   ``pattern`` (one writer per joint: an operator's ``send position`` to a joint the pattern
-  drives is refused with the owner named). This node keeps the CLI, the selection, the state
-  it publishes and the stops below, and writes no set-point itself.
+  drives is refused with the owner named). This node keeps the CLI, the selection and the state
+  it publishes; it writes no set-point and reads no bus: the manager stops the pattern itself
+  (a trip, a disable or stop below, a failing controller) and this node's state follows it.
 
 Nothing is sent while no joint is selected or while the watchdog is not armed; a trip stops the
 pattern (it does not resume by itself).
 
-The player also watches the bus for a disable or stop (type 4/5) of a joint it drives, from any
-sender: the watchdog's safe action, ``exolink send disable``, a hand-held stop. Its next set-point
+In thread and periodic timing the player also watches the bus for a disable or stop (type 4/5) of
+a joint it drives, from any sender: the watchdog's safe action, ``exolink send disable``, a hand-held stop. Its next set-point
 would switch that joint back on, so the pattern stops at once. It is also the fast path for a trip:
 the safe action is on the bus before the trip's state reaches Zenoh, and in periodic mode the
 kernel keeps sending until this process deletes its task. The Zenoh arming state stays the path
