@@ -377,12 +377,12 @@ class FrameReader:
         self.behind_s = 0.0
         self.rcvbuf: int | None = None  # bytes the kernel grants this socket's queue
         # The last read left nothing queued that arrived before it (no batch limit hit; the
-        # virtual bus reads one frame at a time, so only an empty read says so there).
-        self.complete = False
+        # virtual bus reads one frame at a time, so only an empty read says so there). True
+        # before the first read: nothing was left by one, so it waits for frames.
+        self.complete = True
         # Read from the sockets but not returned yet: newer than where a socket that stopped
         # at its batch limit ended (see _in_step).
         self._held: list[Frame] = []
-        self._behind = False  # the last read left frames queued or held: the next one waits not
         if cfg.interface == "socketcan":
             self._parse = self._parse_socketcan
         elif cfg.interface == "udp_multicast":
@@ -459,16 +459,14 @@ class FrameReader:
         if out and self.every_s:  # a full batch left frames queued: read them at once
             more = not self.complete and self._sock is not None
             self._next_read = time.monotonic() + (0.0 if more else self.every_s)
-        if not out:
-            self.behind_s = 0.0
-        else:
+        self.behind_s = 0.0
+        if out:
             n = len(out)
             self.frames += n
             self.batches += 1
             if n > self.batch_max:
                 self.batch_max = n
             now = time.time()
-            self.behind_s = 0.0
             if not self.complete and self._sock is not None:  # stopped at the batch limit
                 self.batches_full += 1
                 self.behind_s = now - out[-1].timestamp
@@ -507,7 +505,7 @@ class FrameReader:
             )
             return [frame]
         sock, quiet = self._sock, self._quiet
-        behind = self._behind
+        behind = not self.complete  # the last read left frames queued or held: no waiting
         if behind:
             timeout = 0.0
         watch = [sock, *wake_fds] if frames_wake else list(wake_fds)
@@ -520,7 +518,6 @@ class FrameReader:
         waking, w_full = self._drain(sock) if woke or behind or not frames_wake else ([], False)
         if quiet is None:
             self.complete = not w_full
-            self._behind = w_full
             return waking
         out, q_full = self._drain(quiet)
         return self._in_step(out, waking, q_full, w_full)
@@ -548,7 +545,6 @@ class FrameReader:
             i = bisect.bisect_right(out, cut, key=_arrival)
             out, self._held = out[:i], out[i:]
         self.complete = not (q_full or w_full or self._held)
-        self._behind = not self.complete
         return out
 
     def _drain(self, sock: socket.socket) -> tuple[list[Frame], bool]:

@@ -431,7 +431,7 @@ class PatternPlayer(Node):
                 reader = self.watch
                 if reader is not None and self.state == "stopped":
                     self.watch = None
-                    reader.bus.shutdown()
+                    reader.close()
                     reader = None
             if reader is None:
                 stop.wait(0.1)
@@ -563,6 +563,6 @@ class PatternPlayer(Node):
         if hasattr(self, "pub"):
             self.pub.close()
         if getattr(self, "watch", None) is not None:
-            self.watch.bus.shutdown()
+            self.watch.close()
         if hasattr(self, "bus"):
             self.bus.shutdown()
