@@ -19,7 +19,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 from exolink import cdr, messaging
-from exolink.canbus import Frame, open_reader
+from exolink.canbus import Cadence, Frame, open_reader
 from exolink.node import Node
 from exolink.protocol import h2
 
@@ -28,8 +28,6 @@ FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = math.pi / 180.0
 _RANGES = [h2.RANGES[j] for j in h2.JOINTS]
-WAKE_FALLBACK_S = 1.5 * h2.PERIOD_S
-IDLE_READ_S = 0.05
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -46,6 +44,10 @@ class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Frames read later than this after they arrived are skipped and counted (rx_stale), not
     # published as news: a reader that fell behind catches up. 0: publish every frame.
     stale_after_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 0.5
+    # Wake once per this many H2 cycles and publish their samples back to back (canbus.Cadence:
+    # on the board a wake-up and a Zenoh hop cost more than a sample). Subscribers get every
+    # sample, up to N-1 cycles later; the watchdog and controller manager read the bus itself.
+    cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
 
 
 @dataclass
@@ -87,9 +89,11 @@ class H2Reader(Node):
     def configure(self) -> None:
         m = self.ctx.messaging
         wake = self.params.wake_on_id
+        self.cadence = Cadence(h2.PERIOD_S, self.params.cycles_per_read)
         self.reader = open_reader(
             self.ctx.config.can,
             h2.DATA_IDS,
+            every_s=self.cadence.every_s,
             wake_on=[wake] if wake else None,
             stale_s=self.params.stale_after_s,
         )
@@ -216,15 +220,13 @@ class H2Reader(Node):
     def run(self, stop: threading.Event) -> None:
         next_diag = time.monotonic() + self.params.diagnostics_period_s
         last_restart = time.monotonic()
-        timeout = IDLE_READ_S
+        timeout = self.cadence.idle_s
         while not stop.is_set():
             self.beat()
             frames = self.reader.read(timeout)
             for frame in frames:
                 self.handle(frame)
-            # While the H2 streams, a cycle whose waking frame is lost is read one and a half
-            # periods later at most (the MACCEPA bridge's rule).
-            timeout = WAKE_FALLBACK_S if frames else IDLE_READ_S
+            timeout = self.cadence.timeout(bool(frames))
             now = time.monotonic()
             if now >= next_diag:
                 next_diag += self.params.diagnostics_period_s

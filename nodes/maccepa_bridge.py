@@ -23,15 +23,14 @@ import can
 import msgspec
 from exolink import cdr, roles
 from exolink.arming import ArmingState
-from exolink.canbus import open_reader
+from exolink.canbus import Cadence, open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, maccepa
 
 MANAGED_KINDS = ("setpoint", "duty", "gains")  # what motion_via_manager hands the manager
 MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
-WAKE_FALLBACK_S = 0.015  # one and a half board periods
-IDLE_READ_S = 0.05
+BOARD_PERIOD_S = 0.01
 STALE_S = 0.5
 TYPES = {
     maccepa.Sensors: ("sensors", "exolink_msgs/msg/MaccepaSensors"),
@@ -64,6 +63,9 @@ class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # board): only its arrival wakes the bridge, which takes the board's other frames with it,
     # one wake-up per board and cycle instead of three. 0: wake for every frame.
     wake_on_base: Literal[0, 50, 60, 70] = maccepa.CONTROLLER_BASE
+    # Wake once per this many board cycles and publish their samples back to back (see the
+    # h2 reader's param of the same name; canbus.Cadence).
+    cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
 
 
 class MaccepaBridge(Node):
@@ -72,9 +74,11 @@ class MaccepaBridge(Node):
     def configure(self) -> None:
         m = self.ctx.messaging
         base, boards = self.params.wake_on_base, self.params.boards
+        self.cadence = Cadence(BOARD_PERIOD_S, self.params.cycles_per_read)
         self.reader = open_reader(
             self.ctx.config.can,
             maccepa.data_ids(boards),
+            every_s=self.cadence.every_s,
             wake_on=[base + b for b in boards] if base else None,
             stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
         )
@@ -160,14 +164,13 @@ class MaccepaBridge(Node):
         pub.put(self.templates[type(f)].encode(ns, f.board, _values(f)), ns)
 
     def run(self, stop: threading.Event) -> None:
-        timeout = IDLE_READ_S
+        timeout = self.cadence.idle_s
         while not stop.is_set():
             self.beat()
             frames = self.reader.read(timeout)
             for frame in frames:
                 self.handle(frame)
-            # While boards stream, a cycle whose waking frame is lost is read soon after.
-            timeout = WAKE_FALLBACK_S if frames else IDLE_READ_S
+            timeout = self.cadence.timeout(bool(frames))
 
     def shutdown(self) -> None:
         if hasattr(self, "_q"):

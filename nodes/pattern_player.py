@@ -61,9 +61,14 @@ MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
 # timing: manager: how often a running pattern's controller is looked up in the manager, which
 # stops it on a trip, a disable on the bus or a failure; this node's state follows within this.
 MANAGER_POLL_S = 0.2
-# A motion node: its loop beats at least this often, running or idle, so the supervisor can hold
-# it to a short liveness deadline (heartbeat_deadline_ms: 50 in the shipped configs).
+# A motion node (timing thread or periodic): its loop beats at least this often, running or
+# idle, so the supervisor can hold it to a short liveness deadline (heartbeat_deadline_ms: 50).
 BEAT_S = 0.02
+# timing: manager: the manager writes the set-points and stops them; this node only answers
+# commands and follows the manager's state, so it is not a motion node: its loop wakes this
+# often (the 5 ms and 20 ms wake-ups of a motion node were 70-300 of the board's wake-ups a
+# second, ~0.9 ms of the proxy's CPU each) and keeps the default liveness deadline.
+MANAGER_BEAT_S = 0.1
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 
 
@@ -171,6 +176,8 @@ class PatternPlayer(Node):
         self.selected = [j in p.selected for j in h2.JOINTS]
         self.operator = ""
         self.timing = p.timing
+        if self.timing == "manager":
+            self.stall_s = 3 * MANAGER_BEAT_S
         self.task: Any = None
         self._op: tuple[Any, ...] | None = None  # what to ask the manager (timing: manager)
         self._engaged = 0  # the manager accepted the running pattern: which start (0: none)
@@ -516,7 +523,7 @@ class PatternPlayer(Node):
                 if running:
                     self._guard()
                     self._track_periodic_index()
-                if self.wake.wait(0.005 if running else BEAT_S):
+                if self.wake.wait(self._idle_wait(running, mode)):
                     self.wake.clear()
                 next_t = time.monotonic()
                 continue
@@ -536,6 +543,14 @@ class PatternPlayer(Node):
             next_t += period
             if time.monotonic() - next_t > 5 * period:  # stalled far behind: resync, do not burst
                 next_t = time.monotonic() + period
+
+    @staticmethod
+    def _idle_wait(running: bool, mode: str) -> float:
+        """Between looks when no set-point is due here: periodic timing tracks the kernel's
+        broadcast manager every 5 ms; manager timing has nothing due here at all."""
+        if mode == "manager":
+            return MANAGER_BEAT_S
+        return 0.005 if running else BEAT_S
 
     def _track_periodic_index(self) -> None:
         with self.lock:
