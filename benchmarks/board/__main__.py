@@ -88,6 +88,13 @@ def table(result: dict[str, Any]) -> str:
 
     row("CPU 0 idle %", idle(g, "cpu0"), idle(n, "cpu0"))
     row("calibration (CPU ms, fixed Python loop)", *pair("window", "probe", "calibration_ms"))
+    # units.py on CPU 0 after the window: what the appliance's CPU is made of on each machine
+    row("unit: Python loop (CPU ms)", *pair("units", "python_loop_ms"))
+    row("unit: 100 Hz sleep-wake (CPU us)", *pair("units", "wake_us"))
+    for key, label in (("", "one by one"), ("_burst4", "in fours")):
+        hop = [_hop(v) for v in pair("units", f"zenoh_us_per_sample{key}")]
+        row(f"unit: Zenoh sample {label} (us)", *hop)
+    row("  (publisher/router/subscriber)", "", "")
     row("CPU 1 idle % (simulator's)", idle(g, "cpu1"), idle(n, "cpu1"))
     sums = []
     for procs in (gp, np_):
@@ -173,6 +180,13 @@ def ladder_table(result: dict[str, Any]) -> str:
             if run.get(key):
                 lines.append(f"ERROR: {run[key]}")
     return "\n".join(lines)
+
+
+def _hop(v: Any) -> Any:
+    """units.py's per-sample CPU of the three processes of a Zenoh hop, as pub/router/sub."""
+    if not isinstance(v, dict):
+        return v
+    return "/".join(str(v.get(k)) for k in ("publisher", "router", "subscriber"))
 
 
 def _laptop(run: dict[str, Any]) -> str | None:
@@ -307,6 +321,8 @@ def main() -> int:
             args.timings,
             ladder_nodes,
         )
+        if ladder_nodes is None:
+            result["native"]["units"] = _guarded("units", runs.native_units)
     result["run_s"] = round(time.monotonic() - t0, 1)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,8 @@ from benchmarks.board.guest import Guest, free_port
 log = structlog.get_logger("bench-board")
 
 PROBE = Path(__file__).with_name("probe.py")
+UNITS = Path(__file__).with_name("units.py")
+UNITS_SECONDS = 10.0
 DEVICE = "exo-01"
 SETTLE_S = 10.0
 LOG_PATTERNS = (
@@ -234,6 +236,7 @@ def run_guest(
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
+        result["units"] = _guest_units(guest)
         return result
     except Exception as exc:  # a table with what was measured beats a traceback without one
         log.exception("guest run failed")
@@ -244,6 +247,34 @@ def run_guest(
             laptop.close()
         guest.stop()
         result["console_log"] = str(work / "console.log")
+
+
+def _units(stdout: str, stderr: str) -> dict[str, Any]:
+    for line in stdout.splitlines():
+        if line.startswith("UNITS_RESULT "):
+            return dict(json.loads(line.split(" ", 1)[1]))
+    return {"error": (stderr or stdout)[-500:]}
+
+
+def _guest_units(guest: Guest) -> dict[str, Any]:
+    """The guest's unit costs (units.py) on CPU 0, after the window, the appliance stopped."""
+    log.info("unit costs in the guest")
+    guest.ssh("systemctl stop exolink.service", timeout=300)
+    with open(UNITS) as f:
+        cmd = guest.ssh_cmd("cat > /run/exolink-units.py")
+        subprocess.run(cmd, stdin=f, check=True, timeout=120)
+    r = guest.ssh(
+        f"/opt/exolink/bin/python /run/exolink-units.py --seconds {UNITS_SECONDS:g}", timeout=900
+    )
+    return _units(r.stdout, r.stderr)
+
+
+def native_units() -> dict[str, Any]:
+    """The same unit costs on this host's CPU 0 (after the native run)."""
+    log.info("unit costs natively")
+    cmd = [sys.executable, str(UNITS), "--seconds", f"{UNITS_SECONDS:g}"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    return _units(r.stdout, r.stderr)
 
 
 PROFILE_RATE = 10  # 50 Hz over 8 processes fell minutes behind on the emulated CPU 1

@@ -1,0 +1,150 @@
+"""Unit costs of a machine, the ones the appliance's CPU is made of: a Python loop, a wake-up, and a
+Zenoh sample through the board's router. Self-contained (stdlib + zenoh): bench-board runs it in
+the guest and natively; on a real BeagleBone with exolink installed,
+``/opt/exolink/bin/python units.py`` gives the figures to scale a proxy run by.
+
+Why: the proxy (qemu TCG) is a slow CPU but not a uniformly slow one. Measured there against this
+x86 VM, a pure-Python loop is ~27x slower, a sleep-and-wake ~10-50x, and one 100 Hz Zenoh topic
+from a publisher through a router to a subscriber took 88 % of a CPU (three processes). Which
+unit dominates decides what to optimise, and a real A8's ratios may differ from TCG's.
+
+Everything runs pinned to one CPU (the appliance's CPU 0 on the board) and reports CPU time
+(user + system, all threads), not wall time. Prints ``UNITS_RESULT {json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+PORT = 17931
+KEY = "exolink-units/sample"
+LOOPS = 200_000
+
+
+def _cpu_s(pid: int | str = "self") -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def python_loop_ms() -> float:
+    """The probe's calibration loop (benchmarks/board/probe.py): CPU ms."""
+    t0 = time.thread_time()
+    acc = 0
+    for i in range(LOOPS):
+        acc += i * i % 7
+    return round((time.thread_time() - t0) * 1e3, 2)
+
+
+def wake_us(seconds: float) -> float:
+    """CPU us per iteration of a loop that sleeps to a 10 ms deadline and does nothing else."""
+    c0, t = time.thread_time(), time.monotonic()
+    n, end = 0, t + seconds
+    while t < end:
+        t += 0.01
+        time.sleep(max(0.0, t - time.monotonic()))
+        n += 1
+    return round((time.thread_time() - c0) * 1e6 / n, 1)
+
+
+def _session(mode: str, endpoint: str):  # type: ignore[no-untyped-def]
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/delay", "0")
+    c.insert_json5("transport/shared_memory/enabled", "false")
+    where = "listen/endpoints" if mode == "router" else "connect/endpoints"
+    c.insert_json5(where, json.dumps([endpoint]))
+    return zenoh.open(c)
+
+
+def _role(role: str, endpoint: str, seconds: float, burst: int) -> None:
+    s = _session("router" if role == "router" else "client", endpoint)
+    if role == "sub":
+        got = [0]
+        s.declare_subscriber(KEY, lambda _s: got.__setitem__(0, got[0] + 1))
+        time.sleep(seconds)
+        sys.stdout.write(f"{got[0]}\n")
+    elif role == "pub":
+        pub = s.declare_publisher(KEY)
+        payload = bytes(120)  # a JointState's CDR is ~200 bytes, a foot-switch message ~40
+        time.sleep(1.0)  # the subscriber's interest reaches us
+        sys.stdout.write("go\n")
+        sys.stdout.flush()
+        t = time.monotonic()
+        end = t + seconds
+        while t < end:
+            t += 0.01 * burst
+            time.sleep(max(0.0, t - time.monotonic()))
+            for _ in range(burst):
+                pub.put(payload)
+    else:
+        time.sleep(seconds)
+    s.close()
+
+
+def zenoh_hop(seconds: float, burst: int) -> dict[str, float]:
+    """100 samples/s (as ``burst`` puts every ``burst`` x 10 ms) from a client publisher through
+    a router to a client subscriber: each process's CPU per sample, in us."""
+    endpoint = f"tcp/127.0.0.1:{PORT + burst}"
+    me = [sys.executable, os.path.abspath(__file__), "--role"]
+
+    def start(role: str, secs: float) -> subprocess.Popen[str]:
+        cmd = [*me, role, "--endpoint", endpoint, "--seconds", str(secs), "--burst", str(burst)]
+        return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+
+    router = start("router", seconds + 60)
+    time.sleep(2.0)
+    sub = start("sub", seconds + 40)
+    time.sleep(2.0)
+    pub = start("pub", seconds)
+    try:
+        assert pub.stdout is not None
+        if pub.stdout.readline().strip() != "go":
+            raise RuntimeError("the publisher did not start")
+        procs = {"publisher": pub, "router": router, "subscriber": sub}
+        c0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        t0 = time.monotonic()
+        time.sleep(seconds * 0.9)
+        c1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        samples = 100 * (time.monotonic() - t0)
+    finally:
+        pub.wait(seconds + 60)
+        for p in (sub, router):
+            p.terminate()
+            p.wait(30)
+    return {k: round((c1[k] - c0[k]) * 1e6 / samples) for k in c0}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--cpu", type=int, default=0, help="the CPU everything runs on")
+    p.add_argument("--role", choices=["router", "sub", "pub"], help=argparse.SUPPRESS)
+    p.add_argument("--endpoint", help=argparse.SUPPRESS)
+    p.add_argument("--burst", type=int, default=1, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.role:
+        _role(args.role, args.endpoint, args.seconds, args.burst)
+        return 0
+    os.sched_setaffinity(0, {args.cpu})  # children inherit it
+    out = {
+        "cpu": args.cpu,
+        "python_loop_ms": python_loop_ms(),
+        "wake_us": wake_us(args.seconds),
+        "zenoh_us_per_sample": zenoh_hop(args.seconds, 1),
+        "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
+    }
+    sys.stdout.write("UNITS_RESULT " + json.dumps(out) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
