@@ -9,7 +9,7 @@ from pathlib import Path
 
 import can
 import pytest
-from exolink.canbus import open_bus, open_reader, sim_source
+from exolink.canbus import SO_TIMESTAMPNS, BatchReceiver, open_bus, open_reader, sim_source
 from exolink.config import CanConfig
 
 
@@ -101,6 +101,38 @@ def test_reader_batches_frames_with_kernel_timestamps(group: str) -> None:
     finally:
         reader.bus.shutdown()
         tx.shutdown()
+
+
+def test_batch_receiver_reads_a_batch_per_call_with_kernel_times_where_asked() -> None:
+    """One recvmmsg per call, up to the batch limit, each datagram whole and in order; a socket
+    that asked for no kernel timestamps gives None (the reader then uses the read time); a
+    closed socket raises OSError, as recvmsg would."""
+    rx_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx_sock.bind(("127.0.0.1", 0))
+    stamped = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stamped.bind(("127.0.0.1", 0))
+    stamped.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        plain, timed = BatchReceiver(rx_sock), BatchReceiver(stamped)
+        assert plain.receive() == []  # nothing queued: no wait, no error
+        t0 = time.time()
+        for i in range(70):
+            tx.sendto(bytes([i]) * (1 + i), rx_sock.getsockname())
+            tx.sendto(bytes([i]) * 3, stamped.getsockname())
+        time.sleep(0.1)
+        first, rest = plain.receive(), plain.receive()
+        assert [d for d, _ts in first + rest] == [bytes([i]) * (1 + i) for i in range(70)]
+        assert len(first) == 64 and {ts for _d, ts in first + rest} == {None}
+        got = timed.receive() + timed.receive()
+        assert len(got) == 70
+        assert all(t0 - 0.01 < ts < time.time() for _d, ts in got)  # type: ignore[operator]
+        rx_sock.close()
+        with pytest.raises(OSError):
+            plain.receive()
+    finally:
+        for s in (rx_sock, stamped, tx):
+            s.close()
 
 
 def test_stalled_sim_reader_counts_every_frame_it_lost(group: str) -> None:
