@@ -416,7 +416,6 @@ class FrameReader:
         # Read from the sockets but not returned yet: newer than where a socket that stopped
         # at its batch limit ended (see _in_step).
         self._held: list[Frame] = []
-        self._rx: dict[socket.socket, BatchReceiver] = {}
         if cfg.interface == "socketcan":
             self._parse = self._parse_socketcan
         elif cfg.interface == "udp_multicast":
@@ -427,6 +426,8 @@ class FrameReader:
         # the in-process virtual bus has no socket: python-can's own receive path
         self._sock = _bus_socket(bus, cfg)
         self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
+        # one recvmmsg per socket and read, into buffers made here (not on the hot path)
+        self._rx = {s: BatchReceiver(s) for s in (self._sock, self._quiet) if s is not None}
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
             self.rcvbuf = size_receive_buffer(self._sock, want)
@@ -585,10 +586,7 @@ class FrameReader:
         """Every frame queued on ``sock`` now, up to a batch (True: it stopped there, more may
         be queued); never blocks. Kernel receive times (SO_TIMESTAMPNS, set by python-can and
         SimBus); a frame without one gets the time it was read."""
-        rx = self._rx.get(sock)
-        if rx is None:
-            rx = self._rx[sock] = BatchReceiver(sock)
-        got = rx.receive()
+        got = self._rx[sock].receive()
         out: list[Frame] = []
         parse, now = self._parse, 0.0
         for raw, ts in got:
