@@ -105,14 +105,30 @@ class Supervisor:
                 canlink.bring_up(cfg.can)
         # Joint-angle frames never wake the watchdog (it reads them by its silence deadline);
         # joint-control frames do while not armed, to answer a motion frame at once.
-        self.reader = open_reader(
-            cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL]
-        )
+        # On SocketCAN the kernel's broadcast manager times the angle frames (exolink.cyclic):
+        # the watchdog's socket then takes id 70 only.
+        cyclic = None
+        if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
+            from exolink.cyclic import CyclicWatch
+
+            cyclic = CyclicWatch(cfg.can.channel, h2.JOINT_ANGLES, cfg.watchdog.h2_silence_ms / 1e3)
+        try:
+            self.reader = (
+                open_reader(
+                    cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL]
+                )
+                if cyclic is None
+                else open_reader(cfg.can, [h2.JOINT_CONTROL])
+            )
+        except BaseException:
+            if cyclic is not None:
+                cyclic.close()
+            raise
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
-        self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog)
+        self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog, cyclic)
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
         # The first link check imports pyroute2 (~4 s on an emulated A8): here, before READY, not

@@ -22,6 +22,12 @@ ten wake-ups a second while the H2 streams, none per frame); not armed, a joint-
 every half silence limit so that arming sees fresh H2 data. Arming, disarming and trips wake it
 through a socket pair to switch between the two.
 
+On SocketCAN the angle frames are not read at all: the kernel's broadcast manager times them
+(exolink.cyclic) and this thread hears only of a silence, a resumption or a frame whose length
+changed; a silence while armed trips at once. The simulated bus has no broadcast manager, and
+there the angle frames are read and judged as above. Both ways, the periodic check on the
+supervisor's loop takes the kernel's news too, so a stalled listener cannot hide a silence.
+
 Only a frame that matches the DBC contract counts: an id-110 frame of the wrong length (or an
 extended / remote frame with that id) is not H2 data and does not hold off the silence trip.
 Frames neither contract can read are counted by id and reason (``malformed`` in status), never
@@ -36,12 +42,16 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import can
 import structlog
 from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
 from exolink.protocol import h2, maccepa
+
+if TYPE_CHECKING:
+    from exolink.cyclic import CyclicWatch, Event
 
 REPEAT_AFTER_S = (0.05, 0.25)
 STALL_BACKSTOP_S = 0.5
@@ -71,9 +81,19 @@ Publish = Callable[[WatchdogState], None]
 
 
 class Watchdog:
-    def __init__(self, cfg: WatchdogConfig, reader: FrameReader, publish: Publish) -> None:
+    def __init__(
+        self,
+        cfg: WatchdogConfig,
+        reader: FrameReader,
+        publish: Publish,
+        cyclic: CyclicWatch | None = None,
+    ) -> None:
+        """``cyclic``: the kernel times the angle frames (``reader`` then reads id 70 only)."""
         self.cfg = cfg
         self.reader = reader
+        self.cyclic = cyclic
+        self._cyclic_lock = threading.Lock()
+        self._h2_alive = False  # with ``cyclic``: well-formed angle frames stream, per the kernel
         self.bus = reader.bus
         self.publish = publish
         self.log = structlog.get_logger().bind(node="watchdog")
@@ -172,7 +192,39 @@ class Watchdog:
             self._armed_at, self._left_armed_at = None, now
 
     def h2_silent_for(self) -> float | None:
+        if self.cyclic is not None:
+            self._take_cyclic()
+            if self._h2_alive:
+                return 0.0
         return None if self.last_h2 is None else time.monotonic() - self.last_h2
+
+    def _take_cyclic(self) -> None:
+        """The broadcast manager's news since the last look (either thread may look)."""
+        if self.cyclic is None:
+            return
+        with self._cyclic_lock:
+            for ev in self.cyclic.poll():
+                self._cyclic_event(ev)
+
+    def _cyclic_event(self, ev: Event) -> None:
+        if ev.frame is None:  # no angle frame for the limit: the kernel's timer ran out
+            self._h2_alive = False
+            self.last_h2 = time.monotonic() - self.cfg.h2_silence_ms / 1000
+            if self.armed:
+                self.trip(
+                    "h2 data silent",
+                    f"no joint-angle frame for {self.cfg.h2_silence_ms} ms (kernel timer)",
+                )
+            return
+        at = self._arrival(ev.frame)
+        frame = h2.decode(ev.frame)
+        # A malformed frame ends the good stream from its arrival; the kernel's timer takes it
+        # as life, so the silence is judged here from then on (``_check_silence``).
+        was_alive, self._h2_alive = self._h2_alive, isinstance(frame, h2.JointAngles)
+        if self._h2_alive or was_alive:  # good frames streamed up to this one
+            self.last_h2 = at
+        if isinstance(frame, h2.Unknown):
+            self._malformed(ev.frame, frame.reason)
 
     def behind_s(self) -> float:
         """How far behind the bus its reader is (0: current): a CPU too busy to let it read."""
@@ -186,7 +238,10 @@ class Watchdog:
             self._repeats = [t for t in self._repeats if t > now]
         if due:
             self.send_safe_action()
-        silent = self.h2_silent_for()
+        silent = self.h2_silent_for()  # with the kernel timing the frames: its news, taken now
+        if self.cyclic is not None:
+            self._check_silence(time.monotonic())
+            return
         backstop = self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S
         if self.armed and silent is not None and silent > backstop:
             self.trip(
@@ -198,7 +253,7 @@ class Watchdog:
     def next_due(self) -> float:
         """When ``check`` has something to do next (monotonic): a repeat, or the backstop."""
         due = min(self._repeats, default=float("inf"))
-        if self.armed and self.last_h2 is not None:
+        if self.armed and self.last_h2 is not None and self.cyclic is None:
             due = min(due, self.last_h2 + self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S)
         return due
 
@@ -214,7 +269,7 @@ class Watchdog:
         """Silence while armed up to ``at``: a frame's arrival, or now when the socket was found
         empty (every frame that came before ``at`` has then been read)."""
         armed_at = self._armed_at
-        if not self.armed or armed_at is None:
+        if not self.armed or armed_at is None or (self.cyclic is not None and self._h2_alive):
             return
         since = armed_at if self.last_h2 is None else max(self.last_h2, armed_at)
         silent, limit = at - since, self.cfg.h2_silence_ms / 1000
@@ -237,6 +292,8 @@ class Watchdog:
     def _listen(self) -> None:
         limit = self.cfg.h2_silence_ms / 1000
         poke = [self._poke_r.fileno()]
+        if self.cyclic is not None:
+            poke.append(self.cyclic.fileno())
         while not self._stop.is_set():
             armed = self.armed
             silent = self.h2_silent_for()
@@ -254,6 +311,7 @@ class Watchdog:
             now = time.monotonic()
             with contextlib.suppress(BlockingIOError, OSError):
                 self._poke_r.recv(64)
+            self._take_cyclic()
             # How late it looked: after the deadline it slept to, or after the frame that woke it.
             due = start + timeout
             for msg in frames:
@@ -315,3 +373,5 @@ class Watchdog:
             self._rx.join(1)
         self._poke_r.close()
         self._poke_w.close()
+        if self.cyclic is not None:
+            self.cyclic.close()

@@ -220,3 +220,128 @@ def test_only_the_cycle_end_wakes_a_reader_on_socketcan(vcan0: str) -> None:
     finally:
         reader.close()
         tx.shutdown()
+
+
+ANGLES_LEN = len(h2.encode(h2.JointAngles(40, 60, 0, 40, 60, 0)).data)  # the contract's (6)
+
+
+def _angles(length: int = ANGLES_LEN) -> can.Message:
+    """An H2 joint-angle frame (id 110) of ``length`` bytes (the contract's by default)."""
+    return can.Message(arbitration_id=h2.JOINT_ANGLES, data=bytes(length), is_extended_id=False)
+
+
+def test_kernel_timer_tells_only_the_start_a_length_change_and_silence(vcan0: str) -> None:
+    """The broadcast manager's receive op (exolink.cyclic): a steady stream of the id reaches
+    user space once; a frame of another length is reported (then the return to the contract's); frames of
+    other ids, or the id as an extended frame, neither report nor keep it alive; the silence is
+    one timeout; the stream's return is reported with its kernel time."""
+    from exolink.cyclic import CyclicWatch
+
+    tx = listener(vcan0)
+    # Generous for one UML CPU on a shared host (the guest was seen to stop for 143 ms).
+    with CyclicWatch(vcan0, h2.JOINT_ANGLES, 1.0) as watch:
+        for _ in range(60):
+            tx.send(_angles())
+            time.sleep(0.005)
+        first = watch.poll()
+        assert [len(e.frame.data) for e in first if e.frame] == [ANGLES_LEN] and len(first) == 1
+        tx.send(_angles(8))
+        for _ in range(5):
+            tx.send(_angles())
+        time.sleep(0.1)
+        changed = watch.poll()
+        assert [len(e.frame.data) for e in changed if e.frame] == [8, ANGLES_LEN]
+        assert len(changed) == 2
+        for _ in range(10):  # neither is the watched frame
+            tx.send(can.Message(arbitration_id=120, data=bytes(8), is_extended_id=False))
+            tx.send(can.Message(arbitration_id=h2.JOINT_ANGLES, data=bytes(8), is_extended_id=True))
+            time.sleep(0.1)
+        silent = watch.poll()
+        assert [e.frame for e in silent] == [None]  # one timeout, nothing else
+        sent = time.time()
+        tx.send(_angles())
+        time.sleep(0.1)
+        resumed = watch.poll()
+        assert len(resumed) == 1 and resumed[0].frame is not None
+        assert resumed[0].frame.arbitration_id == h2.JOINT_ANGLES
+        assert abs(resumed[0].at - sent) < 1.0  # the frame's kernel receive time (wall clock)
+    tx.shutdown()
+
+
+def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
+    vcan0: str,
+) -> None:
+    """The board's watchdog: the kernel times the H2 angle frames, none is read by Python while
+    they stream; armed, their silence trips it and the safe action reaches the bus; a stream of
+    malformed (8-byte) angle frames, which the kernel's timer takes as life, trips it too."""
+    import threading
+
+    from exolink.config import WatchdogConfig
+    from exolink.cyclic import CyclicWatch
+    from exolink.supervisor.watchdog import Watchdog
+
+    limit_s = 1.0  # wide for the UML guest, as write_config's
+    cfg = WatchdogConfig(h2_silence_ms=int(limit_s * 1000))
+    reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [h2.JOINT_CONTROL])
+    published: list = []
+    wd = Watchdog(cfg, reader, published.append, CyclicWatch(vcan0, h2.JOINT_ANGLES, limit_s))
+    tx = listener(vcan0)
+    rx = can.Bus(
+        interface="socketcan",
+        channel=vcan0,
+        receive_own_messages=False,
+        can_filters=[{"can_id": h2.JOINT_CONTROL, "can_mask": 0x7FF}],
+    )
+    length = {"n": ANGLES_LEN}
+    stop = threading.Event()
+
+    def stream() -> None:
+        while not stop.is_set():
+            tx.send(_angles(length["n"]))
+            time.sleep(0.01)
+
+    def until(pred, timeout: float = 10.0) -> bool:  # type: ignore[no-untyped-def]
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return True
+            time.sleep(0.02)
+        return False
+
+    h2_tx = threading.Thread(target=stream, daemon=True)
+    try:
+        wd.start()
+        h2_tx.start()
+        assert until(lambda: wd.h2_silent_for() == 0.0)
+        wd.arm([])
+        time.sleep(2 * limit_s)  # streaming: armed throughout
+        assert wd.snapshot().state == "armed"
+        assert reader.frames == 0  # not one angle frame (~200 sent) was read in Python
+        drain(rx, 0.1)
+        stop.set()
+        h2_tx.join()
+        assert until(lambda: wd.snapshot().state == "tripped")
+        s = wd.snapshot()
+        assert s.reason == "h2 data silent" and "kernel timer" in s.detail
+        frames = [h2.decode(m) for m in drain(rx, 1.0, {h2.JOINT_CONTROL})]
+        assert {f for f in frames if isinstance(f, h2.JointControl) and f.mode == 4} == {
+            h2.JointControl(m, 4, 0, 0) for m in range(1, 7)
+        }
+        # Malformed frames keep the kernel's timer going; they are not H2 data here.
+        stop.clear()
+        h2_tx = threading.Thread(target=stream, daemon=True)
+        h2_tx.start()
+        assert until(lambda: wd.h2_silent_for() == 0.0)
+        wd.arm([])
+        length["n"] = 8
+        assert until(lambda: wd.snapshot().state == "tripped")
+        s = wd.snapshot()
+        assert s.reason == "h2 data silent" and "110 bad length" in s.malformed
+        assert wd.h2_silent_for() is not None and wd.h2_silent_for() > 0
+    finally:
+        stop.set()
+        h2_tx.join(2)
+        wd.close()
+        reader.close()
+        tx.shutdown()
+        rx.shutdown()

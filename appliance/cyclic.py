@@ -1,0 +1,129 @@
+"""The kernel's CAN broadcast manager (can-bcm) watching a periodic id: silence judged by a kernel
+timer, not by a Python read of every frame.
+
+The watchdog must know within ``h2_silence_ms`` that the H2 stopped. Reading each angle frame
+(100/s) in Python for that cost most of the watchdog's CPU on the board proxy, where its thread
+fell a minute behind the bus and arming was refused. An ``RX_SETUP`` with a receive timeout does
+the same in the kernel: every frame of the id restarts an hrtimer, and user space hears only
+of changes:
+
+- the first frame, and the first after each silence (``RX_ANNOUNCE_RESUME``): ``RX_CHANGED``
+  with the frame and its kernel receive time;
+- a frame whose length differs from the last one's (``RX_CHECK_DLC``; the content mask is all
+  zero, so content never counts): ``RX_CHANGED``, so a malformed frame is seen even though the
+  kernel's timer takes any length as life;
+- no frame for the timeout: one ``RX_TIMEOUT``.
+
+While the H2 streams well-formed frames nothing reaches this process at all. SocketCAN only:
+the simulated bus (udp_multicast) has no broadcast manager, and there the watchdog reads every
+frame as before. ``struct bcm_msg_head`` per linux/can/bcm.h; its timevals are C longs (4 bytes
+on the A8, 8 on x86-64), hence the native struct format, padded to the 8-byte alignment of the
+CAN frame that follows.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import time
+from typing import NamedTuple
+
+from exolink.canbus import SO_TIMESTAMPNS, CanOpenError, Frame
+
+_HEAD_FMT = "@3I4l2I"
+_HEAD = struct.Struct(_HEAD_FMT + "x" * (-struct.calcsize(_HEAD_FMT) % 8))
+_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: id, len, pad, res0, len8_dlc, data
+_TIMESPEC = struct.Struct("@ll")
+_CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
+_ANC = socket.CMSG_SPACE(_TIMESPEC.size)
+_FULL = _HEAD.size + _FRAME.size
+_FLAGS = (
+    socket.CAN_BCM_SETTIMER
+    | socket.CAN_BCM_STARTTIMER
+    | socket.CAN_BCM_RX_CHECK_DLC
+    | socket.CAN_BCM_RX_ANNOUNCE_RESUME
+)
+
+
+class Event(NamedTuple):
+    """A notification: a frame (the first, the first after a silence, or one whose length
+    changed), or ``frame`` None: the timeout passed without a frame. ``at``: wall time (the
+    frame's kernel receive time; for a timeout, when it was read)."""
+
+    at: float
+    frame: Frame | None
+
+
+class CyclicWatch:
+    """One broadcast-manager receive op on ``channel``: ``can_id`` expected at least every
+    ``timeout_s``. ``fileno`` is readable when a notification waits; ``poll`` takes them all."""
+
+    def __init__(self, channel: str, can_id: int, timeout_s: float) -> None:
+        if not 0 < timeout_s < 60:
+            raise ValueError(f"broadcast-manager timeout must be in (0, 60) s, got {timeout_s}")
+        self.can_id, self.timeout_s = can_id, timeout_s
+        try:
+            self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
+        except OSError as exc:
+            raise CanOpenError(f"cannot open a CAN broadcast-manager socket: {exc}") from exc
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            self._sock.connect((channel,))
+            self._sock.setblocking(False)
+            sec, usec = int(timeout_s), round((timeout_s % 1) * 1e6)
+            head = _HEAD.pack(socket.CAN_BCM_RX_SETUP, _FLAGS, 0, sec, usec, 0, 0, can_id, 1)
+            self._sock.send(head + _FRAME.pack(can_id, 0, bytes(8)))  # mask: no content compared
+        except OSError as exc:
+            self._sock.close()
+            raise CanOpenError(
+                f"cannot set up the CAN broadcast manager on {channel} for id {can_id}: {exc} "
+                "(is the can-bcm module available? `modprobe can-bcm`)"
+            ) from exc
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def poll(self) -> list[Event]:
+        """Every notification queued now, in order; never blocks."""
+        out: list[Event] = []
+        while True:
+            try:
+                data, anc, _flags, _addr = self._sock.recvmsg(_FULL, _ANC)
+            except BlockingIOError:
+                return out
+            if len(data) < _HEAD.size:
+                continue
+            head = _HEAD.unpack_from(data)
+            opcode, nframes = head[0], head[-1]
+            if opcode == socket.CAN_BCM_RX_TIMEOUT:
+                out.append(Event(time.time(), None))
+            elif opcode == socket.CAN_BCM_RX_CHANGED and nframes and len(data) >= _FULL:
+                out.append(self._changed(data, anc))
+
+    def _changed(self, data: bytes, anc: list[tuple[int, int, bytes]]) -> Event:
+        raw_id, length, payload = _FRAME.unpack_from(data, _HEAD.size)
+        at = time.time()
+        for level, kind, value in anc:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 8:
+                sec, ns = _TIMESPEC.unpack_from(value)
+                if sec:  # 0: the kernel had no receive time for it
+                    at = sec + ns * 1e-9
+        frame = Frame(
+            at,
+            raw_id & 0x1FFFFFFF if raw_id & _CAN_EFF_FLAG else raw_id & 0x7FF,
+            payload[: min(length, 8)],
+            bool(raw_id & _CAN_EFF_FLAG),
+            bool(raw_id & _CAN_RTR_FLAG),
+            bool(raw_id & _CAN_ERR_FLAG),
+        )
+        return Event(at, frame)
+
+    def close(self) -> None:
+        """Closing the socket deletes its receive op in the kernel."""
+        self._sock.close()
+
+    def __enter__(self) -> CyclicWatch:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
