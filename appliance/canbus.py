@@ -49,7 +49,8 @@ def open_bus(
     filters: list[dict[str, int | bool]] | None = None,
     receive_own_messages: bool = False,
 ) -> can.BusABC:
-    """Open the configured bus; failures name the interface and the likely fix."""
+    """Open the configured bus; failures name the interface and the likely fix. ``filters``
+    None: every frame; ``[]``: none (a bus that only sends)."""
     import can
 
     try:
@@ -62,9 +63,19 @@ def open_bus(
             "channel": cfg.channel,
             "receive_own_messages": receive_own_messages,
         }
-        if filters is not None:
+        if filters:
             kwargs["can_filters"] = filters
-        return can.Bus(**kwargs)
+        bus = can.Bus(**kwargs)
+        if filters == [] and cfg.interface == "socketcan":
+            # python-can takes [] as "no filter" and receives every frame; a bus that only
+            # sends must receive none (the kernel queued the whole bus for each such socket,
+            # unread). No filter at all is the kernel's "receive nothing".
+            try:
+                bus.socket.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")
+            except OSError:
+                bus.shutdown()
+                raise
+        return bus
     except (OSError, can.CanError, ValueError) as exc:
         raise CanOpenError(_explain(cfg, exc)) from exc
 

@@ -1,5 +1,5 @@
-"""The kernel's CAN broadcast manager (can-bcm) watching a periodic id: silence judged by a kernel
-timer, not by a Python read of every frame.
+"""The kernel's CAN broadcast manager (can-bcm) watching an id: silence judged by a kernel timer
+and content compared in the kernel, not by a Python read of every frame.
 
 The watchdog must know within ``h2_silence_ms`` that the H2 stopped. Reading each angle frame
 (100/s) in Python for that cost most of the watchdog's CPU on the board proxy, where its thread
@@ -14,7 +14,11 @@ of changes:
   kernel's timer takes any length as life;
 - no frame for the timeout: one ``RX_TIMEOUT``.
 
-While the H2 streams well-formed frames nothing reaches this process at all. SocketCAN only:
+While the H2 streams well-formed frames nothing reaches this process at all. Without a timeout
+(``timeout_s`` 0) an op only compares: the watchdog's op on id 70 has the mode byte in its mask,
+so a joint-control frame reaches it when the mode (or the length) differs from the last frame's:
+the first motion frame after a disable, never the MACCEPA board 0 traffic that shares the id.
+SocketCAN only:
 the simulated bus (udp_multicast) has no broadcast manager, and there the watchdog reads every
 frame as before. ``struct bcm_msg_head`` per linux/can/bcm.h; its timevals are C longs (4 bytes
 on the A8, 8 on x86-64), hence the native struct format, padded to the 8-byte alignment of the
@@ -37,12 +41,7 @@ _TIMESPEC = struct.Struct("@ll")
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _ANC = socket.CMSG_SPACE(_TIMESPEC.size)
 _FULL = _HEAD.size + _FRAME.size
-_FLAGS = (
-    socket.CAN_BCM_SETTIMER
-    | socket.CAN_BCM_STARTTIMER
-    | socket.CAN_BCM_RX_CHECK_DLC
-    | socket.CAN_BCM_RX_ANNOUNCE_RESUME
-)
+_TIMER = socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_RX_ANNOUNCE_RESUME
 
 
 class Event(NamedTuple):
@@ -56,11 +55,17 @@ class Event(NamedTuple):
 
 class CyclicWatch:
     """One broadcast-manager receive op on ``channel``: ``can_id`` expected at least every
-    ``timeout_s``. ``fileno`` is readable when a notification waits; ``poll`` takes them all."""
+    ``timeout_s`` (0: no timer), frames reported when their length or the bits of ``mask``
+    differ from the last reported one's. ``fileno`` is readable when a notification waits;
+    ``poll`` takes them all."""
 
-    def __init__(self, channel: str, can_id: int, timeout_s: float) -> None:
-        if not 0 < timeout_s < 60:
-            raise ValueError(f"broadcast-manager timeout must be in (0, 60) s, got {timeout_s}")
+    def __init__(
+        self, channel: str, can_id: int, timeout_s: float = 0.0, mask: bytes = bytes(8)
+    ) -> None:
+        if not 0 <= timeout_s < 60:
+            raise ValueError(f"broadcast-manager timeout must be in [0, 60) s, got {timeout_s}")
+        if len(mask) != 8:
+            raise ValueError(f"broadcast-manager mask must be 8 bytes, got {len(mask)}")
         self.can_id, self.timeout_s = can_id, timeout_s
         try:
             self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
@@ -71,8 +76,9 @@ class CyclicWatch:
             self._sock.connect((channel,))
             self._sock.setblocking(False)
             sec, usec = int(timeout_s), round((timeout_s % 1) * 1e6)
-            head = _HEAD.pack(socket.CAN_BCM_RX_SETUP, _FLAGS, 0, sec, usec, 0, 0, can_id, 1)
-            self._sock.send(head + _FRAME.pack(can_id, 0, bytes(8)))  # mask: no content compared
+            flags = socket.CAN_BCM_RX_CHECK_DLC | (_TIMER if timeout_s else 0)
+            head = _HEAD.pack(socket.CAN_BCM_RX_SETUP, flags, 0, sec, usec, 0, 0, can_id, 1)
+            self._sock.send(head + _FRAME.pack(can_id, 8, mask))
         except OSError as exc:
             self._sock.close()
             raise CanOpenError(

@@ -34,6 +34,7 @@ from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
+MODE_BYTE = bytes([0, 0xFF, 0, 0, 0, 0, 0, 0])  # H2 joint control: byte 1 is the mode
 MAX_SLEEP_S = 0.1  # the loop looks at least this often, whatever its deadlines say
 STARTING_SLEEP_S = 0.02  # while a node awaits its first beat (its priority comes with it)
 HEALTH_PERIOD_S = 2.0
@@ -103,32 +104,30 @@ class Supervisor:
                 canlink.check_overlay()
             if cfg.can.bring_up:
                 canlink.bring_up(cfg.can)
-        # Joint-angle frames never wake the watchdog (it reads them by its silence deadline);
-        # joint-control frames do while not armed, to answer a motion frame at once.
-        # On SocketCAN the kernel's broadcast manager times the angle frames (exolink.cyclic):
-        # the watchdog's socket then takes id 70 only.
-        cyclic = None
-        if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
-            from exolink.cyclic import CyclicWatch
-
-            cyclic = CyclicWatch(cfg.can.channel, h2.JOINT_ANGLES, cfg.watchdog.h2_silence_ms / 1e3)
+        # On SocketCAN the kernel's broadcast manager watches ids 110 and 70 for the watchdog
+        # (exolink.cyclic) and its own socket only sends; the simulated bus has no such thing.
+        watches: list[Any] = []
         try:
-            self.reader = (
-                open_reader(
+            if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
+                from exolink.cyclic import CyclicWatch
+
+                limit_s = cfg.watchdog.h2_silence_ms / 1e3
+                watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_ANGLES, limit_s))
+                watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_CONTROL, mask=MODE_BYTE))
+                self.reader = open_reader(cfg.can, [])
+            else:  # angle frames never wake it (read by their silence deadline); id 70 does
+                self.reader = open_reader(
                     cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL]
                 )
-                if cyclic is None
-                else open_reader(cfg.can, [h2.JOINT_CONTROL])
-            )
         except BaseException:
-            if cyclic is not None:
-                cyclic.close()
+            for w in watches:
+                w.close()
             raise
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
-        self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog, cyclic)
+        self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog, *watches)
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
         # The first link check imports pyroute2 (~4 s on an emulated A8): here, before READY, not

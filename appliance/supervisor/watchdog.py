@@ -22,9 +22,13 @@ ten wake-ups a second while the H2 streams, none per frame); not armed, a joint-
 every half silence limit so that arming sees fresh H2 data. Arming, disarming and trips wake it
 through a socket pair to switch between the two.
 
-On SocketCAN the angle frames are not read at all: the kernel's broadcast manager times them
-(exolink.cyclic) and this thread hears only of a silence, a resumption or a frame whose length
-changed; a silence while armed trips at once. The simulated bus has no broadcast manager, and
+On SocketCAN no frame is read at all: the kernel's broadcast manager (exolink.cyclic) times the
+angle frames and this thread hears only of a silence, a resumption or a frame whose length
+changed (a silence while armed trips at once); on id 70 it hears of a frame whose mode byte or
+length differs from the last one's: the first motion frame after the safe action (which the op
+sees too), not MACCEPA board 0's 100 frames/s on the same id. A burst of motion frames while not
+armed is answered once, at its first frame, with the safe action; the next motion frame after
+that is a change again. The simulated bus has no broadcast manager, and
 there the angle frames are read and judged as above. Both ways, the periodic check on the
 supervisor's loop takes the kernel's news too, so a stalled listener cannot hide a silence.
 
@@ -86,12 +90,15 @@ class Watchdog:
         cfg: WatchdogConfig,
         reader: FrameReader,
         publish: Publish,
-        cyclic: CyclicWatch | None = None,
+        angles: CyclicWatch | None = None,
+        control: CyclicWatch | None = None,
     ) -> None:
-        """``cyclic``: the kernel times the angle frames (``reader`` then reads id 70 only)."""
+        """``angles`` / ``control``: the kernel watches ids 110 and 70 (``reader`` then only
+        sends)."""
         self.cfg = cfg
         self.reader = reader
-        self.cyclic = cyclic
+        self.cyclic = angles
+        self.control = control
         self._cyclic_lock = threading.Lock()
         self._h2_alive = False  # with ``cyclic``: well-formed angle frames stream, per the kernel
         self.bus = reader.bus
@@ -205,6 +212,10 @@ class Watchdog:
         with self._cyclic_lock:
             for ev in self.cyclic.poll():
                 self._cyclic_event(ev)
+            for ev in self.control.poll() if self.control is not None else ():
+                if ev.frame is not None:
+                    self._read_lag(max(0.0, time.time() - ev.frame.timestamp))
+                    self._judge(ev.frame)
 
     def _cyclic_event(self, ev: Event) -> None:
         if ev.frame is None:  # no angle frame for the limit: the kernel's timer ran out
@@ -292,8 +303,7 @@ class Watchdog:
     def _listen(self) -> None:
         limit = self.cfg.h2_silence_ms / 1000
         poke = [self._poke_r.fileno()]
-        if self.cyclic is not None:
-            poke.append(self.cyclic.fileno())
+        poke += [w.fileno() for w in (self.cyclic, self.control) if w is not None]
         while not self._stop.is_set():
             armed = self.armed
             silent = self.h2_silent_for()
@@ -373,5 +383,6 @@ class Watchdog:
             self._rx.join(1)
         self._poke_r.close()
         self._poke_w.close()
-        if self.cyclic is not None:
-            self.cyclic.close()
+        for watch in (self.cyclic, self.control):
+            if watch is not None:
+                watch.close()

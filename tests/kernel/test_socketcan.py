@@ -51,6 +51,23 @@ def test_bus_factory_kernel_filters(vcan0: str) -> None:
         tx.shutdown()
 
 
+def test_a_send_only_bus_receives_nothing(vcan0: str) -> None:
+    """``open_bus(filters=[])`` (the h2 sender's, pattern player's, controller manager's and
+    watchdog's send buses): python-can takes [] as no filter and the kernel queued every frame
+    of the bus on such a socket, never read; it must send and receive nothing."""
+    send_only = open_bus(CanConfig(interface="socketcan", channel=vcan0), filters=[])
+    other = listener(vcan0)
+    try:
+        for fid in (70, 110, 120):
+            other.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
+        send_only.send(can.Message(arbitration_id=85, data=b"\x01", is_extended_id=False))
+        assert send_only.recv(0.3) is None
+        assert [m.arbitration_id for m in drain(other, 0.3)] == [85]
+    finally:
+        send_only.shutdown()
+        other.shutdown()
+
+
 def test_netlink_up_down_and_bitrate_refusal(vcan0: str) -> None:
     monitor = canlink.LinkMonitor(vcan0)  # the supervisor's periodic check
     canlink.set_state(vcan0, up=False)
@@ -271,20 +288,29 @@ def test_kernel_timer_tells_only_the_start_a_length_change_and_silence(vcan0: st
 def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
     vcan0: str,
 ) -> None:
-    """The board's watchdog: the kernel times the H2 angle frames, none is read by Python while
-    they stream; armed, their silence trips it and the safe action reaches the bus; a stream of
-    malformed (8-byte) angle frames, which the kernel's timer takes as life, trips it too."""
+    """The board's watchdog: the kernel times the H2 angle frames and compares id 70's mode
+    byte; Python reads no frame. Not armed, MACCEPA board 0's frames on id 70 go unseen and a
+    position frame is answered with the safe action (and the next one after it again); armed, a
+    silence of the angles trips it; a stream of malformed (8-byte) angle frames, which the
+    kernel's timer takes as life, trips it too."""
     import threading
 
     from exolink.config import WatchdogConfig
     from exolink.cyclic import CyclicWatch
+    from exolink.supervisor.core import MODE_BYTE
     from exolink.supervisor.watchdog import Watchdog
 
     limit_s = 1.0  # wide for the UML guest, as write_config's
     cfg = WatchdogConfig(h2_silence_ms=int(limit_s * 1000))
-    reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [h2.JOINT_CONTROL])
+    reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [])  # sends only
     published: list = []
-    wd = Watchdog(cfg, reader, published.append, CyclicWatch(vcan0, h2.JOINT_ANGLES, limit_s))
+    wd = Watchdog(
+        cfg,
+        reader,
+        published.append,
+        CyclicWatch(vcan0, h2.JOINT_ANGLES, limit_s),
+        CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=MODE_BYTE),
+    )
     tx = listener(vcan0)
     rx = can.Bus(
         interface="socketcan",
@@ -313,6 +339,17 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         wd.start()
         h2_tx.start()
         assert until(lambda: wd.h2_silent_for() == 0.0)
+        # MACCEPA board 0's controller frames (id 70, 8 bytes) at 100 Hz: not H2 motion
+        for i in range(100):
+            tx.send(can.Message(arbitration_id=70, data=bytes([i, 0, 5, 0, 7, 0, 0, 0])))
+            time.sleep(0.01)
+        assert wd.snapshot().violations == 0
+        drain(rx, 0.2)
+        for n in (1, 2):  # each answered: the safe action between them is a change of mode
+            tx.send(h2.encode_joint_control(2, h2.MODES["position"], 20, 0))
+            assert until(lambda: wd.snapshot().violations == n)  # noqa: B023
+            got = {h2.decode(m) for m in drain(rx, 0.5, {h2.JOINT_CONTROL})}
+            assert {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)} <= got
         wd.arm([])
         time.sleep(2 * limit_s)  # streaming: armed throughout
         assert wd.snapshot().state == "armed"
