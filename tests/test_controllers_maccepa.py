@@ -347,3 +347,21 @@ def test_bridge_forwards_through_the_manager(routed, mbus) -> None:  # type: ign
     assert ctl(app, "activate", "m0b").returncode == 0
     r = app.cli("maccepa", "0", "setpoint", "10")
     assert r.returncode == 5 and "maccepa0 is driven by controller m0b" in r.stderr, r.stderr
+
+
+def test_board_0_frames_on_id_70_are_not_malformed_for_a_manager_without_boards() -> None:
+    """Id 70 is H2 joint control (6 bytes) and MACCEPA board 0's controller frame (8 bytes): a
+    manager that drives no board skips board 0's frames instead of counting them malformed (the
+    board proxy's manager counted 93 in its first second); a 7-byte id-70 frame still counts."""
+    import structlog
+    from exolink.canbus import Frame
+    from exolink.nodes.controller_manager import ControllerManagerNode
+    from exolink.protocol import h2
+
+    node = ControllerManagerNode.__new__(ControllerManagerNode)  # _decode alone: no transport
+    node.board_ids, node.malformed, node.log = set(), {}, structlog.get_logger()
+    board0 = Frame(0.0, h2.JOINT_CONTROL, bytes([10, 0, 20, 0, 9, 0, 0, 0]))  # what board 0 sends
+    assert isinstance(node._decode(board0), maccepa.Controller)
+    assert node.malformed == {}
+    node._decode(Frame(0.0, 70, bytes(7)))
+    assert node.malformed == {"70 bad length": 1}

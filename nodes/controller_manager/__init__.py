@@ -365,12 +365,14 @@ class ControllerManagerNode(Node):
         if not isinstance(d, h2.Unknown):
             return d
         reason = d.reason
-        if self.board_ids:
-            m = maccepa.decode(f)
-            if not isinstance(m, maccepa.Unknown):
-                return m
-            if m.reason != "unknown id":  # a MACCEPA id: its contract's reason
-                reason = m.reason
+        # Also without configured boards: id 70 is MACCEPA board 0's too (8 bytes), which is
+        # not a malformed H2 frame (the board proxy counted 93 in a second). Unconfigured
+        # boards' frames are then skipped (_board_frame).
+        m = maccepa.decode(f)
+        if not isinstance(m, maccepa.Unknown):
+            return m
+        if self.board_ids and m.reason != "unknown id":  # a MACCEPA id: its contract's reason
+            reason = m.reason
         key = f"{f.arbitration_id} {reason}"
         n = self.malformed[key] = self.malformed.get(key, 0) + 1
         if n == 1 or n % 1000 == 0:
