@@ -319,11 +319,13 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         can_filters=[{"can_id": h2.JOINT_CONTROL, "can_mask": 0x7FF}],
     )
     length = {"n": ANGLES_LEN}
+    last_sent = [0.0]
     stop = threading.Event()
 
     def stream() -> None:
         while not stop.is_set():
             tx.send(_angles(length["n"]))
+            last_sent[0] = time.time()
             time.sleep(0.01)
 
     def until(pred, timeout: float = 10.0) -> bool:  # type: ignore[no-untyped-def]
@@ -360,10 +362,20 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         assert until(lambda: wd.snapshot().state == "tripped")
         s = wd.snapshot()
         assert s.reason == "h2 data silent" and "kernel timer" in s.detail
-        frames = [h2.decode(m) for m in drain(rx, 1.0, {h2.JOINT_CONTROL})]
+        got = drain(rx, 1.0, {h2.JOINT_CONTROL})
+        frames = [h2.decode(m) for m in got]
         assert {f for f in frames if isinstance(f, h2.JointControl) and f.mode == 4} == {
             h2.JointControl(m, 4, 0, 0) for m in range(1, 7)
         }
+        # a figure, not a bound: last angle frame -> first disable frame (kernel time)
+        first = min(m.timestamp for m, f in zip(got, frames, strict=True) if f.mode == 4)
+        reaction = {
+            "limit_ms": limit_s * 1e3,
+            "silence_to_disable_ms": (first - last_sent[0]) * 1e3,
+        }
+        print("kernel-timed silence in the UML guest:", json.dumps(reaction))
+        out = Path(os.environ.get("EXOLINK_KERNEL_RESULTS", "/tmp")) / "kernel-silence.json"
+        out.write_text(json.dumps(reaction))
         # Malformed frames keep the kernel's timer going; they are not H2 data here.
         stop.clear()
         h2_tx = threading.Thread(target=stream, daemon=True)
