@@ -286,7 +286,7 @@ def test_kernel_timer_tells_only_the_start_a_length_change_and_silence(vcan0: st
 
 
 def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
-    vcan0: str,
+    vcan0: str, tmp_path: Path
 ) -> None:
     """The board's watchdog: the kernel times the H2 angle frames and compares id 70's mode
     byte; Python reads no frame. Not armed, MACCEPA board 0's frames on id 70 go unseen and a
@@ -374,7 +374,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
             "silence_to_disable_ms": (first - last_sent[0]) * 1e3,
         }
         print("kernel-timed silence in the UML guest:", json.dumps(reaction))
-        out = Path(os.environ.get("EXOLINK_KERNEL_RESULTS", "/tmp")) / "kernel-silence.json"
+        out = Path(os.environ.get("EXOLINK_KERNEL_RESULTS", tmp_path)) / "kernel-silence.json"
         out.write_text(json.dumps(reaction))
         # Malformed frames keep the kernel's timer going; they are not H2 data here.
         stop.clear()
