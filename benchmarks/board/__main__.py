@@ -114,6 +114,8 @@ def table(result: dict[str, Any]) -> str:
     row("pattern timing p99 dev ms", *pair("window", "timing", "p99_dev_ms"))
     row("pattern timing max dev ms", *pair("window", "timing", "max_dev_ms"))
     row("pattern timing mean period ms", *pair("window", "timing", "mean_period_ms"))
+    row("H2 angle frames (110) n in window", *pair("window", "angles", "n"))
+    row("H2 angle frames max dev ms", *pair("window", "angles", "max_dev_ms"))
     row("watchdog trips in window", *pair("derived", "watchdog_trips_in_window"))
     row("watchdog state at end", *pair("derived", "watchdog_state_end"))
     row("watchdog reason", *pair("derived", "watchdog_reason_end"))

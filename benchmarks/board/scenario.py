@@ -31,6 +31,8 @@ HANDSHAKE_S = 60.0
 PATTERN_JOINTS = ["r_hip", "r_knee", "l_hip", "l_knee"]
 PATTERN_SPEED = 10
 TIMING_QUERY = {"id": 70, "byte0": 1, "dlc": 6}  # r_hip's set-points (H2 joint control)
+# The H2 stand-in's angle frames on the bus (kernel times): whether a silence trip was a real gap.
+ANGLES_QUERY = {"id": 110, "expected_ms": 10}
 
 
 # Watchdog timings: "stock" is board.yaml's (only start_grace_ms is raised: imports under TCG);
@@ -256,16 +258,16 @@ def counters(laptop: Laptop) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def timing_query(laptop: Laptop, seconds: float) -> Iterator[dict[str, Any]]:
-    """The timing monitor's period deviation of the pattern's frames over the window."""
+def timing_query(
+    laptop: Laptop, seconds: float, query: dict[str, Any] = TIMING_QUERY
+) -> Iterator[dict[str, Any]]:
+    """The timing monitor's period deviation of ``query``'s frames over the window."""
     result: dict[str, Any] = {}
 
     def ask() -> None:
         try:
             result.update(
-                laptop.call(
-                    "timing", body={**TIMING_QUERY, "seconds": seconds}, timeout=seconds + 60
-                )
+                laptop.call("timing", body={**query, "seconds": seconds}, timeout=seconds + 60)
             )
         except messaging.Unreachable as exc:
             result["error"] = str(exc)
@@ -289,10 +291,12 @@ def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float)
         return {"error": f"probe ended before its first snapshot: {line!r}"}
     t0 = time.monotonic()
     timing: dict[str, Any] = {}
+    angles: dict[str, Any] = {}
     with contextlib.ExitStack() as stack:
         if laptop is not None:
             laptop.joint_states.counting = True
             timing = stack.enter_context(timing_query(laptop, seconds))
+            angles = stack.enter_context(timing_query(laptop, seconds, ANGLES_QUERY))
         result = ""
         for line in probe.stdout:
             if line.startswith("PROBE_RESULT "):
@@ -305,6 +309,7 @@ def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float)
     return out | {
         "joint_states": laptop.joint_states.summary(t0, seconds),
         "timing": timing,
+        "angles": angles,
         "before": before,
         "after": counters(laptop),
     }
