@@ -66,7 +66,6 @@ class CyclicWatch:
             raise ValueError(f"broadcast-manager timeout must be in [0, 60) s, got {timeout_s}")
         if len(mask) != 8:
             raise ValueError(f"broadcast-manager mask must be 8 bytes, got {len(mask)}")
-        self.can_id, self.timeout_s = can_id, timeout_s
         try:
             self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
         except OSError as exc:

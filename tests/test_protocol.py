@@ -166,3 +166,15 @@ def test_layout_cache_is_used(tmp_path, monkeypatch) -> None:  # type: ignore[no
     assert len(cached) == 1
     dbc.load.cache_clear()
     assert dbc.load(dbc.bundled("h2")).by_id.keys() == first.by_id.keys()
+
+
+def test_mode_mask_covers_the_joint_control_mode_byte_only() -> None:
+    """The watchdog's broadcast-manager op on id 70 compares these bits (h2.dbc's mode)."""
+    mask = int.from_bytes(h2.MODE_MASK, "little")
+    position = h2.encode_joint_control(1, "position", 20, 0).data
+    disabled = h2.encode_joint_control(3, "disabled", 0, 0).data
+    assert len(h2.MODE_MASK) == 8
+    changed = int.from_bytes(bytes(position) + bytes(2), "little") ^ int.from_bytes(
+        bytes(disabled) + bytes(2), "little"
+    )
+    assert changed & mask == (1 ^ 4) << 8  # only the mode byte, not the motor or set-point

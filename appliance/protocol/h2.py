@@ -8,6 +8,7 @@ Encoding validates everything first and raises ProtocolError: an invalid command
 from __future__ import annotations
 
 import math
+import struct
 from typing import NamedTuple
 
 import can
@@ -114,6 +115,16 @@ class _Table:
 
 _TABLE = _Table()
 RANGES: dict[str, tuple[int, int]] = _TABLE.ranges
+
+
+def _signal_mask(cls: type, name: str) -> bytes:
+    """Eight bytes with the DBC bytes of one signal set: a content mask (can-bcm's)."""
+    sig = next(s for s in _TABLE.spec[cls].signals if s.name == name)
+    size = struct.calcsize(sig.fmt)
+    return bytes(8)[: sig.byte] + b"\xff" * size + bytes(8 - sig.byte - size)
+
+
+MODE_MASK = _signal_mask(JointControl, "mode")  # joint control's mode byte, per h2.dbc
 
 
 def decode(msg: can.Message) -> H2Frame | Unknown:

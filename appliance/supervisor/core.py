@@ -15,7 +15,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 import structlog
@@ -34,7 +34,9 @@ from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
 
-MODE_BYTE = bytes([0, 0xFF, 0, 0, 0, 0, 0, 0])  # H2 joint control: byte 1 is the mode
+if TYPE_CHECKING:
+    from exolink.cyclic import CyclicWatch
+
 MAX_SLEEP_S = 0.1  # the loop looks at least this often, whatever its deadlines say
 STARTING_SLEEP_S = 0.02  # while a node awaits its first beat (its priority comes with it)
 HEALTH_PERIOD_S = 2.0
@@ -106,14 +108,14 @@ class Supervisor:
                 canlink.bring_up(cfg.can)
         # On SocketCAN the kernel's broadcast manager watches ids 110 and 70 for the watchdog
         # (exolink.cyclic) and its own socket only sends; the simulated bus has no such thing.
-        watches: list[Any] = []
+        watches: list[CyclicWatch] = []
         try:
             if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
                 from exolink.cyclic import CyclicWatch
 
                 limit_s = cfg.watchdog.h2_silence_ms / 1e3
                 watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_ANGLES, limit_s))
-                watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_CONTROL, mask=MODE_BYTE))
+                watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_CONTROL, mask=h2.MODE_MASK))
                 self.reader = open_reader(cfg.can, [])
             else:  # angle frames never wake it (read by their silence deadline); id 70 does
                 self.reader = open_reader(

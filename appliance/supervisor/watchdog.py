@@ -97,10 +97,10 @@ class Watchdog:
         sends)."""
         self.cfg = cfg
         self.reader = reader
-        self.cyclic = angles
+        self.angles = angles
         self.control = control
-        self._cyclic_lock = threading.Lock()
-        self._h2_alive = False  # with ``cyclic``: well-formed angle frames stream, per the kernel
+        self._kernel_lock = threading.Lock()
+        self._h2_alive = False  # with ``angles``: well-formed angle frames stream, per the kernel
         self.bus = reader.bus
         self.publish = publish
         self.log = structlog.get_logger().bind(node="watchdog")
@@ -199,25 +199,25 @@ class Watchdog:
             self._armed_at, self._left_armed_at = None, now
 
     def h2_silent_for(self) -> float | None:
-        if self.cyclic is not None:
-            self._take_cyclic()
+        if self.angles is not None:
+            self._take_kernel()
             if self._h2_alive:
                 return 0.0
         return None if self.last_h2 is None else time.monotonic() - self.last_h2
 
-    def _take_cyclic(self) -> None:
+    def _take_kernel(self) -> None:
         """The broadcast manager's news since the last look (either thread may look)."""
-        if self.cyclic is None:
+        if self.angles is None:
             return
-        with self._cyclic_lock:
-            for ev in self.cyclic.poll():
-                self._cyclic_event(ev)
+        with self._kernel_lock:
+            for ev in self.angles.poll():
+                self._angles_event(ev)
             for ev in self.control.poll() if self.control is not None else ():
                 if ev.frame is not None:
                     self._read_lag(max(0.0, time.time() - ev.frame.timestamp))
                     self._judge(ev.frame)
 
-    def _cyclic_event(self, ev: Event) -> None:
+    def _angles_event(self, ev: Event) -> None:
         if ev.frame is None:  # no angle frame for the limit: the kernel's timer ran out
             self._h2_alive = False
             self.last_h2 = time.monotonic() - self.cfg.h2_silence_ms / 1000
@@ -250,7 +250,7 @@ class Watchdog:
         if due:
             self.send_safe_action()
         silent = self.h2_silent_for()  # with the kernel timing the frames: its news, taken now
-        if self.cyclic is not None:
+        if self.angles is not None:
             self._check_silence(time.monotonic())
             return
         backstop = self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S
@@ -264,7 +264,7 @@ class Watchdog:
     def next_due(self) -> float:
         """When ``check`` has something to do next (monotonic): a repeat, or the backstop."""
         due = min(self._repeats, default=float("inf"))
-        if self.armed and self.last_h2 is not None and self.cyclic is None:
+        if self.armed and self.last_h2 is not None and self.angles is None:
             due = min(due, self.last_h2 + self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S)
         return due
 
@@ -280,7 +280,7 @@ class Watchdog:
         """Silence while armed up to ``at``: a frame's arrival, or now when the socket was found
         empty (every frame that came before ``at`` has then been read)."""
         armed_at = self._armed_at
-        if not self.armed or armed_at is None or (self.cyclic is not None and self._h2_alive):
+        if not self.armed or armed_at is None or (self.angles is not None and self._h2_alive):
             return
         since = armed_at if self.last_h2 is None else max(self.last_h2, armed_at)
         silent, limit = at - since, self.cfg.h2_silence_ms / 1000
@@ -303,7 +303,7 @@ class Watchdog:
     def _listen(self) -> None:
         limit = self.cfg.h2_silence_ms / 1000
         poke = [self._poke_r.fileno()]
-        poke += [w.fileno() for w in (self.cyclic, self.control) if w is not None]
+        poke += [w.fileno() for w in (self.angles, self.control) if w is not None]
         while not self._stop.is_set():
             armed = self.armed
             silent = self.h2_silent_for()
@@ -321,7 +321,6 @@ class Watchdog:
             now = time.monotonic()
             with contextlib.suppress(BlockingIOError, OSError):
                 self._poke_r.recv(64)
-            self._take_cyclic()
             # How late it looked: after the deadline it slept to, or after the frame that woke it.
             due = start + timeout
             for msg in frames:
@@ -383,6 +382,6 @@ class Watchdog:
             self._rx.join(1)
         self._poke_r.close()
         self._poke_w.close()
-        for watch in (self.cyclic, self.control):
+        for watch in (self.angles, self.control):
             if watch is not None:
                 watch.close()

@@ -14,6 +14,7 @@ from pathlib import Path
 import can
 import pytest
 import yaml
+from conftest import wait_for
 from exolink.canbus import id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
 from exolink.protocol import h2
@@ -297,7 +298,6 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
 
     from exolink.config import WatchdogConfig
     from exolink.cyclic import CyclicWatch
-    from exolink.supervisor.core import MODE_BYTE
     from exolink.supervisor.watchdog import Watchdog
 
     limit_s = 1.0  # wide for the UML guest, as write_config's
@@ -309,7 +309,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         reader,
         published.append,
         CyclicWatch(vcan0, h2.JOINT_ANGLES, limit_s),
-        CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=MODE_BYTE),
+        CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=h2.MODE_MASK),
     )
     tx = listener(vcan0)
     rx = can.Bus(
@@ -328,19 +328,11 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
             last_sent[0] = time.time()
             time.sleep(0.01)
 
-    def until(pred, timeout: float = 10.0) -> bool:  # type: ignore[no-untyped-def]
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if pred():
-                return True
-            time.sleep(0.02)
-        return False
-
     h2_tx = threading.Thread(target=stream, daemon=True)
     try:
         wd.start()
         h2_tx.start()
-        assert until(lambda: wd.h2_silent_for() == 0.0)
+        wait_for(lambda: wd.h2_silent_for() == 0.0)
         # MACCEPA board 0's controller frames (id 70, 8 bytes) at 100 Hz: not H2 motion
         for i in range(100):
             tx.send(can.Message(arbitration_id=70, data=bytes([i, 0, 5, 0, 7, 0, 0, 0])))
@@ -349,7 +341,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         drain(rx, 0.2)
         for n in (1, 2):  # each answered: the safe action between them is a change of mode
             tx.send(h2.encode_joint_control(2, h2.MODES["position"], 20, 0))
-            assert until(lambda: wd.snapshot().violations == n)  # noqa: B023
+            wait_for(lambda: wd.snapshot().violations == n)  # noqa: B023
             got = {h2.decode(m) for m in drain(rx, 0.5, {h2.JOINT_CONTROL})}
             assert {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)} <= got
         wd.arm([])
@@ -359,7 +351,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         drain(rx, 0.1)
         stop.set()
         h2_tx.join()
-        assert until(lambda: wd.snapshot().state == "tripped")
+        wait_for(lambda: wd.snapshot().state == "tripped")
         s = wd.snapshot()
         assert s.reason == "h2 data silent" and "kernel timer" in s.detail
         got = drain(rx, 1.0, {h2.JOINT_CONTROL})
@@ -380,10 +372,10 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         stop.clear()
         h2_tx = threading.Thread(target=stream, daemon=True)
         h2_tx.start()
-        assert until(lambda: wd.h2_silent_for() == 0.0)
+        wait_for(lambda: wd.h2_silent_for() == 0.0)
         wd.arm([])
         length["n"] = 8
-        assert until(lambda: wd.snapshot().state == "tripped")
+        wait_for(lambda: wd.snapshot().state == "tripped")
         s = wd.snapshot()
         assert s.reason == "h2 data silent" and "110 bad length" in s.malformed
         assert wd.h2_silent_for() is not None and wd.h2_silent_for() > 0
