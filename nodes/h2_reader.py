@@ -1,5 +1,11 @@
 """H2 reader [thesis: H2ros]: CAN ids 110/120/130 -> ``joint_states`` and ``foot_switches``.
 
+``foot_switches`` goes out when the switches or the battery count change, stamped with that
+frame's kernel time (no transition is lost or moved), and at least every
+``foot_switches_refresh_s`` for late joiners: on the board a Zenoh sample costs ~1 ms of the one
+core (benchmarks/board/units.py), and 100 copies a second of an unchanged state were a fifth of
+the appliance's samples. ``foot_switches_refresh_s: 0`` publishes every cycle.
+
 Every message carries the CAN frame's kernel receive time, never the time Python got to it.
 A 10 ms stream makes gaps measurable: a period longer than 1.5x nominal counts the frames it
 lost. Malformed frames are counted and skipped. Counters go out on ``diagnostics`` every second.
@@ -48,6 +54,8 @@ class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # on the board a wake-up and a Zenoh hop cost more than a sample). Subscribers get every
     # sample, up to N-1 cycles later; the watchdog and controller manager read the bus itself.
     cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
+    # Foot switches + battery: on change, and at least this often (s); 0: every cycle.
+    foot_switches_refresh_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 1.0
 
 
 @dataclass
@@ -58,6 +66,7 @@ class ReaderStats:
     unknown: int = 0
     published_joint_states: int = 0
     published_foot_switches: int = 0
+    foot_switch_changes: int = 0  # published because the switches or the battery count changed
     without_torque: int = 0
     stream_restarts: int = 0
     socket_dropped: int | None = 0  # kernel drops from a full receive buffer (None: not known)
@@ -108,6 +117,7 @@ class H2Reader(Node):
         self._reported_out_of_range = 0
         self._reported_dropped = 0
         self.fs = cdr.FootSwitchesCdr()
+        self._last_feet: tuple[h2.FootSwitches, float] | None = None  # the last published, when
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
         if self.params.start_stream:
@@ -152,14 +162,28 @@ class H2Reader(Node):
                 if self._selected():
                     self._publish_joints(*self._pending, frame)
                 self._pending = None
-        elif isinstance(frame, h2.FootSwitches) and self._selected():
-            self._publish_feet(ts, frame)
+        elif isinstance(frame, h2.FootSwitches):
+            self._feet(ts, frame)
 
     def _selected(self) -> bool:
         """The reduction factor: cycles 1, 1+N, 1+2N... are published."""
         return (self._cycle - 1) % self.params.reduction == 0
 
+    def _feet(self, ts: float, f: h2.FootSwitches) -> None:
+        """Every change (on the frame's own time), else a refresh once the period is up."""
+        refresh, last = self.params.foot_switches_refresh_s, self._last_feet
+        if not refresh:
+            if self._selected():
+                self._publish_feet(ts, f)
+            return
+        if last is not None and last[0] == f and 0 <= ts - last[1] < refresh:
+            return
+        if last is not None and last[0] != f:
+            self.stats.foot_switch_changes += 1
+        self._publish_feet(ts, f)
+
     def _publish_feet(self, ts: float, f: h2.FootSwitches) -> None:
+        self._last_feet = (f, ts)
         ns = int(ts * 1e9)
         switches = (bool(f.r_heel), bool(f.r_toe), bool(f.l_heel), bool(f.l_toe))
         volts = f.battery * self.params.battery_volts_per_count

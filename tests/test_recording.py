@@ -310,7 +310,8 @@ def test_play_then_rerecord_gives_identical_messages(write_config, spawn, tmp_pa
     for topic in ("/h2/joint_states", "/h2/foot_switches"):
         a = [d for d, _ in rosbags_decode(src, topic)]
         b = [d for d, _ in rosbags_decode(dst, topic)]
-        assert a == b and len(a) > 100
+        # foot switches go out on change and once a second (h2_reader), joint states every cycle
+        assert a == b and len(a) > (100 if topic == "/h2/joint_states" else 0)
 
 
 def test_bad_files_and_commands(tmp_path, write_config, spawn) -> None:  # type: ignore[no-untyped-def]
