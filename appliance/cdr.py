@@ -122,19 +122,22 @@ class FootSwitchesCdr:
         return CDR_LE + self._s.pack(sec, nsec, self._a, *switches, battery_raw, self._b, volts)
 
 
-class MaccepaCdr:
-    """exolink_msgs/Maccepa{Sensors,Positions,Controller}: header, uint8 board, int16 values."""
+class MaccepaStateCdr:
+    """exolink_msgs/MaccepaState: header, uint8 board, uint8 stale, eleven int16 values."""
 
-    def __init__(self, n_values: int) -> None:
+    TYPE = "exolink_msgs/msg/MaccepaState"
+    N_VALUES = 11
+
+    def __init__(self) -> None:
         lay = _Layout()
         _header(lay)
-        lay.slots("B")
-        lay.slots("h", n_values)
-        self._s, (self._frame_id,) = lay.done()  # the int16s need no padding after the uint8
+        lay.slots("B", 2)
+        lay.slots("h", self.N_VALUES)
+        self._s, (self._frame_id, self._pad) = lay.done()  # the int16s start on an even byte
 
-    def encode(self, ns: int, board: int, values: Sequence[int]) -> bytes:
+    def encode(self, ns: int, board: int, stale: int, values: Sequence[int]) -> bytes:
         sec, nsec = divmod(ns, 1_000_000_000)
-        return CDR_LE + self._s.pack(sec, nsec, self._frame_id, board, *values)
+        return CDR_LE + self._s.pack(sec, nsec, self._frame_id, board, stale, self._pad, *values)
 
 
 class HeartbeatCdr:

@@ -1,8 +1,11 @@
-"""MACCEPA bridge [thesis: H2Rros, H2RrosSender]: board frames -> per-board topics, validated
+"""MACCEPA bridge [thesis: H2Rros, H2RrosSender]: board frames -> a per-board topic, validated
 commands -> frames.
 
-Topics ``maccepa/b<N>/sensors``, ``.../positions``, ``.../controller``. Commands arrive as Zenoh
-queries (``exolink maccepa ...``): gains with controller type, set-point, duty cycle, stop control.
+Topic ``maccepa/b<N>/state`` (exolink_msgs/MaccepaState): each board cycle's sensors,
+positions and controller frames in one message, as JointState joins the H2's angle and torque
+frames. One sample per cycle instead of three: on the board each Zenoh sample costs ~1 ms of the
+one core (benchmarks/board/units.py), and the bridge's three topics were 300 of the appliance's
+~500 samples a second. Commands arrive as Zenoh queries (``exolink maccepa ...``): gains with controller type, set-point, duty cycle, stop control.
 Set-point and duty move the actuator and need the watchdog armed; gains and stop do not.
 
 With ``motion_via_manager`` (for boards the controller manager drives: its ``params.maccepa``)
@@ -32,23 +35,46 @@ MANAGED_KINDS = ("setpoint", "duty", "gains")  # what motion_via_manager hands t
 MANAGER_WAIT_S = 2.0  # the manager's switch waits up to 1 s for an H2 cycle
 BOARD_PERIOD_S = 0.01
 STALE_S = 0.5
-TYPES = {
-    maccepa.Sensors: ("sensors", "exolink_msgs/msg/MaccepaSensors"),
-    maccepa.Positions: ("positions", "exolink_msgs/msg/MaccepaPositions"),
-    maccepa.Controller: ("controller", "exolink_msgs/msg/MaccepaController"),
+STATE = cdr.MaccepaStateCdr.TYPE
+
+# The frames of a board cycle, in protocol order: the frame's int16 fields in MaccepaState's
+# order, and the frame's bit in its ``stale`` field. The controller frame ends the cycle.
+_PARTS: dict[type, tuple[int, tuple[str, ...]]] = {
+    maccepa.Sensors: (1, ("current", "temperature", "velocity", "load")),
+    maccepa.Positions: (2, ("link", "lever", "extra_position", "extra_sensor")),
+    maccepa.Controller: (4, ("setpoint", "actuation", "process_variable")),
 }
+_ALL_PARTS = 7
+_CYCLE_END = 4
 
 
-# Each message's int16 fields, in its .msg order, from the decoded frame's attributes.
-_FIELDS: dict[type, tuple[str, ...]] = {
-    maccepa.Sensors: ("current", "temperature", "velocity", "load"),
-    maccepa.Positions: ("link", "lever", "extra_position", "extra_sensor"),
-    maccepa.Controller: ("setpoint", "actuation", "process_variable"),
-}
+class BoardCycle:
+    """One board's frames of the cycle under way, and the last values of each kind of frame."""
 
+    def __init__(self) -> None:
+        self.values = {cls: [0] * len(fields) for cls, (_bit, fields) in _PARTS.items()}
+        self.seen = 0  # bits of the frames this cycle brought
+        self.first_ts = 0.0
 
-def _values(f: Any) -> list[int]:
-    return [getattr(f, name) for name in _FIELDS[type(f)]]
+    def add(self, frame: Any, ts: float) -> list[tuple[float, int, list[int]]]:
+        """The cycles this frame ends: its own at the controller frame, the one before when a
+        frame of a kind the cycle already has shows a new cycle began (a controller frame lost)."""
+        bit, fields = _PARTS[type(frame)]
+        done = [self._end()] if self.seen & bit else []
+        if not self.seen:
+            self.first_ts = ts
+        self.seen |= bit
+        self.values[type(frame)] = [getattr(frame, name) for name in fields]
+        if bit == _CYCLE_END:
+            done.append(self._end())
+        return done
+
+    def _end(self) -> tuple[float, int, list[int]]:
+        """(first frame's time, stale bits, the eleven values) of the cycle; starts the next."""
+        stale = _ALL_PARTS & ~self.seen
+        out = [v for cls in _PARTS for v in self.values[cls]]
+        self.seen = 0
+        return self.first_ts, stale, out
 
 
 class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -83,12 +109,10 @@ class MaccepaBridge(Node):
             stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
         )
         self.bus = self.reader.bus
-        self.pubs = {
-            (b, cls): m.publisher(f"maccepa/b{b}/{topic}", typename, raw=True)
-            for b in self.params.boards
-            for cls, (topic, typename) in TYPES.items()
-        }
-        self.templates = {cls: cdr.MaccepaCdr(len(_FIELDS[cls])) for cls in TYPES}
+        self.pubs = {b: m.publisher(f"maccepa/b{b}/state", STATE, raw=True) for b in boards}
+        self.cycles = {b: BoardCycle() for b in boards}
+        self.template = cdr.MaccepaStateCdr()
+        self.incomplete = 0  # cycles published with a frame missing (its bit in ``stale``)
         self.arming = ArmingState(m) if self.params.require_armed else None
         self.malformed = 0
         self.lock = threading.Lock()
@@ -155,13 +179,18 @@ class MaccepaBridge(Node):
         return {"controller": reply.get("controller"), "frames": []}
 
     def handle(self, msg: can.Message) -> None:
+        """One frame; the cycle goes out at its controller frame, or, if that never came, when
+        the next cycle's first frame shows it ended. Never raises for bad input (counted)."""
         f = maccepa.decode(msg)
-        pub = self.pubs.get((getattr(f, "board", None), type(f)))
-        if pub is None:
+        board = getattr(f, "board", None)
+        cycle = self.cycles.get(board) if type(f) in _PARTS else None
+        if cycle is None:
             self.malformed += 1
             return
-        ns = int(msg.timestamp * 1e9)
-        pub.put(self.templates[type(f)].encode(ns, f.board, _values(f)), ns)
+        for ts, stale, values in cycle.add(f, msg.timestamp):
+            self.incomplete += stale != 0
+            ns = int(ts * 1e9)
+            self.pubs[board].put(self.template.encode(ns, board, stale, values), ns)
 
     def run(self, stop: threading.Event) -> None:
         timeout = self.cadence.idle_s

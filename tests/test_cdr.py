@@ -151,32 +151,37 @@ def test_watchdog_event_decodes_rosbags_cdr(ns: int, texts: list[str], frames: i
             cdr.watchdog_event(payload[:cut])
 
 
-MACCEPA = {
-    "exolink_msgs/msg/MaccepaSensors": ("current_ma", "temperature_c", "velocity_rpm", "load_n"),
-    "exolink_msgs/msg/MaccepaPositions": (
-        "link_deg",
-        "lever_deg",
-        "extra_position",
-        "extra_sensor",
-    ),
-    "exolink_msgs/msg/MaccepaController": ("setpoint", "actuation", "process_variable"),
-}
+MACCEPA_STATE = (
+    "current_ma",
+    "temperature_c",
+    "velocity_rpm",
+    "load_n",
+    "link_deg",
+    "lever_deg",
+    "extra_position",
+    "extra_sensor",
+    "setpoint",
+    "actuation",
+    "process_variable",
+)
 
 
 @settings(deadline=None)
 @given(
     ns=NS,
-    typename=st.sampled_from(sorted(MACCEPA)),
     board=st.integers(0, 255),
-    values=st.lists(st.integers(-32768, 32767), min_size=4, max_size=4),
+    stale=st.integers(0, 7),
+    values=st.lists(st.integers(-32768, 32767), min_size=11, max_size=11),
 )
-def test_maccepa_is_rosbags_cdr(ns: int, typename: str, board: int, values: list[int]) -> None:
-    fields = MACCEPA[typename]
-    vals = values[: len(fields)]
+def test_maccepa_state_is_rosbags_cdr(ns: int, board: int, stale: int, values: list[int]) -> None:
+    typename = cdr.MaccepaStateCdr.TYPE
     ref = messaging.msg_class(typename)(
-        header=messaging.header(ns), board=board, **dict(zip(fields, vals, strict=True))
+        header=messaging.header(ns),
+        board=board,
+        stale=stale,
+        **dict(zip(MACCEPA_STATE, values, strict=True)),
     )
-    payload = cdr.MaccepaCdr(len(fields)).encode(ns, board, vals)
+    payload = cdr.MaccepaStateCdr().encode(ns, board, stale, values)
     assert payload == messaging.serialize(ref, typename)
 
 

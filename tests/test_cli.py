@@ -187,7 +187,7 @@ def test_what_play_never_republishes_live() -> None:
 
     assert replay_topic("/h2/joint_states", live=False) == "replay/h2/joint_states"
     assert replay_topic("/h2/joint_states", live=True) == "h2/joint_states"
-    assert replay_topic("/h2/maccepa/b0/positions", live=True) == "h2/maccepa/b0/positions"
+    assert replay_topic("/h2/maccepa/b0/state", live=True) == "h2/maccepa/b0/state"
     for own in (
         "/h2/watchdog",
         "/other/ns/pattern_state",

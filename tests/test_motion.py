@@ -3,8 +3,10 @@ hardware; every frame claim is checked by an independent listener on the bus."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
+import statistics
 import subprocess
 import time
 from pathlib import Path
@@ -289,19 +291,22 @@ def test_maccepa_gains_setpoint_followed_and_invalid_refused(app, mbus) -> None:
     # and the bridge publishes what the board reports
     s = messaging.open_client_session(app.at)
     got = []
-    key = messaging.topic_key(0, "h2", "maccepa/b0/positions", "exolink_msgs/msg/MaccepaPositions")
+    key = messaging.topic_key(0, "h2", "maccepa/b0/state", "exolink_msgs/msg/MaccepaState")
     sub = s.declare_subscriber(
         key,
         lambda x: got.append(
-            messaging.deserialize(x.payload.to_bytes(), "exolink_msgs/msg/MaccepaPositions")
+            messaging.deserialize(x.payload.to_bytes(), "exolink_msgs/msg/MaccepaState")
         ),
     )
     wait_for(lambda: got, timeout=5)
     time.sleep(1.0)
     sub.undeclare()
-    # Woken every fourth board cycle, the bridge still publishes each cycle's frame, in order.
+    # Woken every fourth board cycle, the bridge still publishes each cycle, in order: one
+    # message per 10 ms cycle with all three of its frames (the first may start mid-cycle).
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in list(got)]
     assert len(stamps) >= 60 and stamps == sorted(stamps)
+    assert 9e6 < statistics.median(b - a for a, b in itertools.pairwise(stamps)) < 11e6
+    assert [m.stale for m in got[1:]] == [0] * (len(got) - 1)
     s.close()
     assert abs(got[-1].lever_deg - 40) <= 1
     collect(mbus, 0.2)

@@ -160,9 +160,7 @@ def _watch(args: argparse.Namespace) -> int:
 
     with remote(args) as r:
         m = messaging.Messaging(r.session, _FakeCfg(r))
-        sub = m.subscribe(
-            f"maccepa/b{args.board}/positions", "exolink_msgs/msg/MaccepaPositions", on
-        )
+        sub = m.subscribe(f"maccepa/b{args.board}/state", "exolink_msgs/msg/MaccepaState", on)
         try:
             hold(args.seconds)
         finally:

@@ -25,12 +25,13 @@ UNITS: dict[str, dict[str, Unit]] = {
     "sensor_msgs/msg/JointState": {"position": "rad", "velocity": "rad/s", "effort": "N·m"},
     "exolink_msgs/msg/FootSwitches": {"battery_raw": "counts", "battery_volts": "V"},
     "exolink_msgs/msg/JointCommand": {"setpoint": _setpoint, "stiffness": "%"},
-    "exolink_msgs/msg/MaccepaPositions": {"link_deg": "deg", "lever_deg": "deg"},
-    "exolink_msgs/msg/MaccepaSensors": {
+    "exolink_msgs/msg/MaccepaState": {
         "current_ma": "mA",
         "temperature_c": "°C",
         "velocity_rpm": "rpm",
         "load_n": "N",
+        "link_deg": "deg",
+        "lever_deg": "deg",
     },
     "exolink_msgs/msg/PatternState": {"period_ms": "ms"},
 }

@@ -334,7 +334,7 @@ class Hub:
                         topic, typename = messaging.parse_key(key)
                     except ValueError:
                         continue
-                    # h2/maccepa/b0/positions -> maccepa/b0/positions
+                    # h2/maccepa/b0/state -> maccepa/b0/state
                     named = self._names[key] = (topic.split("/", 1)[-1], typename)
                 name, typename = named
                 newest[name] = (typename, sample)
@@ -357,7 +357,7 @@ class Hub:
                 elif name == "foot_switches":
                     out["fs"] = _foot_switches(payload)
                 elif name.startswith("maccepa/"):
-                    board_topic = name.removeprefix("maccepa/")  # b0/positions
+                    board_topic = name.removeprefix("maccepa/")  # b0/state
                     out.setdefault("maccepa", {})[board_topic] = _plain(
                         messaging.deserialize(payload, typename)
                     )

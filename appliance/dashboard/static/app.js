@@ -238,7 +238,7 @@ function onLive(m) {
 const MAC = { boards: [], t: [], cols: [] };
 
 function maccepaPoints(update) {
-  const boards = Object.keys(update).filter((k) => k.endsWith("/positions")).sort();
+  const boards = Object.keys(update).filter((k) => k.endsWith("/state")).sort();
   if (!boards.length) return;
   for (const b of boards) {
     if (!MAC.boards.includes(b)) {  // a new board: start the plot again with its two lines
