@@ -91,7 +91,11 @@ def table(result: dict[str, Any]) -> str:
     # units.py on CPU 0 after the window: what the appliance's CPU is made of on each machine
     row("unit: Python loop (CPU ms)", *pair("units", "python_loop_ms"))
     row("unit: 100 Hz sleep-wake (CPU us)", *pair("units", "wake_us"))
-    for key, label in (("", "one by one"), ("_burst4", "in fours")):
+    for key, label in (
+        ("", "one by one"),
+        ("_burst4", "in fours"),
+        ("_burst4x5", "4 x 5 topics"),
+    ):
         hop = [_hop(v) for v in pair("units", f"zenoh_us_per_sample{key}")]
         row(f"unit: Zenoh sample {label} (us)", *hop)
     row("  (publisher/router/subscriber)", "", "")

@@ -65,15 +65,15 @@ def _session(mode: str, endpoint: str):  # type: ignore[no-untyped-def]
     return zenoh.open(c)
 
 
-def _role(role: str, endpoint: str, seconds: float, burst: int) -> None:
+def _role(role: str, endpoint: str, seconds: float, burst: int, topics: int) -> None:
     s = _session("router" if role == "router" else "client", endpoint)
     if role == "sub":
         got = [0]
-        s.declare_subscriber(KEY, lambda _s: got.__setitem__(0, got[0] + 1))
+        s.declare_subscriber(f"{KEY}/**", lambda _s: got.__setitem__(0, got[0] + 1))
         time.sleep(seconds)
         sys.stdout.write(f"{got[0]}\n")
     elif role == "pub":
-        pub = s.declare_publisher(KEY)
+        pubs = [s.declare_publisher(f"{KEY}/{i}") for i in range(topics)]
         payload = bytes(120)  # a JointState's CDR is ~200 bytes, a foot-switch message ~40
         time.sleep(1.0)  # the subscriber's interest reaches us
         sys.stdout.write("go\n")
@@ -84,20 +84,23 @@ def _role(role: str, endpoint: str, seconds: float, burst: int) -> None:
             t += 0.01 * burst
             time.sleep(max(0.0, t - time.monotonic()))
             for _ in range(burst):
-                pub.put(payload)
+                for pub in pubs:
+                    pub.put(payload)
     else:
         time.sleep(seconds)
     s.close()
 
 
-def zenoh_hop(seconds: float, burst: int) -> dict[str, float]:
-    """100 samples/s (as ``burst`` puts every ``burst`` x 10 ms) from a client publisher through
-    a router to a client subscriber: each process's CPU per sample, in us."""
-    endpoint = f"tcp/127.0.0.1:{PORT + burst}"
+def zenoh_hop(seconds: float, burst: int, topics: int = 1) -> dict[str, float]:
+    """``topics`` x 100 samples/s (each topic's ``burst`` puts every ``burst`` x 10 ms) from a
+    client publisher through a router to a client subscriber: each process's CPU per sample, in
+    us. ``burst=4, topics=5`` is the nominal load's shape (a reader waking every 4th cycle)."""
+    endpoint = f"tcp/127.0.0.1:{PORT + burst * topics}"
     me = [sys.executable, os.path.abspath(__file__), "--role"]
 
     def start(role: str, secs: float) -> subprocess.Popen[str]:
         cmd = [*me, role, "--endpoint", endpoint, "--seconds", str(secs), "--burst", str(burst)]
+        cmd += ["--topics", str(topics)]
         return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
 
     router = start("router", seconds + 60)
@@ -114,7 +117,7 @@ def zenoh_hop(seconds: float, burst: int) -> dict[str, float]:
         t0 = time.monotonic()
         time.sleep(seconds * 0.9)
         c1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
-        samples = 100 * (time.monotonic() - t0)
+        samples = 100 * topics * (time.monotonic() - t0)
     finally:
         pub.wait(seconds + 60)
         for p in (sub, router):
@@ -130,9 +133,10 @@ def main() -> int:
     p.add_argument("--role", choices=["router", "sub", "pub"], help=argparse.SUPPRESS)
     p.add_argument("--endpoint", help=argparse.SUPPRESS)
     p.add_argument("--burst", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--topics", type=int, default=1, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.role:
-        _role(args.role, args.endpoint, args.seconds, args.burst)
+        _role(args.role, args.endpoint, args.seconds, args.burst, args.topics)
         return 0
     os.sched_setaffinity(0, {args.cpu})  # children inherit it
     out = {
@@ -141,6 +145,7 @@ def main() -> int:
         "wake_us": wake_us(args.seconds),
         "zenoh_us_per_sample": zenoh_hop(args.seconds, 1),
         "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
+        "zenoh_us_per_sample_burst4x5": zenoh_hop(args.seconds, 4, 5),
     }
     sys.stdout.write("UNITS_RESULT " + json.dumps(out) + "\n")
     return 0
