@@ -18,7 +18,18 @@ from exolink import messaging
 from exolink.config import ApplianceConfig
 from exolink.liveness import Beater
 
-HEARTBEAT_PERIOD_S = 0.1  # liveness to the supervisor; Zenoh telemetry goes out 1 in 10
+HEARTBEAT_PERIOD_S = 0.1  # the heartbeat thread's shortest period (see beat_period_s)
+TELEMETRY_PERIOD_S = 1.0  # the heartbeat on Zenoh: for people, not the watchdog
+
+
+def beat_period_s(deadline_s: float) -> float:
+    """How often the runtime's heartbeat thread vouches for a loop that beat within ``stall_s``:
+    three times per liveness deadline, between 0.1 and 1 s. Each wake costs ~1 ms of the
+    board's one core (benchmarks/board/units.py: a sleep-and-wake): at a fixed 10 Hz, eight
+    nodes' threads took ~10 % of it while their loops already beat the supervisor themselves."""
+    return min(TELEMETRY_PERIOD_S, max(HEARTBEAT_PERIOD_S, deadline_s / 3))
+
+
 HEARTBEAT_TOPIC = "heartbeat"
 HEARTBEAT_TYPE = "exolink_msgs/msg/Heartbeat"
 

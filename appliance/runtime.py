@@ -25,9 +25,15 @@ import structlog
 import zenoh
 from exolink import cdr, liveness, messaging, roles
 from exolink.config import ApplianceConfig
-from exolink.node import HEARTBEAT_PERIOD_S, HEARTBEAT_TOPIC, HEARTBEAT_TYPE, Node, NodeContext
+from exolink.node import (
+    HEARTBEAT_TOPIC,
+    HEARTBEAT_TYPE,
+    TELEMETRY_PERIOD_S,
+    Node,
+    NodeContext,
+    beat_period_s,
+)
 
-TELEMETRY_EVERY = 10
 STALL_LOG_EVERY_S = 10.0
 
 
@@ -58,7 +64,8 @@ class NodeRunner:
     def _heartbeat(self) -> None:
         pub = self.msg.publisher(f"nodes/{self.name}/{HEARTBEAT_TOPIC}", HEARTBEAT_TYPE, raw=True)
         beat = cdr.HeartbeatCdr(self.name, os.getpid())
-        next_t = time.monotonic()
+        period = beat_period_s(self.cfg.deadline_s(self.cfg.node(self.name)))
+        next_t = next_telemetry = time.monotonic()
         stalled_since: float | None = None  # the journal says which loop went quiet, how long
         # At most one stalled/recovered pair per STALL_LOG_EVERY_S, the rest counted: on a
         # saturated core a motion node's 40 ms stall limit otherwise floods the journal (and the
@@ -86,10 +93,11 @@ class NodeRunner:
             if healthy:  # proof of life: only the loop's own beats within stall_s count
                 self.node.liveness.beat()
                 self._count += 1
-                if self._count % TELEMETRY_EVERY == 1:  # on Zenoh: for people, not the watchdog
+                if time.monotonic() >= next_telemetry:
+                    next_telemetry += TELEMETRY_PERIOD_S
                     now = time.time_ns()
                     pub.put(beat.encode(now, self._count), now)
-            next_t += HEARTBEAT_PERIOD_S
+            next_t += period
             self.stop.wait(max(0.0, next_t - time.monotonic()))
         pub.close()
 

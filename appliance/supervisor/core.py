@@ -352,8 +352,7 @@ class Supervisor:
             )
 
     def deadline_s(self, ncfg: NodeConfig) -> float:
-        ms = ncfg.heartbeat_deadline_ms or self.cfg.watchdog.heartbeat_deadline_ms
-        return ms / 1000
+        return self.cfg.deadline_s(ncfg)
 
     def arm_blockers(self) -> list[str]:
         out = []
