@@ -60,6 +60,10 @@ if TYPE_CHECKING:
 REPEAT_AFTER_S = (0.05, 0.25)
 STALL_BACKSTOP_S = 0.5
 IDLE_POLL_S = 0.1
+# While the broadcast manager times a live H2 stream, any news (its timer ran out, an angle
+# frame of another length, a mode change on id 70) wakes the listener on those sockets: its own
+# timeout only backs that up. Each wake costs ~1 ms of the board's core.
+KERNEL_WATCH_POLL_S = 1.0
 MOTION_MODES = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 
 
@@ -307,7 +311,9 @@ class Watchdog:
         while not self._stop.is_set():
             armed = self.armed
             silent = self.h2_silent_for()
-            if armed and silent is not None:
+            if self.angles is not None and self._h2_alive:
+                timeout = KERNEL_WATCH_POLL_S
+            elif armed and silent is not None:
                 timeout = max(0.002, limit - silent)  # the last angle frame's deadline
             else:
                 timeout = min(IDLE_POLL_S, limit / 2)  # fresh enough for arming's check
