@@ -360,6 +360,28 @@ class Publisher:
             self._graph.release(self._token)
 
 
+class Outbox:
+    """The samples one read of the bus produced, put back to back once the read is handled.
+
+    Zenoh joins samples queued together into one network message, and a router or subscriber
+    then handles them for a fraction of the cost of each alone; but it does not wait for more:
+    measured (x86, pub -> router -> sub), 1.2 ms of work between puts, what decoding a cycle's
+    frames takes on the board proxy, cost the router and subscriber 8x more CPU per sample than
+    the same puts in a row. On the proxy the h2 reader's Zenoh thread and the router took ~11 %
+    and ~30 % of CPU 0 for 100 samples/s published as each cycle was decoded."""
+
+    def __init__(self) -> None:
+        self._items: list[tuple[Publisher, bytes, int]] = []
+
+    def add(self, pub: Publisher, payload: bytes, source_ns: int) -> None:
+        self._items.append((pub, payload, source_ns))
+
+    def flush(self) -> None:
+        items, self._items = self._items, []
+        for pub, payload, ns in items:
+            pub.put(payload, ns)
+
+
 class Messaging:
     """Binds a session to the appliance's domain and namespace.
 

@@ -117,6 +117,7 @@ class H2Reader(Node):
         self._reported_out_of_range = 0
         self._reported_dropped = 0
         self.fs = cdr.FootSwitchesCdr()
+        self.out = messaging.Outbox()  # a read's samples go out together, after its frames
         self._last_feet: tuple[h2.FootSwitches, float] | None = None  # the last published, when
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
@@ -131,7 +132,7 @@ class H2Reader(Node):
             [a * _DEG for a in angles],
             None if torques is None else [t * k for t in torques],
         )
-        self.pub_js.put(payload, ns)
+        self.out.add(self.pub_js, payload, ns)
         self.stats.published_joint_states += 1
 
     def handle(self, msg: Frame | Any) -> None:
@@ -187,7 +188,7 @@ class H2Reader(Node):
         ns = int(ts * 1e9)
         switches = (bool(f.r_heel), bool(f.r_toe), bool(f.l_heel), bool(f.l_toe))
         volts = f.battery * self.params.battery_volts_per_count
-        self.pub_fs.put(self.fs.encode(ns, switches, f.battery, volts), ns)
+        self.out.add(self.pub_fs, self.fs.encode(ns, switches, f.battery, volts), ns)
         self.stats.published_foot_switches += 1
 
     def _stats(self) -> dict[str, Any]:
@@ -250,6 +251,7 @@ class H2Reader(Node):
             frames = self.reader.read(timeout)
             for frame in frames:
                 self.handle(frame)
+            self.out.flush()
             timeout = self.cadence.timeout(bool(frames))
             now = time.monotonic()
             if now >= next_diag:

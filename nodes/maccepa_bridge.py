@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 
 import can
 import msgspec
-from exolink import cdr, roles
+from exolink import cdr, messaging, roles
 from exolink.arming import ArmingState
 from exolink.canbus import Cadence, open_reader
 from exolink.messaging import CommandRefused
@@ -112,6 +112,7 @@ class MaccepaBridge(Node):
         self.pubs = {b: m.publisher(f"maccepa/b{b}/state", STATE, raw=True) for b in boards}
         self.cycles = {b: BoardCycle() for b in boards}
         self.template = cdr.MaccepaStateCdr()
+        self.out = messaging.Outbox()  # a read's samples go out together, after its frames
         self.incomplete = 0  # cycles published with a frame missing (its bit in ``stale``)
         self.arming = ArmingState(m) if self.params.require_armed else None
         self.malformed = 0
@@ -190,7 +191,7 @@ class MaccepaBridge(Node):
         for ts, stale, values in cycle.add(f, msg.timestamp):
             self.incomplete += stale != 0
             ns = int(ts * 1e9)
-            self.pubs[board].put(self.template.encode(ns, board, stale, values), ns)
+            self.out.add(self.pubs[board], self.template.encode(ns, board, stale, values), ns)
 
     def run(self, stop: threading.Event) -> None:
         timeout = self.cadence.idle_s
@@ -199,6 +200,7 @@ class MaccepaBridge(Node):
             frames = self.reader.read(timeout)
             for frame in frames:
                 self.handle(frame)
+            self.out.flush()
             timeout = self.cadence.timeout(bool(frames))
 
     def shutdown(self) -> None:

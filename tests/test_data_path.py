@@ -13,6 +13,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+import zenoh
 from conftest import EXOLINK, collect, connect, wait_alive, wait_for
 from exolink import messaging
 from exolink.canbus import open_bus
@@ -396,3 +397,37 @@ def test_foot_switches_go_out_on_change_and_as_a_refresh(write_config, spawn) ->
     for (t0, s0, b0), (t1, s1, b1) in itertools.pairwise(got):
         if (s0, b0) == (s1, b1):
             assert t1 - t0 >= 0.3e9
+
+
+def test_an_outbox_puts_a_reads_samples_together_in_order_only_when_flushed() -> None:
+    """Zenoh batches only puts that come together (messaging.Outbox): a reader adds each
+    cycle's samples as it decodes them and puts them all after the read."""
+    from exolink import config
+
+    cfg = config.parse(config.bundled("sim").read_text())
+    s = zenoh.open(messaging.session_config(cfg.zenoh))
+    try:
+        m = messaging.Messaging(s, cfg)
+        pub = m.publisher("outbox_probe", "std_msgs/msg/String", raw=True)
+        got: list[tuple[bytes, int]] = []
+        sub = s.declare_subscriber(
+            pub.key,
+            lambda x: got.append(
+                (x.payload.to_bytes(), messaging.decode_attachment(x.attachment.to_bytes())[1])
+            ),
+        )
+        out = messaging.Outbox()
+        for i in range(3):
+            out.add(pub, bytes([0, 1, 0, 0, 2, 0, 0, 0, 48 + i, 0]), 1000 + i)
+        time.sleep(0.2)
+        assert got == []
+        out.flush()
+        wait_for(lambda: len(got) == 3, timeout=5)
+        assert [ns for _p, ns in got] == [1000, 1001, 1002]
+        out.flush()  # empty: nothing again
+        time.sleep(0.2)
+        assert len(got) == 3
+        sub.undeclare()
+        pub.close()
+    finally:
+        s.close()
