@@ -5,7 +5,8 @@ Topic ``maccepa/b<N>/state`` (exolink_msgs/MaccepaState): each board cycle's sen
 positions and controller frames in one message, as JointState joins the H2's angle and torque
 frames. One sample per cycle instead of three: on the board each Zenoh sample costs ~1 ms of the
 one core (benchmarks/board/units.py), and the bridge's three topics were 300 of the appliance's
-~500 samples a second. Commands arrive as Zenoh queries (``exolink maccepa ...``): gains with controller type, set-point, duty cycle, stop control.
+~500 samples a second. Commands arrive as Zenoh queries (``exolink maccepa ...``): gains with
+controller type, set-point, duty cycle, stop control.
 Set-point and duty move the actuator and need the watchdog armed; gains and stop do not.
 
 With ``motion_via_manager`` (for boards the controller manager drives: its ``params.maccepa``)
@@ -113,7 +114,6 @@ class MaccepaBridge(Node):
         self.cycles = {b: BoardCycle() for b in boards}
         self.template = cdr.MaccepaStateCdr()
         self.out = messaging.Outbox()  # a read's samples go out together, after its frames
-        self.incomplete = 0  # cycles published with a frame missing (its bit in ``stale``)
         self.arming = ArmingState(m) if self.params.require_armed else None
         self.malformed = 0
         self.lock = threading.Lock()
@@ -189,7 +189,6 @@ class MaccepaBridge(Node):
             self.malformed += 1
             return
         for ts, stale, values in cycle.add(f, msg.timestamp):
-            self.incomplete += stale != 0
             ns = int(ts * 1e9)
             self.out.add(self.pubs[board], self.template.encode(ns, board, stale, values), ns)
 

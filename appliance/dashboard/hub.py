@@ -517,7 +517,7 @@ def _foot_switches(payload: bytes) -> dict[str, Any]:
 
 
 def _plain(msg: Any) -> dict[str, Any]:
-    """A small message (MACCEPA positions / sensors) as plain fields, without its header."""
+    """A small message (a MACCEPA board's state) as plain fields, without its header."""
     out: dict[str, Any] = {}
     for k in msg.__dataclass_fields__:
         if k.startswith("__"):  # rosbags' __msgtype__

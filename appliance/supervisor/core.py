@@ -266,7 +266,7 @@ class Supervisor:
         grace = self.cfg.watchdog.start_grace_ms / 1000
         beating = liveness.with_beats(n.channel for n in self.nodes.values() if n.channel)
         for node in self.nodes.values():
-            deadline = self.deadline_s(node.cfg)
+            deadline = self.cfg.deadline_s(node.cfg)
             with node.lock:
                 if node.state == "backoff" and now >= node.next_start:
                     self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
@@ -351,9 +351,6 @@ class Supervisor:
                 f"can {h.state}", f"{self.cfg.can.channel} tx errors {h.txerr}, rx errors {h.rxerr}"
             )
 
-    def deadline_s(self, ncfg: NodeConfig) -> float:
-        return self.cfg.deadline_s(ncfg)
-
     def arm_blockers(self) -> list[str]:
         out = []
         now = time.monotonic()
@@ -362,7 +359,7 @@ class Supervisor:
                 continue
             if n.state != "running":
                 out.append(f"critical node {n.name} is {n.state}")
-            elif n.heartbeat_at is None or now - n.heartbeat_at > self.deadline_s(n.cfg):
+            elif n.heartbeat_at is None or now - n.heartbeat_at > self.cfg.deadline_s(n.cfg):
                 out.append(f"critical node {n.name} has no recent heartbeat")
         silent = self.watchdog.h2_silent_for()
         limit = self.cfg.watchdog.h2_silence_ms / 1000
@@ -423,7 +420,7 @@ class Supervisor:
                 if hb is None:  # starting: its first beat brings its priority
                     due = min(due, now + STARTING_SLEEP_S, node.started_at + grace)
                 else:  # late just after this; the beats in its pipe are read then
-                    due = min(due, hb + self.deadline_s(node.cfg))
+                    due = min(due, hb + self.cfg.deadline_s(node.cfg))
         state, operator = self.pattern_state
         if state == "running" and (lost := self.operator_lost_at.get(operator)) is not None:
             due = min(due, lost + self.cfg.watchdog.operator_lost_ms / 1000)
