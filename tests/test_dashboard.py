@@ -126,6 +126,17 @@ class Dash:
         self.page.click(f"nav a[data-page={page}]")
         self.page.wait_for_selector(f"#page-{page}:not([hidden])")
 
+    def wait_for(self, condition: str) -> None:
+        """Wait for a page condition; on timeout fail with what the page said (one CI run timed
+        out waiting for the pattern to show 'running' and left no clue why)."""
+        try:
+            self.page.wait_for_function(condition)
+        except Exception as e:
+            said = {
+                s: self.text(s) for s in ("#banner", "#notice", "#cmd-result", "#pattern-state")
+            }
+            raise AssertionError(f"{condition} not met: {said!r}, errors {self.errors!r}") from e
+
     def text(self, sel: str) -> str:
         return str(self.page.text_content(sel) or "")
 
@@ -191,7 +202,7 @@ def test_pages_load_and_the_pattern_moves_numbers_and_plot(dash: Dash) -> None:
     dash.go("pattern")
     page.click("#page-pattern button[data-argv*=start]")
     dash.confirm()
-    page.wait_for_function("document.querySelector('#pattern-state dd').textContent === 'running'")
+    dash.wait_for("document.querySelector('#pattern-state dd').textContent === 'running'")
     dash.go("live")
 
     # The numbers: r_hip's angle shown changes as the pattern drives it.
