@@ -95,6 +95,7 @@ def table(result: dict[str, Any]) -> str:
         ("", "one by one"),
         ("_burst4", "in fours"),
         ("_burst4x5", "4 x 5 topics"),
+        ("_burst4x5_channel", "4 x 5, sub drains"),
     ):
         hop = [_hop(v) for v in pair("units", f"zenoh_us_per_sample{key}")]
         row(f"unit: Zenoh sample {label} (us)", *hop)

@@ -65,13 +65,35 @@ def _session(mode: str, endpoint: str):  # type: ignore[no-untyped-def]
     return zenoh.open(c)
 
 
-def _role(role: str, endpoint: str, seconds: float, burst: int, topics: int) -> None:
+def _subscribe(s, seconds: float, channel: bool) -> int:  # type: ignore[no-untyped-def]
+    """Take each sample's payload, key and attachment as the recorder does: in a callback on
+    Zenoh's thread, or (``channel``) from a ring channel drained every 50 ms by the caller's
+    thread, so Zenoh's thread never takes the GIL per sample."""
+    import zenoh
+
+    got = [0]
+
+    def take(smp) -> None:  # type: ignore[no-untyped-def]
+        smp.payload.to_bytes(), str(smp.key_expr), smp.attachment
+        got[0] += 1
+
+    if not channel:
+        s.declare_subscriber(f"{KEY}/**", take)
+        time.sleep(seconds)
+        return got[0]
+    sub = s.declare_subscriber(f"{KEY}/**", zenoh.handlers.RingChannel(50_000))
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        time.sleep(0.05)
+        while (smp := sub.try_recv()) is not None:
+            take(smp)
+    return got[0]
+
+
+def _role(role: str, endpoint: str, seconds: float, burst: int, topics: int, channel: bool) -> None:
     s = _session("router" if role == "router" else "client", endpoint)
     if role == "sub":
-        got = [0]
-        s.declare_subscriber(f"{KEY}/**", lambda _s: got.__setitem__(0, got[0] + 1))
-        time.sleep(seconds)
-        sys.stdout.write(f"{got[0]}\n")
+        sys.stdout.write(f"{_subscribe(s, seconds, channel)}\n")
     elif role == "pub":
         pubs = [s.declare_publisher(f"{KEY}/{i}") for i in range(topics)]
         payload = bytes(120)  # a JointState's CDR is ~200 bytes, a foot-switch message ~40
@@ -91,16 +113,19 @@ def _role(role: str, endpoint: str, seconds: float, burst: int, topics: int) -> 
     s.close()
 
 
-def zenoh_hop(seconds: float, burst: int, topics: int = 1) -> dict[str, float]:
+def zenoh_hop(
+    seconds: float, burst: int, topics: int = 1, channel: bool = False
+) -> dict[str, float]:
     """``topics`` x 100 samples/s (each topic's ``burst`` puts every ``burst`` x 10 ms) from a
     client publisher through a router to a client subscriber: each process's CPU per sample, in
-    us. ``burst=4, topics=5`` is the nominal load's shape (a reader waking every 4th cycle)."""
-    endpoint = f"tcp/127.0.0.1:{PORT + burst * topics}"
+    us. ``burst=4, topics=5`` is the nominal load's shape (a reader waking every 4th cycle);
+    ``channel``: the subscriber drains a ring channel instead of a callback per sample."""
+    endpoint = f"tcp/127.0.0.1:{PORT + burst * topics + channel}"
     me = [sys.executable, os.path.abspath(__file__), "--role"]
 
     def start(role: str, secs: float) -> subprocess.Popen[str]:
         cmd = [*me, role, "--endpoint", endpoint, "--seconds", str(secs), "--burst", str(burst)]
-        cmd += ["--topics", str(topics)]
+        cmd += ["--topics", str(topics)] + (["--channel"] if channel else [])
         return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
 
     router = start("router", seconds + 60)
@@ -134,9 +159,10 @@ def main() -> int:
     p.add_argument("--endpoint", help=argparse.SUPPRESS)
     p.add_argument("--burst", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--topics", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--channel", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.role:
-        _role(args.role, args.endpoint, args.seconds, args.burst, args.topics)
+        _role(args.role, args.endpoint, args.seconds, args.burst, args.topics, args.channel)
         return 0
     os.sched_setaffinity(0, {args.cpu})  # children inherit it
     out = {
@@ -146,6 +172,7 @@ def main() -> int:
         "zenoh_us_per_sample": zenoh_hop(args.seconds, 1),
         "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
         "zenoh_us_per_sample_burst4x5": zenoh_hop(args.seconds, 4, 5),
+        "zenoh_us_per_sample_burst4x5_channel": zenoh_hop(args.seconds, 4, 5, channel=True),
     }
     sys.stdout.write("UNITS_RESULT " + json.dumps(out) + "\n")
     return 0
