@@ -72,6 +72,10 @@ class ZenohConfig(_Strict):
     ros_distro: Literal["jazzy", "kilted", "rolling", "humble"] = "jazzy"
     # Path to a Zenoh JSON5 file with credentials / TLS, merged over the settings above.
     config_file: str | None = None
+    # Zenoh's worker threads per appliance process (messaging.zenoh_runtime): 1 hands all of
+    # Zenoh's runtimes (rx, tx, accept, net) to one thread, so a sample is not passed between
+    # threads on a single core; unset keeps Zenoh's own (about five). ZENOH_RUNTIME wins.
+    threads: Annotated[int, msgspec.Meta(ge=1, le=4)] | None = None
 
 
 class WatchdogConfig(_Strict):

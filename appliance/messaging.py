@@ -15,7 +15,7 @@ import os
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -226,6 +226,26 @@ def session_config(
         acl = roles.access_control(zcfg.domain_id, zcfg.namespace)
         cfg.insert_json5("access_control", json.dumps(acl))
     return cfg
+
+
+ZENOH_RUNTIME = "ZENOH_RUNTIME"  # read by Zenoh once, when a process first opens a session
+
+
+def zenoh_runtime(zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ) -> str | None:
+    """Set the process's Zenoh runtimes from ``zenoh.threads`` before any session exists;
+    processes started afterwards (the zygote, nodes) inherit it. An operator's own
+    ZENOH_RUNTIME is left as it is. Returns the setting in force.
+
+    Why: Zenoh 1.x runs rx (2 threads), tx, accept, net and app runtimes; a sample crosses
+    several of them in each process. On one core each hand-over is a thread wake-up, and on the
+    board proxy a wake-up costs ~1 ms of CPU (benchmarks/board/units.py). Handlers that query
+    another node from inside a queryable (the sender handing a position to the manager) still
+    answer with one thread (tests/test_zenoh_runtime.py)."""
+    if zcfg.threads is not None and ZENOH_RUNTIME not in env:
+        names = ("rx", "tx", "acc", "net")
+        handover = ", ".join(f"{n}: (handover: app)" for n in names)
+        env[ZENOH_RUNTIME] = f"({handover}, app: (worker_threads: {zcfg.threads}))"
+    return env.get(ZENOH_RUNTIME)
 
 
 def login(cfg: zenoh.Config) -> str:

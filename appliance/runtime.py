@@ -171,6 +171,7 @@ def run_standalone(cfg: ApplianceConfig, name: str, listen: list[str] | None = N
 
     node_cfg = cfg.node(name)
     cls = find_node_class(node_cfg.plugin)
+    messaging.zenoh_runtime(cfg.zenoh)  # as the supervisor does; a supervised node inherits it
     session = zenoh.open(messaging.session_config(cfg.zenoh, listen=listen)) if listen else None
     runner = NodeRunner(cls, cfg, name, session)
 

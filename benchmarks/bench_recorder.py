@@ -73,6 +73,7 @@ def long_run(seconds: float) -> dict[str, Any]:
     app = Appliance(nodes=nodes)
     try:
         app.call("record", {"action": "start"})
+        cpu0 = app.node("recorder").get("cpu_s") or 0.0
         time.sleep(seconds)
         s = app.call("record", {"action": "stop"})
         rss = app.node("recorder").get("rss_mb")
@@ -91,6 +92,10 @@ def long_run(seconds: float) -> dict[str, Any]:
         "joint_states": i.topics["/h2/joint_states"]["count"],
         "recorder_rss_mb": rss,
         "recorder_cpu_s": cpu,
+        # the recording alone (not the node's start): what each recorded message costs
+        "recorder_cpu_us_per_message": round((cpu - cpu0) * 1e6 / max(1, s["written"]), 1)
+        if cpu is not None
+        else None,
     }
 
 

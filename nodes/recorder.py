@@ -2,14 +2,16 @@
 
 Subscribes to every data topic of the appliance (or a configured subset) and writes MCAP files
 with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
-PlotJuggler open them. The Zenoh callback only copies a sample out (so no Zenoh receive buffer
-stays pinned) onto an inbox; the node's loop takes the inbox in batches every
-``INTAKE_PERIOD_S``: on the board a writer thread woken per sample was half the recorder's CPU.
+PlotJuggler open them. Samples wait in Zenoh's ring channel (the inbox, ``params.inbox`` per
+subscription) until the node's loop takes them in batches every ``INTAKE_PERIOD_S``: no Python
+runs on Zenoh's thread per sample (a callback took the GIL for each; on the board a writer
+thread woken per sample was half the recorder's CPU). A sample's log time is when the loop took
+it (up to ``INTAKE_PERIOD_S`` after it arrived); its publish time is the publisher's stamp.
 A slow SD card never stalls the session; the inbox holds minutes of data. Nothing is lost
-silently: every appliance publisher numbers its samples, so a sample that never arrived or did
-not fit the inbox is a gap in its publisher's sequence, counted as dropped (``inbox_full``
-counts the latter alone). The counters go out on diagnostics (which are recorded too) and into
-each file's ``exolink.stats`` metadata.
+silently: every appliance publisher numbers its samples, so a sample that never arrived or that
+the full ring let go (the oldest go first) is a gap in its publisher's sequence, counted as
+dropped. The counters go out on diagnostics (which are recorded too) and into each file's
+``exolink.stats`` metadata.
 Subscribed only while recording: an idle recorder (no ``autostart``, or stopped) takes no sample
 at all, rather than dropping each one in its callback.
 What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
@@ -21,7 +23,6 @@ are never reopened.
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import errno
 import fnmatch
@@ -29,12 +30,14 @@ import json
 import os
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
 import yaml
+import zenoh
 from exolink import __version__, messaging, roles
 from exolink.messaging import CommandRefused
 from exolink.node import Node
@@ -67,8 +70,8 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     split_size_mb: Annotated[float, msgspec.Meta(ge=0)] = 1024.0  # 0 = no split by size
     split_duration_s: Annotated[float, msgspec.Meta(ge=0)] = 3600.0  # 0 = no split by time
     labels: dict[str, str] = msgspec.field(default_factory=dict)
-    # Samples the inbox holds while the card pauses: minutes of the appliance's data (~600
-    # samples/s, ~200 bytes each). What does not fit is counted as dropped, never hidden.
+    # Samples each subscription's ring holds while the card pauses: minutes of the appliance's
+    # data (~220 samples/s, ~200 bytes each). What does not fit is counted as dropped.
     inbox: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 50_000
 
 
@@ -77,7 +80,6 @@ class Stats:
     received: int = 0
     written: int = 0
     dropped: int = 0
-    inbox_full: int = 0
     files: list[str] = field(default_factory=list)
     bytes: int = 0
 
@@ -152,9 +154,6 @@ class Recorder(Node):
         self._receive_at_open: dict[str, dict[str, Any]] = {}
         self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
         self._pending = 0  # taken from the inbox, not yet written
-        # (key, CDR, attachment, receive ns): deque append and popleft are atomic, so the
-        # Zenoh thread and the loop share it without a lock or a wake-up
-        self._inbox: collections.deque[tuple[str, bytes, bytes | None, int]] = collections.deque()
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
         self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
@@ -170,49 +169,38 @@ class Recorder(Node):
 
     # --- intake (the node's loop, in batches) ---------------------------------------------
 
-    def _on_sample(self, sample: Any) -> None:
-        """Zenoh's thread: copy out and queue, nothing more (parsing is the loop's)."""
-        if self.state not in ("recording", "stopping"):
-            return
-        if len(self._inbox) >= self.params.inbox:
-            with self.lock:
-                self.stats.inbox_full += 1  # its sequence gap counts it as dropped as well
-            return
-        att = sample.attachment
-        self._inbox.append(
-            (
-                str(sample.key_expr),
-                sample.payload.to_bytes(),
-                None if att is None else att.to_bytes(),
-                time.time_ns(),
-            )
-        )
+    def _samples(self) -> Iterator[Any]:
+        """What the subscriptions' rings hold now, one subscription after the other."""
+        for sub in list(self.subs):
+            while (sample := sub.try_recv()) is not None:
+                yield sample
 
     def _take(self, until: float) -> list[Item]:
         """What the inbox holds now (until the wall-time slice ends), minus excluded topics;
         the publishers' sequence gaps are counted as dropped while recording."""
         out: list[Item] = []
         gaps = 0
-        inbox, recording = self._inbox, self.state in ("recording", "stopping")
-        while inbox:
-            key, data, att, now = inbox.popleft()
+        recording = self.state in ("recording", "stopping")
+        now = time.time_ns()
+        for sample in self._samples():
             try:
-                topic, typename = messaging.parse_key(key)
+                topic, typename = messaging.parse_key(str(sample.key_expr))
             except ValueError:
                 continue
             if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
                 continue
             seq, src, gid = 0, 0, b""
+            att = sample.attachment
             if att is not None:
                 with contextlib.suppress(Exception):
-                    seq, src, gid = messaging.decode_attachment(att)
+                    seq, src, gid = messaging.decode_attachment(att.to_bytes())
             if gid:
                 last = self._last_seq.get(gid)
                 if recording and last is not None and seq > last + 1:
                     gaps += seq - last - 1
                 self._last_seq[gid] = seq
             if recording:
-                out.append((topic, typename, data, now, src or now, seq))
+                out.append((topic, typename, sample.payload.to_bytes(), now, src or now, seq))
                 if len(out) % 64 == 0 and time.monotonic() >= until:
                     break
         if out or gaps:
@@ -225,7 +213,11 @@ class Recorder(Node):
         with self.lock:
             if not self.subs:
                 session = self.ctx.session
-                self.subs = [session.declare_subscriber(k, self._on_sample) for k in self.selectors]
+                ring = self.params.inbox
+                self.subs = [
+                    session.declare_subscriber(k, zenoh.handlers.RingChannel(ring))
+                    for k in self.selectors
+                ]
 
     def _unsubscribe_if_idle(self) -> None:
         """The loop, once a recording ended: unless a new one started meanwhile."""
@@ -238,9 +230,10 @@ class Recorder(Node):
 
     def _discard(self) -> None:
         """A new recording: nothing queued before it, and sequence gaps counted from each
-        publisher's first sample in it (between recordings the callback takes nothing, so the
-        numbers published in the pause are no loss of this one)."""
-        self._inbox.clear()
+        publisher's first sample in it (the numbers published in the pause are no loss of this
+        one)."""
+        for _ in self._samples():
+            pass
         self._last_seq.clear()
 
     # --- commands -------------------------------------------------------------------------

@@ -179,8 +179,8 @@ def test_slow_card_does_not_get_the_recorder_killed(  # type: ignore[no-untyped-
 def test_samples_that_did_not_fit_the_inbox_are_counted_as_dropped(  # type: ignore[no-untyped-def]
     write_config, spawn, tmp_path, in_node
 ) -> None:
-    """The recorder's loop takes its inbox in batches; when the card stalls longer than the
-    inbox holds, what does not fit is dropped. Each publisher numbers its samples, so the
+    """The recorder's loop takes its inbox (Zenoh ring channels) in batches; when the card
+    stalls longer than the inbox holds, the ring lets the oldest go. Each publisher numbers its samples, so the
     file's sequence gaps are exactly what the recorder says it dropped. A slow card (fsync
     sleeps 1 s, as above) and an inbox of 32 samples make it happen."""
     slow_card(in_node, 1.0)
@@ -198,7 +198,7 @@ def test_samples_that_did_not_fit_the_inbox_are_counted_as_dropped(  # type: ign
         for _schema, channel, message in make_reader(f).iter_messages():
             seqs.setdefault(channel.id, []).append(message.sequence)
     gaps = sum(b - a - 1 for s in seqs.values() for a, b in itertools.pairwise(s))
-    assert int(st["dropped"]) == gaps > 0 and int(st["inbox_full"]) > 0
+    assert int(st["dropped"]) == gaps > 0
     assert st["received"] == st["written"]
 
 

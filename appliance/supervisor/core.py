@@ -100,6 +100,9 @@ class Supervisor:
 
     def start(self) -> None:
         cfg = self.cfg
+        runtime = messaging.zenoh_runtime(cfg.zenoh)  # before any session: nodes inherit it
+        if runtime is not None:
+            self.log.info("zenoh_runtime", setting=runtime)
         self.zygote = self._start_zygote()  # a fork: before any socket, session or thread
         if cfg.can.interface == "socketcan":
             if cfg.can.require_overlay:

@@ -1,0 +1,46 @@
+"""``zenoh.threads``: every appliance process runs Zenoh on that many worker threads (the board
+config: one, so a sample is not handed between threads on its single core), and the commands
+whose handler queries another node from inside a queryable still answer."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from exolink import messaging
+from exolink.config import ZenohConfig
+
+from tests.conftest import Appliance, wait_for
+
+
+def _threads(pid: int) -> list[str]:
+    task = Path(f"/proc/{pid}/task")
+    return sorted((task / t / "comm").read_text().strip() for t in os.listdir(task))
+
+
+def test_the_setting_goes_into_the_environment_unless_the_operator_set_one() -> None:
+    env: dict[str, str] = {}
+    assert messaging.zenoh_runtime(ZenohConfig(), env) is None and env == {}
+    one = messaging.zenoh_runtime(ZenohConfig(threads=1), env)
+    assert one == env["ZENOH_RUNTIME"]
+    assert "app: (worker_threads: 1)" in one and one.count("handover: app") == 4
+    own = {"ZENOH_RUNTIME": "(app: (worker_threads: 3))"}
+    assert messaging.zenoh_runtime(ZenohConfig(threads=1), own) == "(app: (worker_threads: 3))"
+
+
+def test_one_zenoh_thread_per_process_and_nested_commands_answer(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    env_before = os.environ.get("ZENOH_RUNTIME")
+    app = Appliance(write_config(zenoh={"threads": 1}), spawn)
+    assert os.environ.get("ZENOH_RUNTIME") == env_before  # set in the supervisor, not here
+    sup = app.proc.p.pid
+    sender = app.node("h2_sender")["pid"]
+    for pid in (sup, sender):
+        names = _threads(pid)
+        assert "app-0" in names and not [n for n in names if n.startswith(("rx-", "tx-"))], names
+    app.arm()
+    # the sender's handler asks the manager from inside its queryable: a nested query
+    r = app.cli("send", "position", "l_ankle", "5")
+    assert r.returncode == 0 and "held by controller operator.l_ankle.position" in r.stdout, r
+    # the player asks the manager to load and activate the gait's trajectory controller
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: "running" in app.cli("pattern", "status").stdout, timeout=10)
