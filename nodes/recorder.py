@@ -7,7 +7,7 @@ subscription) until the node's loop takes them in batches every ``INTAKE_PERIOD_
 runs on Zenoh's thread per sample (a callback took the GIL for each; on the board a writer
 thread woken per sample was half the recorder's CPU). A sample's log time is when the loop took
 it (up to ``INTAKE_PERIOD_S`` after it arrived); its publish time is the publisher's stamp.
-A slow SD card never stalls the session; the inbox holds minutes of data. Nothing is lost
+A slow SD card never stalls the session; the inbox holds ~90 s of data. Nothing is lost
 silently: every appliance publisher numbers its samples, so a sample that never arrived or that
 the full ring let go (the oldest go first) is a gap in its publisher's sequence, counted as
 dropped. The counters go out on diagnostics (which are recorded too) and into each file's
@@ -70,9 +70,11 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     split_size_mb: Annotated[float, msgspec.Meta(ge=0)] = 1024.0  # 0 = no split by size
     split_duration_s: Annotated[float, msgspec.Meta(ge=0)] = 3600.0  # 0 = no split by time
     labels: dict[str, str] = msgspec.field(default_factory=dict)
-    # Samples each subscription's ring holds while the card pauses: minutes of the appliance's
-    # data (~220 samples/s, ~200 bytes each). What does not fit is counted as dropped.
-    inbox: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 50_000
+    # Samples each subscription's ring holds while the card pauses: ~90 s of the appliance's
+    # data (~220 samples/s). A held sample keeps its share of Zenoh's receive buffer alive:
+    # measured 1.5 KB per sample put in fours, 5.4 KB one by one (x86), so 20,000 is <= ~40 MB
+    # in practice. What does not fit is counted as dropped.
+    inbox: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 20_000
 
 
 @dataclass

@@ -180,8 +180,8 @@ def test_samples_that_did_not_fit_the_inbox_are_counted_as_dropped(  # type: ign
     write_config, spawn, tmp_path, in_node
 ) -> None:
     """The recorder's loop takes its inbox (Zenoh ring channels) in batches; when the card
-    stalls longer than the inbox holds, the ring lets the oldest go. Each publisher numbers its samples, so the
-    file's sequence gaps are exactly what the recorder says it dropped. A slow card (fsync
+    stalls longer than the inbox holds, the ring lets the oldest go. Each publisher numbers its
+    samples, so the file's sequence gaps are exactly what the recorder says it dropped. A slow card (fsync
     sleeps 1 s, as above) and an inbox of 32 samples make it happen."""
     slow_card(in_node, 1.0)
     rec_dir = tmp_path / "rec"
