@@ -4,6 +4,13 @@
 from the first, not from when the last one finished) and can inject faults for tests: go silent,
 send malformed frames, flood the bus. ``SimulatorNode`` runs it under the node runtime with a
 Zenoh queryable for faults; ``exolink sim`` runs it bare on a chosen bus.
+
+On SocketCAN the H2's cyclic frames go out on the kernel's timer (``KernelStream``: the
+broadcast manager, as the real board's hardware timer sends them) and each cycle only updates
+their contents, which a send may carry up to one cycle late (the kernel's and Python's phases
+are not locked). On a slow CPU (the board proxy's H2 stand-in: one TCG core at ~90 %)
+Python-timed frames strayed up to 122 ms from their 10 ms period and tripped the watchdog's
+silence limit: a late Python now costs stale contents, not a gap in the stream.
 """
 
 from __future__ import annotations
@@ -38,6 +45,8 @@ class SimParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     battery_start: Annotated[int, msgspec.Meta(ge=0, le=255)] = 225
     battery_drain_per_min: Annotated[float, msgspec.Meta(ge=0)] = 1.0
     seed: int = 0
+    # SocketCAN: the H2's frames on the kernel's timer (KernelStream); False: sent by Python
+    kernel_timer: bool = True
 
 
 @dataclass
@@ -47,6 +56,40 @@ class SimStats:
     frames_sent: int = 0
     send_errors: int = 0
     commands: int = 0
+
+
+class KernelStream:
+    """Cyclic frames sent by the kernel's broadcast manager (python-can's SocketCAN periodic
+    tasks, one per id, started in the order of the first cycle's frames and each on an exact
+    period, so that order holds). ``update`` replaces the contents the next sends carry; a frame
+    of each id is sent every period whether or not Python kept up."""
+
+    def __init__(self, bus: can.BusABC, period_s: float) -> None:
+        self._bus, self._period = bus, period_s
+        self._tasks: dict[int, Any] = {}
+
+    @property
+    def running(self) -> bool:
+        return bool(self._tasks)
+
+    def update(self, frames: list[can.Message]) -> None:
+        for m in frames:
+            task = self._tasks.get(m.arbitration_id)
+            if task is None:
+                self._tasks[m.arbitration_id] = self._bus.send_periodic(m, self._period)
+            else:
+                task.modify_data(m)
+
+    def stop(self) -> None:
+        tasks, self._tasks = self._tasks, {}
+        for task in tasks.values():
+            task.stop()
+
+
+def kernel_timed(bus: can.BusABC) -> bool:
+    """Whether ``bus`` sends periodic frames from the kernel (SocketCAN's broadcast manager);
+    python-can's other buses would run them on a Python thread."""
+    return type(bus).__name__ == "SocketcanBus"
 
 
 class Simulator:
@@ -65,6 +108,9 @@ class Simulator:
             else None
         )
         self.boards = {b: MaccepaBoard(b) for b in params.maccepa_boards}
+        self.stream = (
+            KernelStream(bus, h2.PERIOD_S) if params.kernel_timer and kernel_timed(bus) else None
+        )
         self.stats = SimStats()
         self._lock = threading.Lock()
         self._fault = "none"
@@ -107,9 +153,13 @@ class Simulator:
             except can.CanError:
                 self.stats.send_errors += 1
 
-    def _emit(self, msgs: list[can.Message]) -> None:
+    def _emit(self, msgs: list[can.Message], stream: KernelStream | None = None) -> None:
+        """Send a cycle's frames with the fault in force; ``stream``: the kernel sends them (a
+        silent fault stops it, malformed frames go out before its next cycle)."""
         fault = self.fault()
         if fault == "silent":
+            if stream is not None:
+                stream.stop()
             return
         if fault == "malformed":
             bad = [
@@ -119,8 +169,15 @@ class Simulator:
                 for m in msgs
             ]
             bad.append(can.Message(arbitration_id=0x3FF, data=b"\xde\xad", is_extended_id=False))
-            msgs = bad + msgs
-        self._send(msgs)
+            if stream is None:
+                msgs = bad + msgs
+            else:
+                self._send(bad)  # the kernel keeps sending the well-formed ones
+        if stream is None:
+            self._send(msgs)
+        else:
+            stream.update(msgs)
+            self.stats.frames_sent += len(msgs)  # one of each per period, from the kernel
 
     def _flood(self, until: float) -> None:
         junk = can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False)
@@ -178,7 +235,9 @@ class Simulator:
             if now >= next_h2:
                 self.stats.periods += 1
                 if h2_frames:  # not streaming (or built for a later deadline): nothing
-                    self._emit(h2_frames)
+                    self._emit(h2_frames, self.stream)
+                elif self.stream is not None and self.h2 is not None and not self.h2.streaming:
+                    self.stream.stop()  # the H2 was told to stop its stream (id 85)
                 next_h2 += h2_period
                 if now - next_h2 > 5 * h2_period:  # fell far behind (machine stalled): resync
                     self.stats.overruns += 1

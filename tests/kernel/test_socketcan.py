@@ -415,3 +415,59 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         reader.close()
         tx.shutdown()
         rx.shutdown()
+
+
+def test_simulated_h2_streams_on_the_kernel_timer(vcan0: str) -> None:
+    """On SocketCAN the simulator's H2 frames come from the broadcast manager, as the board's
+    hardware timer sends them: ids 110, 120, 130 each cycle in that order, the contents
+    following the model (a position command moves the angle), a silent fault stops them and
+    they come back, and the stop-stream command (id 85) stops them."""
+    import threading
+
+    from exolink.nodes.simulator import SimParams, Simulator
+
+    cfg = CanConfig(interface="socketcan", channel=vcan0)
+    bus = open_bus(cfg, filters=id_filters(Simulator.command_ids(SimParams())))
+    rx = open_bus(cfg, filters=id_filters([h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES]))
+    tx = listener(vcan0)
+    sim = Simulator(bus, SimParams())
+    assert sim.stream is not None
+    stop = threading.Event()
+    runner = threading.Thread(target=sim.run, args=(stop,), daemon=True)
+    runner.start()
+    cycle = (h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES)
+    try:
+        tx.send(h2.encode_stream(True))
+        assert wait_for(lambda: sim.stream.running, timeout=5)
+        drain(rx, 0.2)  # what came before the window
+        got = drain(rx, 1.0, set(cycle))
+        ids = [m.arbitration_id for m in got]
+        print("kernel-timed H2 frames in 1 s:", {i: ids.count(i) for i in cycle})
+        assert 80 <= ids.count(h2.JOINT_ANGLES) <= 120, ids.count(h2.JOINT_ANGLES)
+        k0 = ids.index(h2.JOINT_ANGLES)
+        assert all(i == cycle[(k - k0) % 3] for k, i in enumerate(ids[k0:], k0)), ids[:30]
+
+        def r_knee() -> int:
+            angles = [h2.decode(m) for m in drain(rx, 0.05, {h2.JOINT_ANGLES})]
+            return angles[-1].r_knee if angles else -999  # type: ignore[union-attr]
+
+        before = r_knee()
+        tx.send(h2.encode_joint_control("r_knee", "position", before + 20))
+        assert wait_for(lambda: r_knee() >= before + 15, timeout=5)
+
+        sim.inject("silent", 0.5)
+        assert wait_for(lambda: not sim.stream.running, timeout=2)
+        drain(rx, 0.05)
+        assert drain(rx, 0.2, set(cycle)) == []
+        assert wait_for(lambda: len(drain(rx, 0.1, {h2.JOINT_ANGLES})) >= 5, timeout=5)
+
+        tx.send(h2.encode_stream(False))
+        assert wait_for(lambda: not sim.stream.running, timeout=2)
+        drain(rx, 0.05)
+        assert drain(rx, 0.3, set(cycle)) == []
+    finally:
+        stop.set()
+        runner.join(2)
+        sim.stream.stop()
+        for b in (bus, rx, tx):
+            b.shutdown()
