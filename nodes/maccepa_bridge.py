@@ -14,8 +14,8 @@ set-point, duty and gains are checked here as always, then handed to the manager
 them in that board's operator controller and writes them each H2 cycle inside the board's
 limits (one writer per board; a board another controller drives refuses them, naming it). Stop
 control stays here and goes straight to the bus: it can only make things safer, and the manager
-releases the board when it sees it. Without it (the shipped configs, where the manager is off)
-the bridge writes every command itself, as before.
+releases the board when it sees it. Without it (the board config: no board listed in the
+manager's ``params.maccepa``; the sim config sets it) the bridge writes every command itself.
 """
 
 from __future__ import annotations
