@@ -13,7 +13,7 @@ the full ring let go (the oldest go first) is a gap in its publisher's sequence,
 dropped. The counters go out on diagnostics (which are recorded too) and into each file's
 ``exolink.stats`` metadata.
 Subscribed only while recording: an idle recorder (no ``autostart``, or stopped) takes no sample
-at all, rather than dropping each one in its callback.
+at all, rather than taking each one to drop it.
 What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
 reader's receive counters (its ``nodes/<name>/stats``) when the file was opened and closed.
 Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs

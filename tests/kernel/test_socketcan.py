@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import yaml
 from conftest import wait_for
 from exolink.canbus import id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
+from exolink.nodes.simulator import SimParams, Simulator
 from exolink.protocol import h2
 from exolink.supervisor import canlink
 
@@ -422,9 +424,6 @@ def test_simulated_h2_streams_on_the_kernel_timer(vcan0: str) -> None:
     hardware timer sends them: ids 110, 120, 130 each cycle in that order, the contents
     following the model (a position command moves the angle), a silent fault stops them and
     they come back, and the stop-stream command (id 85) stops them."""
-    import threading
-
-    from exolink.nodes.simulator import SimParams, Simulator
 
     cfg = CanConfig(interface="socketcan", channel=vcan0)
     bus = open_bus(cfg, filters=id_filters(Simulator.command_ids(SimParams())))
