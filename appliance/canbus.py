@@ -439,6 +439,7 @@ class FrameReader:
         self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)
         self._rx = {s: BatchReceiver(s) for s in (self._sock, self._quiet) if s is not None}
+        self.writer = FrameWriter(bus, cfg)  # sends batches through the waking socket
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
             self.rcvbuf = size_receive_buffer(self._sock, want)
@@ -733,14 +734,104 @@ class BatchReceiver:
         return sec + ns * 1e-9
 
 
-def _libc_recvmmsg() -> Any:
-    fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).recvmmsg
-    fn.argtypes = (ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_void_p)
+def _libc(name: str, *argtypes: Any) -> Any:
+    fn = getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True), name)
+    fn.argtypes = argtypes
     fn.restype = ctypes.c_int
     return fn
 
 
-_recvmmsg = _libc_recvmmsg()
+_recvmmsg = _libc(
+    "recvmmsg", ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
+)
+_sendmmsg = _libc("sendmmsg", ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int)
+
+
+# --- the send hot path -------------------------------------------------------------------------
+
+
+class FrameWriter:
+    """Sends a batch of frames (a controller cycle's set-points) in one system call.
+
+    python-can's SocketCAN ``send`` costs, per frame, a ``select`` for room and the ``send``
+    (two system calls), two logger look-ups and a frame build; the controller manager sends up
+    to eight frames per H2 cycle, and on the board proxy (qemu TCG) the kernel's side of a call
+    is where the time goes, as for ``BatchReceiver``. On SocketCAN a batch goes to the kernel
+    in one ``sendmmsg`` (libc's, through ctypes), never blocking; frames the kernel refuses (a
+    full transmit queue) raise ``can.CanOperationError`` naming how many of the batch went out,
+    after one more try for the rest. Order on the bus is the batch's. Other interfaces (the
+    simulated bus, the virtual one) and CAN FD frames go through python-can, one by one."""
+
+    def __init__(self, bus: can.BusABC, cfg: CanConfig) -> None:
+        self.bus = bus
+        self.fd = bus.socket.fileno() if cfg.interface == "socketcan" else None  # type: ignore[attr-defined]
+        n, size = _BATCH, _CAN_FRAME.size
+        self._data = ctypes.create_string_buffer(n * size)
+        self._iov = (_IoVec * n)()
+        self._msgs = (_MMsgHdr * n)()
+        for i in range(n):
+            self._iov[i].base = ctypes.addressof(self._data) + i * size
+            self._iov[i].len = size
+            self._msgs[i].hdr.iov = ctypes.pointer(self._iov[i])
+            self._msgs[i].hdr.iovlen = 1
+        self._addr = ctypes.addressof(self._msgs)
+        self._view = memoryview(self._data).cast("B")
+
+    def send(self, msgs: Sequence[can.Message]) -> None:
+        if self.fd is None or any(m.is_fd for m in msgs):
+            self._send_each(msgs)
+            return
+        for at in range(0, len(msgs), _BATCH):
+            self._send_batch(msgs[at : at + _BATCH])
+
+    def _send_each(self, msgs: Sequence[can.Message]) -> None:
+        """Through python-can; a refused frame does not hold back the ones after it."""
+        import can
+
+        failed: list[str] = []
+        for m in msgs:
+            try:
+                self.bus.send(m)
+            except can.CanError as exc:
+                failed.append(str(exc))
+        if failed:
+            raise can.CanOperationError(
+                f"sent {len(msgs) - len(failed)} of {len(msgs)} frames: {failed[0]}"
+            )
+
+    def _send_batch(self, msgs: Sequence[can.Message]) -> None:
+        view, size = self._view, _CAN_FRAME.size
+        for i, m in enumerate(msgs):
+            can_id = m.arbitration_id
+            if m.is_extended_id:
+                can_id |= _CAN_EFF_FLAG
+            if m.is_remote_frame:
+                can_id |= _CAN_RTR_FLAG
+            if m.is_error_frame:
+                can_id |= _CAN_ERR_FLAG
+            _CAN_FRAME.pack_into(view, i * size, can_id, m.dlc, bytes(m.data))
+        total, done, tries = len(msgs), 0, 0
+        while done < total:
+            n = _sendmmsg(
+                self.fd,
+                self._addr + done * ctypes.sizeof(_MMsgHdr),
+                total - done,
+                socket.MSG_DONTWAIT,
+            )
+            if n > 0:
+                done += n
+                continue
+            tries += 1
+            err = ctypes.get_errno() if n < 0 else errno.ENOBUFS
+            if err == errno.EINTR and tries < 3:
+                continue
+            if tries < 2 and err in (errno.ENOBUFS, errno.EAGAIN):
+                continue
+            import can
+
+            raise can.CanOperationError(
+                f"sent {done} of {total} frames: {os.strerror(err)} (transmit queue full?)"
+            )
 
 
 _arrival = operator.itemgetter(0)  # a Frame's timestamp, in C: sort and bisect keys per frame

@@ -41,7 +41,7 @@ import can
 import msgspec
 from exolink import roles
 from exolink.arming import ArmingState
-from exolink.canbus import FrameReader, open_bus, open_reader
+from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
 from exolink.controller import BoardState, State
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
 from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
@@ -132,6 +132,7 @@ class ControllerManagerNode(Node):
         mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
         self.read_ids = sorted({*READ_IDS, *mc_ids})
         self.bus = open_bus(self.ctx.config.can, filters=[])  # sends while the reader is closed
+        self.writer = FrameWriter(self.bus, self.ctx.config.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued
         self.opened = 0.0  # monotonic time the reader opened
         self.wake = threading.Event()  # a queued switch: open the reader now
@@ -440,9 +441,9 @@ class ControllerManagerNode(Node):
         period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
         self.last_angle_ts, self.last_angle_mono = stamp, time.monotonic()
         out = self.manager.cycle(state, stamp, period, self._not_armed())
-        self._safe(out)
+        frames = self._safe_frames(out)  # safe actions first, in the cycle's one send
         for w in out.writes:
-            self._send(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
+            frames.append(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
             self.written += 1
         for m in out.maccepa:
             try:
@@ -450,27 +451,36 @@ class ControllerManagerNode(Node):
             except ProtocolError as exc:  # cannot happen after the limits: belt
                 self.log.error("maccepa_encode_refused", write=str(m), error=str(exc))
                 continue
-            self._send(frame)
+            frames.append(frame)
             self.mc_written += 1
+        self._send(frames)
         self.manager.overhead_s.append(time.perf_counter() - t0 - out.controller_s)
 
     def _safe(self, out: Cycle) -> None:
-        """The safe action of the joints and boards ``out`` names."""
+        """The safe action of the joints and boards ``out`` names, sent now."""
+        self._send(self._safe_frames(out))
+
+    def _safe_frames(self, out: Cycle) -> list[can.Message]:
+        frames = []
         for j in sorted(out.safe):
-            self._send(_frame(j + 1, self.safe_mode, 0, 0))
+            frames.append(_frame(j + 1, self.safe_mode, 0, 0))
             self.safe_sent += 1
         for b in sorted(out.safe_boards):
-            self._send(maccepa.encode_stop(b))
+            frames.append(maccepa.encode_stop(b))
             self.mc_safe_sent += 1
+        return frames
 
-    def _send(self, msg: can.Message) -> None:
-        """Through the reader's socket while it is open: a socket does not read its own frames
-        back (another socket of this process would, six more frames per cycle to decode)."""
+    def _send(self, frames: list[can.Message]) -> None:
+        """A cycle's frames in one system call on SocketCAN (canbus.FrameWriter), through the
+        reader's socket while it is open: a socket does not read its own frames back (another
+        socket of this process would, six more frames per cycle to decode)."""
+        if not frames:
+            return
         reader = self.reader
         try:
-            (reader.bus if reader is not None else self.bus).send(msg)
+            (reader.writer if reader is not None else self.writer).send(frames)
         except can.CanError as exc:
-            self.log.error("send_failed", error=str(exc))
+            self.log.error("send_failed", error=str(exc), frames=len(frames))
 
     def _silent(self, reason: str) -> None:
         if not self.manager.active():

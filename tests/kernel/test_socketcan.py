@@ -16,7 +16,7 @@ import can
 import pytest
 import yaml
 from conftest import wait_for
-from exolink.canbus import id_filters, open_bus, open_reader
+from exolink.canbus import FrameWriter, id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
 from exolink.nodes.simulator import SimParams, Simulator
 from exolink.protocol import h2
@@ -68,6 +68,42 @@ def test_a_send_only_bus_receives_nothing(vcan0: str) -> None:
         assert [m.arbitration_id for m in drain(other, 0.3)] == [85]
     finally:
         send_only.shutdown()
+        other.shutdown()
+
+
+def _wire(m: can.Message) -> tuple[int, bool, bool, int, bytes]:
+    """What a frame is on the wire (a remote frame carries a length, no data)."""
+    data = b"" if m.is_remote_frame else bytes(m.data)
+    return m.arbitration_id, m.is_extended_id, m.is_remote_frame, m.dlc, data
+
+
+def test_frame_writer_sends_a_batch_in_order_and_names_what_failed(vcan0: str) -> None:
+    """The controller manager's cycle goes out in one sendmmsg: every frame, in the batch's
+    order, with its id kind, length and data as python-can's own send would put them."""
+    cfg = CanConfig(interface="socketcan", channel=vcan0)
+    bus = open_bus(cfg, filters=[])
+    other = listener(vcan0)
+    batch = [
+        can.Message(arbitration_id=70, data=bytes([m, 1, 0, 30, 0, 0]), is_extended_id=False)
+        for m in range(1, 7)
+    ]
+    batch += [
+        can.Message(arbitration_id=0x1ABCDEF0, data=b"\x01\x02", is_extended_id=True),
+        can.Message(arbitration_id=85, data=b"", is_extended_id=False),
+        can.Message(arbitration_id=0x7FF, is_remote_frame=True, dlc=3, is_extended_id=False),
+    ]
+    try:
+        writer = FrameWriter(bus, cfg)
+        assert writer.fd is not None  # the sendmmsg path, not python-can's
+        writer.send(batch * 10)  # 90 frames: two system calls of at most 64
+        got = drain(other, 0.5)
+        assert [_wire(m) for m in got] == [_wire(m) for m in batch * 10]
+        bad = FrameWriter(bus, cfg)
+        bad.fd = -1  # a socket that is gone: nothing sent, and the error says so
+        with pytest.raises(can.CanOperationError, match="sent 0 of 9 frames"):
+            bad.send(batch)
+    finally:
+        bus.shutdown()
         other.shutdown()
 
 
