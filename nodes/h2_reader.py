@@ -213,7 +213,7 @@ class H2Reader(Node):
             # rx_*: receive losses and backlog; the supervisor shows them in `exolink status`
             **{f"rx_{k}": v for k, v in rx.items()},
         }
-        silent = self._silent_for() > 0.1
+        silent = self._silent_for() > 0.1 + self.cadence.every_s  # read every_s apart
         fault = st.out_of_range > self._reported_out_of_range
         self._reported_out_of_range = st.out_of_range
         # Dropped by a full queue, or skipped as stale by a reader that fell behind.

@@ -44,10 +44,13 @@ from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
-INTAKE_PERIOD_S = 0.05  # how often the loop takes what the inbox holds
+# How often the loop takes what the inbox holds. Each take is a wake-up (~1 ms of the board's
+# one core under TCG, benchmarks/board/units.py); the rings hold ~90 s of samples.
+INTAKE_PERIOD_S = 0.1
 # Take from the inbox in slices of wall time, not of messages, with beat() between them: sharing
 # one core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
+MAX_KEYS = 4096  # keys whose parse is cached (a flood of made-up keys clears it)
 
 Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publish ns, sequence
 # A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
@@ -155,6 +158,9 @@ class Recorder(Node):
         self.session_stamp = ""
         self._receive_at_open: dict[str, dict[str, Any]] = {}
         self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
+        # key -> (topic, type), None for keys not recorded: a key is parsed and matched against
+        # ``exclude`` once, not per sample (the board's ~220 samples/s share a dozen keys).
+        self._keys: dict[str, tuple[str, str] | None] = {}
         self._pending = 0  # taken from the inbox, not yet written
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
@@ -184,13 +190,17 @@ class Recorder(Node):
         gaps = 0
         recording = self.state in ("recording", "stopping")
         now = time.time_ns()
+        keys = self._keys
         for sample in self._samples():
-            try:
-                topic, typename = messaging.parse_key(str(sample.key_expr))
-            except ValueError:
+            key = str(sample.key_expr)
+            kept = keys.get(key, False)
+            if kept is False:
+                if len(keys) >= MAX_KEYS:  # anyone may publish: the cache stays bounded
+                    keys.clear()
+                kept = keys[key] = self._kept(key)
+            if kept is None:
                 continue
-            if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
-                continue
+            topic, typename = kept
             seq, src, gid = 0, 0, b""
             att = sample.attachment
             if att is not None:
@@ -210,6 +220,16 @@ class Recorder(Node):
                 self.stats.received += len(out)
                 self.stats.dropped += gaps
         return out
+
+    def _kept(self, key: str) -> tuple[str, str] | None:
+        """A data key's (topic, type), None if it is not one or ``exclude`` matches it."""
+        try:
+            topic, typename = messaging.parse_key(key)
+        except ValueError:
+            return None
+        if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
+            return None
+        return topic, typename
 
     def _subscribe(self) -> None:
         with self.lock:
