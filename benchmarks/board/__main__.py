@@ -42,7 +42,8 @@ def table(result: dict[str, Any]) -> str:
         f"exolink {result['checkout']['describe']} ({result['checkout']['commit'][:12]}), "
         f"{result['seconds']:g} s window, {result['timings']} watchdog timings, nominal load "
         "(H2 100 Hz + MACCEPA board 0 simulated on CPU 1, pattern speed 10 armed, recorder on, "
-        "timing monitor on, 1 laptop subscriber)",
+        "timing monitor on, 1 laptop subscriber)"
+        + (f" WITHOUT {', '.join(result['without'])}" if result.get("without") else ""),
         "",
         f"{'process':16} {'cpus':>5} {'guest %cpu':>10} {'guest PSS':>10} "
         f"{'native %cpu':>11} {'native PSS':>10} {'ratio':>6}",
@@ -280,6 +281,13 @@ def main() -> int:
         metavar="KEY=VALUE",
         help="environment of the appliance's service on the guest (experiments; in the JSON)",
     )
+    p.add_argument(
+        "--without",
+        default="",
+        metavar="NODES",
+        help="leave these non-critical nodes off (comma-separated): what the rest of the "
+        "nominal load needs when all of it saturates CPU 0 (in the JSON and the table's title)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -287,9 +295,11 @@ def main() -> int:
         return 0
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     ladder_nodes = None if args.ladder is None else tuple(filter(None, args.ladder.split(",")))
+    without = tuple(filter(None, args.without.split(",")))
     t0 = time.monotonic()
     result: dict[str, Any] = {
         "schema": 1,
+        "without": list(without),
         "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "seconds": args.seconds,
         "timings": args.timings,
@@ -317,6 +327,7 @@ def main() -> int:
             Path(args.py_spy) if args.py_spy else None,
             ladder_nodes,
             tuple(args.guest_env),
+            without,
         )
     if args.only != "guest":
         result["native"] = _guarded(
@@ -327,6 +338,7 @@ def main() -> int:
             args.start_grace_ms,
             args.timings,
             ladder_nodes,
+            without,
         )
         if ladder_nodes is None:
             result["native"]["units"] = _guarded("units", runs.native_units)

@@ -294,6 +294,7 @@ def prepare(
     timings: str,
     extra_wheels: tuple[Path, ...] = (),
     env: tuple[str, ...] = (),
+    without: tuple[str, ...] = (),
 ) -> tuple[Card, dict[str, Any]]:
     """The bench copy of ``image`` in ``work``; returns it and the appliance config it runs.
     ``extra_wheels`` (an armv7 py-spy, say) are installed beside exolink, without dependencies."""
@@ -335,7 +336,7 @@ def prepare(
     # Zenoh's handshake ("UsrPwd extension - Recv InitSyn. Decoding error"), which the last
     # stops' runs took for a router too starved to answer.
     base["zenoh"]["config_file"] = IMAGE_ZENOH_CONFIG
-    cfg = bench_config(base, GUEST_CAN, start_grace_ms, timings)
+    cfg = bench_config(base, GUEST_CAN, start_grace_ms, timings, without)
     text = yaml.safe_dump(cfg, sort_keys=False)
     config.parse(text, "bench appliance.yaml")  # the board would refuse a bad one
     (work / "appliance.yaml").write_text(text)

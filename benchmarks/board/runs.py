@@ -138,6 +138,7 @@ def run_guest(
     py_spy: Path | None = None,
     ladder: tuple[str, ...] | None = None,
     env: tuple[str, ...] = (),
+    without: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest."""
@@ -159,6 +160,7 @@ def run_guest(
         timings,
         (py_spy,) if py_spy else (),
         env,
+        without,
     )
     result["config"] = cfg
     laptop_cfg = work / "exolink-operator.json5"
@@ -380,6 +382,7 @@ def run_native(
     start_grace_ms: int,
     timings: str,
     ladder: tuple[str, ...] | None = None,
+    without: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """The same config and load on this host: udp_multicast (no vcan module here), the
     supervisor under ``taskset -c 0``, the simulator node on CPU 1."""
@@ -395,7 +398,7 @@ def run_native(
         "require_overlay": False,
     }
     base = yaml.safe_load(bundled("board").read_text())
-    cfg = scenario.bench_config(base, can, start_grace_ms, timings)
+    cfg = scenario.bench_config(base, can, start_grace_ms, timings, without)
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     for n in cfg["nodes"]:
         if n["plugin"] == "recorder":

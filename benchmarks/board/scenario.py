@@ -52,13 +52,24 @@ TIMINGS = {
 
 
 def bench_config(
-    base: dict[str, Any], can: dict[str, Any], start_grace_ms: int, timings: str
+    base: dict[str, Any],
+    can: dict[str, Any],
+    start_grace_ms: int,
+    timings: str,
+    without: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """The appliance config under test: ``base`` (the image's appliance.yaml or board.yaml) with
     the bench's bus, a simulated trigger, the simulator node on CPU 1, one MACCEPA board, the
     timing monitor on and the watchdog ``timings`` (TIMINGS, every node's own deadline included)
-    with the given start grace."""
+    with the given start grace. ``without``: non-critical nodes left off (what the rest needs
+    when CPU 0 is saturated); a critical one is refused, since nothing arms without it."""
     cfg = json.loads(json.dumps(base))  # deep copy
+    names = {n["name"]: n for n in cfg.get("nodes", [])}
+    for name in without:
+        if name not in names:
+            raise ValueError(f"--without {name}: no such node in the config ({', '.join(names)})")
+        if names[name].get("critical"):
+            raise ValueError(f"--without {name}: a critical node (the watchdog would not arm)")
     cfg["can"] = can
     cfg["trigger"] = {"source": "simulated", "sim_period_s": 0}
     wd = cfg.setdefault("watchdog", {})
@@ -72,6 +83,8 @@ def bench_config(
     for n in nodes:
         if n["plugin"] in ("maccepa_bridge", "timing_monitor"):
             n["enabled"] = True
+        if n["name"] in without:
+            n["enabled"] = False
         if n["plugin"] == "maccepa_bridge":
             n["params"] = {**n.get("params", {}), "boards": [0]}
         if n["plugin"] == "timing_monitor":
