@@ -670,6 +670,25 @@ _CMSG_HDR = struct.Struct("@Nii")  # struct cmsghdr: len, level, type
 _MSG_SIZE, _CTL_SIZE = 256, socket.CMSG_SPACE(_TIMESPEC.size)
 
 
+def _mmsg_buffers(size: int, ctl_size: int) -> tuple[Any, Any, Any, Any]:
+    """``_BATCH`` message headers for recvmmsg / sendmmsg, each with one ``size``-byte buffer
+    (and a ``ctl_size``-byte control buffer, 0: none), allocated once: (data, control, iovecs,
+    headers)."""
+    n = _BATCH
+    data = ctypes.create_string_buffer(n * size)
+    ctl = ctypes.create_string_buffer(max(1, n * ctl_size))
+    iov, msgs = (_IoVec * n)(), (_MMsgHdr * n)()
+    for i in range(n):
+        iov[i].base = ctypes.addressof(data) + i * size
+        iov[i].len = size
+        msgs[i].hdr.iov = ctypes.pointer(iov[i])
+        msgs[i].hdr.iovlen = 1
+        if ctl_size:
+            msgs[i].hdr.control = ctypes.addressof(ctl) + i * ctl_size
+            msgs[i].hdr.controllen = ctl_size
+    return data, ctl, iov, msgs
+
+
 class BatchReceiver:
     """Every datagram queued on a socket, up to ``_BATCH``, in one ``recvmmsg`` call.
 
@@ -682,17 +701,7 @@ class BatchReceiver:
     def __init__(self, sock: socket.socket) -> None:
         self.fd = sock.fileno()
         n = _BATCH
-        self._data = ctypes.create_string_buffer(n * _MSG_SIZE)
-        self._ctl = ctypes.create_string_buffer(n * _CTL_SIZE)
-        self._iov = (_IoVec * n)()
-        self._msgs = (_MMsgHdr * n)()
-        for i in range(n):
-            self._iov[i].base = ctypes.addressof(self._data) + i * _MSG_SIZE
-            self._iov[i].len = _MSG_SIZE
-            self._msgs[i].hdr.iov = ctypes.pointer(self._iov[i])
-            self._msgs[i].hdr.iovlen = 1
-            self._msgs[i].hdr.control = ctypes.addressof(self._ctl) + i * _CTL_SIZE
-            self._msgs[i].hdr.controllen = _CTL_SIZE
+        self._data, self._ctl, self._iov, self._msgs = _mmsg_buffers(_MSG_SIZE, _CTL_SIZE)
         self._addr = ctypes.addressof(self._msgs)
         self._view = memoryview(self._data).cast("B")
         self._ctl_view = memoryview(self._ctl).cast("B")
@@ -765,15 +774,7 @@ class FrameWriter:
     def __init__(self, bus: can.BusABC, cfg: CanConfig) -> None:
         self.bus = bus
         self.fd = bus.socket.fileno() if cfg.interface == "socketcan" else None  # type: ignore[attr-defined]
-        n, size = _BATCH, _CAN_FRAME.size
-        self._data = ctypes.create_string_buffer(n * size)
-        self._iov = (_IoVec * n)()
-        self._msgs = (_MMsgHdr * n)()
-        for i in range(n):
-            self._iov[i].base = ctypes.addressof(self._data) + i * size
-            self._iov[i].len = size
-            self._msgs[i].hdr.iov = ctypes.pointer(self._iov[i])
-            self._msgs[i].hdr.iovlen = 1
+        self._data, _, self._iov, self._msgs = _mmsg_buffers(_CAN_FRAME.size, 0)
         self._addr = ctypes.addressof(self._msgs)
         self._view = memoryview(self._data).cast("B")
 
