@@ -13,6 +13,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import errno
+import functools
 import ipaddress
 import operator
 import os
@@ -439,7 +440,7 @@ class FrameReader:
         self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)
         self._rx = {s: BatchReceiver(s) for s in (self._sock, self._quiet) if s is not None}
-        self.writer = FrameWriter(bus, cfg)  # sends batches through the waking socket
+        self._cfg = cfg
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
             self.rcvbuf = size_receive_buffer(self._sock, want)
@@ -461,6 +462,12 @@ class FrameReader:
             return None
         counts = [socket_drops(s) for s in (self._sock, self._quiet) if s is not None]
         return None if None in counts else sum(c for c in counts if c is not None)
+
+    @functools.cached_property
+    def writer(self) -> FrameWriter:
+        """Sends batches through the waking socket; made on first use (its buffers cost a
+        few ms under TCG, and most readers never send a batch)."""
+        return FrameWriter(self.bus, self._cfg)
 
     def close(self) -> None:
         """Shut down the buses this reader opened (the quiet one too)."""

@@ -111,8 +111,7 @@ class TimingMonitor(Node):
     stall_s = 1.0  # the loop beats every READ_EVERY_S
 
     def configure(self) -> None:
-        # Deviations come from kernel timestamps, so reading late costs nothing: one wake per
-        # READ_EVERY_S instead of one per frame.
+        # one wake per READ_EVERY_S, not one per frame (see READ_EVERY_S)
         self.reader = open_reader(self.ctx.config.can, self.params.ids, every_s=READ_EVERY_S)
         self.bus = self.reader.bus
         self.lock = threading.Lock()
