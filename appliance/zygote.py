@@ -96,7 +96,7 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
     code = 1
     try:
         sock.close()
-        os.setsid()
+        own_process_group()
         set_comm(f"exo-{req['name']}")
         out, live = fds
         os.dup2(out, 1)
@@ -119,6 +119,23 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
             sys.stdout.flush()
             sys.stderr.flush()
         os._exit(code)
+
+
+def own_process_group() -> None:
+    """A terminal's Ctrl-C reaches the supervisor's process group only (it stops the nodes in
+    order), and stdin is /dev/null; but the process stays in the supervisor's session.
+
+    Why not a session of its own (setsid): the kernel's autogroup (CONFIG_SCHED_AUTOGROUP, on in
+    Debian's armmp kernel and most desktops) makes each session one scheduling group of equal
+    weight, and nice then only orders threads inside a group. With a session per node, board.yaml's
+    priorities did nothing: on the board proxy's saturated CPU 0 the recorder at nice 10 kept
+    16 % while the h2 reader at nice -10 read half its frames too late to publish."""
+    os.setpgid(0, 0)
+    with contextlib.suppress(OSError):
+        fd = os.open(os.devnull, os.O_RDONLY)
+        if fd != 0:
+            os.dup2(fd, 0)
+            os.close(fd)
 
 
 def set_comm(name: str) -> None:

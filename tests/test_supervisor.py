@@ -330,10 +330,24 @@ def test_bad_config_starts_nothing(tmp_path, mbus, text: str, expected: str) -> 
     assert collect(mbus, 0.3) == []
 
 
+def assert_in_supervisor_session(pid: int, supervisor: int) -> None:
+    """A node is its own process group (a terminal's Ctrl-C reaches the supervisor, which stops
+    the nodes in order) in the supervisor's session: one session is one autogroup for the
+    kernel's scheduler, and a session per node made every node's nice meaningless
+    (zygote.own_process_group)."""
+    assert os.getpgid(pid) == pid
+    assert os.getsid(pid) == os.getsid(supervisor)
+    assert os.path.realpath(f"/proc/{pid}/fd/0") == os.devnull
+    if os.path.exists(f"/proc/{pid}/autogroup"):  # a kernel with CONFIG_SCHED_AUTOGROUP
+        with open(f"/proc/{pid}/autogroup") as f, open(f"/proc/{supervisor}/autogroup") as g:
+            assert f.read().split()[0] == g.read().split()[0]
+
+
 def test_a_dead_zygote_costs_speed_not_restarts(app) -> None:  # type: ignore[no-untyped-def]
     """Nodes fork from the zygote; if it dies the supervisor starts them by exec instead."""
     st = app.status()
     assert st["zygote_pid"]
+    assert_in_supervisor_session(app.node("h2_reader")["pid"], app.proc.p.pid)
     os.kill(st["zygote_pid"], signal.SIGKILL)
     pid = app.node("h2_reader")["pid"]
     os.kill(pid, signal.SIGKILL)
@@ -347,3 +361,4 @@ def test_a_dead_zygote_costs_speed_not_restarts(app) -> None:  # type: ignore[no
     new = app.node("h2_reader")["pid"]
     with open(f"/proc/{new}/cmdline", "rb") as f:
         assert b"exolink.runtime" in f.read()
+    assert_in_supervisor_session(new, app.proc.p.pid)

@@ -116,7 +116,8 @@ class NodeProcess:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             env={**env, liveness.ENV: str(self.channel.child_fd)},
-            start_new_session=True,
+            stdin=subprocess.DEVNULL,
+            process_group=0,  # not a session of its own: see zygote.own_process_group
             pass_fds=(self.channel.child_fd,),
         )
 
@@ -339,7 +340,7 @@ def _fork_zygote(ours: socket.socket, theirs: socket.socket) -> int:
         code = 1
         try:
             ours.close()
-            os.setsid()
+            zygote.own_process_group()
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, signal.SIG_DFL)
             zygote.set_comm("exo-zygote")

@@ -131,7 +131,18 @@ def process(pid: int) -> dict[str, Any] | None:
         "pss_kb": _kb(rollup, "Pss"),
         "rss_kb": _kb(status, "VmRSS"),
         "cpus_allowed": _cpus_allowed(pid),
+        "autogroup": _autogroup(pid),
     }
+
+
+def _autogroup(pid: int) -> str | None:
+    """The kernel's scheduling group of the process's session (CONFIG_SCHED_AUTOGROUP): groups
+    share the CPU equally and nice orders threads only within one, so the appliance's
+    processes must share one for board.yaml's priorities to mean anything."""
+    try:
+        return _read(f"/proc/{pid}/autogroup").split()[0]
+    except (OSError, IndexError):
+        return None
 
 
 def cpu_times() -> dict[str, list[int]]:
@@ -228,6 +239,7 @@ def compare(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
                 p1["policy"], p1["policy"]
             ),
             "cpus_allowed": sorted(set(p0["cpus_allowed"]) | set(p1["cpus_allowed"])),
+            "autogroup": p1.get("autogroup"),
         }
     cpus = {
         name: idle_pct(vals, b["cpu"][name]) for name, vals in a["cpu"].items() if name in b["cpu"]
