@@ -91,13 +91,9 @@ class WatchdogConfig(_Strict):
     trip_on_bus_error_passive: bool = True
 
 
-MAX_NODE_FIFO = 80
-
-
 class Priority(_Strict):
     nice: Annotated[int, msgspec.Meta(ge=-20, le=19)] | None = None
-    # up to 80: the supervisor takes 10 above the highest (supervisor.processes.outrank_nodes)
-    fifo: Annotated[int, msgspec.Meta(ge=1, le=MAX_NODE_FIFO)] | None = None
+    fifo: Annotated[int, msgspec.Meta(ge=1, le=99)] | None = None
     cpus: list[Annotated[int, msgspec.Meta(ge=0, le=255)]] | None = None
 
 

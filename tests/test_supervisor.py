@@ -268,30 +268,6 @@ def test_configured_priority_comes_with_the_first_heartbeat(  # type: ignore[no-
     assert "priority_not_permitted" not in app.proc.output()
 
 
-def _policy(tid: int) -> tuple[int, int]:
-    return os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
-
-
-@pytest.mark.skipif(os.geteuid() != 0, reason="SCHED_FIFO needs root or CAP_SYS_NICE")
-def test_supervisor_outranks_a_real_time_node(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
-    """A SCHED_FIFO node that cannot finish its cycles preempts every plain thread: the
-    supervisor's watchdog must run above it (outrank_nodes), and nothing it spawns inherits
-    its real-time priority (the zygote, a node importing)."""
-    rt = [{**n, "priority": {"fifo": 20}} if n["name"] == "h2_sender" else n for n in NODES]
-    app = Appliance(write_config(nodes=rt), spawn)
-    st = app.status()
-    assert st["fifo"] == 30
-    sup = app.proc.p.pid
-    zenoh_threads = [t for t in os.listdir(f"/proc/{sup}/task") if t != str(sup)]
-    assert _policy(sup) == (os.SCHED_FIFO, 30)
-    assert {_policy(int(t)) for t in zenoh_threads} >= {(os.SCHED_FIFO, 30)}
-    assert _policy(st["zygote_pid"]) == (os.SCHED_OTHER, 0)
-    sender = app.node("h2_sender")["pid"]
-    assert {_policy(int(t)) for t in os.listdir(f"/proc/{sender}/task")} == {(os.SCHED_FIFO, 20)}
-    reader = app.node("h2_reader")["pid"]
-    assert _policy(reader) == (os.SCHED_OTHER, 0)
-
-
 @pytest.mark.parametrize(
     ("text", "expected"),
     [

@@ -29,14 +29,7 @@ from exolink.messaging import CommandRefused
 from exolink.protocol import h2
 from exolink.runtime import stop_on_signals
 from exolink.supervisor import canlink, trigger
-from exolink.supervisor.processes import (
-    Exit,
-    NodeProcess,
-    Zygote,
-    apply_priority,
-    outrank_nodes,
-    relay,
-)
+from exolink.supervisor.processes import Exit, NodeProcess, Zygote, apply_priority, relay
 from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
@@ -100,7 +93,6 @@ class Supervisor:
         self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
         self.nodes: dict[str, NodeProcess] = {}
         self.pattern_state: tuple[str, str] = ("stopped", "")
-        self.fifo: int | None = None  # the supervisor's SCHED_FIFO priority, if it took one
         self.operators: set[str] = set()
         self.operator_lost_at: dict[str, float] = {}
 
@@ -112,9 +104,6 @@ class Supervisor:
         if runtime is not None:
             self.log.info("zenoh_runtime", setting=runtime)
         self.zygote = self._start_zygote()  # a fork: before any socket, session or thread
-        # Above any real-time node, for every thread started from here on (the zygote, forked
-        # just now, and all it forks stay plain): the watchdog must outrank what it watches.
-        self.fifo = outrank_nodes(cfg.nodes)
         if cfg.can.interface == "socketcan":
             if cfg.can.require_overlay:
                 canlink.check_overlay()
@@ -532,7 +521,6 @@ class Supervisor:
         return {
             "device": self.cfg.device,
             "pid": os.getpid(),
-            "fifo": self.fifo,
             "zygote_pid": self.zygote.proc.pid if self.zygote is not None else None,
             "watchdog": {
                 "state": wd.state,

@@ -23,7 +23,7 @@ from typing import Any
 
 import structlog
 from exolink import liveness
-from exolink.config import MAX_NODE_FIFO, NodeConfig
+from exolink.config import NodeConfig
 
 LOG_LINES = 500
 REAP_WAIT_S = 5.0  # after SIGKILL: a stop never holds the management API longer
@@ -359,44 +359,9 @@ ZYGOTE_READY_S = 120.0
 def plain_priority(pid: int) -> None:
     """A node imports and configures at plain priority; its configured one comes with its first
     heartbeat. Under emulation a SCHED_FIFO node importing for seconds starved the supervisor
-    until systemd's watchdog killed it; on the board's single core that would be the same.
-    Nothing it spawns inherits the supervisor's own SCHED_FIFO (outrank_nodes) either."""
-    with contextlib.suppress(OSError):
-        if os.sched_getscheduler(pid) != os.SCHED_OTHER:
-            os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+    until systemd's watchdog killed it; on the board's single core that would be the same."""
     with contextlib.suppress(OSError):  # already lower (a niced supervisor): leave it
         os.setpriority(os.PRIO_PROCESS, pid, max(0, os.getpriority(os.PRIO_PROCESS, 0)))
-
-
-SUPERVISOR_FIFO_MARGIN = 10
-
-
-def outrank_nodes(nodes: list[NodeConfig]) -> int | None:
-    """SCHED_FIFO for the calling thread (and every thread it starts later) above the highest
-    SCHED_FIFO node, if any is configured; returns the priority taken (None: none needed, or
-    not permitted, logged).
-
-    Why: a real-time node preempts every plain thread. On the board proxy the controller manager
-    (FIFO 50) whose cycles took longer than the H2 period (the gait's update under TCG) ran for
-    seconds without a break: the supervisor's loop stalled 3.5 s at nice -15, its watchdog
-    state went out 3 s late (so the manager and pattern player stopped the pattern as not
-    armed) and a heartbeat check came too late. The watchdog must outrank what it watches."""
-    top = max((n.priority.fifo for n in nodes if n.enabled and n.priority.fifo), default=None)
-    if top is None:
-        return None
-    prio = min(top, MAX_NODE_FIFO) + SUPERVISOR_FIFO_MARGIN
-    log = structlog.get_logger().bind(node="supervisor")
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-    except PermissionError:
-        log.warning(
-            "supervisor_priority_not_permitted",
-            fifo=prio,
-            fix="run the supervisor with CAP_SYS_NICE (the systemd unit grants it)",
-        )
-        return None
-    log.info("supervisor_priority", fifo=prio, highest_node_fifo=top)
-    return prio
 
 
 def _threads(pid: int) -> list[int]:
