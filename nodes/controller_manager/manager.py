@@ -588,33 +588,35 @@ class Manager:
     def _compose(self, state: State, out: Cycle) -> None:
         """One frame per claimed joint, inside the limits; a joint whose values are not all
         known yet gets no frame (the H2 keeps what it had)."""
-        owners, held = self.owners, self.held
-        for j, name in enumerate(JOINTS):
+        owners, held, limits = self.owners, self.held, self.limits
+        if not owners:
+            return
+        for j, (pos_key, torque_key, stiff_key) in enumerate(_JOINT_KEYS):
             if j in out.safe:
                 continue
-            pos_owner = owners.get(f"{name}/position")
-            torque_owner = owners.get(f"{name}/torque")
+            torque_owner = owners.get(torque_key)
             if torque_owner is not None:
-                v = held.get(f"{name}/torque")
+                v = held.get(torque_key)
                 if v is None:
                     self.gaps += 1
                     continue
                 mode, sp, st, owner = TORQUE, round(v), 0, torque_owner
-            elif pos_owner is not None:
-                v = held.get(f"{name}/position")
-                s = held.get(f"{name}/stiffness") if f"{name}/stiffness" in owners else 0
+            elif (pos_owner := owners.get(pos_key)) is not None:
+                stiff = stiff_key in owners
+                v = held.get(pos_key)
+                s = held.get(stiff_key) if stiff else 0
                 if v is None or s is None:
                     self.gaps += 1
                     continue
                 sp, st, owner = round(v), round(s), pos_owner
-                mode = STIFFNESS if f"{name}/stiffness" in owners else POSITION
+                mode = STIFFNESS if stiff else POSITION
             else:
                 continue
             last = self.last_pos[j] if mode != TORQUE else None
-            sp2, st2 = self.limits.saturate(j, mode, sp, st, last, self.max_step)
-            if (sp2, st2) != (sp, st):
+            sp2, st2 = limits.saturate(j, mode, sp, st, last, self.max_step)
+            if sp2 != sp or st2 != st:
                 self.slots[owner].limited += 1
-            if self.limits.violation(j, mode, sp2, st2) is not None:  # cannot happen: belt
+            if limits.violation(j, mode, sp2, st2) is not None:  # cannot happen: belt
                 continue
             if mode != TORQUE:
                 self.last_pos[j] = sp2
@@ -677,6 +679,11 @@ class Manager:
             return
         self.drive_written[board] = (kind, value, 0)
         out.maccepa.append(MaccepaWrite(board, kind, value, controller))
+
+
+# Each joint's command interfaces, formatted once: _compose looks them up for six joints each
+# cycle (the f-strings were a third of its CPU).
+_JOINT_KEYS = tuple((f"{n}/position", f"{n}/torque", f"{n}/stiffness") for n in JOINTS)
 
 
 def _finite(v: Any) -> bool:
