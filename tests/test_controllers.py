@@ -130,6 +130,30 @@ def test_overrun_deactivates() -> None:
     assert "overran its budget" in m.slots["a"].error and m.slots["a"].overruns == 1
 
 
+def test_a_garbage_collection_is_not_the_controllers_overrun() -> None:
+    """The collector runs in whichever update allocates past its threshold: its time is not
+    the controller's (a full collection of 300k objects takes far more than 1 ms here)."""
+    import gc
+
+    heap = [[i] for i in range(300_000)]
+    m = manager(budget_ms=1.0)
+    fwd(m, "a", ["r_knee"])
+    switch(m, ["a"])
+    real = m.slots["a"].ctrl.update
+
+    def collects(*args: Any) -> Any:
+        gc.collect()
+        return real(*args)
+
+    m.slots["a"].ctrl.update = collects  # type: ignore[method-assign]
+    m.command("a", {"values": {"r_knee": 61}})
+    out = m.cycle(SITTING, 0.0, 0.01, None)
+    assert m.active() == ["a"] and m.slots["a"].overruns == 0, m.slots["a"].error
+    assert [w.motor for w in out.writes] == [2]
+    assert m.slots["a"].cpu_s_max < 0.001
+    del heap
+
+
 def test_outputs_saturate_to_limits_step_and_caps() -> None:
     m = manager(max_step=3, max=[100, 70, 20, 100, 100, 20], torque=[10] * 6)
     fwd(m, "a", ["r_knee"])
