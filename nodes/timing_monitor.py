@@ -26,6 +26,12 @@ MAX_STAMPS = 200_000
 # costs ~1 ms of the board's one core under TCG (benchmarks/board/units.py); the socket's
 # queue holds far more than this many seconds of the monitored ids.
 READ_EVERY_S = 0.25
+# The socket's receive queue: an observer yields the CPU (board.yaml: nice 10) and reads late,
+# so its queue must outlast a starved stretch. On the board proxy's saturated core the 1 MiB
+# default (~3000 frames, ~6 s of ids 70 and 110 with the pattern running) overflowed and the
+# monitor saw 168 of ~4000 set-points in a minute. 4 MiB asked (the kernel doubles it): ~25 s.
+# Memory is taken only while frames wait.
+RCVBUF_BYTES = 4 << 20
 
 
 def deviation_stats(stamps: list[float], expected_s: float | None = None) -> dict[str, Any]:
@@ -112,7 +118,9 @@ class TimingMonitor(Node):
 
     def configure(self) -> None:
         # one wake per READ_EVERY_S, not one per frame (see READ_EVERY_S)
-        self.reader = open_reader(self.ctx.config.can, self.params.ids, every_s=READ_EVERY_S)
+        self.reader = open_reader(
+            self.ctx.config.can, self.params.ids, every_s=READ_EVERY_S, rcvbuf=RCVBUF_BYTES
+        )
         self.bus = self.reader.bus
         self.lock = threading.Lock()
         self.stamps = {fid: StampRing() for fid in self.params.ids}
@@ -138,7 +146,11 @@ class TimingMonitor(Node):
             t for t in self._key_stamps(fid, dlc, byte0) if not seconds or since <= t <= until
         ]
         exp = req.get("expected_ms")
-        return deviation_stats(stamps, None if exp is None else float(exp) / 1000)
+        out = deviation_stats(stamps, None if exp is None else float(exp) / 1000)
+        # Frames the kernel dropped from this monitor's full queue since it started: a record
+        # with holes shows gaps that were never on the bus.
+        out["socket_dropped"] = self.reader.dropped
+        return out
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():

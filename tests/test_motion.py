@@ -347,6 +347,7 @@ def test_timing_monitor_measures_the_pattern(app) -> None:  # type: ignore[no-un
     assert 80 <= s["n"] <= 101
     assert s["mean_period_ms"] == pytest.approx(20.0, abs=0.5)
     assert sum(s["histogram"].values()) == s["n"]
+    assert s["socket_dropped"] == 0  # a record without holes
     r = app.cli("timing", "99")
     assert r.returncode == 5 and "id 99 is not monitored" in r.stderr
 

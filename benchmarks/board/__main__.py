@@ -120,6 +120,8 @@ def table(result: dict[str, Any]) -> str:
     row("pattern timing p99 dev ms", *pair("window", "timing", "p99_dev_ms"))
     row("pattern timing max dev ms", *pair("window", "timing", "max_dev_ms"))
     row("pattern timing mean period ms", *pair("window", "timing", "mean_period_ms"))
+    row("pattern timing n", *pair("window", "timing", "n"))
+    row("  timing monitor socket drops", *pair("window", "timing", "socket_dropped"))
     row("H2 angle frames (110) n in window", *pair("window", "angles", "n"))
     row("H2 angle frames max dev ms", *pair("window", "angles", "max_dev_ms"))
     row("watchdog trips in window", *pair("derived", "watchdog_trips_in_window"))

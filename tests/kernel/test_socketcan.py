@@ -215,6 +215,7 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
         )
         # behaviour, not a performance bound: the kernel plays the pattern at the speed-10 rate
         assert stats["n"] > 300 and 18 < stats["mean_period_ms"] < 22
+        assert stats["socket_dropped"] == 0
         # kill -9 of the reader: the watchdog's disable frames, seen by an independent socket
         pid = next(
             n["pid"]
