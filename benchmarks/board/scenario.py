@@ -96,8 +96,10 @@ def bench_config(
             n["params"] = {**n.get("params", {}), "update_budget_ms": budget}
         if timings == "relaxed" and n.get("heartbeat_deadline_ms"):
             # a node's own deadline (the motion nodes' 50 ms) relaxed too: on a saturated CPU
-            # the supervisor SIGKILLed the pattern player every few seconds (seen this stop)
-            n["heartbeat_deadline_ms"] = TIMINGS[timings]["heartbeat_deadline_ms"]
+            # the supervisor SIGKILLed the pattern player every few seconds (seen this stop);
+            # a longer one (the observers') stays
+            relaxed = TIMINGS[timings]["heartbeat_deadline_ms"]
+            n["heartbeat_deadline_ms"] = max(n["heartbeat_deadline_ms"], relaxed)
         if (n.get("priority") or {}).get("cpus"):
             raise ValueError(f"node {n['name']} sets cpus: the bench keeps it on CPU 0")
     simulator = {
