@@ -137,6 +137,81 @@ def mgmt_key(device: str, *path: str) -> str:
     return "/".join(("exolink", device, *path))
 
 
+def data_key_of(entity: rosgraph.Entity) -> str:
+    """The data key a graph publisher or subscription (its token) uses."""
+    return f"{entity.domain_id}/{entity.topic.strip('/')}/{entity.type}/{entity.type_hash}"
+
+
+# --- bundles ---------------------------------------------------------------------------------
+# A high-rate topic (joint_states, a MACCEPA board's state: 100 Hz each) reaches the recorder as
+# one sample per batch of messages instead of one per message. On the board proxy a Zenoh sample
+# costs ~0.4 ms of the one core in the publisher, ~0.5 in the router and ~0.7 in each subscriber
+# however small it is (benchmarks/board/units.py), and the recorder took every message of both
+# topics through the router. The messages inside are the CDR bytes, sequence numbers and source
+# times they have on the topic's own key, which a laptop still gets one by one.
+
+BUNDLE_PATH = "bundle"
+BUNDLE_MAGIC = b"EXB1"
+_BUNDLE_HEAD = struct.Struct("<4sHB")  # magic, message count, GID length (then the GID)
+_BUNDLE_ITEM = struct.Struct("<qqI")  # sequence number, source ns, CDR length (then the CDR)
+MAX_BUNDLE = 4096
+
+
+def bundle_key(device: str, data_key: str) -> str:
+    """``exolink/<device>/bundle/<data key>``: outside the data key space on purpose, so a
+    subscriber of data (a laptop's ``0/**``) never matches it, and no login but the
+    appliance's may publish there (exolink.roles)."""
+    return mgmt_key(device, BUNDLE_PATH, data_key)
+
+
+def bundle_selector(device: str) -> str:
+    return mgmt_key(device, BUNDLE_PATH, "**")
+
+
+def bundled_data_key(device: str, key: str) -> str:
+    """A bundle key -> the data key of its topic; ValueError for other keys."""
+    prefix = mgmt_key(device, BUNDLE_PATH, "")
+    if not key.startswith(prefix) or key == prefix:
+        raise ValueError(f"not a bundle key of {device}: {key}")
+    return key[len(prefix) :]
+
+
+def encode_bundle(gid: bytes, items: list[tuple[int, int, bytes]]) -> bytes:
+    """(sequence, source ns, CDR) messages of one publisher (its GID) as one payload."""
+    if not 0 < len(items) <= MAX_BUNDLE:
+        raise ValueError(f"a bundle holds 1 to {MAX_BUNDLE} messages, not {len(items)}")
+    parts = [_BUNDLE_HEAD.pack(BUNDLE_MAGIC, len(items), len(gid)), gid]
+    for seq, ns, payload in items:
+        parts += (_BUNDLE_ITEM.pack(seq, ns, len(payload)), payload)
+    return b"".join(parts)
+
+
+def decode_bundle(raw: bytes) -> tuple[bytes, list[tuple[int, int, bytes]]]:
+    """(GID, messages) of a bundle; ValueError naming what is wrong (anything may arrive)."""
+    if len(raw) < _BUNDLE_HEAD.size:
+        raise ValueError(f"bundle of {len(raw)} bytes is shorter than its header")
+    magic, count, n = _BUNDLE_HEAD.unpack_from(raw)
+    if magic != BUNDLE_MAGIC:
+        raise ValueError(f"bundle magic {magic!r}, expected {BUNDLE_MAGIC!r}")
+    if n not in (16, 24):
+        raise ValueError(f"bundle GID of {n} bytes (16 or 24)")
+    at = _BUNDLE_HEAD.size + n
+    gid = bytes(raw[_BUNDLE_HEAD.size : at])
+    items = []
+    for i in range(count):
+        if at + _BUNDLE_ITEM.size > len(raw):
+            raise ValueError(f"bundle ends in message {i + 1} of {count}'s header")
+        seq, ns, size = _BUNDLE_ITEM.unpack_from(raw, at)
+        at += _BUNDLE_ITEM.size
+        if at + size > len(raw):
+            raise ValueError(f"bundle ends in message {i + 1} of {count} ({size} bytes)")
+        items.append((seq, ns, bytes(raw[at : at + size])))
+        at += size
+    if at != len(raw) or not items:
+        raise ValueError(f"bundle of {count} messages has {len(raw) - at} bytes left over")
+    return gid, items
+
+
 def serialize(msg: Any, typename: str) -> bytes:
     return bytes(typestore().serialize_cdr(msg, typename))
 
@@ -345,8 +420,13 @@ class Publisher:
         raw: bool = False,
         token: rosgraph.Token | None = None,
         graph: rosgraph.RosNode | None = None,
+        bundle: str | None = None,
     ) -> None:
         self.key, self.typename = key, typename
+        # A bundled topic's token goes out before its ROS graph token (the caller's), so a
+        # recorder that discovers both learns the topic is bundled before it would subscribe.
+        self._bundle = session.declare_publisher(bundle) if bundle else None
+        self._bundle_token = session.liveliness().declare_token(bundle) if bundle else None
         self._pub = session.declare_publisher(key)
         # With a graph token (an appliance node's publisher) the GID is the token's, as
         # rmw_zenoh derives it; a publisher outside the ROS graph (a tool) keeps a random one.
@@ -354,6 +434,7 @@ class Publisher:
         self._gid = token.gid if token is not None else os.urandom(16)
         self._head = struct.Struct(f"<qqB{len(self._gid)}s")
         self._seq = 0
+        self.sent = self.bundles = 0
         # A raw publisher never serializes: rosbags (and numpy) stay out of its process.
         self._ser = None if raw else prepare(typename).serialize_cdr
         self._lock = threading.Lock()
@@ -369,12 +450,48 @@ class Publisher:
             self._seq += 1
             att = self._head.pack(self._seq, source_ns or time.time_ns(), len(self._gid), self._gid)
             self._pub.put(payload, attachment=att)
+            self.sent += 1
+
+    def attach_token(self, token: rosgraph.Token, graph: rosgraph.RosNode | None) -> None:
+        """The graph token declared after the publisher (a bundled one's): its GID is this
+        publisher's from now on, as rmw_zenoh derives it."""
+        with self._lock:
+            self._token, self._graph, self._gid = token, graph, token.gid
+            self._head = struct.Struct(f"<qqB{len(self._gid)}s")
+
+    def put_many(self, items: list[tuple[bytes, int]]) -> None:
+        """Several messages (CDR, source ns) at once, numbered in order. A bundled publisher
+        puts them one by one only while a subscriber of the topic's own key (a laptop, a ROS 2
+        tool) exists, and always as one bundle for the appliance's recorder."""
+        if self._bundle is None:
+            for payload, ns in items:
+                self.put(payload, ns)
+            return
+        with self._lock:
+            first = self._seq + 1
+            self._seq += len(items)
+            if self._pub.matching_status.matching:  # one Rust call per batch, not per sample
+                head, gid = self._head, self._gid
+                for i, (payload, ns) in enumerate(items):
+                    self._pub.put(payload, attachment=head.pack(first + i, ns, len(gid), gid))
+                self.sent += len(items)
+            body = [(first + i, ns, payload) for i, (payload, ns) in enumerate(items)]
+            self._bundle.put(encode_bundle(self._gid, body))
+            self.bundles += 1
+
+    def counters(self) -> dict[str, int]:
+        """Messages numbered, put one by one, and bundles put (a bundled publisher)."""
+        return {"messages": self._seq, "sent": self.sent, "bundles": self.bundles}
 
     @property
     def gid(self) -> bytes:
         return self._gid
 
     def close(self) -> None:
+        if self._bundle is not None:
+            self._bundle.undeclare()
+        if self._bundle_token is not None:
+            self._bundle_token.undeclare()
         self._pub.undeclare()
         if self._token is not None and self._graph is not None:
             self._graph.release(self._token)
@@ -397,9 +514,13 @@ class Outbox:
         self._items.append((pub, payload, source_ns))
 
     def flush(self) -> None:
+        """Each publisher's messages in order (a bundled one's as one bundle)."""
         items, self._items = self._items, []
+        batches: dict[Publisher, list[tuple[bytes, int]]] = {}
         for pub, payload, ns in items:
-            pub.put(payload, ns)
+            batches.setdefault(pub, []).append((payload, ns))
+        for pub, batch in batches.items():
+            pub.put_many(batch)
 
 
 class Messaging:
@@ -448,10 +569,26 @@ class Messaging:
         )
 
     def publisher(
-        self, topic: str, typename: str, raw: bool = False, qos: rosgraph.Qos | None = None
+        self,
+        topic: str,
+        typename: str,
+        raw: bool = False,
+        qos: rosgraph.Qos | None = None,
+        bundled: bool = False,
     ) -> Publisher:
+        """``bundled``: a high-rate topic whose batches (``Outbox``) also go out as one bundle
+        sample each for the recorder (see ``bundle_key``)."""
+        key = self.key(topic, typename)
+        if bundled:  # the bundle's token first (Publisher), then the graph's
+            pub = Publisher(
+                self.session, key, typename, raw, None, None, bundle_key(self.device, key)
+            )
+            token = self._token(rosgraph.PUBLISHER, topic, typename, qos)
+            if token is not None:
+                pub.attach_token(token, self.graph)
+            return pub
         token = self._token(rosgraph.PUBLISHER, topic, typename, qos)
-        return Publisher(self.session, self.key(topic, typename), typename, raw, token, self.graph)
+        return Publisher(self.session, key, typename, raw, token, self.graph)
 
     def subscribe(
         self, topic: str, typename: str, callback: Callable[[Any, Meta], None]
@@ -558,7 +695,9 @@ class CommandLog:
 
     def __init__(self, msg: Messaging) -> None:
         self._msg = msg
-        self._pub: Publisher | None = None
+        # Declared now, not at the first command: a recorder learns topics from the graph, and
+        # a publisher born with its first message would lose that message to it.
+        self._pub = msg.publisher(COMMANDS_TOPIC, COMMANDS_TYPE, raw=True)
         self._lock = threading.Lock()
 
     def write(self, user: str, key: str, request: dict[str, Any], reply: dict[str, Any]) -> None:
@@ -567,9 +706,7 @@ class CommandLog:
             entry["error"] = reply.get("error", "")
         _log.info("command", **entry)
         with self._lock:
-            if self._pub is None:
-                self._pub = self._msg.publisher(COMMANDS_TOPIC, COMMANDS_TYPE, raw=True)
-        self._pub.put(cdr.string_msg(json.dumps(entry)))
+            self._pub.put(cdr.string_msg(json.dumps(entry)))
 
 
 def serve(

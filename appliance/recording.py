@@ -287,6 +287,47 @@ def replay_topic(topic: str, live: bool, prefix: str = REPLAY_PREFIX) -> str | N
     return f"{prefix.strip('/')}/{topic}"
 
 
+PLAY_SETTLE_S = 1.0  # how long a replay waits for subscribers to learn of its publishers
+
+
+def _declare(
+    session: Any, graph: Any, pubs: dict[str, Any], key: str, topic: str, typename: str
+) -> Any:
+    from exolink import messaging, rosgraph
+
+    token = graph.declare(rosgraph.PUBLISHER, f"/{topic}", typename, key.rsplit("/", 1)[-1])
+    pub = pubs[key] = messaging.Publisher(session, key, typename, True, token, graph)
+    return pub
+
+
+def _declare_all(
+    session: Any,
+    graph: Any,
+    pubs: dict[str, Any],
+    domain_id: int,
+    targets: dict[str, str | None],
+    recorded: dict[str, dict[str, Any]],
+) -> None:
+    """Every replayed topic's publisher before the first message, and a moment for those who
+    discover topics from the graph (a recorder, ``ros2 bag record``) to subscribe: its first
+    messages are not lost to them."""
+    from exolink import messaging
+
+    for source, topic in targets.items():
+        typename = recorded.get(source, {}).get("type")
+        if topic is not None and typename not in (None, "?"):
+            _declare(
+                session,
+                graph,
+                pubs,
+                messaging.topic_key(domain_id, "", topic, typename),
+                topic,
+                typename,
+            )
+    if pubs:
+        time.sleep(PLAY_SETTLE_S)
+
+
 def play(
     session: Any,
     path: str | Path,
@@ -302,45 +343,48 @@ def play(
 
     By default under ``<prefix>/<recorded topic>`` (``0/replay/h2/joint_states/...``), where
     nothing on an appliance listens; with ``live`` under the original keys, minus the appliance's
-    own state (OWN_STATE_TOPICS). Data keys only: never a management key or a liveliness token.
+    own state (OWN_STATE_TOPICS). Data keys only, never a management key; the replay is a ROS 2
+    node (``exolink_play``) in the graph with a publisher token per topic, as ``ros2 bag play``
+    is: a ROS 2 tool sees what it publishes, and a recorder (which learns topics from the graph)
+    records it.
     """
-    import os
-
-    from exolink import messaging
+    from exolink import messaging, rosgraph
 
     if not rate > 0:
         raise RecordingError(f"rate must be > 0, got {rate}")
-    wanted = list(info(path).topics) if topics is None else topics
+    recorded = info(path).topics
+    wanted = list(recorded) if topics is None else topics
     targets = {t: replay_topic(t, live, prefix) for t in wanted}
     topics = [t for t, target in targets.items() if target is not None]
     if not topics:
         return 0
-    gid = os.urandom(16)
+    graph = rosgraph.RosNode(session, domain_id, "", "exolink_play")
     pubs: dict[str, Any] = {}
-    sent = seq = 0
-    while True:
-        t0_log = t0_wall = None
-        for schema, channel, m in iter_messages(path, topics):
-            if stop is not None and stop.is_set():
-                return sent
-            if t0_log is None:
-                t0_log, t0_wall = m.log_time, time.monotonic()
-            due = t0_wall + (m.log_time - t0_log) / 1e9 / rate
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            topic = targets.get(channel.topic)
-            if topic is None:  # iter_messages filters already: never on a live own-state key
-                continue
-            key = f"{domain_id}/{topic}/{messaging.dds_name(schema.name)}/{messaging.type_hash(schema.name)}"
-            pub = pubs.get(key)
-            if pub is None:
-                pub = pubs[key] = session.declare_publisher(key)
-            seq += 1
-            pub.put(m.data, attachment=messaging.encode_attachment(seq, m.publish_time, gid))
-            sent += 1
-        if not loop:
-            break
-    for p in pubs.values():
-        p.undeclare()
+    sent = 0
+    try:
+        _declare_all(session, graph, pubs, domain_id, targets, recorded)
+        while True:
+            t0_log = t0_wall = None
+            for schema, channel, m in iter_messages(path, topics):
+                if stop is not None and stop.is_set():
+                    return sent
+                if t0_log is None:
+                    t0_log, t0_wall = m.log_time, time.monotonic()
+                due = t0_wall + (m.log_time - t0_log) / 1e9 / rate
+                delay = due - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                topic = targets.get(channel.topic)
+                if topic is None:  # iter_messages filters already: never on a live own-state key
+                    continue
+                key = messaging.topic_key(domain_id, "", topic, schema.name)
+                pub = pubs.get(key) or _declare(session, graph, pubs, key, topic, schema.name)
+                pub.put(m.data, m.publish_time)
+                sent += 1
+            if not loop:
+                break
+    finally:  # the graph shows the replay only while it runs
+        for p in pubs.values():
+            p.close()
+        graph.close()
     return sent

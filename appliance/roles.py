@@ -102,7 +102,8 @@ def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
         return [f"{domain_id}/{ns}/{n}/*/*" for n, r in names.items() if _RANK[role] >= _RANK[r]]
 
     rules = [
-        _rule("appliance", ALL_MESSAGES, ["ingress", "egress"], ["**"]),
+        # ``**`` matches no verbatim chunk (``@ros2_lv``): the graph is named as well
+        _rule("appliance", ALL_MESSAGES, ["ingress", "egress"], ["**", *graph]),
         # Data and presence, for every login (egress: what the router sends the laptop).
         _rule("read data", ["declare_subscriber"], ["ingress"], data),
         _rule("receive data", ["put", "delete"], ["egress"], data),

@@ -107,7 +107,10 @@ class H2Reader(Node):
             stale_s=self.params.stale_after_s,
         )
         self.bus = self.reader.bus
-        self.pub_js = m.publisher("joint_states", JOINT_STATE, raw=True)
+        # Read in batches, joint_states reaches the recorder as one bundle per read
+        self.pub_js = m.publisher(
+            "joint_states", JOINT_STATE, raw=True, bundled=self.params.cycles_per_read > 1
+        )
         self.pub_fs = m.publisher("foot_switches", FOOT_SWITCHES, raw=True)
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         self.stats = ReaderStats()
@@ -195,7 +198,11 @@ class H2Reader(Node):
         st = self.stats
         st.receive = self.reader.counters()
         st.socket_dropped = st.receive["dropped"]  # type: ignore[assignment]
-        return {"node": self.name, **asdict(st)}  # a wildcard query's replies say whose they are
+        return {
+            "node": self.name,
+            **asdict(st),
+            "joint_states_out": self.pub_js.counters(),
+        }  # a wildcard query's replies say whose they are
 
     def _diagnostics(self) -> None:
         st = self.stats

@@ -110,7 +110,10 @@ class MaccepaBridge(Node):
             stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
         )
         self.bus = self.reader.bus
-        self.pubs = {b: m.publisher(f"maccepa/b{b}/state", STATE, raw=True) for b in boards}
+        bundled = self.params.cycles_per_read > 1  # a read's states: one bundle for the recorder
+        self.pubs = {
+            b: m.publisher(f"maccepa/b{b}/state", STATE, raw=True, bundled=bundled) for b in boards
+        }
         self.cycles = {b: BoardCycle() for b in boards}
         self.template = cdr.MaccepaStateCdr()
         self.out = messaging.Outbox()  # a read's samples go out together, after its frames

@@ -38,7 +38,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, messaging, roles
+from exolink import __version__, messaging, roles, rosgraph
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
@@ -51,6 +51,10 @@ INTAKE_PERIOD_S = 0.1
 # one core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
 MAX_KEYS = 4096  # keys whose parse is cached (a flood of made-up keys clears it)
+# Topics subscribed one by one, at most: any login may declare graph tokens, and each
+# subscription costs memory (its inbox) and the router's work; more are counted, not taken.
+MAX_TOPICS = 256
+TOKEN_RING = 4096  # graph and bundle tokens waiting for the loop
 
 Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publish ns, sequence
 # A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
@@ -85,6 +89,8 @@ class Stats:
     received: int = 0
     written: int = 0
     dropped: int = 0
+    duplicates: int = 0  # the same message by two ways (a topic's own key and its bundle)
+    malformed: int = 0  # bundles that did not decode (skipped)
     files: list[str] = field(default_factory=list)
     bytes: int = 0
 
@@ -140,6 +146,100 @@ class McapFile:
         self.f.close()
 
 
+class Inbox:
+    """What the recorder subscribes to, learnt from the ROS 2 graph as ``ros2 bag record`` does:
+    each publisher's graph token names a topic, and a kept topic gets a subscription of its own,
+    or is taken from its bundles when its publisher bundles it (messaging.bundle_key). One
+    wildcard over the data keys would match a bundled topic's own key too, and every message of
+    it would come through the router a second time. Samples wait in Zenoh ring channels.
+    The recorder's own topics (its diagnostics, the log of the commands it is given: ``record
+    start`` is one) come through a wildcard limited to its own session, at once: discovery
+    takes a loop. Publishers outside the graph (no token) are not recorded, and a publisher's
+    messages before the recorder saw its token are not either (as with ``ros2 bag record``):
+    appliance nodes declare theirs at start (the command log's included)."""
+
+    def __init__(
+        self,
+        session: Any,
+        device: str,
+        domain_id: int,
+        selectors: list[str],
+        kept: Any,
+        ring: int,
+    ) -> None:
+        self.session, self.device, self.ring, self.kept = session, device, ring, kept
+        self.selectors = [zenoh.KeyExpr(s) for s in selectors]
+        self.bundled: set[str] = set()  # data keys taken from bundles
+        self.subs: dict[str, Any] = {}  # data key -> its own subscription (other processes')
+        self.refused = 0  # topics past MAX_TOPICS
+        self.zid = str(session.zid())
+        own = [
+            session.declare_subscriber(
+                sel, zenoh.handlers.RingChannel(ring), allowed_origin=zenoh.Locality.SESSION_LOCAL
+            )
+            for sel in selectors
+        ]
+        bundles = messaging.bundle_selector(device)
+        self.bundles = session.declare_subscriber(bundles, zenoh.handlers.RingChannel(ring))
+        self.own = own
+        lv = session.liveliness()
+        self._bundle_tokens = lv.declare_subscriber(
+            bundles, zenoh.handlers.RingChannel(TOKEN_RING), history=True
+        )
+        self._graph = lv.declare_subscriber(
+            f"{rosgraph.ADMIN_SPACE}/{domain_id}/**",
+            zenoh.handlers.RingChannel(TOKEN_RING),
+            history=True,
+        )
+
+    def discover(self) -> None:
+        """New bundle tokens first (their topics come in bundles from now on: a subscription
+        of the topic's own key is dropped), then new publishers in the graph."""
+        while (t := self._bundle_tokens.try_recv()) is not None:
+            if t.kind != zenoh.SampleKind.PUT:
+                continue
+            try:
+                key = messaging.bundled_data_key(self.device, str(t.key_expr))
+            except ValueError:
+                continue
+            self.bundled.add(key)
+            sub = self.subs.pop(key, None)
+            if sub is not None:
+                sub.undeclare()
+        while (t := self._graph.try_recv()) is not None:
+            if t.kind != zenoh.SampleKind.PUT:
+                continue
+            try:
+                entity = rosgraph.parse_token(str(t.key_expr))
+                if entity.kind != rosgraph.PUBLISHER or entity.zid == self.zid:
+                    continue
+                key = messaging.data_key_of(entity)
+                if key in self.subs or key in self.bundled or self.kept(key) is None:
+                    continue
+                ke = zenoh.KeyExpr(key)
+            except Exception:  # anyone may declare a token: a bad one is not a topic
+                continue
+            if not any(sel.intersects(ke) for sel in self.selectors):
+                continue
+            if len(self.subs) >= MAX_TOPICS:
+                self.refused += 1
+                continue
+            self.subs[key] = self.session.declare_subscriber(
+                key, zenoh.handlers.RingChannel(self.ring)
+            )
+
+    def samples(self) -> Iterator[Any]:
+        """What the rings hold now: the bundles, then each topic's."""
+        for sub in (self.bundles, *self.own, *self.subs.values()):
+            while (sample := sub.try_recv()) is not None:
+                yield sample
+
+    def close(self) -> None:
+        for sub in (self._graph, self._bundle_tokens, self.bundles, *self.own, *self.subs.values()):
+            sub.undeclare()
+        self.subs = {}
+
+
 class Recorder(Node):
     Params = RecorderParams
     # SD cards pause writes for a second or more while they erase; fsync in the writer loop waits
@@ -169,7 +269,7 @@ class Recorder(Node):
         self.selectors = [
             messaging.topic_selector(m.domain_id, m.namespace, t) for t in self.params.topics
         ]
-        self.subs: list[Any] = []  # declared while recording (see _subscribe)
+        self.inbox: Inbox | None = None  # while recording (see _subscribe)
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS)
         self._q = m.serve("record", self.on_command, roles.status_or(roles.OPERATOR))
         if self.params.autostart:
@@ -178,48 +278,73 @@ class Recorder(Node):
     # --- intake (the node's loop, in batches) ---------------------------------------------
 
     def _samples(self) -> Iterator[Any]:
-        """What the subscriptions' rings hold now, one subscription after the other."""
-        for sub in list(self.subs):
-            while (sample := sub.try_recv()) is not None:
-                yield sample
+        """What the inbox holds now (topics the graph showed since the last take included)."""
+        inbox = self.inbox
+        if inbox is not None:
+            inbox.discover()
+            yield from inbox.samples()
 
     def _take(self, until: float) -> list[Item]:
         """What the inbox holds now (until the wall-time slice ends), minus excluded topics;
         the publishers' sequence gaps are counted as dropped while recording."""
         out: list[Item] = []
-        gaps = 0
+        gaps = dups = bad = 0
         recording = self.state in ("recording", "stopping")
         now = time.time_ns()
         keys = self._keys
+        last_seq = self._last_seq
         for sample in self._samples():
             key = str(sample.key_expr)
             kept = keys.get(key, False)
             if kept is False:
                 if len(keys) >= MAX_KEYS:  # anyone may publish: the cache stays bounded
                     keys.clear()
-                kept = keys[key] = self._kept(key)
+                kept = keys[key] = self._kept_sample_key(key)
             if kept is None:
                 continue
-            topic, typename = kept
-            seq, src, gid = 0, 0, b""
-            att = sample.attachment
-            if att is not None:
-                with contextlib.suppress(Exception):
-                    seq, src, gid = messaging.decode_attachment(att.to_bytes())
-            if gid:
-                last = self._last_seq.get(gid)
-                if recording and last is not None and seq > last + 1:
-                    gaps += seq - last - 1
-                self._last_seq[gid] = seq
-            if recording:
-                out.append((topic, typename, sample.payload.to_bytes(), now, src or now, seq))
-                if len(out) % 64 == 0 and time.monotonic() >= until:
-                    break
-        if out or gaps:
+            topic, typename, bundle = kept
+            if bundle:
+                try:
+                    gid, messages = messaging.decode_bundle(sample.payload.to_bytes())
+                except ValueError:
+                    bad += 1
+                    continue
+            else:
+                seq, src, gid = 0, 0, b""
+                att = sample.attachment
+                if att is not None:
+                    with contextlib.suppress(Exception):
+                        seq, src, gid = messaging.decode_attachment(att.to_bytes())
+                messages = [(seq, src, sample.payload.to_bytes())]
+            for seq, src, data in messages:
+                if gid:
+                    last = last_seq.get(gid)
+                    if last is not None and seq <= last:  # seen by the other way
+                        dups += 1
+                        continue
+                    if recording and last is not None and seq > last + 1:
+                        gaps += seq - last - 1
+                    last_seq[gid] = seq
+                if recording:
+                    out.append((topic, typename, data, now, src or now, seq))
+            if len(out) >= 64 and time.monotonic() >= until:
+                break
+        if out or gaps or dups or bad:
             with self.lock:
                 self.stats.received += len(out)
                 self.stats.dropped += gaps
+                self.stats.duplicates += dups
+                self.stats.malformed += bad
         return out
+
+    def _kept_sample_key(self, key: str) -> tuple[str, str, bool] | None:
+        """A sample key's (topic, type, is a bundle), None when it is not recorded."""
+        try:
+            key, bundle = messaging.bundled_data_key(self.ctx.config.device, key), True
+        except ValueError:
+            bundle = False
+        kept = self._kept(key)
+        return None if kept is None else (*kept, bundle)
 
     def _kept(self, key: str) -> tuple[str, str] | None:
         """A data key's (topic, type), None if it is not one or ``exclude`` matches it."""
@@ -233,22 +358,25 @@ class Recorder(Node):
 
     def _subscribe(self) -> None:
         with self.lock:
-            if not self.subs:
-                session = self.ctx.session
-                ring = self.params.inbox
-                self.subs = [
-                    session.declare_subscriber(k, zenoh.handlers.RingChannel(ring))
-                    for k in self.selectors
-                ]
+            if self.inbox is None:
+                m = self.ctx.messaging
+                self.inbox = Inbox(
+                    self.ctx.session,
+                    m.device,
+                    m.domain_id,
+                    self.selectors,
+                    self._kept,
+                    self.params.inbox,
+                )
 
     def _unsubscribe_if_idle(self) -> None:
         """The loop, once a recording ended: unless a new one started meanwhile."""
         with self.lock:
             if self.state in ("recording", "stopping"):
                 return
-            subs, self.subs = self.subs, []
-        for sub in subs:
-            sub.undeclare()
+            inbox, self.inbox = self.inbox, None
+        if inbox is not None:
+            inbox.close()
 
     def _discard(self) -> None:
         """A new recording: nothing queued before it, and sequence gaps counted from each
@@ -468,8 +596,8 @@ class Recorder(Node):
                 self._close()
             except OSError as exc:
                 self.log.error("recording_close_failed", error=str(exc))
-        for sub in getattr(self, "subs", []):
-            sub.undeclare()
+        if getattr(self, "inbox", None) is not None:
+            self.inbox.close()  # type: ignore[union-attr]
         if hasattr(self, "_q"):
             self._q.undeclare()
         if hasattr(self, "pub_diag"):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 from conftest import EXOLINK, Appliance, wait_for
-from exolink import messaging
+from exolink import messaging, rosgraph
 from exolink.recording import RecordingError, export_csv, info
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -23,10 +23,10 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 JS_KEY = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
 
 
-def nodes(directory: Path, **params: object) -> list[dict]:
+def nodes(directory: Path, reader: dict | None = None, **params: object) -> list[dict]:
     return [
         {"name": "simulator", "plugin": "simulator"},
-        {"name": "h2_reader", "plugin": "h2_reader"},
+        {"name": "h2_reader", "plugin": "h2_reader", "params": reader or {}},
         {
             "name": "recorder",
             "plugin": "recorder",
@@ -48,13 +48,26 @@ def rosbags_decode(path: Path, topic: str) -> list[tuple[bytes, object]]:
     return out
 
 
+def reader_out(app: Appliance) -> dict:
+    """The h2 reader's joint_states publisher: messages, put one by one, bundles."""
+    s = messaging.open_client_session(app.at)
+    try:
+        stats = messaging.request(s, "exolink/sim/nodes/h2_reader/stats", timeout_s=3)
+    finally:
+        s.close()
+    return dict(stats["joint_states_out"])
+
+
 def recordings(d: Path) -> list[Path]:
     return sorted(d.glob("*.mcap"))
 
 
 def test_walking_session_recorded_exactly(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The board's reader (a read every 4 cycles) bundles joint_states for the recorder while a
+    laptop gets each message on the topic's key: the file holds exactly what the laptop got."""
     rec_dir = tmp_path / "rec"
-    app = Appliance(write_config(nodes=nodes(rec_dir, compression="lz4", chunk_size=65536)), spawn)
+    cfg = nodes(rec_dir, {"cycles_per_read": 4}, compression="lz4", chunk_size=65536)
+    app = Appliance(write_config(nodes=cfg), spawn)
     s = messaging.open_client_session(app.at)
     published: dict[int, bytes] = {}
     sub = s.declare_subscriber(
@@ -95,6 +108,8 @@ def test_walking_session_recorded_exactly(write_config, spawn, tmp_path) -> None
     assert (
         st["dropped"] == "0" and st["received"] == st["written"]
     )  # every counted message is in the file
+    out_js = reader_out(app)
+    assert out_js["bundles"] > 0 and out_js["sent"] > 0  # bundles for the recorder, singles for us
     # CSV export matches the decoded values, with time relative to the trigger
     out = tmp_path / "csv"
     counts = export_csv(path, out)
@@ -207,12 +222,15 @@ def test_a_second_recording_counts_no_drops_for_the_pause_between(  # type: igno
 ) -> None:
     """Between recordings the recorder takes nothing, so the publishers' sequence numbers
     move on without it: what was published in the pause is not a loss of the next file.
-    Idle, it is not even subscribed: seen as the Zenoh matching status of a publisher on a key
-    only the recorder's selector (every topic) matches."""
+    Idle, it is not even subscribed: seen as the Zenoh matching status of a publisher (in the
+    ROS graph, where the recorder learns its topics) on a key only the recorder takes."""
     rec_dir = tmp_path / "rec"
     app = Appliance(write_config(nodes=nodes(rec_dir)), spawn)
     s = messaging.open_client_session(app.at)
-    probe = s.declare_publisher(messaging.topic_key(0, "h2", "probe", "std_msgs/msg/String"))
+    key = messaging.topic_key(0, "h2", "probe", "std_msgs/msg/String")
+    graph = rosgraph.RosNode(s, 0, "h2", "probe")
+    graph.declare(rosgraph.PUBLISHER, "/h2/probe", "std_msgs/msg/String", key.rsplit("/", 1)[-1])
+    probe = s.declare_publisher(key)
     try:
         assert not probe.matching_status.matching
         for _ in range(2):
@@ -377,3 +395,34 @@ def test_recorder_imports_nothing_once_running(write_config, spawn, tmp_path) ->
     assert out["written"] > 50, r.stderr
     assert out["imported"] == [], out["imported"]
     assert len(recordings(rec_dir)) == 1
+
+
+def test_a_bundled_topic_reaches_the_recorder_once(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """With no one else subscribed, the reader puts no joint_states one by one: the recorder
+    takes them from the bundles alone (messaging.bundle_key), each message with its own
+    sequence number and stamp, none twice. A malformed bundle (anyone on an open appliance may
+    put one) is counted and skipped; the recording goes on."""
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir, {"cycles_per_read": 5})), spawn)
+    assert app.cli("record", "start").returncode == 0
+    s = messaging.open_client_session(app.at)
+    try:
+        time.sleep(2)
+        junk = messaging.bundle_key("sim", JS_KEY)
+        s.put(junk, b"EXB1 not a bundle")
+        time.sleep(1)
+    finally:
+        s.close()
+    out_js = reader_out(app)
+    assert out_js["sent"] == 0 and out_js["bundles"] > 0
+    wait_for(lambda: json.loads(app.cli("record", "status", "--json").stdout)["malformed"] == 1)
+    assert app.cli("record", "stop").returncode == 0
+    wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+    [path] = recordings(rec_dir)
+    st = info(path).metadata["exolink.stats"]
+    assert st["dropped"] == "0" and st["duplicates"] == "0" and st["malformed"] == "1"
+    with open(path, "rb") as f:
+        seqs = [
+            m.sequence for _s, c, m in make_reader(f).iter_messages() if "joint_states" in c.topic
+        ]
+    assert len(seqs) > 150 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
