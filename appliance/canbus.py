@@ -301,6 +301,7 @@ def _explain(cfg: CanConfig, exc: Exception) -> str:
 
 _CAN_FRAME = struct.Struct("=IB3x8s")  # linux/can.h struct can_frame
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
+_CAN_FLAGS = _CAN_EFF_FLAG | _CAN_RTR_FLAG | _CAN_ERR_FLAG
 _TIMESPEC = struct.Struct("@ll")
 _BATCH = 64  # frames read per socket and wake-up at most
 SO_RCVBUFFORCE, SO_MEMINFO = 33, 55  # asm-generic/socket.h; not exported by Python
@@ -428,9 +429,7 @@ class FrameReader:
         # Read from the sockets but not returned yet: newer than where a socket that stopped
         # at its batch limit ended (see _in_step).
         self._held: list[Frame] = []
-        if cfg.interface == "socketcan":
-            self._parse = self._parse_socketcan
-        elif cfg.interface == "udp_multicast":
+        if cfg.interface == "udp_multicast":  # SocketCAN's frames: _drain_socketcan
             self._parse = self._parse_udp
             import msgpack
 
@@ -439,7 +438,8 @@ class FrameReader:
         self._sock = _bus_socket(bus, cfg)
         self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)
-        self._rx = {s: BatchReceiver(s) for s in (self._sock, self._quiet) if s is not None}
+        size = _CAN_FRAME.size if cfg.interface == "socketcan" else _MSG_SIZE
+        self._rx = {s: BatchReceiver(s, size) for s in (self._sock, self._quiet) if s is not None}
         self._cfg = cfg
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
@@ -605,7 +605,10 @@ class FrameReader:
         """Every frame queued on ``sock`` now, up to a batch (True: it stopped there, more may
         be queued); never blocks. Kernel receive times (SO_TIMESTAMPNS, set by python-can and
         SimBus); a frame without one gets the time it was read."""
-        got = self._rx[sock].receive()
+        rx = self._rx[sock]
+        if rx.msg_size == _CAN_FRAME.size:
+            return self._drain_socketcan(rx)
+        got = rx.receive()
         out: list[Frame] = []
         parse, now = self._parse, 0.0
         for raw, ts in got:
@@ -616,19 +619,36 @@ class FrameReader:
                 out.append(frame)
         return out, len(got) == _BATCH
 
-    def _parse_socketcan(self, raw: bytes, ts: float) -> Frame | None:
-        if len(raw) != _CAN_FRAME.size:  # a CAN FD frame on a classic reader
-            self.malformed += 1
-            return None
-        can_id, dlc, data = _CAN_FRAME.unpack(raw)
-        if dlc > 8:
-            self.malformed += 1
-            return None
-        ext = bool(can_id & _CAN_EFF_FLAG)
-        fid = can_id & (0x1FFFFFFF if ext else 0x7FF)
-        return Frame(
-            ts, fid, data[:dlc], ext, bool(can_id & _CAN_RTR_FLAG), bool(can_id & _CAN_ERR_FLAG)
-        )
+    def _drain_socketcan(self, rx: BatchReceiver) -> tuple[list[Frame], bool]:
+        """_drain for SocketCAN: the whole batch parsed by one ``iter_unpack``; a standard
+        data frame (the H2's and the MACCEPA boards' every frame) takes no flag arithmetic."""
+        n, data, whole, stamps = rx.receive_fixed()
+        out: list[Frame] = []
+        append, now = out.append, 0.0
+        for (can_id, dlc, payload), ok, ts in zip(
+            _CAN_FRAME.iter_unpack(data), whole, stamps, strict=True
+        ):
+            if not ok or dlc > 8:  # truncated (a CAN FD frame) or a length no frame has
+                self.malformed += 1
+                continue
+            if ts is None:
+                ts = now = now or time.time()
+            if can_id & _CAN_FLAGS:
+                ext = bool(can_id & _CAN_EFF_FLAG)
+                fid = can_id & (0x1FFFFFFF if ext else 0x7FF)
+                append(
+                    Frame(
+                        ts,
+                        fid,
+                        payload[:dlc],
+                        ext,
+                        bool(can_id & _CAN_RTR_FLAG),
+                        bool(can_id & _CAN_ERR_FLAG),
+                    )
+                )
+            else:
+                append(Frame(ts, can_id, payload[:dlc], False, False, False))
+        return out, n == _BATCH
 
     def _parse_udp(self, raw: bytes, ts: float) -> Frame | None:
         try:
@@ -677,6 +697,27 @@ _CMSG_HDR = struct.Struct("@Nii")  # struct cmsghdr: len, level, type
 _MSG_SIZE, _CTL_SIZE = 256, socket.CMSG_SPACE(_TIMESPEC.size)
 
 
+def _entry_formats() -> tuple[str, str]:
+    """struct formats (standard sizes, explicit padding) of one mmsghdr as (controllen,
+    flags, len) and of one SO_TIMESTAMPNS control message as (len, level, type, sec, nsec),
+    for this platform's sizes (armv7: 4-byte size_t and long; x86-64: 8)."""
+    st = {4: "I", 8: "Q"}[ctypes.sizeof(ctypes.c_size_t)]
+    lg = {4: "i", 8: "q"}[ctypes.sizeof(ctypes.c_long)]
+    ssz, lsz = ctypes.sizeof(ctypes.c_size_t), ctypes.sizeof(ctypes.c_long)
+    hsize = ctypes.sizeof(_MMsgHdr)
+    co, fo, lo = _MsgHdr.controllen.offset, _MsgHdr.flags.offset, _MMsgHdr.len.offset
+    head = f"{co}x{st}{fo - co - ssz}xi{lo - fo - 4}xI{hsize - lo - 4}x"
+    data_at = socket.CMSG_LEN(0)
+    ctl = f"{st}ii{data_at - ssz - 8}x{lg}{lg}{_CTL_SIZE - data_at - 2 * lsz}x"
+    return head, ctl
+
+
+@functools.cache
+def _batch_struct(n: int, entry: str) -> struct.Struct:
+    """``n`` entries back to back, one unpack for a whole batch (made once per batch size)."""
+    return struct.Struct("=" + entry * n)
+
+
 def _mmsg_buffers(size: int, ctl_size: int) -> tuple[Any, Any, Any, Any]:
     """``_BATCH`` message headers for recvmmsg / sendmmsg, each with one ``size``-byte buffer
     (and a ``ctl_size``-byte control buffer, 0: none), allocated once: (data, control, iovecs,
@@ -696,6 +737,9 @@ def _mmsg_buffers(size: int, ctl_size: int) -> tuple[Any, Any, Any, Any]:
     return data, ctl, iov, msgs
 
 
+_HEAD_ENTRY, _CTL_ENTRY = _entry_formats()
+
+
 class BatchReceiver:
     """Every datagram queued on a socket, up to ``_BATCH``, in one ``recvmmsg`` call.
 
@@ -705,10 +749,11 @@ class BatchReceiver:
     has no ``recvmmsg``: libc's, through ctypes, into buffers allocated once per socket.
     Returns (data, kernel receive time or None) pairs; raises OSError as ``recvmsg`` would."""
 
-    def __init__(self, sock: socket.socket) -> None:
+    def __init__(self, sock: socket.socket, msg_size: int = _MSG_SIZE) -> None:
         self.fd = sock.fileno()
         n = _BATCH
-        self._data, self._ctl, self._iov, self._msgs = _mmsg_buffers(_MSG_SIZE, _CTL_SIZE)
+        self.msg_size = msg_size
+        self._data, self._ctl, self._iov, self._msgs = _mmsg_buffers(msg_size, _CTL_SIZE)
         self._addr = ctypes.addressof(self._msgs)
         self._view = memoryview(self._data).cast("B")
         self._ctl_view = memoryview(self._ctl).cast("B")
@@ -718,7 +763,8 @@ class BatchReceiver:
         self._ctl_len_at = [i * size + _MsgHdr.controllen.offset for i in range(n)]
         self._used = 0  # headers the kernel wrote last time: their controllen to reset
 
-    def receive(self) -> list[tuple[bytes, float | None]]:
+    def _call(self) -> int:
+        """recvmmsg into the buffers: how many datagrams came (0: none queued)."""
         hdrs = self._hdrs
         for at in self._ctl_len_at[: self._used]:
             _SIZE_T.pack_into(hdrs, at, _CTL_SIZE)
@@ -727,15 +773,46 @@ class BatchReceiver:
             err = ctypes.get_errno()
             self._used = 0
             if err in (errno.EAGAIN, errno.EINTR):
-                return []
+                return 0
             raise OSError(err, os.strerror(err))
         self._used = n
-        data, ctl, out = self._view, self._ctl_view, []
+        return int(n)
+
+    def receive(self) -> list[tuple[bytes, float | None]]:
+        n = self._call()
+        hdrs, data, ctl, out, size_max = self._hdrs, self._view, self._ctl_view, [], self.msg_size
         for i in range(n):
             size = _UINT.unpack_from(hdrs, self._len_at[i])[0]
-            at = i * _MSG_SIZE
-            out.append((bytes(data[at : at + min(size, _MSG_SIZE)]), self._stamp(ctl, i)))
+            at = i * size_max
+            out.append((bytes(data[at : at + min(size, size_max)]), self._stamp(ctl, i)))
         return out
+
+    def receive_fixed(self) -> tuple[int, memoryview, list[bool], list[float | None]]:
+        """For datagrams of exactly ``msg_size`` bytes (SocketCAN's can_frame): how many came,
+        their bytes back to back (one ``iter_unpack`` parses them all), whether each was whole
+        (its length, not truncated), and its kernel time. The headers and control messages of
+        the whole batch are read by one ``struct`` call each, not four calls per datagram: on
+        the board proxy each was ~0.1 ms of the one core for every frame of every reader."""
+        n = self._call()
+        if n == 0:
+            return 0, self._view[:0], [], []
+        heads = _batch_struct(n, _HEAD_ENTRY).unpack_from(self._hdrs)
+        ctls = _batch_struct(n, _CTL_ENTRY).unpack_from(self._ctl_view)
+        size = self.msg_size
+        whole = [
+            length == size and not flags & socket.MSG_TRUNC
+            for length, flags in zip(heads[2::3], heads[1::3], strict=True)
+        ]
+        need = _CMSG_HDR.size + _TIMESPEC.size
+        stamps: list[float | None] = [
+            sec + ns * 1e-9
+            if cl >= need and lv == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS
+            else None
+            for cl, lv, kind, sec, ns in zip(
+                heads[0::3], ctls[1::5], ctls[2::5], ctls[3::5], ctls[4::5], strict=True
+            )
+        ]
+        return n, self._view[: n * size], whole, stamps
 
     def _stamp(self, ctl: memoryview, i: int) -> float | None:
         """The SO_TIMESTAMPNS control message, if the kernel sent one (the only one asked for)."""

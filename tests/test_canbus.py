@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import struct
 import threading
 import time
 from pathlib import Path
@@ -132,6 +133,42 @@ def test_batch_receiver_reads_a_batch_per_call_with_kernel_times_where_asked() -
             plain.receive()
     finally:
         for s in (rx_sock, stamped, tx):
+            s.close()
+
+
+def test_fixed_size_batch_parses_stamps_and_flags_truncated_datagrams() -> None:
+    """SocketCAN's batch path (receive_fixed: one struct call per batch for the headers and the
+    kernel times) on real kernel datagrams of a can_frame's 16 bytes: every one whole and
+    stamped, in order; a longer one (a CAN FD frame's 72 bytes) arrives truncated and says so;
+    a socket without timestamps gives None. Checked against the per-datagram path."""
+    rx_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx_sock.bind(("127.0.0.1", 0))
+    rx_sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    plain = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    plain.bind(("127.0.0.1", 0))
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    frame = struct.Struct("=IB3x8s")
+    try:
+        fixed, other = BatchReceiver(rx_sock, frame.size), BatchReceiver(plain, frame.size)
+        assert fixed.receive_fixed()[0] == 0
+        t0 = time.time()
+        sent = [frame.pack(100 + i, i % 9, bytes(range(i, i + 8))) for i in range(70)]
+        sent[5] = bytes(72)  # too long for the buffer
+        for d in sent:
+            tx.sendto(d, rx_sock.getsockname())
+        tx.sendto(sent[0], plain.getsockname())
+        time.sleep(0.1)
+        n, data, whole, stamps = fixed.receive_fixed()
+        assert n == 64 and len(data) == 64 * frame.size
+        assert whole == [i != 5 for i in range(64)]
+        assert all(t0 - 0.01 < ts < time.time() for ts in stamps)  # type: ignore[operator]
+        got = [bytes(data[i * 16 : (i + 1) * 16]) for i in range(64)]
+        assert got[:5] == sent[:5] and got[6:] == sent[6:64]
+        n, data, whole, stamps = fixed.receive_fixed()
+        assert n == 6 and bytes(data) == b"".join(sent[64:]) and all(whole)
+        assert other.receive_fixed()[3] == [None]
+    finally:
+        for s in (rx_sock, plain, tx):
             s.close()
 
 
