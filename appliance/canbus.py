@@ -465,9 +465,15 @@ class FrameReader:
 
     @functools.cached_property
     def writer(self) -> FrameWriter:
-        """Sends batches through the waking socket; made on first use (its buffers cost a
-        few ms under TCG, and most readers never send a batch)."""
-        return FrameWriter(self.bus, self._cfg)
+        """Sends batches through the socket that reads the ids that do not wake (the quiet
+        one; the only one without): a socket never reads its own frames back (SocketCAN's
+        CAN_RAW_RECV_OWN_MSGS is off), so a reader that also reads what it sends (the
+        controller manager reads anyone's joint control, id 70, and sends its set-points
+        there) does not decode its own frames. Through the waking socket it read back every
+        set-point it sent, on the other socket: the pattern's four joints, 400 frames a
+        second to parse and decode. Made on first use (its buffers cost a few ms under TCG,
+        and most readers never send a batch)."""
+        return FrameWriter(self.quiet_bus or self.bus, self._cfg)
 
     def close(self) -> None:
         """Shut down the buses this reader opened (the quiet one too)."""

@@ -55,6 +55,10 @@ MAX_KEYS = 4096  # keys whose parse is cached (a flood of made-up keys clears it
 # subscription costs memory (its inbox) and the router's work; more are counted, not taken.
 MAX_TOPICS = 256
 TOKEN_RING = 4096  # graph and bundle tokens waiting for the loop
+# A message numbered at most this far below its publisher's last is a duplicate (a topic taken
+# both ways while its subscription moves to its bundles); further below, a new count (a forged
+# sample with a huge number then costs a gap in the counters, never the messages after it).
+DUPLICATE_WINDOW = 1000
 
 Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publish ns, sequence
 # A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
@@ -156,7 +160,9 @@ class Inbox:
     start`` is one) come through a wildcard limited to its own session, at once: discovery
     takes a loop. Publishers outside the graph (no token) are not recorded, and a publisher's
     messages before the recorder saw its token are not either (as with ``ros2 bag record``):
-    appliance nodes declare theirs at start (the command log's included)."""
+    appliance nodes declare theirs at start (the command log's included). A topic some
+    publisher bundles is taken from bundles only, while that publisher lives: a second,
+    unbundled publisher of the same topic meanwhile is not recorded."""
 
     def __init__(
         self,
@@ -171,6 +177,7 @@ class Inbox:
         self.selectors = [zenoh.KeyExpr(s) for s in selectors]
         self.bundled: set[str] = set()  # data keys taken from bundles
         self.subs: dict[str, Any] = {}  # data key -> its own subscription (other processes')
+        self.published: set[str] = set()  # kept data keys the graph showed a publisher of
         self.refused = 0  # topics past MAX_TOPICS
         self.zid = str(session.zid())
         own = [
@@ -196,11 +203,14 @@ class Inbox:
         """New bundle tokens first (their topics come in bundles from now on: a subscription
         of the topic's own key is dropped), then new publishers in the graph."""
         while (t := self._bundle_tokens.try_recv()) is not None:
-            if t.kind != zenoh.SampleKind.PUT:
-                continue
             try:
                 key = messaging.bundled_data_key(self.device, str(t.key_expr))
             except ValueError:
+                continue
+            if t.kind != zenoh.SampleKind.PUT:  # its publisher is gone: maybe back unbundled
+                self.bundled.discard(key)
+                if key in self.published:
+                    self._subscribe(key)
                 continue
             self.bundled.add(key)
             sub = self.subs.pop(key, None)
@@ -214,16 +224,27 @@ class Inbox:
                 if entity.kind != rosgraph.PUBLISHER or entity.zid == self.zid:
                     continue
                 key = messaging.data_key_of(entity)
-                if key in self.subs or key in self.bundled or self.kept(key) is None:
+                if key in self.published or self.kept(key) is None or not self.wanted(key):
                     continue
-                ke = zenoh.KeyExpr(key)
             except Exception:  # anyone may declare a token: a bad one is not a topic
                 continue
-            if not any(sel.intersects(ke) for sel in self.selectors):
-                continue
-            if len(self.subs) >= MAX_TOPICS:
+            if len(self.published) >= MAX_TOPICS:
                 self.refused += 1
                 continue
+            self.published.add(key)
+            if key not in self.bundled:
+                self._subscribe(key)
+
+    def wanted(self, key: str) -> bool:
+        """Whether the data key is one of the recorder's ``topics``."""
+        try:
+            ke = zenoh.KeyExpr(key)
+        except Exception:
+            return False
+        return any(sel.intersects(ke) for sel in self.selectors)
+
+    def _subscribe(self, key: str) -> None:
+        if key not in self.subs:
             self.subs[key] = self.session.declare_subscriber(
                 key, zenoh.handlers.RingChannel(self.ring)
             )
@@ -277,11 +298,13 @@ class Recorder(Node):
 
     # --- intake (the node's loop, in batches) ---------------------------------------------
 
-    def _samples(self) -> Iterator[Any]:
-        """What the inbox holds now (topics the graph showed since the last take included)."""
+    def _samples(self, discover: bool = True) -> Iterator[Any]:
+        """What the inbox holds now (with ``discover``, the loop's: topics the graph showed
+        since the last take included; subscriptions change on that thread only)."""
         inbox = self.inbox
         if inbox is not None:
-            inbox.discover()
+            if discover:
+                inbox.discover()
             yield from inbox.samples()
 
     def _take(self, until: float) -> list[Item]:
@@ -319,8 +342,8 @@ class Recorder(Node):
             for seq, src, data in messages:
                 if gid:
                     last = last_seq.get(gid)
-                    if last is not None and seq <= last:  # seen by the other way
-                        dups += 1
+                    if last is not None and last - DUPLICATE_WINDOW < seq <= last:
+                        dups += 1  # seen by the other way (its key and its bundle)
                         continue
                     if recording and last is not None and seq > last + 1:
                         gaps += seq - last - 1
@@ -344,7 +367,9 @@ class Recorder(Node):
         except ValueError:
             bundle = False
         kept = self._kept(key)
-        return None if kept is None else (*kept, bundle)
+        if kept is None or (bundle and not (self.inbox is not None and self.inbox.wanted(key))):
+            return None
+        return (*kept, bundle)
 
     def _kept(self, key: str) -> tuple[str, str] | None:
         """A data key's (topic, type), None if it is not one or ``exclude`` matches it."""
@@ -382,7 +407,7 @@ class Recorder(Node):
         """A new recording: nothing queued before it, and sequence gaps counted from each
         publisher's first sample in it (the numbers published in the pause are no loss of this
         one)."""
-        for _ in self._samples():
+        for _ in self._samples(discover=False):
             pass
         self._last_seq.clear()
 
