@@ -744,6 +744,8 @@ def _mmsg_buffers(size: int, ctl_size: int) -> tuple[Any, Any, Any, Any]:
 
 
 _HEAD_ENTRY, _CTL_ENTRY = _entry_formats()
+_MSG_TRUNC, _SOL_SOCKET = int(socket.MSG_TRUNC), int(socket.SOL_SOCKET)
+_STAMP_LEN = _CMSG_HDR.size + _TIMESPEC.size  # a control message that holds a timespec
 
 
 class BatchReceiver:
@@ -804,16 +806,20 @@ class BatchReceiver:
             return 0, self._view[:0], [], []
         heads = _batch_struct(n, _HEAD_ENTRY).unpack_from(self._hdrs)
         ctls = _batch_struct(n, _CTL_ENTRY).unpack_from(self._ctl_view)
-        size = self.msg_size
+        size, trunc, need, sol, kind_ts = (
+            self.msg_size,
+            _MSG_TRUNC,
+            _STAMP_LEN,
+            _SOL_SOCKET,
+            SO_TIMESTAMPNS,
+        )
+        # plain ints: socket.MSG_TRUNC is an IntFlag, whose & costs ~1 us a frame
         whole = [
-            length == size and not flags & socket.MSG_TRUNC
+            length == size and not flags & trunc
             for length, flags in zip(heads[2::3], heads[1::3], strict=True)
         ]
-        need = _CMSG_HDR.size + _TIMESPEC.size
         stamps: list[float | None] = [
-            sec + ns * 1e-9
-            if cl >= need and lv == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS
-            else None
+            sec + ns * 1e-9 if cl >= need and lv == sol and kind == kind_ts else None
             for cl, lv, kind, sec, ns in zip(
                 heads[0::3], ctls[1::5], ctls[2::5], ctls[3::5], ctls[4::5], strict=True
             )

@@ -308,6 +308,36 @@ def test_only_the_cycle_end_wakes_a_reader_on_socketcan(vcan0: str) -> None:
         tx.shutdown()
 
 
+def test_a_reader_does_not_read_back_what_its_writer_sends(vcan0: str) -> None:
+    """The controller manager's shape: 110 wakes, 70 is read quietly (anyone's joint control,
+    the watchdog's disable), and its set-points go out on 70 through ``reader.writer``, which
+    sends on the quiet socket: SocketCAN never gives a socket its own frames, so the manager
+    does not decode its own set-points; another process's 70 still arrives, and an independent
+    listener sees every frame."""
+    tx, watcher = listener(vcan0), listener(vcan0)
+    reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [70, 110], wake_on=[110])
+    try:
+        mine = [
+            can.Message(arbitration_id=70, data=bytes([m, 3, 0, 0, 0, 0]), is_extended_id=False)
+            for m in (1, 2, 3, 4)
+        ]
+        reader.writer.send(mine)
+        tx.send(
+            can.Message(arbitration_id=70, data=bytes([5, 4, 0, 0, 0, 0]), is_extended_id=False)
+        )
+        tx.send(can.Message(arbitration_id=110, data=bytes(6), is_extended_id=False))
+        got = reader.read(5.0)
+        assert [(f.arbitration_id, f.data[0]) for f in got] == [(70, 5), (110, 0)]
+        assert all(isinstance(f.timestamp, float) and f.timestamp > 1e9 for f in got)
+        seen = drain(watcher, 0.5, {70})
+        assert [m.data[0] for m in seen] == [1, 2, 3, 4, 5]
+        assert reader.malformed == 0
+    finally:
+        reader.close()
+        tx.shutdown()
+        watcher.shutdown()
+
+
 ANGLES_LEN = len(h2.encode(h2.JointAngles(40, 60, 0, 40, 60, 0)).data)  # the contract's (6)
 
 
