@@ -58,15 +58,18 @@ def throughput(n: int, compression: str) -> dict[str, Any]:
     }
 
 
-def long_run(seconds: float) -> dict[str, Any]:
+def long_run(seconds: float, cycles_per_read: int = 1) -> dict[str, Any]:
+    """``cycles_per_read``: the readers' cadence; above 1 (the board's 10) their 100 Hz topics
+    reach the recorder as one bundle per read (messaging.bundle_key)."""
     d = tempfile.mkdtemp(prefix="exolink-rec-")
+    every = {"cycles_per_read": cycles_per_read}
     nodes = [
         {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
-        {"name": "h2_reader", "plugin": "h2_reader"},
+        {"name": "h2_reader", "plugin": "h2_reader", "params": every},
         {
             "name": "maccepa_bridge",
             "plugin": "maccepa_bridge",
-            "params": {"boards": [0], "require_armed": False},
+            "params": {"boards": [0], "require_armed": False, **every},
         },
         {"name": "recorder", "plugin": "recorder", "params": {"directory": d}},
     ]
@@ -106,4 +109,5 @@ def run(quick: bool) -> dict[str, Any]:
         "write_lz4": throughput(n, "lz4"),
         "write_none": throughput(n, "none"),
         "long_run": long_run(10 if quick else 120),
+        "long_run_board_cadence": long_run(10 if quick else 120, cycles_per_read=10),
     }
