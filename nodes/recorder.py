@@ -1,7 +1,7 @@
 """MCAP recorder [thesis: rosbag record and the GUIs' text logs].
 
-Subscribes to every data topic of the appliance (or a configured subset) and writes MCAP files
-with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
+Records every topic the ROS graph shows a publisher of (or a configured subset; see ``Inbox``;
+batched 100 Hz topics come as bundles) and writes MCAP files with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
 PlotJuggler open them. Samples wait in Zenoh's ring channel (the inbox, ``params.inbox`` per
 subscription) until the node's loop takes them in batches every ``INTAKE_PERIOD_S``: no Python
 runs on Zenoh's thread per sample (a callback took the GIL for each; on the board a writer
