@@ -698,7 +698,6 @@ class _MMsgHdr(ctypes.Structure):
 
 
 _SIZE_T = struct.Struct("@N")
-_UINT = struct.Struct("@I")
 _CMSG_HDR = struct.Struct("@Nii")  # struct cmsghdr: len, level, type
 _MSG_SIZE, _CTL_SIZE = 256, socket.CMSG_SPACE(_TIMESPEC.size)
 
@@ -767,7 +766,6 @@ class BatchReceiver:
         self._ctl_view = memoryview(self._ctl).cast("B")
         size = ctypes.sizeof(_MMsgHdr)
         self._hdrs = memoryview((ctypes.c_char * (n * size)).from_address(self._addr)).cast("B")
-        self._len_at = [i * size + _MMsgHdr.len.offset for i in range(n)]
         self._ctl_len_at = [i * size + _MsgHdr.controllen.offset for i in range(n)]
         self._used = 0  # headers the kernel wrote last time: their controllen to reset
 
@@ -788,55 +786,43 @@ class BatchReceiver:
 
     def receive(self) -> list[tuple[bytes, float | None]]:
         n = self._call()
-        hdrs, data, ctl, out, size_max = self._hdrs, self._view, self._ctl_view, [], self.msg_size
-        for i in range(n):
-            size = _UINT.unpack_from(hdrs, self._len_at[i])[0]
-            at = i * size_max
-            out.append((bytes(data[at : at + min(size, size_max)]), self._stamp(ctl, i)))
-        return out
+        if n == 0:
+            return []
+        lengths, _flags, stamps = self._headers(n)
+        data, size_max = self._view, self.msg_size
+        return [
+            (bytes(data[i * size_max : i * size_max + min(length, size_max)]), stamps[i])
+            for i, length in enumerate(lengths)
+        ]
 
     def receive_fixed(self) -> tuple[int, memoryview, list[bool], list[float | None]]:
         """For datagrams of exactly ``msg_size`` bytes (SocketCAN's can_frame): how many came,
         their bytes back to back (one ``iter_unpack`` parses them all), whether each was whole
-        (its length, not truncated), and its kernel time. The headers and control messages of
-        the whole batch are read by one ``struct`` call each, not four calls per datagram: on
-        the board proxy each was ~0.1 ms of the one core for every frame of every reader."""
+        (its length, not truncated), and its kernel time."""
         n = self._call()
         if n == 0:
             return 0, self._view[:0], [], []
+        lengths, flags, stamps = self._headers(n)
+        size, trunc = self.msg_size, _MSG_TRUNC
+        whole = [ln == size and not fl & trunc for ln, fl in zip(lengths, flags, strict=True)]
+        return n, self._view[: n * size], whole, stamps
+
+    def _headers(self, n: int) -> tuple[tuple[int, ...], tuple[int, ...], list[float | None]]:
+        """The last call's lengths, flags and kernel times (SO_TIMESTAMPNS, the only control
+        message asked for; None where the kernel sent none), the whole batch's headers and
+        control messages read by one ``struct`` call each, not four calls per datagram: on the
+        board proxy each was ~0.1 ms of the one core for every frame of every reader."""
         heads = _batch_struct(n, _HEAD_ENTRY).unpack_from(self._hdrs)
         ctls = _batch_struct(n, _CTL_ENTRY).unpack_from(self._ctl_view)
-        size, trunc, need, sol, kind_ts = (
-            self.msg_size,
-            _MSG_TRUNC,
-            _STAMP_LEN,
-            _SOL_SOCKET,
-            SO_TIMESTAMPNS,
-        )
         # plain ints: socket.MSG_TRUNC is an IntFlag, whose & costs ~1 us a frame
-        whole = [
-            length == size and not flags & trunc
-            for length, flags in zip(heads[2::3], heads[1::3], strict=True)
-        ]
+        need, sol, kind_ts = _STAMP_LEN, _SOL_SOCKET, SO_TIMESTAMPNS
         stamps: list[float | None] = [
             sec + ns * 1e-9 if cl >= need and lv == sol and kind == kind_ts else None
             for cl, lv, kind, sec, ns in zip(
                 heads[0::3], ctls[1::5], ctls[2::5], ctls[3::5], ctls[4::5], strict=True
             )
         ]
-        return n, self._view[: n * size], whole, stamps
-
-    def _stamp(self, ctl: memoryview, i: int) -> float | None:
-        """The SO_TIMESTAMPNS control message, if the kernel sent one (the only one asked for)."""
-        length = _SIZE_T.unpack_from(self._hdrs, self._ctl_len_at[i])[0]
-        at = i * _CTL_SIZE
-        if length < _CMSG_HDR.size + _TIMESPEC.size:
-            return None
-        _len, level, kind = _CMSG_HDR.unpack_from(ctl, at)
-        if level != socket.SOL_SOCKET or kind != SO_TIMESTAMPNS:
-            return None
-        sec, ns = _TIMESPEC.unpack_from(ctl, at + socket.CMSG_LEN(0))
-        return sec + ns * 1e-9
+        return heads[2::3], heads[1::3], stamps
 
 
 def _libc(name: str, *argtypes: Any) -> Any:
