@@ -420,13 +420,11 @@ class Publisher:
         raw: bool = False,
         token: rosgraph.Token | None = None,
         graph: rosgraph.RosNode | None = None,
-        bundle: str | None = None,
+        bundle: tuple[Any, Any] | None = None,
     ) -> None:
         self.key, self.typename = key, typename
-        # A bundled topic's token goes out before its ROS graph token (the caller's), so a
-        # recorder that discovers both learns the topic is bundled before it would subscribe.
-        self._bundle = session.declare_publisher(bundle) if bundle else None
-        self._bundle_token = session.liveliness().declare_token(bundle) if bundle else None
+        # (publisher, liveliness token) of its bundle key (Messaging.publisher, bundled=True)
+        self._bundle, self._bundle_token = bundle or (None, None)
         self._pub = session.declare_publisher(key)
         # With a graph token (an appliance node's publisher) the GID is the token's, as
         # rmw_zenoh derives it; a publisher outside the ROS graph (a tool) keeps a random one.
@@ -451,13 +449,6 @@ class Publisher:
             att = self._head.pack(self._seq, source_ns or time.time_ns(), len(self._gid), self._gid)
             self._pub.put(payload, attachment=att)
             self.sent += 1
-
-    def attach_token(self, token: rosgraph.Token, graph: rosgraph.RosNode | None) -> None:
-        """The graph token declared after the publisher (a bundled one's): its GID is this
-        publisher's from now on, as rmw_zenoh derives it."""
-        with self._lock:
-            self._token, self._graph, self._gid = token, graph, token.gid
-            self._head = struct.Struct(f"<qqB{len(self._gid)}s")
 
     def put_many(self, items: list[tuple[bytes, int]]) -> None:
         """Several messages (CDR, source ns) at once, numbered in order. A bundled publisher
@@ -579,16 +570,15 @@ class Messaging:
         """``bundled``: a high-rate topic whose batches (``Outbox``) also go out as one bundle
         sample each for the recorder (see ``bundle_key``)."""
         key = self.key(topic, typename)
-        if bundled:  # the bundle's token first (Publisher), then the graph's
-            pub = Publisher(
-                self.session, key, typename, raw, None, None, bundle_key(self.device, key)
+        bundle = None
+        if bundled:  # its token before the graph's: a recorder learns it is bundled first
+            where = bundle_key(self.device, key)
+            bundle = (
+                self.session.declare_publisher(where),
+                self.session.liveliness().declare_token(where),
             )
-            token = self._token(rosgraph.PUBLISHER, topic, typename, qos)
-            if token is not None:
-                pub.attach_token(token, self.graph)
-            return pub
         token = self._token(rosgraph.PUBLISHER, topic, typename, qos)
-        return Publisher(self.session, key, typename, raw, token, self.graph)
+        return Publisher(self.session, key, typename, raw, token, self.graph, bundle)
 
     def subscribe(
         self, topic: str, typename: str, callback: Callable[[Any, Meta], None]
