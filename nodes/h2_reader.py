@@ -199,10 +199,10 @@ class H2Reader(Node):
         st.receive = self.reader.counters()
         st.socket_dropped = st.receive["dropped"]  # type: ignore[assignment]
         return {
-            "node": self.name,
+            "node": self.name,  # a wildcard query's replies say whose they are
             **asdict(st),
             "joint_states_out": self.pub_js.counters(),
-        }  # a wildcard query's replies say whose they are
+        }
 
     def _diagnostics(self) -> None:
         st = self.stats

@@ -1,12 +1,13 @@
 """MCAP recorder [thesis: rosbag record and the GUIs' text logs].
 
 Records every topic the ROS graph shows a publisher of (or a configured subset; see ``Inbox``;
-batched 100 Hz topics come as bundles) and writes MCAP files with ``ros2msg`` schemas and the CDR payloads exactly as they travelled, so rosbag2, Foxglove and
-PlotJuggler open them. Samples wait in Zenoh's ring channel (the inbox, ``params.inbox`` per
-subscription) until the node's loop takes them in batches every ``INTAKE_PERIOD_S``: no Python
-runs on Zenoh's thread per sample (a callback took the GIL for each; on the board a writer
-thread woken per sample was half the recorder's CPU). A sample's log time is when the loop took
-it (up to ``INTAKE_PERIOD_S`` after it arrived); its publish time is the publisher's stamp.
+batched 100 Hz topics come as bundles) and writes MCAP files with ``ros2msg`` schemas and the
+CDR payloads exactly as they travelled, so rosbag2, Foxglove and PlotJuggler open them.
+Samples wait in Zenoh's ring channel (the inbox, ``params.inbox`` per subscription) until the
+node's loop takes them in batches every ``INTAKE_PERIOD_S``: no Python runs on Zenoh's thread
+per sample (a callback took the GIL for each; on the board a writer thread woken per sample was
+half the recorder's CPU). A sample's log time is when the loop took it (up to
+``INTAKE_PERIOD_S`` after it arrived); its publish time is the publisher's stamp.
 A slow SD card never stalls the session; the inbox holds ~90 s of data. Nothing is lost
 silently: every appliance publisher numbers its samples, so a sample that never arrived or that
 the full ring let go (the oldest go first) is a gap in its publisher's sequence, counted as
