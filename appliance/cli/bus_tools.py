@@ -19,22 +19,22 @@ def bus_config(args: argparse.Namespace) -> CanConfig:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     from exolink import logs
-    from exolink.canbus import id_filters, open_bus
+    from exolink.canbus import open_reader
     from exolink.nodes.simulator import SimParams, Simulator
     from exolink.runtime import stop_on_signals
 
     log = logs.setup("sim")
     params = SimParams(maccepa_boards=args.maccepa)
-    bus = open_bus(bus_config(args), filters=id_filters(Simulator.command_ids(params)))
-    sim = Simulator(bus, params)
-    stop = threading.Event()
-    stop_on_signals(stop, log)
-    log.info("sim_running", bus=f"{args.interface}:{bus.channel_info}", maccepa=args.maccepa)
-    try:
-        sim.run(stop)
-    finally:
-        bus.shutdown()
-        log.info("sim_stopped", **vars(sim.stats))
+    with open_reader(bus_config(args), Simulator.command_ids(params)) as reader:
+        sim = Simulator(reader.bus, params, reader)
+        stop = threading.Event()
+        stop_on_signals(stop, log)
+        info = reader.bus.channel_info
+        log.info("sim_running", bus=f"{args.interface}:{info}", maccepa=args.maccepa)
+        try:
+            sim.run(stop)
+        finally:
+            log.info("sim_stopped", **vars(sim.stats))
     return 0
 
 

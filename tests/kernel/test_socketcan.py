@@ -537,3 +537,57 @@ def test_simulated_h2_streams_on_the_kernel_timer(vcan0: str) -> None:
         sim.stream.stop()
         for b in (bus, rx, tx):
             b.shutdown()
+
+
+def test_simulated_maccepa_board_on_the_kernel_timer_reads_commands_in_batches(
+    vcan0: str,
+) -> None:
+    """On SocketCAN a simulated MACCEPA board's state frames come from the broadcast manager as
+    the H2's do (100 Hz each, whatever Python does meanwhile), the simulator takes its commands
+    through a batch reader (a burst of 40 set-points is handled, each counted once), the board
+    follows a set-point, and a silent fault stops its frames until it ends."""
+    from exolink.protocol import maccepa
+
+    cfg = CanConfig(interface="socketcan", channel=vcan0)
+    params = SimParams(maccepa_boards=[1])
+    reader = open_reader(cfg, Simulator.command_ids(params))
+    ids = set(maccepa.data_ids([1]))
+    rx = open_bus(cfg, filters=id_filters(sorted(ids)))
+    tx = listener(vcan0)
+    sim = Simulator(reader.bus, params, reader)
+    assert sim.mc_stream is not None
+    stop = threading.Event()
+    runner = threading.Thread(target=sim.run, args=(stop,), daemon=True)
+    runner.start()
+    try:
+        assert wait_for(lambda: sim.mc_stream.running, timeout=5)
+        drain(rx, 0.2)
+        got = [m.arbitration_id for m in drain(rx, 1.0, ids)]
+        print("kernel-timed MACCEPA frames in 1 s:", {i: got.count(i) for i in sorted(ids)})
+        assert all(80 <= got.count(i) <= 120 for i in ids), got[:30]
+
+        before = sim.stats.commands
+        tx.send(maccepa.encode_gain(1, "kp", 2.0, "position"))
+        for _ in range(40):
+            tx.send(maccepa.encode_setpoint(1, 30.0, "position"))
+        assert wait_for(lambda: sim.stats.commands - before == 41, timeout=5)
+        assert reader.batch_max > 1  # the burst came in batches, not a select per frame
+
+        def lever() -> int:
+            pos = [maccepa.decode(m) for m in drain(rx, 0.05, {maccepa.POSITIONS_BASE + 1})]
+            return pos[-1].lever if pos else -999  # type: ignore[union-attr]
+
+        assert wait_for(lambda: abs(lever() - 30) <= 1, timeout=5)
+
+        sim.inject("silent", 0.5)
+        assert wait_for(lambda: not sim.mc_stream.running, timeout=2)
+        drain(rx, 0.05)
+        assert drain(rx, 0.2, ids) == []
+        assert wait_for(lambda: len(drain(rx, 0.1, ids)) >= 10, timeout=5)
+    finally:
+        stop.set()
+        runner.join(2)
+        sim.mc_stream.stop()
+        reader.close()
+        for b in (rx, tx):
+            b.shutdown()
