@@ -237,6 +237,18 @@ def pattern_state(ns: int, s: dict[str, Any], selected: Sequence[bool]) -> bytes
     return bytes(w.buf)
 
 
+def controller_activity(ns: int, version: int, controllers: Sequence[Sequence[str]]) -> bytes:
+    """exolink_msgs/ControllerActivity from (name, type, state, error) per controller."""
+    w = _Writer()
+    w.stamp(ns)
+    w.put("I", version)
+    for i in range(4):
+        w.put("I", len(controllers))
+        for c in controllers:
+            w.string(c[i])
+    return bytes(w.buf)
+
+
 def watchdog_event(payload: bytes) -> tuple[str, str, str, int]:
     """(state, reason, detail, frames_sent) of an exolink_msgs/WatchdogEvent; ValueError when
     the payload is not one (it comes over the network: checked, never trusted)."""

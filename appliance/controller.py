@@ -17,6 +17,11 @@ from exolink.maccepalimits import KINDS as MACCEPA_INTERFACES
 from exolink.maccepalimits import BoardLimits, target
 from exolink.protocol.h2 import JOINTS
 
+# The controller manager publishes every change of a controller's state here (the whole list,
+# exolink_msgs/ControllerActivity, as ros2_control's ~/activity); followers listen to it
+ACTIVITY_TOPIC = "controllers/activity"
+ACTIVITY_TYPE = "exolink_msgs/msg/ControllerActivity"
+
 INTERFACES = ("position", "torque", "stiffness")
 
 

@@ -46,6 +46,7 @@ import msgspec
 from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import FrameReader, open_bus, open_reader
+from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
@@ -58,9 +59,10 @@ SPIN_S = 0.0003
 MAX_UPLOAD = 1 << 20
 GAIT = "pattern"  # the controller the manager runs the gait as (timing: manager)
 MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
-# timing: manager: how often a running pattern's controller is looked up in the manager, which
-# stops it on a trip, a disable on the bus or a failure; this node's state follows within this.
-MANAGER_POLL_S = 0.2
+# timing: manager: the manager stops a running pattern's controller itself (a trip, a disable on
+# the bus, a failure) and says so on controllers/activity; this node looks the controller up then,
+# and at least this often in case that message was lost.
+MANAGER_POLL_S = 2.0
 # A motion node (timing thread or periodic): its loop beats at least this often, running or
 # idle, so the supervisor can hold it to a short liveness deadline (heartbeat_deadline_ms: 50).
 BEAT_S = 0.02
@@ -185,6 +187,11 @@ class PatternPlayer(Node):
         self._periodic_t0, self._periodic_i0 = time.monotonic(), 0
         self.sent = 0
         self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True)
+        self._activity = threading.Event()  # the manager changed a controller's state
+        if self.timing == "manager":
+            self._activity_sub = self.ctx.messaging.subscribe_raw(
+                ACTIVITY_TOPIC, ACTIVITY_TYPE, lambda _payload: self._activity.set()
+            )
         self._q = self.ctx.messaging.serve(
             "pattern", self.on_command, roles.status_or(roles.OPERATOR)
         )
@@ -456,8 +463,15 @@ class PatternPlayer(Node):
         """timing: manager: the manager plays the pattern and stops it itself (a trip, a disable
         or stop frame for one of its joints from anyone, a failure), so this node does not read
         the bus (id 70 then carries the manager's 100 Hz set-points: ~500 frames/s to decode for
-        a display); it asks the manager every MANAGER_POLL_S whether the pattern still runs."""
-        while not stop.wait(MANAGER_POLL_S):
+        a display); it asks the manager whether the pattern still runs when the manager says a
+        controller changed (``controllers/activity``: anyone may publish there, so it only
+        prompts the question, never answers it), and every MANAGER_POLL_S in case that message
+        was lost."""
+        while not stop.is_set():
+            self._activity.wait(MANAGER_POLL_S)
+            self._activity.clear()
+            if stop.is_set():
+                return
             with self.lock:
                 engaged = self._engaged
             if not engaged:
@@ -506,6 +520,7 @@ class PatternPlayer(Node):
         try:
             self._play(stop)
         finally:
+            self._activity.set()  # the manager follower looks at `stop` now
             watch.join(1)
 
     def _play(self, stop: threading.Event) -> None:
@@ -570,7 +585,7 @@ class PatternPlayer(Node):
         with self.lock:
             if getattr(self, "task", None) is not None:
                 self.task.stop()
-        for name in ("_q",):
+        for name in ("_q", "_activity_sub"):
             if hasattr(self, name):
                 getattr(self, name).undeclare()
         if getattr(self, "arming", None) is not None:

@@ -132,6 +132,29 @@ def test_pattern_state_is_rosbags_cdr(ns, texts, counts, speed, period, selected
 @settings(deadline=None)
 @given(
     ns=NS,
+    version=st.integers(0, 2**32 - 1),
+    controllers=st.lists(st.lists(st.text(max_size=12), min_size=4, max_size=4), max_size=4),
+)
+def test_controller_activity_is_rosbags_cdr(
+    ns: int, version: int, controllers: list[list[str]]
+) -> None:
+    cls = messaging.msg_class("exolink_msgs/msg/ControllerActivity")
+    names, types, states, errors = ([c[i] for c in controllers] for i in range(4))
+    ref = cls(
+        stamp=messaging.stamp(ns),
+        version=version,
+        names=names,
+        types=types,
+        states=states,
+        errors=errors,
+    )
+    payload = cdr.controller_activity(ns, version, controllers)
+    assert payload == messaging.serialize(ref, "exolink_msgs/msg/ControllerActivity")
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
     texts=st.lists(st.text(max_size=30), min_size=3, max_size=3),
     frames=st.integers(0, 2**32 - 1),
 )

@@ -688,20 +688,43 @@ def test_the_manager_reads_the_bus_only_while_a_controller_is_active(app, mbus) 
 
 def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> None:  # type: ignore[no-untyped-def]
     """With timing: manager the player reads no bus (id 70 then carries the manager's 100 Hz
-    set-points): a disable on the bus stops the manager's pattern controller, and the player's
-    state follows from the manager, with its reason."""
+    set-points): a disable on the bus stops the manager's pattern controller, the manager says
+    so on controllers/activity (the whole list, read here by rosbags as a ROS 2 laptop would),
+    and the player's state follows from the manager, with its reason."""
+    from exolink import messaging
+    from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
+
     app = gait
     pid = app.node("pattern_player")["pid"]
     before = bus_sockets(pid)
+    laptop = messaging.open_client_session(app.at)
+    told: list[Any] = []
+    sub = laptop.declare_subscriber(
+        messaging.topic_key(0, "h2", ACTIVITY_TOPIC, ACTIVITY_TYPE),
+        lambda x: told.append(messaging.deserialize(x.payload.to_bytes(), ACTIVITY_TYPE)),
+    )
     app.arm()
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 2))
     assert bus_sockets(pid) == before  # only its send-only socket, as when idle
+
+    def shown_active() -> bool:
+        states = dict(zip(told[-1].names, told[-1].states, strict=True)) if told else {}
+        return states.get("pattern") == "active"
+
+    wait_for(shown_active)
     assert app.cli("send", "disable", "r_knee").returncode == 0
     wait_for(lambda: listing(app)["pattern"]["state"] != "active")
     wait_for(lambda: "stopped" in app.cli("pattern", "status").stdout, timeout=5)
     shown = app.cli("pattern", "status").stdout
     assert "r_knee disabled or stopped on the bus" in shown, shown
+    last = told[-1]
+    i = list(last.names).index("pattern")
+    assert last.states[i] == "inactive" and last.types[i] == "gait_pattern", last
+    assert "r_knee disabled or stopped on the bus" in last.errors[i], last
+    assert [m.version for m in told] == sorted({m.version for m in told})  # each change once
+    sub.undeclare()
+    laptop.close()
     collect(mbus, 0.2)  # frames in flight
     assert [f for f in joint_frames(collect(mbus, 0.3, {70}), 2) if f.mode == 1] == []
     # a new start re-engages the manager (r_knee is switched back on by the pattern)

@@ -39,10 +39,10 @@ from typing import Annotated, Any, Literal
 
 import can
 import msgspec
-from exolink import roles
+from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
-from exolink.controller import BoardState, State
+from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
 from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
 from exolink.messaging import CommandRefused
@@ -58,6 +58,11 @@ SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
 OPERATOR_MODES = ("position", "stiffness", "torque")
 READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES, h2.JOINT_CONTROL]
+# Every change of a controller's state goes out on ACTIVITY_TOPIC at once, and the whole list
+# again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
+# asking. On the board proxy the player's five state queries a second were four Zenoh hops and a
+# handler each, all on the one core.
+ACTIVITY_REFRESH_S = 60.0
 MACCEPA_OPERATOR = "maccepa"  # the action the MACCEPA bridge forwards a board command with
 DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
 
@@ -144,6 +149,10 @@ class ControllerManagerNode(Node):
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
         self.written = 0
         self.safe_sent = 0
+        self.pub_activity = self.ctx.messaging.publisher(ACTIVITY_TOPIC, ACTIVITY_TYPE, raw=True)
+        self._told, self._told_at = -1, 0.0
+        self._tell_lock = threading.Lock()
+        self._maybe_tell()  # the controllers loaded from params
         self._q = self.ctx.messaging.serve("controllers", self.on_request, self._needs)
 
     @staticmethod
@@ -158,7 +167,31 @@ class ControllerManagerNode(Node):
 
     # --- management ---------------------------------------------------------------------------
 
+    def _maybe_tell(self) -> None:
+        """Publish the controllers' states if they changed (or the refresh is due): one
+        comparison per cycle otherwise."""
+        if self._told == self.manager.version and (
+            time.monotonic() - self._told_at < ACTIVITY_REFRESH_S
+        ):
+            return
+        version, controllers = self.manager.activity()
+        with self._tell_lock:
+            now = time.monotonic()
+            if version < self._told or (
+                version == self._told and now - self._told_at < ACTIVITY_REFRESH_S
+            ):
+                return  # another thread told this version, or a later one, meanwhile
+            self._told, self._told_at = version, now
+            ns = time.time_ns()
+            self.pub_activity.put(cdr.controller_activity(ns, version, controllers), ns)
+
     def on_request(self, req: dict[str, Any]) -> dict[str, Any]:
+        try:
+            return self._on_request(req)
+        finally:
+            self._maybe_tell()
+
+    def _on_request(self, req: dict[str, Any]) -> dict[str, Any]:
         action = req.get("action", "list")
         try:
             if action == "list":
@@ -308,6 +341,7 @@ class ControllerManagerNode(Node):
         timeout = self.params.h2_timeout_ms / 1e3
         while not stop.is_set():
             self.beat()
+            self._maybe_tell()
             if self.reader is None:
                 if not self.manager.busy():
                     self.wake.wait(BEAT_S)
@@ -497,6 +531,9 @@ class ControllerManagerNode(Node):
                 self._safe(out)
         if hasattr(self, "_q"):
             self._q.undeclare()
+        if hasattr(self, "pub_activity"):
+            self._maybe_tell()  # every controller stopped: followers hear it before we go
+            self.pub_activity.close()
         if getattr(self, "arming", None) is not None:
             self.arming.close()  # type: ignore[union-attr]
         if getattr(self, "reader", None) is not None:

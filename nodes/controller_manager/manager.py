@@ -215,6 +215,7 @@ class Manager:
         self.cycles = 0
         self.gaps = 0  # cycles where a claimed joint got no frame (no value yet)
         self.overhead_s: deque[float] = deque(maxlen=2000)
+        self.version = 0  # counts loads, unloads and state changes: what `activity` describes
 
     # --- loading ----------------------------------------------------------------------------
 
@@ -253,6 +254,7 @@ class Manager:
             if name in self.slots:
                 raise ManagerRefused(f"a controller named {name} is already loaded")
             self.slots[name] = slot
+            self.version += 1
         log.info("controller_loaded", controller=name, type=kind, claims=list(claims))
         return slot.status()
 
@@ -262,6 +264,7 @@ class Manager:
             if slot.state == "active":
                 raise ManagerRefused(f"{name} is active: deactivate it first")
             del self.slots[name]
+            self.version += 1
         log.info("controller_unloaded", controller=name)
 
     def _slot(self, name: str) -> Slot:
@@ -298,6 +301,12 @@ class Manager:
             if slot is None:
                 return {"name": name, "state": None, "error": f"no controller {name!r}"}
             return {"name": name, "state": slot.state, "error": slot.error}
+
+    def activity(self) -> tuple[int, list[tuple[str, str, str, str]]]:
+        """(version, (name, type, state, error) per controller): what followers are told on
+        every change, so they need not ask several times a second."""
+        with self.lock:
+            return self.version, [(s.name, s.kind, s.state, s.error) for s in self.slots.values()]
 
     def status(self) -> dict[str, Any]:
         with self.lock:  # copies only: the loop waits on this lock, so no work inside it
@@ -440,6 +449,7 @@ class Manager:
         continues from what its previous owner last wrote; one nobody was writing starts from
         where it is (a board's lever; 0 for a velocity controller)."""
         slot.state, slot.error = "active", ""
+        self.version += 1
         for c in slot.claims:
             self.owners[c] = slot.name
             target, _, kind = c.partition("/")
@@ -463,6 +473,7 @@ class Manager:
     def _release(self, slot: Slot, error: str) -> None:
         self._safe_deactivate(slot)
         slot.state, slot.error = "inactive", error
+        self.version += 1
         for c in slot.claims:
             if self.owners.get(c) == slot.name:
                 del self.owners[c]
