@@ -51,6 +51,7 @@ def test_h2_joint_frames_agree_with_cantools(values: list[int], fid: int) -> Non
     theirs = H2_DB.decode_message(fid, bytes(msg.data), decode_choices=False)
     assert ours._asdict() == theirs
     assert h2.encode(ours).data == msg.data
+    assert h2.model_message(ours).data == msg.data  # the simulator's unchecked packing
 
 
 @given(st.lists(st.integers(0, 255), min_size=6, max_size=6))
@@ -58,6 +59,8 @@ def test_foot_switch_frames_agree_with_cantools(raw: list[int]) -> None:
     msg = frame(130, bytes(raw).hex())
     theirs = H2_DB.decode_message(130, bytes(msg.data))
     assert h2.decode(msg)._asdict() == theirs
+    feet = h2.decode(msg)
+    assert h2.model_message(feet).data == h2.encode(feet).data  # type: ignore[arg-type]
 
 
 @given(st.integers(1, 6), st.sampled_from(["position", "stiffness"]), st.integers(0, 100))
@@ -95,6 +98,7 @@ def test_maccepa_board_frames_agree_with_cantools(b: int, vals: list[int]) -> No
         theirs = MC_DB.decode_message(base + b, bytes(msg.data))
         assert ours._asdict() | {} == {"board": b, **theirs}
         assert maccepa.encode(ours).data == msg.data
+        assert maccepa.model_message(ours).data == msg.data  # the simulator's unchecked packing
 
 
 def test_maccepa_duty_and_stop() -> None:

@@ -96,6 +96,20 @@ class FrameSpec:
             raw.append(r)
         return self.struct.pack(*raw)
 
+    def pack(self, values: tuple[float, ...] | list[float]) -> bytes:
+        """Values a model computed and bounded itself (the simulator's boards): scaled and
+        packed without ``encode``'s check of each value against the DBC, a fifth of its cost
+        (the simulator builds six frames every 10 ms); struct still refuses a value that does
+        not fit its signal's type. Anything from outside goes through ``encode``."""
+        if not self.scaled:
+            return self.struct.pack(*values)
+        raw: list[int | float] = list(values)
+        for i in self.scaled:
+            s = self.signals[i]
+            r = (raw[i] - s.offset) / s.scale
+            raw[i] = r if s.fmt == "f" else round(r)
+        return self.struct.pack(*raw)
+
 
 def _fmt(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else str(x)

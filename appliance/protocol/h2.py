@@ -144,6 +144,13 @@ def _message(frame: H2Frame) -> can.Message:
     return can.Message(arbitration_id=spec.frame_id, data=data, is_extended_id=False)
 
 
+def model_message(frame: H2Frame) -> can.Message:
+    """The simulator's frame from its model's own bounded values (``FrameSpec.pack``: no check
+    per value; ``encode`` is for everything else)."""
+    spec = _TABLE.spec[type(frame)]
+    return can.Message(arbitration_id=spec.frame_id, data=spec.pack(frame), is_extended_id=False)
+
+
 def encode(frame: H2Frame) -> can.Message:
     """Any H2 frame to a CAN message, bounds-checked against the DBC (simulator side too)."""
     return _message(frame)

@@ -170,6 +170,14 @@ def encode_stop(board: int) -> can.Message:
     return _msg(f"Duty_B{_board(board)}", (0, 0))
 
 
+def model_message(frame: Sensors | Positions | Controller) -> can.Message:
+    """A simulated board's status frame from its model's own bounded values (``FrameSpec.pack``:
+    no check per value; ``encode`` is for everything else)."""
+    spec = _BY_NAME[f"{type(frame).__name__}_B{frame.board}"]
+    data = spec.pack(tuple(frame)[1:])
+    return can.Message(arbitration_id=spec.frame_id, data=data, is_extended_id=False)
+
+
 def encode(frame: MaccepaFrame) -> can.Message:
     """Any typed frame to a message (the simulator's board side uses this)."""
     if isinstance(frame, Gain):

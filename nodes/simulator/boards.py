@@ -133,9 +133,9 @@ class H2Board:
             for j in self.joints
         ]
         return [
-            h2.encode(h2.JointAngles(*angles)),
-            h2.encode(h2.JointTorques(*torques)),
-            h2.encode(h2.FootSwitches(*self.feet(), int(self.battery))),
+            h2.model_message(h2.JointAngles(*angles)),
+            h2.model_message(h2.JointTorques(*torques)),
+            h2.model_message(h2.FootSwitches(*self.feet(), int(self.battery))),
         ]
 
 
@@ -209,7 +209,7 @@ class MaccepaBoard:
             return int(_clamp(round(x), -32768, 32767))
 
         return [
-            maccepa.encode(
+            maccepa.model_message(
                 maccepa.Sensors(
                     b,
                     i16(abs(self.actuation) * 20),
@@ -218,6 +218,8 @@ class MaccepaBoard:
                     i16(2.0 * (self.lever - self.link)),
                 )
             ),
-            maccepa.encode(maccepa.Positions(b, i16(self.link), i16(self.lever), 0, 0)),
-            maccepa.encode(maccepa.Controller(b, i16(self.setpoint), i16(self.actuation), i16(pv))),
+            maccepa.model_message(maccepa.Positions(b, i16(self.link), i16(self.lever), 0, 0)),
+            maccepa.model_message(
+                maccepa.Controller(b, i16(self.setpoint), i16(self.actuation), i16(pv))
+            ),
         ]
