@@ -19,6 +19,12 @@ F64 = st.floats(allow_nan=False, width=64)
 SIX = st.lists(F64, min_size=6, max_size=6)
 
 
+def assert_rosbags_cdr(payload: bytes, typename: str, **fields: Any) -> None:
+    """``payload`` is, byte for byte, rosbags' CDR of the message with these fields."""
+    ref = messaging.msg_class(typename)(**fields)
+    assert payload == messaging.serialize(ref, typename)
+
+
 def _joint_state(names: Sequence[str], ns: int, pos: Any, eff: Any) -> Any:
     """The same JointState as a rosbags message."""
     cls = messaging.msg_class(cdr.JointStateCdr.TYPE)
@@ -84,8 +90,10 @@ def test_diagnostics_is_rosbags_cdr(ns: int, level: str, text: str, values: dict
 def test_joint_command_is_rosbags_cdr(
     ns: int, joint: str, mode: int, sp: int, stiff: int, source: str
 ) -> None:
-    cls = messaging.msg_class("exolink_msgs/msg/JointCommand")
-    ref = cls(
+    payload = cdr.joint_command(ns, joint, mode, sp, stiff, source)
+    assert_rosbags_cdr(
+        payload,
+        "exolink_msgs/msg/JointCommand",
         header=messaging.header(ns),
         joint=joint,
         mode=mode,
@@ -93,8 +101,6 @@ def test_joint_command_is_rosbags_cdr(
         stiffness=stiff,
         source=source,
     )
-    payload = cdr.joint_command(ns, joint, mode, sp, stiff, source)
-    assert payload == messaging.serialize(ref, "exolink_msgs/msg/JointCommand")
 
 
 @settings(deadline=None)
@@ -138,18 +144,11 @@ def test_pattern_state_is_rosbags_cdr(ns, texts, counts, speed, period, selected
 def test_controller_activity_is_rosbags_cdr(
     ns: int, version: int, controllers: list[list[str]]
 ) -> None:
-    cls = messaging.msg_class("exolink_msgs/msg/ControllerActivity")
-    names, types, states, errors = ([c[i] for c in controllers] for i in range(4))
-    ref = cls(
-        stamp=messaging.stamp(ns),
-        version=version,
-        names=names,
-        types=types,
-        states=states,
-        errors=errors,
-    )
+    columns = ("names", "types", "states", "errors")
+    lists = {k: [c[i] for c in controllers] for i, k in enumerate(columns)}
     payload = cdr.controller_activity(ns, version, controllers)
-    assert payload == messaging.serialize(ref, "exolink_msgs/msg/ControllerActivity")
+    typename = "exolink_msgs/msg/ControllerActivity"
+    assert_rosbags_cdr(payload, typename, stamp=messaging.stamp(ns), version=version, **lists)
 
 
 @settings(deadline=None)
