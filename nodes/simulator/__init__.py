@@ -47,6 +47,11 @@ class SimParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     seed: int = 0
     # SocketCAN: the H2's frames on the kernel's timer (KernelStream); False: sent by Python
     kernel_timer: bool = True
+    # With the kernel's timer only: the models step, their frames' contents change and commands
+    # are read every this many periods (the kernel still sends every period). The board proxy's
+    # CPU 1 (TCG) could not step them every 10 ms, and its timers then came late: gaps in the H2
+    # stream that the appliance on CPU 0 took for silence. 1: as the boards do.
+    update_cycles: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
 
 
 @dataclass
@@ -200,9 +205,9 @@ class Simulator:
             stream.update(msgs)
             self.stats.frames_sent += len(msgs)  # one of each per period, from the kernel
 
-    def _receive(self, timeout: float) -> list[Any]:
+    def _receive(self, timeout: float, frames_wake: bool = True) -> list[Any]:
         if self.reader is not None:
-            return self.reader.read(timeout)
+            return self.reader.read(timeout, frames_wake=frames_wake)
         msg = self.bus.recv(timeout=timeout)
         return [] if msg is None else [msg]
 
@@ -224,8 +229,9 @@ class Simulator:
         board proxy the spin and the second wake-up were CPU the kernel's timers needed)."""
         kernel = self.stream is not None and (not self.boards or self.mc_stream is not None)
         prepare_s, spin_s = (0.0, 0.0) if kernel else (PREPARE_S, SPIN_S)
-        h2_period = h2.PERIOD_S
-        mc_period = 1.0 / self.params.maccepa_rate_hz
+        every = self.params.update_cycles if kernel else 1
+        h2_period = h2.PERIOD_S * every
+        mc_period = every / self.params.maccepa_rate_hz
         start = time.monotonic()
         next_h2, next_mc = start + h2_period, start + mc_period
         last = start
@@ -256,7 +262,7 @@ class Simulator:
                 continue
             if now < deadline - spin_s:
                 wake = deadline - (spin_s if ready is not None else prepare_s)
-                for msg in self._receive(max(0.0, wake - now)):
+                for msg in self._receive(max(0.0, wake - now), frames_wake=every == 1):
                     self.handle(msg)
                 continue
             while time.monotonic() < deadline:

@@ -591,3 +591,41 @@ def test_simulated_maccepa_board_on_the_kernel_timer_reads_commands_in_batches(
         reader.close()
         for b in (rx, tx):
             b.shutdown()
+
+
+def test_simulator_updating_every_fourth_period_still_streams_every_period(vcan0: str) -> None:
+    """``update_cycles: 4`` (the board proxy's): the kernel sends the H2's frames every 10 ms
+    while the model steps, the contents change and commands are read every 40 ms, so a moving
+    joint's angle changes at most every fourth frame, and a position command is still followed."""
+    cfg = CanConfig(interface="socketcan", channel=vcan0)
+    params = SimParams(update_cycles=4)
+    reader = open_reader(cfg, Simulator.command_ids(params))
+    rx = open_bus(cfg, filters=id_filters([h2.JOINT_ANGLES]))
+    tx = listener(vcan0)
+    sim = Simulator(reader.bus, params, reader)
+    stop = threading.Event()
+    runner = threading.Thread(target=sim.run, args=(stop,), daemon=True)
+    runner.start()
+    try:
+        tx.send(h2.encode_stream(True))
+        assert wait_for(lambda: sim.stream is not None and sim.stream.running, timeout=5)
+        drain(rx, 0.2)
+        tx.send(h2.encode_joint_control("r_knee", "position", 90))
+        knees = [h2.decode(m).r_knee for m in drain(rx, 1.0, {h2.JOINT_ANGLES})]  # type: ignore[union-attr]
+        print("angle frames in 1 s:", len(knees), "distinct knee runs:", len(dedup_runs(knees)))
+        assert 80 <= len(knees) <= 120, len(knees)
+        runs = dedup_runs(knees)
+        assert len(runs) >= 5 and runs in (sorted(runs), sorted(runs, reverse=True)), runs
+        assert len(runs) <= len(knees) / 4 + 2, (len(runs), len(knees))  # every 4th at most
+    finally:
+        stop.set()
+        runner.join(2)
+        if sim.stream is not None:
+            sim.stream.stop()
+        reader.close()
+        for b in (rx, tx):
+            b.shutdown()
+
+
+def dedup_runs(values: list[int]) -> list[int]:
+    return [v for i, v in enumerate(values) if i == 0 or v != values[i - 1]]
