@@ -8,6 +8,7 @@ import itertools
 import json
 import os
 import signal
+import time
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -591,6 +592,33 @@ def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type
 
 def dedup(values: list[int]) -> list[int]:
     return [v for i, v in enumerate(values) if i == 0 or v != values[i - 1]]
+
+
+def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:  # type: ignore[no-untyped-def]
+    """Stopped for 150 ms (what a full core does to it), the manager finds ~15 cycles queued: it
+    runs the newest and counts the others (late_cycles). Replaying them wrote their set-points
+    back to back, a step limit apart each: a burst that could move a joint many steps at once."""
+    app = routed
+    app.arm()
+    assert ctl(app, "activate", "gait").returncode == 0
+    assert ctl(app, "command", "gait", "r_knee=30").returncode == 0
+    wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 2))
+    late0 = json.loads(ctl(app, "list", "--json").stdout)["late_cycles"]
+    pid = app.node("controller_manager")["pid"]
+    mbus.q.queue.clear()
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(0.15)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    frames = [m for m in collect(mbus, 0.5, {70}) if joint_frames([m], 2)]
+    stamps = [m.timestamp for m in frames]
+    gaps = [round(b - a, 4) for a, b in itertools.pairwise(stamps)]
+    bunched = sum(g < 0.002 for g in gaps)
+    late = json.loads(ctl(app, "list", "--json").stdout)["late_cycles"] - late0
+    assert bunched <= 2, (bunched, gaps)
+    assert late >= 5, late
+    assert listing(app)["gait"]["state"] == "active"
 
 
 @pytest.fixture

@@ -149,6 +149,7 @@ class ControllerManagerNode(Node):
         self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
         self.written = 0
         self.safe_sent = 0
+        self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
         self.pub_activity = self.ctx.messaging.publisher(ACTIVITY_TOPIC, ACTIVITY_TYPE, raw=True)
         self._told, self._told_at = -1, 0.0
         self._tell_lock = threading.Lock()
@@ -200,6 +201,7 @@ class ControllerManagerNode(Node):
                     **self.manager.status(),
                     "written": self.written,
                     "safe": self.safe_sent,
+                    "late_cycles": self.late_cycles,
                     "maccepa_written": self.mc_written,
                     "maccepa_safe": self.mc_safe_sent,
                     "malformed": dict(self.malformed),
@@ -435,7 +437,10 @@ class ControllerManagerNode(Node):
             if halted:
                 names = ", ".join(target(b) for b in sorted(halted))
                 self.manager.boards_stopped(halted, f"{names} stopped on the bus")
-        for f, d in decoded:
+        newest = max(
+            (i for i, (_f, d) in enumerate(decoded) if isinstance(d, h2.JointAngles)), default=-1
+        )
+        for i, (f, d) in enumerate(decoded):
             if isinstance(d, h2.JointTorques):
                 self.torque = tuple(d)
             elif isinstance(d, h2.FootSwitches):
@@ -444,6 +449,9 @@ class ControllerManagerNode(Node):
                 if not self._warm():  # nothing is active while cold: activations wait
                     self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
                     self.manager.idle(self._not_armed())
+                    continue
+                if i != newest:  # read late, a newer cycle behind it: see _cycle
+                    self.late_cycles += 1
                     continue
                 if self.mchanged:
                     self.mview, self.mchanged = dict(self.mstate), False
@@ -469,8 +477,11 @@ class ControllerManagerNode(Node):
         self.mchanged = True
 
     def _cycle(self, stamp: float, state: State) -> None:
-        """One H2 cycle (every angle frame, in order, so a late batch still gets one write per
-        cycle and no cycle is skipped for a claimed joint)."""
+        """One H2 cycle, for the newest angle frame of a read. A read that finds several (the
+        loop ran late: on the board proxy a manager read 22 cycles at once) runs only the last
+        and counts the others in ``late_cycles``: replaying them wrote their set-points back to
+        back, each a step limit from the one before, so a joint's set-point could move 22 steps
+        within a millisecond. The controllers get the measured period since the last cycle run."""
         t0 = time.perf_counter()
         period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
         self.last_angle_ts, self.last_angle_mono = stamp, time.monotonic()
