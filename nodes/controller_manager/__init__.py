@@ -484,7 +484,7 @@ class ControllerManagerNode(Node):
         within a millisecond. The controllers get the measured period since the last cycle run."""
         t0 = time.perf_counter()
         period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
-        self.last_angle_ts, self.last_angle_mono = stamp, time.monotonic()
+        self.last_angle_ts = stamp
         out = self.manager.cycle(state, stamp, period, self._not_armed())
         frames = self._safe_frames(out)  # safe actions first, in the cycle's one send
         for w in out.writes:
@@ -499,6 +499,10 @@ class ControllerManagerNode(Node):
             frames.append(frame)
             self.mc_written += 1
         self._send(frames)
+        # The H2-silence clock restarts when the cycle ends, not when it began: a cycle that
+        # took long (an activation on the board proxy: 408 ms) is the manager's lateness, and
+        # the angle frames queued meanwhile are read next, before silence is judged.
+        self.last_angle_mono = time.monotonic()
         self.manager.overhead_s.append(time.perf_counter() - t0 - out.controller_s)
 
     def _safe(self, out: Cycle) -> None:
