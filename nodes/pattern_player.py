@@ -63,6 +63,9 @@ MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
 # the bus, a failure) and says so on controllers/activity; this node looks the controller up then,
 # and at least this often in case that message was lost.
 MANAGER_POLL_S = 2.0
+# ... and at most this often: anyone who reaches an open appliance can publish on that topic, and
+# a flood of it must not become a flood of questions to the manager (the old poll's rate)
+ACTIVITY_GAP_S = 0.2
 # A motion node (timing thread or periodic): its loop beats at least this often, running or
 # idle, so the supervisor can hold it to a short liveness deadline (heartbeat_deadline_ms: 50).
 BEAT_S = 0.02
@@ -467,8 +470,8 @@ class PatternPlayer(Node):
         controller changed (``controllers/activity``: anyone may publish there, so it only
         prompts the question, never answers it), and every MANAGER_POLL_S in case that message
         was lost."""
-        while not stop.is_set():
-            self._activity.wait(MANAGER_POLL_S)
+        while not stop.wait(ACTIVITY_GAP_S):
+            self._activity.wait(MANAGER_POLL_S - ACTIVITY_GAP_S)
             self._activity.clear()
             if stop.is_set():
                 return

@@ -138,21 +138,20 @@ def decode(msg: can.Message) -> H2Frame | Unknown:
     return cls._make(spec.decode(msg.data))  # type: ignore[attr-defined, no-any-return]
 
 
-def _message(frame: H2Frame) -> can.Message:
+def _message(frame: H2Frame, checked: bool = True) -> can.Message:
     spec = _TABLE.spec[type(frame)]
-    data = spec.encode(tuple(frame))
+    data = spec.encode(tuple(frame)) if checked else spec.pack(frame)
     return can.Message(arbitration_id=spec.frame_id, data=data, is_extended_id=False)
 
 
 def model_message(frame: H2Frame) -> can.Message:
     """The simulator's frame from its model's own bounded values (``FrameSpec.pack``: no check
     per value; ``encode`` is for everything else)."""
-    spec = _TABLE.spec[type(frame)]
-    return can.Message(arbitration_id=spec.frame_id, data=spec.pack(frame), is_extended_id=False)
+    return _message(frame, checked=False)
 
 
 def encode(frame: H2Frame) -> can.Message:
-    """Any H2 frame to a CAN message, bounds-checked against the DBC (simulator side too)."""
+    """Any H2 frame to a CAN message, bounds-checked against the DBC."""
     return _message(frame)
 
 

@@ -139,9 +139,10 @@ def _finite(value: float, what: str) -> float:
     return float(value)
 
 
-def _msg(name: str, values: tuple[float, ...]) -> can.Message:
+def _msg(name: str, values: tuple[float, ...], checked: bool = True) -> can.Message:
     spec = _BY_NAME[name]
-    return can.Message(arbitration_id=spec.frame_id, data=spec.encode(values), is_extended_id=False)
+    data = spec.encode(values) if checked else spec.pack(values)
+    return can.Message(arbitration_id=spec.frame_id, data=data, is_extended_id=False)
 
 
 def encode_gain(board: int, which: str, value: float, controller: int | str) -> can.Message:
@@ -173,13 +174,11 @@ def encode_stop(board: int) -> can.Message:
 def model_message(frame: Sensors | Positions | Controller) -> can.Message:
     """A simulated board's status frame from its model's own bounded values (``FrameSpec.pack``:
     no check per value; ``encode`` is for everything else)."""
-    spec = _BY_NAME[f"{type(frame).__name__}_B{frame.board}"]
-    data = spec.pack(tuple(frame)[1:])
-    return can.Message(arbitration_id=spec.frame_id, data=data, is_extended_id=False)
+    return _msg(f"{type(frame).__name__}_B{frame.board}", tuple(frame)[1:], checked=False)
 
 
 def encode(frame: MaccepaFrame) -> can.Message:
-    """Any typed frame to a message (the simulator's board side uses this)."""
+    """Any typed frame to a message, bounds-checked against the DBC."""
     if isinstance(frame, Gain):
         return encode_gain(frame.board, frame.which, frame.value, frame.controller)
     name = f"{type(frame).__name__}_B{_board(frame.board)}"

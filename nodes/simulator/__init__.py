@@ -227,7 +227,7 @@ class Simulator:
         When the kernel sends every cyclic frame (SocketCAN), Python only updates their
         contents: it steps and updates at the deadline in one wake-up and never spins (on the
         board proxy the spin and the second wake-up were CPU the kernel's timers needed)."""
-        kernel = self.stream is not None and (not self.boards or self.mc_stream is not None)
+        kernel = self.stream is not None  # then the boards' frames are kernel-timed too
         prepare_s, spin_s = (0.0, 0.0) if kernel else (PREPARE_S, SPIN_S)
         every = self.params.update_cycles if kernel else 1
         h2_period = h2.PERIOD_S * every
