@@ -414,10 +414,8 @@ class PatternPlayer(Node):
                     "speed": self.speed,
                     "start": self.index,
                 }
-            call({"action": "deactivate", "names": [GAIT]}, gone)
-            call({"action": "unload", "name": GAIT}, gone)
-            call({"action": "load", "name": GAIT, "type": "gait_pattern", "params": params})
-            call({"action": "activate", "names": [GAIT]})
+            load = {"action": "load", "name": GAIT, "type": "gait_pattern", "params": params}
+            call({**load, "replace": True, "activate": True})
 
     def _guard(self) -> bool:
         """False (and the pattern stopped) when the watchdog no longer allows motion."""

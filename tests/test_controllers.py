@@ -67,6 +67,25 @@ def test_bad_params_refuse_the_load_with_the_reason() -> None:
     assert m.status()["controllers"] == []
 
 
+def test_a_replacement_is_checked_before_the_one_it_replaces_is_touched() -> None:
+    """``load --replace``: bad params refuse the new one and leave the loaded one as it was; an
+    active one is replaced only once it is deactivated (the node does that at a cycle)."""
+    m = manager()
+    fwd(m, "a", ["r_knee"])
+    switch(m, ["a"])
+    with pytest.raises(ManagerRefused, match=r"a \(forward_command\) params"):
+        m.prepare("a", "forward_command", {"joints": 5}, replacing=True)
+    with pytest.raises(ManagerRefused, match="already loaded"):
+        m.prepare("a", "forward_command", {"joints": ["l_knee"]})
+    new = m.prepare("a", "forward_command", {"joints": ["l_knee"]}, replacing=True)
+    with pytest.raises(ManagerRefused, match="a is active: deactivate it first"):
+        m.add(new, replace=True)
+    assert m.status()["controllers"][0]["claims"] == ["r_knee/position"]
+    switch(m, deactivate=["a"])
+    assert m.add(new, replace=True)["claims"] == ["l_knee/position"]
+    assert [c["name"] for c in m.status()["controllers"]] == ["a"]
+
+
 def test_conflicting_claim_refused_naming_the_owner() -> None:
     m = manager()
     fwd(m, "a", ["r_knee", "r_hip"])
@@ -492,6 +511,17 @@ def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # ty
     assert joint_frames(collect(mbus, 0.4, {70}), 2) == []
     assert ctl(app, "activate", "a").returncode == 0
     assert joint_frames(collect(mbus, 0.3, {70}), 2)
+    # one request replaces a running controller (how the pattern player starts the gait)
+    at50 = '{"joints": ["r_knee"], "initial": {"r_knee": 50}}'
+    r = ctl(app, "load", "a", "forward_command", "--params", at50, "--replace", "--activate")
+    assert r.returncode == 0, r.stderr
+    assert wait_for(lambda: 50 in [f.setpoint for f in joint_frames(collect(mbus, 0.2, {70}), 2)])
+    assert listing(app)["a"]["state"] == "active"
+    # ... unarmed, it is refused before anything changes
+    assert app.cli("estop").returncode == 0
+    r = ctl(app, "load", "a", "forward_command", "--params", "{}", "--replace", "--activate")
+    assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
+    assert listing(app)["a"]["claims"] == ["r_knee/position"]
 
 
 @pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])

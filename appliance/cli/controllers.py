@@ -68,6 +68,7 @@ def cmd_controllers(args: argparse.Namespace) -> int:
         body |= {"name": args.name, "type": args.type, "params": args.params}
         if args.budget_ms is not None:
             body["budget_ms"] = args.budget_ms
+        body |= {"replace": args.replace, "activate": args.activate}
     elif a in ("unload",):
         body["name"] = args.name
     elif a in ("activate", "deactivate"):
@@ -100,11 +101,15 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q = s.add_parser("list", help="loaded controllers, their state, claims and update times")
     q.add_argument("--json", action="store_true")
     s.add_parser("types", help="installed controller types (entry points exolink.controllers)")
-    q = s.add_parser("load", help="load NAME TYPE [--params JSON]: validated, then inactive")
+    q = s.add_parser(
+        "load", help="load NAME TYPE [--params JSON]: validated, then inactive (or --activate)"
+    )
     q.add_argument("name")
     q.add_argument("type")
     q.add_argument("--params", type=_params, default={})
     q.add_argument("--budget-ms", type=float, help="CPU per update before it is deactivated")
+    q.add_argument("--replace", action="store_true", help="unload a controller of that name first")
+    q.add_argument("--activate", action="store_true", help="and activate it at the next cycle")
     q = s.add_parser("unload", help="unload NAME (inactive only)")
     q.add_argument("name")
     for name in ("activate", "deactivate"):

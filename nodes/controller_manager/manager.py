@@ -224,10 +224,22 @@ class Manager:
     ) -> dict[str, Any]:
         """Import, validate params, configure: the controller is then inactive. Every error
         refuses the load and names the controller and what is wrong."""
+        return self.add(self.prepare(name, kind, params, budget_ms))
+
+    def prepare(
+        self,
+        name: str,
+        kind: str,
+        params: dict[str, Any] | None,
+        budget_ms: float | None = None,
+        replacing: bool = False,
+    ) -> Slot:
+        """A configured controller, not loaded yet (``add``): so a replacement is checked
+        before the one it replaces is touched."""
         if not name or not isinstance(name, str) or "/" in name:
             raise ManagerRefused(f"controller name {name!r}: give a plain name")
         with self.lock:
-            if name in self.slots:
+            if name in self.slots and not replacing:
                 raise ManagerRefused(f"a controller named {name} is already loaded")
         try:
             cls = find_controller_class(kind)
@@ -249,13 +261,22 @@ class Manager:
         except (Refused, ValueError) as exc:
             raise ManagerRefused(f"controller {name} ({kind}): {exc}") from None
         budget = budget_ms / 1e3 if budget_ms is not None else self.default_budget_s
-        slot = Slot(name, kind, ctrl, claims, budget)
+        return Slot(name, kind, ctrl, claims, budget)
+
+    def add(self, slot: Slot, replace: bool = False) -> dict[str, Any]:
+        """Load a prepared controller, inactive; ``replace``: in place of an inactive one of
+        that name."""
         with self.lock:
-            if name in self.slots:
-                raise ManagerRefused(f"a controller named {name} is already loaded")
-            self.slots[name] = slot
+            old = self.slots.get(slot.name)
+            if old is not None and not replace:
+                raise ManagerRefused(f"a controller named {slot.name} is already loaded")
+            if old is not None and old.state == "active":
+                raise ManagerRefused(f"{slot.name} is active: deactivate it first")
+            self.slots[slot.name] = slot
             self.version += 1
-        log.info("controller_loaded", controller=name, type=kind, claims=list(claims))
+        log.info(
+            "controller_loaded", controller=slot.name, type=slot.kind, claims=list(slot.claims)
+        )
         return slot.status()
 
     def unload(self, name: str) -> None:
