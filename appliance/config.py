@@ -128,9 +128,11 @@ class ApplianceConfig(_Strict, kw_only=True):
     # Where this config came from; set by the loader, not by the file.
     source: str = "<memory>"
 
-    def deadline_s(self, node: NodeConfig) -> float:
-        """The node's liveness deadline: its own, else the watchdog's."""
-        return (node.heartbeat_deadline_ms or self.watchdog.heartbeat_deadline_ms) / 1000
+    def deadline_s(self, node: NodeConfig, idle: bool = False) -> float:
+        """The node's liveness deadline: its own, else the watchdog's; while it says it is idle
+        (nothing to drive, see exolink.liveness) never shorter than the watchdog's."""
+        own = node.heartbeat_deadline_ms or self.watchdog.heartbeat_deadline_ms
+        return max(own, self.watchdog.heartbeat_deadline_ms if idle else 0) / 1000
 
     def node(self, name: str) -> NodeConfig:
         for node in self.nodes:

@@ -57,6 +57,9 @@ class Node:
 
     Params: ClassVar[type[msgspec.Struct]] = NoParams
     stall_s: ClassVar[float] = 0.5
+    # While the loop says it is idle (``beat(idle=True)``): it beats at least this often, and
+    # the supervisor holds it to the appliance's default deadline (see exolink.liveness).
+    idle_stall_s: ClassVar[float] = 0.4
 
     def __init__(self, ctx: NodeContext, params: Any) -> None:
         self.ctx = ctx
@@ -69,19 +72,21 @@ class Node:
     def name(self) -> str:
         return self.ctx.name
 
-    def beat(self) -> None:
+    def beat(self, idle: bool = False) -> None:
         """The loop is alive: also straight to the supervisor, so a node whose loop beats every
-        cycle (a motion node) is judged on its own deadline, not the heartbeat thread's period."""
+        cycle (a motion node) is judged on its own deadline, not the heartbeat thread's period.
+        ``idle``: it has nothing to drive until its next beat that is not (exolink.liveness)."""
         now = time.monotonic()
         self._last_beat = now
-        self.liveness.beat(now)
+        self.liveness.beat(now, idle)
 
     @property
     def last_beat(self) -> float:
         return self._last_beat
 
     def healthy(self) -> bool:
-        return time.monotonic() - self._last_beat < self.stall_s
+        limit = self.idle_stall_s if self.liveness.idle else self.stall_s
+        return time.monotonic() - self._last_beat < limit
 
     def configure(self) -> None:
         pass

@@ -17,15 +17,30 @@ def test_newest_whole_beat_wins_and_partial_records_wait() -> None:
         beater.beat(10.001)  # inside MIN_INTERVAL_S: not written
         beater.beat(10.5)
         assert ch.fileno() and liveness.with_beats([ch]) == {ch}
-        assert ch.drain(100.0) == 10.5
+        assert ch.drain(100.0) == (10.5, False)
         assert liveness.with_beats([ch]) == set()
-        raw = struct.pack("=d", 11.0)
+        raw = struct.pack("=d?", 11.0, False)
         os.write(ch.child_fd, raw[:3])  # a torn record cannot come from one write, but be strict
         assert ch.drain(100.0) is None
         os.write(ch.child_fd, raw[3:])
-        assert ch.drain(100.0) == 11.0
+        assert ch.drain(100.0) == (11.0, False)
         beater.beat(500.0)
-        assert ch.drain(100.0) == 100.0  # a beat from the future is clamped to now
+        assert ch.drain(100.0) == (100.0, False)  # a beat from the future is clamped to now
+    finally:
+        ch.close()
+
+
+def test_idle_is_said_at_once_and_repeated_by_beats_that_do_not_say() -> None:
+    ch = liveness.Channel()
+    try:
+        beater = liveness.Beater(ch.child_fd)
+        beater.beat(10.0, idle=True)
+        beater.beat(10.5)  # the heartbeat thread: as the loop last said
+        assert ch.drain(100.0) == (10.5, True)
+        beater.beat(10.501, idle=False)  # inside MIN_INTERVAL_S, but a change: written
+        assert ch.drain(100.0) == (10.501, False)
+        beater.beat(10.502, idle=False)  # no change, inside the interval: not written
+        assert ch.drain(100.0) is None
     finally:
         ch.close()
 

@@ -193,6 +193,63 @@ def test_the_loop_sleeps_until_the_nearest_deadline() -> None:
     assert sup._next_due(now) == now + 0.03
 
 
+def test_an_idle_motion_node_is_held_to_the_default_deadline_until_it_says_otherwise() -> None:
+    """The controller manager with nothing active beats 5 times a second, not 50, and says it is
+    idle (exolink.liveness): judged by the 500 ms default then, by its own 50 ms from its first
+    beat that is not idle, which the supervisor reads within those 50 ms."""
+    from exolink import liveness
+    from exolink.config import bundled, parse
+    from exolink.supervisor.core import Supervisor
+    from exolink.supervisor.processes import NodeProcess
+
+    cfg = parse(bundled("board").read_text(), "board.yaml")
+    sup = Supervisor(cfg)
+    trips: list[str] = []
+
+    class Armed:  # a real watchdog needs a bus; only its trip matters here
+        armed = True
+
+        def trip(self, _reason: str, detail: str) -> None:
+            trips.append(detail)
+
+        def next_due(self) -> float:
+            return float("inf")
+
+    sup.watchdog = Armed()  # type: ignore[assignment]
+    node = NodeProcess(cfg.node("controller_manager"), "", lambda _e: None, lambda _n, _l: None)
+    node.channel = liveness.Channel()
+    beater = liveness.Beater(node.channel.child_fd)
+    sup.nodes = {node.name: node}
+
+    def spawn() -> None:  # a process to kill when it is found hung, past its first beat
+        node.proc = subprocess.Popen(["sleep", "60"])
+        node.state, node.heartbeat_at = "running", 999.0
+
+    spawn()
+    try:
+        beater.beat(1000.0, idle=True)
+        sup._check_nodes(1000.3)
+        assert trips == [] and node.idle
+        assert sup._next_due(1000.3) == pytest.approx(1000.35)  # its own deadline from now
+        beater.beat(1000.31, idle=False)  # activating: then hung
+        sup._check_nodes(1000.35)
+        assert trips == [] and not node.idle
+        sup._check_nodes(1000.37)
+        assert trips == ["controller_manager: no heartbeat for 60 ms (deadline 50 ms)"]
+        assert node.state == "killed"
+        node.proc.wait()
+        spawn()
+        beater.beat(1001.0, idle=True)  # idle, then silent past the default deadline
+        sup._check_nodes(1001.4)
+        assert len(trips) == 1
+        sup._check_nodes(1001.6)
+        assert trips[1] == "controller_manager: no heartbeat for 600 ms (deadline 500 ms)"
+        assert node.state == "killed"
+    finally:
+        node.kill()
+        node.channel.close()
+
+
 def test_a_trip_wakes_the_supervisor_for_its_repeats() -> None:
     import threading
 

@@ -269,7 +269,6 @@ class Supervisor:
         grace = self.cfg.watchdog.start_grace_ms / 1000
         beating = liveness.with_beats(n.channel for n in self.nodes.values() if n.channel)
         for node in self.nodes.values():
-            deadline = self.cfg.deadline_s(node.cfg)
             with node.lock:
                 if node.state == "backoff" and now >= node.next_start:
                     self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
@@ -280,6 +279,7 @@ class Supervisor:
                 if node.channel in beating and node.poll_liveness(now):
                     self._node_up(node, now)
                 hb = node.heartbeat_at
+                deadline = self.cfg.deadline_s(node.cfg, node.idle)
                 late = (now - hb > deadline) if hb is not None else (now - node.started_at > grace)
             if not late:
                 continue
@@ -362,7 +362,9 @@ class Supervisor:
                 continue
             if n.state != "running":
                 out.append(f"critical node {n.name} is {n.state}")
-            elif n.heartbeat_at is None or now - n.heartbeat_at > self.cfg.deadline_s(n.cfg):
+            elif n.heartbeat_at is None or now - n.heartbeat_at > self.cfg.deadline_s(
+                n.cfg, n.idle
+            ):
                 out.append(f"critical node {n.name} has no recent heartbeat")
         silent = self.watchdog.h2_silent_for()
         limit = self.cfg.watchdog.h2_silence_ms / 1000
@@ -423,7 +425,9 @@ class Supervisor:
                 if hb is None:  # starting: its first beat brings its priority
                     due = min(due, now + STARTING_SLEEP_S, node.started_at + grace)
                 else:  # late just after this; the beats in its pipe are read then
-                    due = min(due, hb + self.cfg.deadline_s(node.cfg))
+                    due = min(due, hb + self.cfg.deadline_s(node.cfg, node.idle))
+                    if node.idle:  # its first beat that is not idle is judged on time
+                        due = min(due, now + self.cfg.deadline_s(node.cfg))
         state, operator = self.pattern_state
         if state == "running" and (lost := self.operator_lost_at.get(operator)) is not None:
             due = min(due, lost + self.cfg.watchdog.operator_lost_ms / 1000)

@@ -50,6 +50,7 @@ class NodeProcess:
     last_exit: str = ""
     next_start: float = 0.0
     heartbeat_at: float | None = None
+    idle: bool = False  # its last beat said it has nothing to drive (exolink.liveness)
     start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
     deliberate_stop: bool = False
     health: str = ""  # from the node's own diagnostics, if it publishes any
@@ -95,6 +96,7 @@ class NodeProcess:
             self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
+            self.idle = False
             plain_priority(self.proc.pid)
             threading.Thread(
                 target=self._wait, args=(self.proc,), daemon=True, name=f"wait-{self.name}"
@@ -172,11 +174,11 @@ class NodeProcess:
 
     def poll_liveness(self, now: float) -> bool:
         """Takes the beats that arrived since the last tick; True on this spawn's first one."""
-        t = self.channel.drain(now) if self.channel is not None else None
-        if t is None or self.pid is None:
+        beat = self.channel.drain(now) if self.channel is not None else None
+        if beat is None or self.pid is None:
             return False
         first = self.heartbeat_at is None
-        self.heartbeat_at = t
+        self.heartbeat_at, self.idle = beat
         return first
 
     def failed_by_policy(self, code: int | None) -> bool:
@@ -214,6 +216,7 @@ class NodeProcess:
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,
+            "idle": self.idle,  # held to the default deadline meanwhile (exolink.liveness)
             "start_s": None if self.start_s is None else round(self.start_s, 2),
         }
         if pid:

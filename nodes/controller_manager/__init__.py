@@ -52,6 +52,9 @@ from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
 
 BEAT_S = 0.02
+# Nothing active: the loop beats idle this often (exolink.liveness: then held to the appliance's
+# default deadline), not 50 times a second: ~1.2 ms of the board proxy's CPU per wake-up.
+IDLE_BEAT_S = 0.2
 SWITCH_WAIT_S = 1.0
 WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
@@ -358,13 +361,14 @@ class ControllerManagerNode(Node):
     def run(self, stop: threading.Event) -> None:
         timeout = self.params.h2_timeout_ms / 1e3
         while not stop.is_set():
-            self.beat()
+            idle = self.reader is None and not self.manager.busy()
+            self.beat(idle)  # not idle: told before the reader opens, so before any set-point
             self._maybe_tell()
+            if idle:  # a request (load, switch) wakes it at once
+                self.wake.wait(IDLE_BEAT_S)
+                self.wake.clear()
+                continue
             if self.reader is None:
-                if not self.manager.busy():
-                    self.wake.wait(BEAT_S)
-                    self.wake.clear()
-                    continue
                 self._open_reader()
             try:
                 frames = self.reader.read(BEAT_S)  # type: ignore[union-attr]
