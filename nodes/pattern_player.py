@@ -59,6 +59,12 @@ SPIN_S = 0.0003
 MAX_UPLOAD = 1 << 20
 GAIT = "pattern"  # the controller the manager runs the gait as (timing: manager)
 MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
+# Starting the gait: the manager loads it and waits for a cycle to activate it at. On the board
+# proxy the first start outran 2 s (imports and a cold reader on a full core). The manager is
+# told to give up ENGAGE_MARGIN_S before this node does, so it never starts a pattern this node
+# has already reported as failed.
+ENGAGE_WAIT_S = 5.0
+ENGAGE_MARGIN_S = 1.0
 # timing: manager: the manager stops a running pattern's controller itself (a trip, a disable on
 # the bus, a failure) and says so on controllers/activity; this node looks the controller up then,
 # and at least this often in case that message was lost.
@@ -396,10 +402,10 @@ class PatternPlayer(Node):
         """One change of the gait controller in the manager; its refusal (a joint another
         controller drives, not armed) refuses the command that asked for it."""
 
-        def call(body: dict[str, Any], tolerate: tuple[str, ...] = ()) -> None:
-            self.ctx.messaging.command(
-                "controllers", body=body, timeout_s=MANAGER_WAIT_S, tolerate=tolerate
-            )
+        def call(
+            body: dict[str, Any], tolerate: tuple[str, ...] = (), wait: float = MANAGER_WAIT_S
+        ) -> None:
+            self.ctx.messaging.command("controllers", body=body, timeout_s=wait, tolerate=tolerate)
 
         gone = ("is not active", "no controller")
         if op[0] == "halt":
@@ -415,7 +421,30 @@ class PatternPlayer(Node):
                     "start": self.index,
                 }
             load = {"action": "load", "name": GAIT, "type": "gait_pattern", "params": params}
-            call({**load, "replace": True, "activate": True})
+            within = ENGAGE_WAIT_S - ENGAGE_MARGIN_S
+            try:
+                call(
+                    {**load, "replace": True, "activate": True, "within_s": within},
+                    (),
+                    ENGAGE_WAIT_S,
+                )
+            except CommandRefused as exc:
+                if str(exc).startswith("nothing answers"):  # its answer may be what was lost
+                    self._disengage(gone)
+                raise
+
+    def _disengage(self, gone: tuple[str, ...]) -> None:
+        """After a start that got no answer: the manager handles requests in order, so this
+        deactivation comes after whatever the start did (within_s bounds it anyway)."""
+        try:
+            self.ctx.messaging.command(
+                "controllers",
+                body={"action": "deactivate", "names": [GAIT]},
+                timeout_s=MANAGER_WAIT_S,
+                tolerate=gone,
+            )
+        except CommandRefused as exc:
+            self.log.error("pattern_disengage_unanswered", error=str(exc))
 
     def _guard(self) -> bool:
         """False (and the pattern stopped) when the watchdog no longer allows motion."""

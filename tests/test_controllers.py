@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import pytest
-from conftest import Appliance, bus_sockets, collect, wait_for
+from conftest import Appliance, bus_sockets, collect, connect, wait_for
 from exolink import messaging, roles
 from exolink.controller import State
 from exolink.jointlimits import Limits, default_max, default_min
@@ -82,8 +82,44 @@ def test_a_replacement_is_checked_before_the_one_it_replaces_is_touched() -> Non
         m.add(new, replace=True)
     assert m.status()["controllers"][0]["claims"] == ["r_knee/position"]
     switch(m, deactivate=["a"])
-    assert m.add(new, replace=True)["claims"] == ["l_knee/position"]
-    assert [c["name"] for c in m.status()["controllers"]] == ["a"]
+    old = m.add(new, replace=True)
+    assert old is not None and old.claims == ("r_knee/position",)
+    assert [c["claims"] for c in m.status()["controllers"]] == [["l_knee/position"]]
+    m.put_back(new, old)  # its activation refused: the one it replaced is back
+    assert [c["claims"] for c in m.status()["controllers"]] == [["r_knee/position"]]
+
+
+def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation() -> None:
+    """The player's side of a start whose answer never came: it may be the answer that was lost,
+    so the player asks for the gait's deactivation (the manager handles requests in order) and
+    refuses the start. The manager here is a stand-in that never answers a load: a reply lost on
+    a real session cannot be made to happen on demand."""
+    import threading
+    from types import SimpleNamespace
+
+    import structlog
+    from exolink.messaging import CommandRefused
+    from exolink.nodes import pattern_player as pp
+
+    asked: list[tuple[str, Any, float]] = []
+
+    class Unanswered:
+        def command(self, *_path: str, body: dict[str, Any], timeout_s: float, tolerate=()):  # type: ignore[no-untyped-def]
+            asked.append((body["action"], body.get("within_s"), timeout_s))
+            if body["action"] == "load":
+                raise CommandRefused("nothing answers at controllers: no answer within 5 s")
+            return {"ok": True}
+
+    player = pp.PatternPlayer.__new__(pp.PatternPlayer)
+    player.ctx = SimpleNamespace(messaging=Unanswered())  # type: ignore[assignment]
+    player.log = structlog.get_logger()
+    player.lock = threading.RLock()
+    player.pattern = pp.load_pattern(pp.DEFAULT_PATTERN, default_min(), default_max())
+    player.selected, player.speed, player.index = [True] * 6, 10, 0
+    with pytest.raises(CommandRefused, match="nothing answers"):
+        player._manager(("engage",))
+    within = pp.ENGAGE_WAIT_S - pp.ENGAGE_MARGIN_S
+    assert asked == [("load", within, pp.ENGAGE_WAIT_S), ("deactivate", None, pp.MANAGER_WAIT_S)]
 
 
 def test_conflicting_claim_refused_naming_the_owner() -> None:
@@ -517,6 +553,22 @@ def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # ty
     assert r.returncode == 0, r.stderr
     assert wait_for(lambda: 50 in [f.setpoint for f in joint_frames(collect(mbus, 0.2, {70}), 2)])
     assert listing(app)["a"]["state"] == "active"
+    # within_s: an activation that cannot happen within the asker's wait is refused, not applied
+    # after the asker gave up, and the controllers stay as they were
+    s = connect(app.at)
+    try:
+        key = messaging.mgmt_key(app.cfg.device, "controllers")
+        late = {"action": "load", "name": "a", "type": "forward_command", "replace": True}
+        late |= {"params": {"joints": ["l_ankle"]}, "activate": True}
+        r = messaging.request(s, key, {**late, "within_s": 1e-6}, 10)
+        assert not r["ok"] and "within_s ran out" in r["error"], r
+        r = messaging.request(s, key, {**late, "within_s": "soon"}, 10)
+        assert not r["ok"] and "within_s must be a number" in r["error"], r
+    finally:
+        s.close()
+    ctls = listing(app)
+    assert ctls["a"]["claims"] == ["r_knee/position"] and ctls["a"]["state"] == "inactive"
+    assert ctl(app, "activate", "a").returncode == 0
     # ... unarmed, it is refused before anything changes
     assert app.cli("estop").returncode == 0
     r = ctl(app, "load", "a", "forward_command", "--params", "{}", "--replace", "--activate")

@@ -44,9 +44,17 @@ def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
     return body
 
 
+# `pattern start` waits for the player, which waits up to 5 s for the controller manager to
+# start the gait (pattern_player.ENGAGE_WAIT_S): a CLI that gave up first would leave a
+# pattern running with nobody holding it (the watchdog then trips for the lost operator).
+START_TIMEOUT_S = 8.0
+
+
 @_guard
 def cmd_pattern(args: argparse.Namespace) -> int:
     action, body = args.action, pattern_body(args)
+    if action == "start":
+        args.timeout = max(args.timeout, START_TIMEOUT_S)
     with remote(args) as r:
         if action != "start" or args.detach:
             sys.stdout.write(_show(r.call("pattern", body=body)) + "\n")

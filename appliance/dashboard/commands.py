@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from exolink.cli import main as cli_main
-from exolink.cli.motion import maccepa_body, pattern_body, timing_body
+from exolink.cli.motion import START_TIMEOUT_S, maccepa_body, pattern_body, timing_body
 from exolink.cli.recordings import record_body
 from exolink.cli.remote import h2_body, params_body
 
@@ -97,7 +97,8 @@ def _route(argv: tuple[str, ...], args: argparse.Namespace) -> Command:
         return Command(argv, ("maccepa",), body, body["kind"] in ("setpoint", "duty"))
     if cmd == "pattern":
         body = pattern_body(args)
-        return Command(argv, ("pattern",), body, body["action"] in ("start", "restart"))
+        wait = START_TIMEOUT_S if body["action"] == "start" else None
+        return Command(argv, ("pattern",), body, body["action"] in ("start", "restart"), wait)
     if cmd == "record":
         try:
             body = record_body(args)

@@ -112,6 +112,17 @@ def _mframe(board: int, kind: str, value: float, controller: str) -> can.Message
     return maccepa.encode_gain(board, kind, value, controller)
 
 
+def _deadline(req: dict[str, Any]) -> float | None:
+    """``within_s``: the asker waits this long for the answer, so nothing it asked for may take
+    effect after that (it would then say the request failed while the manager drove on)."""
+    within = req.get("within_s")
+    if within is None:
+        return None
+    if not isinstance(within, int | float) or isinstance(within, bool) or not 0 < within <= 60:
+        raise CommandRefused(f"within_s must be a number of seconds in (0, 60], not {within!r}")
+    return time.monotonic() + within
+
+
 class ControllerManagerNode(Node):
     Params = ManagerParams
     stall_s = 2 * BEAT_S
@@ -239,25 +250,33 @@ class ControllerManagerNode(Node):
 
     def _load(self, req: dict[str, Any]) -> dict[str, Any]:
         """``replace``: a controller of that name is deactivated and unloaded first;
-        ``activate``: the new one is activated at the next cycle. One request instead of four:
-        on the board proxy each request is a few Zenoh hops on a busy core, and the pattern
-        player's four in a row outran its timeout on every first ``pattern start``. With
-        ``activate`` an unarmed appliance refuses before anything changes."""
+        ``activate``: the new one is activated at the next cycle (within ``within_s`` of this
+        request, if given). One request instead of four: on the board proxy each request is a
+        few Zenoh hops on a busy core, and the pattern player's four in a row outran its
+        timeout on every first ``pattern start``. An activation refused (not armed, a claim
+        held, no cycle in time) leaves the controllers as they were, except that a replaced
+        one that was active is now inactive."""
         params = req.get("params") or {}
         if not isinstance(params, dict):
             raise CommandRefused("params must be an object")
         name, kind = str(req.get("name", "")), str(req.get("type", ""))
         activate = bool(req.get("activate"))
+        until = _deadline(req)
         if activate and (why := self._not_armed()):
             raise CommandRefused(why)
         replace = bool(req.get("replace"))
         slot = self.manager.prepare(name, kind, params, req.get("budget_ms"), replacing=replace)
         if replace and name in self.manager.active():
             self._switch("deactivate", {"names": [name]})
-        reply = self.manager.add(slot, replace=replace)
-        if activate:
-            reply = {**reply, **self._switch("activate", {"names": [name]})}
-        return reply
+        old = self.manager.add(slot, replace=replace)
+        if not activate:
+            return slot.status()
+        try:
+            active = self._switch("activate", {"names": [name]}, until)
+        except CommandRefused:
+            self.manager.put_back(slot, old)  # nothing half-done: as before the request
+            raise
+        return {**slot.status(), **active}
 
     def _maccepa(self, req: dict[str, Any]) -> dict[str, Any]:
         """A MACCEPA board command the bridge forwards (``motion_via_manager``): held by that
@@ -327,7 +346,11 @@ class ControllerManagerNode(Node):
             self._switch("switch", {"activate": [name], "deactivate": before})
         return {"controller": name, **reply}
 
-    def _switch(self, action: str, req: dict[str, Any]) -> dict[str, Any]:
+    def _switch(
+        self, action: str, req: dict[str, Any], until: float | None = None
+    ) -> dict[str, Any]:
+        """``until`` (monotonic): not applied later than that (the asker stops waiting then)."""
+
         def names(key: str) -> list[str]:
             v = req.get(key, [])
             if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
@@ -342,11 +365,14 @@ class ControllerManagerNode(Node):
             sw = Switch([], names("names"))
         if sw.activate and self.arming is not None and (why := self.arming.check()):
             raise CommandRefused(why)
+        wait = SWITCH_WAIT_S if until is None else min(SWITCH_WAIT_S, until - time.monotonic())
+        if wait <= 0:
+            raise CommandRefused("the request's within_s ran out before its switch")
         self.manager.request(sw)
         self.wake.set()
-        if not sw.done.wait(SWITCH_WAIT_S) and self.manager.withdraw(sw):
+        if not sw.done.wait(wait) and self.manager.withdraw(sw):
             raise CommandRefused(
-                f"no H2 cycle within {SWITCH_WAIT_S:g} s to switch at (is the H2 streaming?)"
+                f"no H2 cycle within {wait:.2g} s to switch at (is the H2 streaming?)"
             )
         sw.done.wait()
         if sw.error is not None:

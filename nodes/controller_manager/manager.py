@@ -224,7 +224,9 @@ class Manager:
     ) -> dict[str, Any]:
         """Import, validate params, configure: the controller is then inactive. Every error
         refuses the load and names the controller and what is wrong."""
-        return self.add(self.prepare(name, kind, params, budget_ms))
+        slot = self.prepare(name, kind, params, budget_ms)
+        self.add(slot)
+        return slot.status()
 
     def prepare(
         self,
@@ -263,9 +265,9 @@ class Manager:
         budget = budget_ms / 1e3 if budget_ms is not None else self.default_budget_s
         return Slot(name, kind, ctrl, claims, budget)
 
-    def add(self, slot: Slot, replace: bool = False) -> dict[str, Any]:
+    def add(self, slot: Slot, replace: bool = False) -> Slot | None:
         """Load a prepared controller, inactive; ``replace``: in place of an inactive one of
-        that name."""
+        that name, which is returned (for ``put_back``)."""
         with self.lock:
             old = self.slots.get(slot.name)
             if old is not None and not replace:
@@ -277,7 +279,19 @@ class Manager:
         log.info(
             "controller_loaded", controller=slot.name, type=slot.kind, claims=list(slot.claims)
         )
-        return slot.status()
+        return old
+
+    def put_back(self, slot: Slot, old: Slot | None) -> None:
+        """Undo ``add`` of an inactive ``slot`` (its activation was refused): the one it
+        replaced comes back, inactive, or nothing of that name."""
+        with self.lock:
+            if self.slots.get(slot.name) is not slot or slot.state == "active":
+                return  # changed meanwhile by another request: that one stands
+            if old is None:
+                del self.slots[slot.name]
+            else:
+                self.slots[slot.name] = old
+            self.version += 1
 
     def unload(self, name: str) -> None:
         with self.lock:
