@@ -266,7 +266,9 @@ def main() -> int:
         metavar="WHEEL",
         help="an armv7 py-spy wheel (pip download py-spy --platform manylinux2014_armv7l "
         "--only-binary=:all:): installed on the card copy; the window is profiled "
-        "(build/bench-board/profile-guest*.txt, 'profile' in the JSON)",
+        "(build/bench-board/profile-guest*.txt, 'profile' in the JSON). Under TCG it cannot "
+        "keep up: at 10 Hz over every process it fell 11 min behind, was killed, and took CPU 1 "
+        "from the simulator (H2 gaps): a run with it measures nothing else",
     )
     p.add_argument(
         "--ladder",
