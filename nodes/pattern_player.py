@@ -72,6 +72,7 @@ MANAGER_POLL_S = 2.0
 # ... and at most this often: anyone who reaches an open appliance can publish on that topic, and
 # a flood of it must not become a flood of questions to the manager (the old poll's rate)
 ACTIVITY_GAP_S = 0.2
+GONE = ("is not active", "no controller")  # a deactivation that finds the gait stopped: done
 # A motion node (timing thread or periodic): its loop beats at least this often, running or
 # idle, so the supervisor can hold it to a short liveness deadline (heartbeat_deadline_ms: 50).
 BEAT_S = 0.02
@@ -197,6 +198,7 @@ class PatternPlayer(Node):
         self.sent = 0
         self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True)
         self._activity = threading.Event()  # the manager changed a controller's state
+        self._disengage_due = False  # stopped here without the manager knowing: tell it
         if self.timing == "manager":
             self._activity_sub = self.ctx.messaging.subscribe_raw(
                 ACTIVITY_TOPIC, ACTIVITY_TYPE, lambda _payload: self._activity.set()
@@ -407,9 +409,8 @@ class PatternPlayer(Node):
         ) -> None:
             self.ctx.messaging.command("controllers", body=body, timeout_s=wait, tolerate=tolerate)
 
-        gone = ("is not active", "no controller")
         if op[0] == "halt":
-            call({"action": "deactivate", "names": [GAIT]}, gone)
+            call({"action": "deactivate", "names": [GAIT]}, GONE)
         elif op[0] == "command":
             call({"action": "command", "name": GAIT, **op[1]})
         else:
@@ -430,10 +431,10 @@ class PatternPlayer(Node):
                 )
             except CommandRefused as exc:
                 if str(exc).startswith("nothing answers"):  # its answer may be what was lost
-                    self._disengage(gone)
+                    self._disengage()
                 raise
 
-    def _disengage(self, gone: tuple[str, ...]) -> None:
+    def _disengage(self) -> None:
         """After a start that got no answer: the manager handles requests in order, so this
         deactivation comes after whatever the start did (within_s bounds it anyway)."""
         try:
@@ -441,7 +442,7 @@ class PatternPlayer(Node):
                 "controllers",
                 body={"action": "deactivate", "names": [GAIT]},
                 timeout_s=MANAGER_WAIT_S,
-                tolerate=gone,
+                tolerate=GONE,
             )
         except CommandRefused as exc:
             self.log.error("pattern_disengage_unanswered", error=str(exc))
@@ -457,6 +458,12 @@ class PatternPlayer(Node):
             if self.state == "running":
                 self._halt("stopped", why, tell_manager=False)  # a trip stops every controller
                 self.log.warning("pattern_stopped_by_watchdog", reason=why)
+                # ... but "no word from the watchdog" is this node's own view (the board proxy
+                # saw it while the watchdog stayed armed): the manager is told too, by the
+                # follower thread (this loop must keep beating while the manager answers)
+                self._disengage_due = self.timing == "manager"
+        if self._disengage_due:
+            self._activity.set()
         self._publish()
         return False
 
@@ -502,6 +509,9 @@ class PatternPlayer(Node):
             self._activity.clear()
             if stop.is_set():
                 return
+            if self._disengage_due:
+                self._disengage_due = False
+                self._disengage()
             with self.lock:
                 engaged = self._engaged
             if not engaged:

@@ -89,37 +89,82 @@ def test_a_replacement_is_checked_before_the_one_it_replaces_is_touched() -> Non
     assert [c["claims"] for c in m.status()["controllers"]] == [["r_knee/position"]]
 
 
-def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation() -> None:
-    """The player's side of a start whose answer never came: it may be the answer that was lost,
-    so the player asks for the gait's deactivation (the manager handles requests in order) and
-    refuses the start. The manager here is a stand-in that never answers a load: a reply lost on
-    a real session cannot be made to happen on demand."""
+class ManagerStandIn:
+    """The controller manager's transport for the pattern player's logic alone: records what the
+    player asks and never answers a load (a reply lost on a real session cannot be made to
+    happen on demand)."""
+
+    def __init__(self) -> None:
+        self.asked: list[tuple[str, Any, float]] = []
+
+    def command(self, *_path: str, body: dict[str, Any], timeout_s: float, tolerate=()):  # type: ignore[no-untyped-def]
+        from exolink.messaging import CommandRefused
+
+        self.asked.append((body["action"], body.get("within_s"), timeout_s))
+        if body["action"] == "load":
+            raise CommandRefused("nothing answers at controllers: no answer within 5 s")
+        return {"ok": True}
+
+
+def player_on(manager: ManagerStandIn) -> Any:
+    """A pattern player (timing: manager) without a transport: its logic on the stand-in."""
     import threading
     from types import SimpleNamespace
 
     import structlog
-    from exolink.messaging import CommandRefused
     from exolink.nodes import pattern_player as pp
 
-    asked: list[tuple[str, Any, float]] = []
-
-    class Unanswered:
-        def command(self, *_path: str, body: dict[str, Any], timeout_s: float, tolerate=()):  # type: ignore[no-untyped-def]
-            asked.append((body["action"], body.get("within_s"), timeout_s))
-            if body["action"] == "load":
-                raise CommandRefused("nothing answers at controllers: no answer within 5 s")
-            return {"ok": True}
-
     player = pp.PatternPlayer.__new__(pp.PatternPlayer)
-    player.ctx = SimpleNamespace(messaging=Unanswered())  # type: ignore[assignment]
+    player.ctx = SimpleNamespace(messaging=manager)  # type: ignore[assignment]
     player.log = structlog.get_logger()
     player.lock = threading.RLock()
     player.pattern = pp.load_pattern(pp.DEFAULT_PATTERN, default_min(), default_max())
     player.selected, player.speed, player.index = [True] * 6, 10, 0
+    player.timing, player.task, player.state, player._engaged = "manager", None, "stopped", 0
+    player._activity, player._disengage_due = threading.Event(), False
+    player.pub = SimpleNamespace(put=lambda *_a: None)
+    return player
+
+
+def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation() -> None:
+    """It may be the answer that was lost: the player asks for the gait's deactivation (the
+    manager handles requests in order) and refuses the start."""
+    from exolink.messaging import CommandRefused
+    from exolink.nodes import pattern_player as pp
+
+    manager = ManagerStandIn()
     with pytest.raises(CommandRefused, match="nothing answers"):
-        player._manager(("engage",))
+        player_on(manager)._manager(("engage",))
     within = pp.ENGAGE_WAIT_S - pp.ENGAGE_MARGIN_S
-    assert asked == [("load", within, pp.ENGAGE_WAIT_S), ("deactivate", None, pp.MANAGER_WAIT_S)]
+    assert manager.asked == [
+        ("load", within, pp.ENGAGE_WAIT_S),
+        ("deactivate", None, pp.MANAGER_WAIT_S),
+    ]
+
+
+def test_a_pattern_the_player_stops_for_a_stale_watchdog_word_is_stopped_in_the_manager() -> None:
+    """ "No word from the watchdog" is the player's own view (seen on the board proxy while the
+    watchdog stayed armed): unlike a trip, it has not stopped the manager, so the player's
+    follower thread tells it, off the loop that must keep beating."""
+    import threading
+
+    manager = ManagerStandIn()
+    player = player_on(manager)
+    player.arming = type("Stale", (), {"check": lambda _s: "no word from the watchdog for 3.0 s"})()
+    player._publish = lambda: None
+    player.state = "running"
+    assert player._guard() is False
+    assert player.state == "stopped" and manager.asked == []  # not on the loop's thread
+    stop = threading.Event()
+    follower = threading.Thread(target=player._follow_manager, args=(stop,))
+    follower.start()
+    try:
+        assert wait_for(lambda: manager.asked, timeout=5)
+    finally:
+        stop.set()
+        player._activity.set()
+        follower.join(5)
+    assert manager.asked[0][0] == "deactivate"
 
 
 def test_conflicting_claim_refused_naming_the_owner() -> None:
