@@ -22,6 +22,10 @@ class ArmingState:
         self._lock = threading.Lock()
         self._state, self._reason, self._seen = "unknown", "no word from the watchdog yet", 0.0
         self.stale_s = stale_s
+        # How the watchdog's word reaches this node: events taken and the longest wait between
+        # two (the board proxy stopped patterns for "no word for 3 s" with the watchdog armed)
+        self.received = 0
+        self.max_gap_s = 0.0
         self._sub = msg.subscribe_raw(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
         try:
             reply = msg.request("watchdog")
@@ -38,8 +42,22 @@ class ArmingState:
         self._update(state, reason)
 
     def _update(self, state: str, reason: str) -> None:
+        now = time.monotonic()
         with self._lock:
-            self._state, self._reason, self._seen = state, reason, time.monotonic()
+            if self._seen:
+                self.max_gap_s = max(self.max_gap_s, now - self._seen)
+            self.received += 1
+            self._state, self._reason, self._seen = state, reason, now
+
+    def counters(self) -> dict[str, float | int]:
+        """For a node's status: whether its view of the watchdog is fed."""
+        with self._lock:
+            age = time.monotonic() - self._seen if self._seen else None
+            return {
+                "received": self.received,
+                "max_gap_s": round(self.max_gap_s, 3),
+                "age_s": None if age is None else round(age, 3),
+            }
 
     def check(self) -> str | None:
         """None when motion is allowed, else the reason a caller sees."""

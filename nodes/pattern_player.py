@@ -261,6 +261,7 @@ class PatternPlayer(Node):
             "timing": self.timing,
             "sent": self.sent,
             "operator": self.operator,
+            "watchdog_word": self.arming.counters() if self.arming is not None else None,
         }
 
     def _start(self, req: dict[str, Any]) -> None:

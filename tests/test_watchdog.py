@@ -231,3 +231,24 @@ def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_
         wd.close()
         reader.close()
         board.close()
+
+
+def test_a_nodes_view_of_the_watchdog_counts_its_words_and_the_longest_wait() -> None:
+    """What `pattern status` and `controllers list` show as watchdog_word: a stale view (no word
+    for 3 s) is told apart from a tripped watchdog by these. The transport is a stand-in: only
+    the bookkeeping is under test (the word's way over Zenoh is in test_motion)."""
+    from exolink.arming import ArmingState
+
+    class Msg:
+        def subscribe_raw(self, *_a: object) -> None:
+            return None
+
+        def request(self, *_a: object) -> dict[str, object]:
+            return {"ok": True, "state": "armed", "reason": "operator"}
+
+    a = ArmingState(Msg())  # type: ignore[arg-type]
+    assert a.check() is None and a.counters()["received"] == 1
+    time.sleep(0.05)
+    a._update("armed", "operator")
+    c = a.counters()
+    assert c["received"] == 2 and 0.05 <= c["max_gap_s"] < 1 and c["age_s"] < 1  # type: ignore[operator]

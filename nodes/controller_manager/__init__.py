@@ -222,6 +222,7 @@ class ControllerManagerNode(Node):
                     "reading": self.reader is not None,
                     "reader_opens": self.reader_opens,
                     "receive": reader.counters() if reader is not None else None,
+                    "watchdog_word": self.arming.counters() if self.arming is not None else None,
                 }
             if action == "state":
                 return self.manager.state_of(str(req.get("name", "")))
