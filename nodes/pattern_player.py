@@ -411,7 +411,7 @@ class PatternPlayer(Node):
             self.ctx.messaging.command("controllers", body=body, timeout_s=wait, tolerate=tolerate)
 
         if op[0] == "halt":
-            call({"action": "deactivate", "names": [GAIT]}, GONE)
+            self._deactivate()
         elif op[0] == "command":
             call({"action": "command", "name": GAIT, **op[1]})
         else:
@@ -435,16 +435,21 @@ class PatternPlayer(Node):
                     self._disengage()
                 raise
 
+    def _deactivate(self) -> None:
+        """The gait's deactivation in the manager; one that finds it stopped counts as done."""
+        self.ctx.messaging.command(
+            "controllers",
+            body={"action": "deactivate", "names": [GAIT]},
+            timeout_s=MANAGER_WAIT_S,
+            tolerate=GONE,
+        )
+
     def _disengage(self) -> None:
-        """After a start that got no answer: the manager handles requests in order, so this
-        deactivation comes after whatever the start did (within_s bounds it anyway)."""
+        """``_deactivate`` where nobody waits for its answer (logged instead): after a start
+        that got no answer (the manager handles requests in order, so this comes after whatever
+        the start did) or a stop this node made on its own."""
         try:
-            self.ctx.messaging.command(
-                "controllers",
-                body={"action": "deactivate", "names": [GAIT]},
-                timeout_s=MANAGER_WAIT_S,
-                tolerate=GONE,
-            )
+            self._deactivate()
         except CommandRefused as exc:
             self.log.error("pattern_disengage_unanswered", error=str(exc))
 
@@ -459,9 +464,10 @@ class PatternPlayer(Node):
             if self.state == "running":
                 self._halt("stopped", why, tell_manager=False)  # a trip stops every controller
                 self.log.warning("pattern_stopped_by_watchdog", reason=why)
-                # ... but "no word from the watchdog" is this node's own view (the board proxy
-                # saw it while the watchdog stayed armed): the manager is told too, by the
-                # follower thread (this loop must keep beating while the manager answers)
+                # ... but not every reason here is a trip: "no word from the watchdog" is this
+                # node's own view (the board proxy saw it while the watchdog stayed armed). So
+                # the manager is always told (after a trip it finds the gait stopped already),
+                # by the follower thread: this loop must keep beating while the manager answers
                 self._disengage_due = self.timing == "manager"
         if self._disengage_due:
             self._activity.set()

@@ -598,6 +598,13 @@ def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # ty
     assert r.returncode == 0, r.stderr
     assert wait_for(lambda: 50 in [f.setpoint for f in joint_frames(collect(mbus, 0.2, {70}), 2)])
     assert listing(app)["a"]["state"] == "active"
+    # ... and the watchdog stops what it started, as any other activation
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)  # the trip's frames and anything in flight
+    assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
+    assert listing(app)["a"]["state"] == "inactive"
+    app.arm()
+    assert ctl(app, "activate", "a").returncode == 0
     # within_s: an activation that cannot happen within the asker's wait is refused, not applied
     # after the asker gave up, and the controllers stay as they were
     s = connect(app.at)
