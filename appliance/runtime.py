@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import msgspec
@@ -122,7 +122,8 @@ class NodeRunner:
         self.log.info("node_running", pid=os.getpid())
         code = 0
         try:
-            self.node.run(self.stop)
+            with profiled(self.name):
+                self.node.run(self.stop)
         except Exception:
             self.log.exception("node_failed")
             code = 1
@@ -137,6 +138,29 @@ class NodeRunner:
                 self.session.close()
             self.log.info("node_stopped", code=code)
         return code
+
+
+@contextlib.contextmanager
+def profiled(name: str) -> Iterator[None]:
+    """``EXOLINK_PROFILE_DIR``: the node's loop (its main thread) under cProfile, written to
+    ``DIR/<name>.prof`` when the loop ends (before shutdown, which a slow stop may not finish);
+    ``EXOLINK_PROFILE_NODES`` (comma-separated): only these nodes. In-process: py-spy sampling
+    from outside fell minutes behind on the board proxy and took the simulator's CPU."""
+    where = os.environ.get("EXOLINK_PROFILE_DIR")
+    only = os.environ.get("EXOLINK_PROFILE_NODES")
+    if not where or (only and name not in only.split(",")):
+        yield
+        return
+    import cProfile
+
+    prof = cProfile.Profile()
+    prof.enable()
+    try:
+        yield
+    finally:
+        prof.disable()
+        os.makedirs(where, exist_ok=True)
+        prof.dump_stats(os.path.join(where, f"{name}.prof"))
 
 
 def stop_on_signals(stop: threading.Event, log: Any) -> None:

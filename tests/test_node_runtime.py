@@ -125,3 +125,34 @@ def test_the_heartbeat_thread_beats_three_times_per_deadline_and_at_least_once_a
         t.join(5)
         channel.close()
     assert n in beats, n
+
+
+class Busy(Node):
+    """A loop with a function of its own to find in a profile."""
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.wait(0.01):
+            self.beat()
+            self.work()
+
+    def work(self) -> int:
+        return sum(range(1000))
+
+
+def test_a_profiled_node_writes_its_loops_profile_and_only_the_named_ones_do(
+    session: zenoh.Session, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """EXOLINK_PROFILE_DIR (the board proxy's --cprofile): the loop's cProfile, readable by
+    pstats, written when the loop ends; EXOLINK_PROFILE_NODES leaves the others unprofiled."""
+    import pstats
+
+    monkeypatch.setenv("EXOLINK_PROFILE_DIR", str(tmp_path))
+    monkeypatch.setenv("EXOLINK_PROFILE_NODES", "simulator,h2_reader")
+    run_for(Busy, session, 0.5)
+    stats = pstats.Stats(str(tmp_path / "h2_reader.prof")).stats  # type: ignore[attr-defined]
+    calls = {fn: v[1] for (_file, _line, fn), v in stats.items()}
+    assert calls["work"] >= 10 and calls["run"] == 1
+    monkeypatch.setenv("EXOLINK_PROFILE_NODES", "simulator")
+    (tmp_path / "h2_reader.prof").unlink()
+    run_for(Busy, session, 0.2)
+    assert list(tmp_path.iterdir()) == []

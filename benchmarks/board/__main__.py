@@ -292,6 +292,14 @@ def main() -> int:
         help="leave these non-critical nodes off (comma-separated): what the rest of the "
         "nominal load needs when all of it saturates CPU 0 (in the JSON and the table's title)",
     )
+    p.add_argument(
+        "--cprofile",
+        default="",
+        metavar="NODES",
+        help="these nodes' loops under cProfile in the guest (comma-separated; EXOLINK_PROFILE_DIR): "
+        "deterministic, in-process, slower nodes; files beside the console log, top functions "
+        "in the JSON",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -332,6 +340,7 @@ def main() -> int:
             ladder_nodes,
             tuple(args.guest_env),
             without,
+            tuple(filter(None, args.cprofile.split(","))),
         )
     if args.only != "guest":
         result["native"] = _guarded(

@@ -87,6 +87,29 @@ def render(summary: dict[str, dict[str, Any]], expected: float | None = None) ->
     return "\n".join(lines)
 
 
+def top_pstats(path: Path, top: int = 25) -> dict[str, Any]:
+    """A cProfile file's functions by own time and by cumulative time (seconds, calls), and the
+    profiled wall time: cProfile adds a cost per call, so small functions look dearer."""
+    import pstats
+
+    st = pstats.Stats(str(path))
+    rows = [
+        (f"{fn} ({Path(file).name}:{line})", cc, nc, tt, ct)
+        for (file, line, fn), (cc, nc, tt, ct, _callers) in st.stats.items()  # type: ignore[attr-defined]
+    ]
+
+    def pick(i: int) -> list[list[Any]]:
+        best = sorted(rows, key=lambda r: -r[i])[:top]
+        return [[r[0], r[2], round(r[3], 4), round(r[4], 4)] for r in best]
+
+    return {
+        "total_s": round(st.total_tt, 3),  # type: ignore[attr-defined]
+        "columns": ["function", "calls", "own_s", "cumulative_s"],
+        "by_own": pick(3),
+        "by_cumulative": pick(4),
+    }
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("file")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import hashlib
 import json
@@ -139,9 +140,17 @@ def run_guest(
     ladder: tuple[str, ...] | None = None,
     env: tuple[str, ...] = (),
     without: tuple[str, ...] = (),
+    cprofile: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
-    instead); ``env``: KEY=VALUE for the appliance's service on the guest."""
+    instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
+    nodes' loops under cProfile (exolink.runtime.profiled), fetched when the service stops."""
+    if cprofile:
+        env = (
+            *env,
+            f"EXOLINK_PROFILE_DIR={GUEST_CPROFILE}",
+            f"EXOLINK_PROFILE_NODES={','.join(cprofile)}",
+        )
     result: dict[str, Any] = {"kind": "guest", "image": str(image), "notes": [], "env": env}
     wheel = cardlib.build_wheel(repo, work / "wheel")
     result["wheel"] = {"file": wheel.name, "sha256": _sha256(wheel)}
@@ -238,7 +247,9 @@ def run_guest(
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
-        result["units"] = _guest_units(guest)
+        result["units"] = _guest_units(guest)  # stops the service: the profiles are written
+        if cprofile:
+            result["cprofile"] = _fetch_cprofiles(guest, work, cprofile)
         return result
     except Exception as exc:  # a table with what was measured beats a traceback without one
         log.exception("guest run failed")
@@ -295,6 +306,24 @@ def _fetch_profile(
     text = profile.render(summary, PROFILE_RATE * seconds)
     (work / "profile-guest-top.txt").write_text(text + "\n")
     return {"raw": str(raw), "rate_hz": PROFILE_RATE, "summary": summary}
+
+
+GUEST_CPROFILE = "/var/lib/exolink/profile"  # the service may write there (ReadWritePaths)
+
+
+def _fetch_cprofiles(guest: Guest, work: Path, nodes: tuple[str, ...]) -> dict[str, Any]:
+    """Each node's cProfile (its loop's whole run: settle, window and stop), saved beside the
+    console log as ``cprofile-<node>.prof``, its top functions in the JSON."""
+    out: dict[str, Any] = {}
+    for name in nodes:
+        r = guest.ssh(f"base64 -w0 {GUEST_CPROFILE}/{name}.prof")
+        if r.returncode != 0 or not r.stdout.strip():
+            out[name] = {"error": (r.stderr or "no profile written").strip()[-300:]}
+            continue
+        path = work / f"cprofile-{name}.prof"
+        path.write_bytes(base64.b64decode(r.stdout.strip()))
+        out[name] = {"file": str(path), **profile.top_pstats(path)}
+    return out
 
 
 def _pid_names(result: dict[str, Any]) -> dict[int, str]:
