@@ -8,6 +8,7 @@ Stop order is the reverse with the safe action first.
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import os
 import shutil
@@ -112,13 +113,17 @@ class Supervisor:
         # On SocketCAN the kernel's broadcast manager watches ids 110 and 70 for the watchdog
         # (exolink.cyclic) and its own socket only sends; the simulated bus has no such thing.
         watches: list[CyclicWatch] = []
+        reopen = None
         try:
             if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
                 from exolink.cyclic import CyclicWatch
 
                 limit_s = cfg.watchdog.h2_silence_ms / 1e3
                 watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_ANGLES, limit_s))
-                watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_CONTROL, mask=h2.MODE_MASK))
+                reopen = functools.partial(
+                    CyclicWatch, cfg.can.channel, h2.JOINT_CONTROL, mask=h2.MODE_MASK
+                )
+                watches.append(reopen())  # the first now: no can-bcm fails the start here
                 self.reader = open_reader(cfg.can, [])
             else:  # angle frames never wake it (read by their silence deadline); id 70 does
                 self.reader = open_reader(
@@ -132,7 +137,9 @@ class Supervisor:
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE)
-        self.watchdog = Watchdog(cfg.watchdog, self.reader, self._publish_watchdog, *watches)
+        self.watchdog = Watchdog(
+            cfg.watchdog, self.reader, self._publish_watchdog, *watches, reopen=reopen
+        )
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
         # The first link check imports pyroute2 (~4 s on an emulated A8): here, before READY, not

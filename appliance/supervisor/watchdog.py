@@ -28,7 +28,10 @@ changed (a silence while armed trips at once); on id 70 it hears of a frame whos
 length differs from the last one's: the first motion frame after the safe action (which the op
 sees too), not MACCEPA board 0's 100 frames/s on the same id. A burst of motion frames while not
 armed is answered once, at its first frame, with the safe action; the next motion frame after
-that is a change again. The simulated bus has no broadcast manager, and
+that is a change again. Armed, motion is allowed and the id-70 op is closed (``reopen`` opens a
+new one on leaving armed, before the listener's next wait): with the gait running, the
+controller manager's 6-byte frames and board 0's 8-byte ones alternate on id 70, each a length
+change, and the op woke this thread ~200 times a second for news it does not act on. The simulated bus has no broadcast manager, and
 there the angle frames are read and judged as above. Both ways, the periodic check on the
 supervisor's loop takes the kernel's news too, so a stalled listener cannot hide a silence.
 
@@ -41,6 +44,7 @@ fatal; an id-70 frame of 8 bytes is MACCEPA board 0's and is left alone.
 from __future__ import annotations
 
 import contextlib
+import errno
 import socket
 import threading
 import time
@@ -96,14 +100,18 @@ class Watchdog:
         publish: Publish,
         angles: CyclicWatch | None = None,
         control: CyclicWatch | None = None,
+        reopen: Callable[[], CyclicWatch] | None = None,
     ) -> None:
         """``angles`` / ``control``: the kernel watches ids 110 and 70 (``reader`` then only
-        sends)."""
+        sends); ``reopen``: a new id-70 watch, with which ``control`` is closed while armed."""
         self.cfg = cfg
         self.reader = reader
         self.angles = angles
         self.control = control
-        self._kernel_lock = threading.Lock()
+        self._reopen = reopen
+        self.control_events = 0  # id-70 news taken from the kernel (see the module's docstring)
+        # Re-entrant: a trip found while taking the kernel's news reopens the id-70 watch.
+        self._kernel_lock = threading.RLock()
         self._h2_alive = False  # with ``angles``: well-formed angle frames stream, per the kernel
         self.bus = reader.bus
         self.publish = publish
@@ -169,6 +177,7 @@ class Watchdog:
                 self._s.since_ns = time.time_ns()
                 self._s.trips += 1
             self._repeats = [now + d for d in REPEAT_AFTER_S]
+        self._open_control()
         self.wake()
         self._poke()
         if first:
@@ -184,6 +193,7 @@ class Watchdog:
             self._s.state, self._s.reason, self._s.detail = "armed", "operator", ""
             self._s.since_ns = time.time_ns()
             self._armed_at = time.monotonic()
+        self._close_control()
         self._poke()
         self.log.warning("watchdog_armed")
         self.publish(self.snapshot())
@@ -194,6 +204,7 @@ class Watchdog:
             self._leave_armed(time.monotonic())
             self._s.state, self._s.reason, self._s.detail = "disarmed", reason, ""
             self._s.since_ns = time.time_ns()
+        self._open_control()
         self._poke()
         self.log.info("watchdog_disarmed", reason=reason)
         self.publish(self.snapshot())
@@ -201,6 +212,32 @@ class Watchdog:
     def _leave_armed(self, now: float) -> None:
         if self._armed_at is not None:
             self._armed_at, self._left_armed_at = None, now
+
+    def _close_control(self) -> None:
+        """Armed: the id-70 watch's news up to now judged (by arrival, as the listener would),
+        then the watch closed."""
+        if self._reopen is None:
+            return
+        with self._kernel_lock:
+            self._take_kernel()
+            if not self.armed:  # its news tripped it: the watch stays
+                return
+            watch, self.control = self.control, None
+            if watch is not None:
+                watch.close()
+
+    def _open_control(self) -> None:
+        """Not armed (any more): a new id-70 watch, whose first frame is news. If the kernel
+        refuses it, the periodic check tries again; the safe action has gone out meanwhile."""
+        if self._reopen is None or self.armed:
+            return
+        with self._kernel_lock:
+            if self.control is not None or self.armed:
+                return
+            try:
+                self.control = self._reopen()
+            except OSError as exc:  # CanOpenError included
+                self.log.error("control_watch_failed", error=str(exc))
 
     def h2_silent_for(self) -> float | None:
         if self.angles is not None:
@@ -217,6 +254,7 @@ class Watchdog:
             for ev in self.angles.poll():
                 self._angles_event(ev)
             for ev in self.control.poll() if self.control is not None else ():
+                self.control_events += 1
                 if ev.frame is not None:
                     self._read_lag(max(0.0, time.time() - ev.frame.timestamp))
                     self._judge(ev.frame)
@@ -253,6 +291,8 @@ class Watchdog:
             self._repeats = [t for t in self._repeats if t > now]
         if due:
             self.send_safe_action()
+        if self.control is None and not self.armed:
+            self._open_control()
         silent = self.h2_silent_for()  # with the kernel timing the frames: its news, taken now
         if self.angles is not None:
             self._check_silence(time.monotonic())
@@ -306,10 +346,9 @@ class Watchdog:
 
     def _listen(self) -> None:
         limit = self.cfg.h2_silence_ms / 1000
-        poke = [self._poke_r.fileno()]
-        poke += [w.fileno() for w in (self.angles, self.control) if w is not None]
         while not self._stop.is_set():
             armed = self.armed
+            poke = self._wake_fds()
             silent = self.h2_silent_for()
             if self.angles is not None and self._h2_alive:
                 timeout = KERNEL_WATCH_POLL_S
@@ -321,6 +360,8 @@ class Watchdog:
             try:
                 frames = self.reader.read(timeout, wake_fds=poke, frames_wake=not armed)
             except (can.CanError, OSError) as exc:
+                if getattr(exc, "errno", None) == errno.EBADF and poke != self._wake_fds():
+                    continue  # the id-70 watch closed by arming while this was about to wait
                 self.log.error("watchdog_rx_error", error=str(exc))
                 time.sleep(0.1)
                 continue
@@ -338,6 +379,13 @@ class Watchdog:
                 self._judge(msg)
             if self.reader.complete:  # every frame that came before now has been read
                 self._check_silence(now)
+
+    def _wake_fds(self) -> list[int]:
+        """What ends the listener's wait besides frames: the poke, the kernel's watches (the
+        id-70 one comes and goes with arming)."""
+        return [self._poke_r.fileno()] + [
+            w.fileno() for w in (self.angles, self.control) if w is not None
+        ]
 
     def _read_lag(self, lag_s: float) -> None:
         lag_ms = round(lag_s * 1000, 2)
@@ -388,6 +436,8 @@ class Watchdog:
             self._rx.join(1)
         self._poke_r.close()
         self._poke_w.close()
-        for watch in (self.angles, self.control):
-            if watch is not None:
-                watch.close()
+        with self._kernel_lock:
+            self._reopen = None  # a trip while closing opens no new watch
+            for watch in (self.angles, self.control):
+                if watch is not None:
+                    watch.close()

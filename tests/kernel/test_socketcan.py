@@ -389,8 +389,9 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
 ) -> None:
     """The board's watchdog: the kernel times the H2 angle frames and compares id 70's mode
     byte; Python reads no frame. Not armed, MACCEPA board 0's frames on id 70 go unseen and a
-    position frame is answered with the safe action (and the next one after it again); armed, a
-    silence of the angles trips it; a stream of malformed (8-byte) angle frames, which the
+    position frame is answered with the safe action (and the next one after it again); armed,
+    id 70 is not watched at all (the gait's frames and board 0's alternate: no news reaches the
+    watchdog), a silence of the angles trips it and the id-70 watch is back; a stream of malformed (8-byte) angle frames, which the
     kernel's timer takes as life, trips it too."""
     import threading
 
@@ -408,6 +409,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         published.append,
         CyclicWatch(vcan0, h2.JOINT_ANGLES, limit_s),
         CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=h2.MODE_MASK),
+        reopen=lambda: CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=h2.MODE_MASK),
     )
     tx = listener(vcan0)
     rx = can.Bus(
@@ -443,8 +445,17 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
             got = {h2.decode(m) for m in drain(rx, 0.5, {h2.JOINT_CONTROL})}
             assert {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)} <= got
         wd.arm([])
+        news = wd.control_events
+        # Armed with the gait running: the manager's 6-byte frames and board 0's 8-byte ones
+        # alternate on id 70, each a length change for an id-70 op; armed, there is none.
+        for i in range(100):
+            tx.send(h2.encode_joint_control(1 + i % 4, h2.MODES["position"], 20, 0))
+            if i % 4 == 3:
+                tx.send(can.Message(arbitration_id=70, data=bytes([i, 0, 5, 0, 7, 0, 0, 0])))
+                time.sleep(0.01)
         time.sleep(2 * limit_s)  # streaming: armed throughout
         assert wd.snapshot().state == "armed"
+        assert wd.control_events == news and wd.control is None
         assert reader.frames == 0  # not one angle frame (~200 sent) was read in Python
         drain(rx, 0.1)
         stop.set()
@@ -452,6 +463,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         wait_for(lambda: wd.snapshot().state == "tripped")
         s = wd.snapshot()
         assert s.reason == "h2 data silent" and "kernel timer" in s.detail
+        assert s.violations == 2  # the armed window's motion frames are none
         got = drain(rx, 1.0, {h2.JOINT_CONTROL})
         frames = [h2.decode(m) for m in got]
         assert {f for f in frames if isinstance(f, h2.JointControl) and f.mode == 4} == {
@@ -466,6 +478,10 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         print("kernel-timed silence in the UML guest:", json.dumps(reaction))
         out = Path(os.environ.get("EXOLINK_KERNEL_RESULTS", tmp_path)) / "kernel-silence.json"
         out.write_text(json.dumps(reaction))
+        # Tripped: the id-70 watch is back, and a motion frame is answered again.
+        assert wd.control is not None
+        tx.send(h2.encode_joint_control(2, h2.MODES["position"], 20, 0))
+        wait_for(lambda: wd.snapshot().violations == 3)
         # Malformed frames keep the kernel's timer going; they are not H2 data here.
         stop.clear()
         h2_tx = threading.Thread(target=stream, daemon=True)
