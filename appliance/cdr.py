@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 CDR_LE = b"\x00\x01\x00\x00"  # encapsulation: plain CDR, little endian
 
@@ -249,24 +249,118 @@ def controller_activity(ns: int, version: int, controllers: Sequence[Sequence[st
     return bytes(w.buf)
 
 
+def watchdog_event_msg(ns: int, state: str, reason: str, detail: str, frames_sent: int) -> bytes:
+    """exolink_msgs/WatchdogEvent (the supervisor's, on change and once a second)."""
+    w = _Writer()
+    w.stamp(ns)
+    for text in (state, reason, detail):
+        w.string(text)
+    w.put("I", frames_sent)
+    return bytes(w.buf)
+
+
+def trigger_event(ns: int, edge: str, chip: str, line: int, count: int, source: str) -> bytes:
+    """exolink_msgs/TriggerEvent: one edge of the experiment trigger line."""
+    w = _Writer()
+    w.stamp(ns)
+    w.string(edge)
+    w.string(chip)
+    w.put("I", line)
+    w.put("Q", count)
+    w.string(source)
+    return bytes(w.buf)
+
+
+class _Reader:
+    """CDR read field by field, for messages from the network: any inconsistency is a
+    ValueError naming the type, never an IndexError deep inside."""
+
+    def __init__(self, payload: bytes, typename: str) -> None:
+        if payload[:4] != CDR_LE:
+            raise ValueError(f"{typename}: not little-endian CDR")
+        self.data, self.pos, self.typename = payload, 4, typename
+
+    def get(self, code: str) -> tuple[Any, ...]:
+        """Values of one type (``code`` repeats one letter: the alignment is that type's)."""
+        size = struct.calcsize("<" + code[-1])
+        self.pos += (-(self.pos - 4)) % size
+        try:
+            values = struct.unpack_from("<" + code, self.data, self.pos)
+        except struct.error as exc:
+            raise ValueError(f"truncated {self.typename}: {exc}") from None
+        self.pos += struct.calcsize("<" + code)
+        return values
+
+    def string(self) -> str:
+        (n,) = self.get("I")
+        raw = self.data[self.pos : self.pos + n]
+        if n == 0 or len(raw) != n or raw[-1] != 0:
+            raise ValueError(f"garbled {self.typename}: bad string at byte {self.pos}")
+        self.pos += n
+        try:
+            return raw[:-1].decode()
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"garbled {self.typename}: {exc}") from None
+
+    def count(self, at_least: int) -> int:
+        """A sequence's length, refused when the rest of the payload cannot hold it."""
+        (n,) = self.get("I")
+        if n * at_least > len(self.data) - self.pos:
+            raise ValueError(
+                f"garbled {self.typename}: a sequence of {n} in {len(self.data)} bytes"
+            )
+        return int(n)
+
+
 def watchdog_event(payload: bytes) -> tuple[str, str, str, int]:
     """(state, reason, detail, frames_sent) of an exolink_msgs/WatchdogEvent; ValueError when
     the payload is not one (it comes over the network: checked, never trusted)."""
-    if payload[:4] != CDR_LE:
-        raise ValueError("not little-endian CDR")
-    pos = 4 + 8  # encapsulation, stamp
-    texts = []
-    try:
-        for _ in range(3):
-            pos += (-(pos - 4)) % 4
-            (n,) = struct.unpack_from("<I", payload, pos)
-            raw = payload[pos + 4 : pos + 4 + n]
-            if n == 0 or len(raw) != n or raw[-1] != 0:
-                raise ValueError("bad string")
-            texts.append(raw[:-1].decode())
-            pos += 4 + n
-        pos += (-(pos - 4)) % 4
-        (frames,) = struct.unpack_from("<I", payload, pos)
-    except (struct.error, UnicodeDecodeError) as exc:
-        raise ValueError(f"truncated or garbled WatchdogEvent: {exc}") from None
-    return texts[0], texts[1], texts[2], frames
+    r = _Reader(payload, "WatchdogEvent")
+    r.get("iI")  # stamp
+    state, reason, detail = r.string(), r.string(), r.string()
+    return state, reason, detail, r.get("I")[0]
+
+
+def pattern_state_of(payload: bytes) -> tuple[str, str]:
+    """(state, operator) of an exolink_msgs/PatternState: what the supervisor's operator-lost
+    check needs; ValueError when the payload is not one."""
+    r = _Reader(payload, "PatternState")
+    r.get("iI")  # stamp
+    state = r.string()
+    r.string()  # reason
+    for code in ("II", "B", "f", "6?"):  # index, length, speed, period_ms, selected: each aligned
+        r.get(code)
+    r.string()  # file
+    operator = r.string()
+    r.string()  # timing_mode: read so that a message cut short is refused whole
+    return state, operator
+
+
+class KeyValue(NamedTuple):
+    key: str
+    value: str
+
+
+class Status(NamedTuple):
+    """One diagnostic_msgs/DiagnosticStatus."""
+
+    level: int
+    name: str
+    message: str
+    hardware_id: str
+    values: list[KeyValue]
+
+
+def diagnostic_statuses(payload: bytes) -> list[Status]:
+    """The statuses of a diagnostic_msgs/DiagnosticArray (a node's, once a second, read by the
+    supervisor without a typestore); ValueError when the payload is not one."""
+    r = _Reader(payload, "DiagnosticArray")
+    r.get("iI")  # stamp
+    r.string()  # frame_id
+    out = []
+    for _ in range(r.count(4 * 5)):
+        (level,) = r.get("B")
+        name, message, hardware_id = r.string(), r.string(), r.string()
+        values = [KeyValue(r.string(), r.string()) for _ in range(r.count(2 * 5))]
+        out.append(Status(level, name, message, hardware_id, values))
+    return out

@@ -583,13 +583,17 @@ class Messaging:
     def subscribe(
         self, topic: str, typename: str, callback: Callable[[Any, Meta], None]
     ) -> zenoh.Subscriber:
-        des = prepare(typename).deserialize_cdr
         self._token(rosgraph.SUBSCRIPTION, topic, typename, None)
+        # The typestore at the first sample, not now: a subscription nobody publishes to (the
+        # supervisor's ROS 2 joint_command topic) then never loads rosbags and numpy.
+        store: list[Any] = []
 
         def on_sample(sample: zenoh.Sample) -> None:
             att = sample.attachment
             seq, ts, gid = decode_attachment(att.to_bytes()) if att else (0, 0, b"")
-            msg = des(sample.payload.to_bytes(), typename)
+            if not store:
+                store.append(prepare(typename).deserialize_cdr)
+            msg = store[0](sample.payload.to_bytes(), typename)
             callback(msg, Meta(str(sample.key_expr), seq, ts, gid))
 
         return self.session.declare_subscriber(self.key(topic, typename), on_sample)

@@ -125,10 +125,7 @@ class ServiceServer:
         self.msg, self.name, self.srv_type, self.handler = msg, name, srv_type, handler
         self.key = msg.key(name, srv_type)
         self.request_type, self.response_type = f"{srv_type}_Request", f"{srv_type}_Response"
-        store = messaging.prepare(self.request_type)
-        messaging.prepare(self.response_type)
-        self._des, self._ser = store.deserialize_cdr, store.serialize_cdr
-        self._response = store.types[self.response_type]
+        self._store: Any = None  # the typestore, at the first call (see _codec)
         self._workers = workers
         self._q = msg.session.declare_queryable(self.key, self._on_query, complete=True)
         self._token = msg.graph.declare(
@@ -149,18 +146,30 @@ class ServiceServer:
                 raise ValueError("no rmw_zenoh attachment (sequence number, client GID)")
             seq, _, gid = rosgraph.decode_attachment(att.to_bytes())
             payload = query.payload.to_bytes() if query.payload is not None else b""
-            request = self._des(payload, self.request_type)
+            store = self._codec()
+            request = store.deserialize_cdr(payload, self.request_type)
         except (ValueError, KeyError, IndexError) as exc:  # not a ROS 2 call: say so, no reply
             query.reply_err(f"{self.key}: not a ROS 2 request: {exc}".encode())
             return
         try:
             fields = self.handler(request)
-            body = bytes(self._ser(self._response(**fields), self.response_type))
+            response = store.types[self.response_type](**fields)
+            body = bytes(store.serialize_cdr(response, self.response_type))
         except Exception as exc:  # a caller never waits out its timeout on a bug of ours
             _log.exception("ros2_service_failed", service=self.name)
             query.reply_err(f"{self.name}: internal error: {type(exc).__name__}: {exc}".encode())
             return
         query.reply(self.key, body, attachment=rosgraph.encode_attachment(seq, time.time_ns(), gid))
+
+    def _codec(self) -> Any:
+        """rosbags' typestore, prepared at the first call, not at start: the supervisor serves
+        these services, and the store (with numpy) is ~13 MB and seconds of start on the A8
+        that an appliance without a ROS 2 caller never needs. Calls run on worker threads."""
+        if self._store is None:
+            store = self._messaging.prepare(self.request_type)
+            self._messaging.prepare(self.response_type)
+            self._store = store
+        return self._store
 
     def close(self) -> None:
         self._q.undeclare()

@@ -173,6 +173,118 @@ def test_watchdog_event_decodes_rosbags_cdr(ns: int, texts: list[str], frames: i
             cdr.watchdog_event(payload[:cut])
 
 
+@settings(deadline=None)
+@given(
+    ns=NS,
+    texts=st.lists(st.text(max_size=30), min_size=3, max_size=3),
+    frames=st.integers(0, 2**32 - 1),
+)
+def test_watchdog_event_is_rosbags_cdr(ns: int, texts: list[str], frames: int) -> None:
+    payload = cdr.watchdog_event_msg(ns, *texts, frames)
+    state, reason, detail = texts
+    assert_rosbags_cdr(
+        payload,
+        "exolink_msgs/msg/WatchdogEvent",
+        stamp=messaging.stamp(ns),
+        state=state,
+        reason=reason,
+        detail=detail,
+        frames_sent=frames,
+    )
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    texts=st.lists(st.text(max_size=12), min_size=3, max_size=3),
+    line=st.integers(0, 2**32 - 1),
+    count=st.integers(0, 2**64 - 1),
+)
+def test_trigger_event_is_rosbags_cdr(ns: int, texts: list[str], line: int, count: int) -> None:
+    edge, chip, source = texts
+    payload = cdr.trigger_event(ns, edge, chip, line, count, source)
+    assert_rosbags_cdr(
+        payload,
+        "exolink_msgs/msg/TriggerEvent",
+        stamp=messaging.stamp(ns),
+        edge=edge,
+        chip=chip,
+        line=line,
+        count=count,
+        source=source,
+    )
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    texts=st.lists(st.text(max_size=12), min_size=5, max_size=5),
+    selected=st.lists(st.booleans(), min_size=6, max_size=6),
+)
+def test_pattern_state_decodes_its_state_and_operator(
+    ns: int, texts: list[str], selected: list[bool]
+) -> None:
+    state, reason, file, operator, timing = texts
+    status = {"state": state, "reason": reason, "index": 3, "length": 51, "speed": 10}
+    status |= {"period_ms": 20.0, "file": file, "operator": operator, "timing": timing}
+    payload = cdr.pattern_state(ns, status, selected)
+    assert cdr.pattern_state_of(payload) == (state, operator)
+    for cut in (0, 5, 13, len(payload) - 1):
+        with pytest.raises(ValueError):
+            cdr.pattern_state_of(payload[:cut])
+
+
+@settings(deadline=None)
+@given(
+    ns=NS,
+    statuses=st.lists(
+        st.tuples(
+            st.integers(0, 3),
+            st.lists(st.text(max_size=10), min_size=3, max_size=3),
+            st.dictionaries(st.text(max_size=8), st.text(max_size=8), max_size=4),
+        ),
+        max_size=3,
+    ),
+)
+def test_diagnostic_statuses_decode_rosbags_cdr(ns: int, statuses: list) -> None:  # type: ignore[type-arg]
+    """What the supervisor reads of every node's diagnostics, without a typestore; a payload
+    cut short, or one claiming more statuses than it holds, is refused by name."""
+    typename = messaging.DIAGNOSTICS_TYPE
+    store = messaging.prepare(typename)
+    status_cls = store.types["diagnostic_msgs/msg/DiagnosticStatus"]
+    kv_cls = store.types["diagnostic_msgs/msg/KeyValue"]
+    ref = messaging.msg_class(typename)(
+        header=messaging.header(ns),
+        status=[
+            status_cls(
+                level=level,
+                name=texts[0],
+                message=texts[1],
+                hardware_id=texts[2],
+                values=[kv_cls(key=k, value=v) for k, v in values.items()],
+            )
+            for level, texts, values in statuses
+        ],
+    )
+    payload = messaging.serialize(ref, typename)
+    got = cdr.diagnostic_statuses(payload)
+    want = [
+        cdr.Status(level, *texts, [cdr.KeyValue(k, v) for k, v in values.items()])
+        for level, texts, values in statuses
+    ]
+    assert got == want
+    for cut in (0, 5, 13):
+        with pytest.raises(ValueError):
+            cdr.diagnostic_statuses(payload[:cut])
+    if statuses:
+        with pytest.raises(ValueError, match="DiagnosticArray"):
+            cdr.diagnostic_statuses(payload[:-1])
+    huge = bytearray(payload)
+    huge[4 + 8 + 4 + 4 : 4 + 8 + 4 + 8] = (2**31).to_bytes(4, "little")  # the status count
+    with pytest.raises(ValueError, match="DiagnosticArray"):
+        cdr.diagnostic_statuses(bytes(huge))
+
+
 MACCEPA_STATE = (
     "current_ma",
     "temperature_c",

@@ -77,6 +77,10 @@ def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, mo
     # The supervisor (`exolink up`, dumped as "up") validated every plugin's params, in a child.
     sup = set(json.loads((out / "up.json").read_text()))
     assert not (plugin_modules & sup), sorted(plugin_modules & sup)
+    # Nor a typestore: its messages are exolink.cdr's, its ROS 2 services load rosbags at their
+    # first call (none here): numpy and rosbags were ~13 MB of its memory.
+    heavy = sorted(m for m in sup if m.split(".")[0] in HEAVY)
+    assert not heavy, f"the supervisor imported {heavy[:5]}"
 
 
 def test_a_bad_param_of_any_node_still_starts_nothing(write_config, spawn) -> None:  # type: ignore[no-untyped-def]

@@ -244,6 +244,7 @@ def run_guest(
             else:  # no load from the laptop: the guest's own figures, said to be without it
                 result["window"] = _probe_only(probe_cmd, seconds, stdin, profiler, result)
         result["supervisor_restarts_by_systemd_at_end"] = _nrestarts(guest)
+        result["supervisor_threads_at_end"] = _supervisor_threads(guest)
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
@@ -340,6 +341,17 @@ def _pid_names(result: dict[str, Any]) -> dict[int, str]:
         if isinstance(n.get("pid"), int):
             names[n["pid"]] = n["name"]
     return names
+
+
+def _supervisor_threads(guest: Guest) -> list[str]:
+    """Each thread of the supervisor after the window: state, kernel wait channel, CPU time.
+    When the laptop's queries go unanswered after the window (seen once this stop while its
+    joint_states kept coming) this says whether the supervisor's threads are stuck, and where."""
+    r = guest.ssh(
+        "ps -L -o tid,stat,wchan:28,time,comm "
+        "-p $(systemctl show -p MainPID --value exolink.service)"
+    )
+    return (r.stdout or r.stderr).splitlines()[:80]
 
 
 def _nrestarts(guest: Guest) -> int | None:
