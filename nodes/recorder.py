@@ -39,7 +39,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, messaging, roles, rosgraph
+from exolink import __version__, cdr, messaging, roles, rosgraph
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
@@ -128,7 +128,7 @@ class McapFile:
         if cid is None:
             sid = self.schemas.get(typename)
             if sid is None:
-                text, _ = messaging.typestore().generate_msgdef(typename, ros_version=2)
+                text = messaging.msgdef(typename)
                 sid = self.schemas[typename] = self.w.register_schema(
                     typename, "ros2msg", text.encode()
                 )
@@ -292,7 +292,7 @@ class Recorder(Node):
             messaging.topic_selector(m.domain_id, m.namespace, t) for t in self.params.topics
         ]
         self.inbox: Inbox | None = None  # while recording (see _subscribe)
-        self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS)
+        self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         self._q = m.serve("record", self.on_command, roles.status_or(roles.OPERATOR))
         if self.params.autostart:
             self.start_recording(dict(self.params.labels))
@@ -610,10 +610,15 @@ class Recorder(Node):
         values = {
             k: s[k] for k in ("state", "file", "size", "received", "written", "dropped", "queue")
         }
-        msg = messaging.diagnostics(
-            now, f"{self.name}/recording", level, self.error or self.state, "sd", values
+        payload = cdr.diagnostics(
+            now,
+            f"{self.name}/recording",
+            messaging.LEVELS[level],
+            self.error or self.state,
+            "sd",
+            values,
         )
-        self.pub_diag.publish(msg, now)
+        self.pub_diag.put(payload, now)
 
     def shutdown(self) -> None:
         if getattr(self, "file", None) is not None:

@@ -336,3 +336,14 @@ def test_type_hash_table_matches_rosbags() -> None:
     for name, value in table.items():
         if name not in services:
             assert value == str(store.hash_rihs01(name)), name
+
+
+def test_schema_table_matches_rosbags() -> None:
+    """The recorder's schemas without a typestore (MSGDEFS) are rosbags' own, for every
+    exolink_msgs message and the standard types the appliance publishes."""
+    table = json.loads(messaging.MSGDEFS.read_text())
+    assert table == messaging.msgdef_table(), "run `make msgs` after editing a .msg file"
+    for name in (cdr.JointStateCdr.TYPE, messaging.DIAGNOSTICS_TYPE, "exolink_msgs/msg/Heartbeat"):
+        assert messaging.msgdef(name) == table[name]
+    other = "geometry_msgs/msg/Twist"  # not in the table: rosbags writes it
+    assert other not in table and "Vector3 linear" in messaging.msgdef(other)

@@ -43,11 +43,18 @@ def _dump_modules(tmp_path: Path, monkeypatch) -> Path:  # type: ignore[no-untyp
 
 def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     out = _dump_modules(tmp_path, monkeypatch)
-    cfg = write_config()
+    nodes = yaml.safe_load(write_config().read_text())["nodes"]
+    for n in nodes:  # the recorder records: it writes schemas, as on the board
+        if n["plugin"] == "recorder":
+            n["params"] |= {"autostart": True, "directory": str(tmp_path / "rec")}
+    cfg = write_config(nodes=nodes)
     plugin_modules = {v.split(":")[0] for v in available().values()}
-    names = [n["name"] for n in yaml.safe_load(cfg.read_text())["nodes"]]
+    names = [n["name"] for n in nodes]
+    assert "recorder" in names
     app = Appliance(cfg, spawn)
     st = app.status()
+    written = lambda: json.loads(app.cli("record", "status", "--json").stdout).get("written")  # noqa: E731
+    wait_for(lambda: int(written() or 0) > 0, timeout=30)
     assert {n["name"] for n in st["nodes"]} == set(names)
     # Forked from the zygote, itself a fork of the supervisor (same cmdline, its own name),
     # and re-parented to the supervisor that waits for them.
@@ -77,6 +84,10 @@ def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, mo
     # The supervisor (`exolink up`, dumped as "up") validated every plugin's params, in a child.
     sup = set(json.loads((out / "up.json").read_text()))
     assert not (plugin_modules & sup), sorted(plugin_modules & sup)
+    # The recorder writes every schema from messaging.MSGDEFS: mcap, zstandard, no typestore.
+    rec = set(json.loads((out / "recorder.json").read_text()))
+    assert "mcap.writer" in rec
+    assert not {m for m in rec if m.split(".")[0] in ("rosbags", "numpy")}, "recorder: typestore"
     # Nor a typestore: its messages are exolink.cdr's, its ROS 2 services load rosbags at their
     # first call (none here): numpy and rosbags were ~13 MB of its memory.
     heavy = sorted(m for m in sup if m.split(".")[0] in HEAVY)
