@@ -31,8 +31,9 @@ armed is answered once, at its first frame, with the safe action; the next motio
 that is a change again. Armed, motion is allowed and the id-70 op is closed (``reopen`` opens a
 new one on leaving armed, before the listener's next wait): with the gait running, the
 controller manager's 6-byte frames and board 0's 8-byte ones alternate on id 70, each a length
-change, and the op woke this thread ~200 times a second for news it does not act on. The simulated bus has no broadcast manager, and
-there the angle frames are read and judged as above. Both ways, the periodic check on the
+change, and the op woke this thread ~200 times a second for news it does not act on. The
+simulated bus has no broadcast manager, and there the angle frames are read and judged as
+above. Both ways, the periodic check on the
 supervisor's loop takes the kernel's news too, so a stalled listener cannot hide a silence.
 
 Only a frame that matches the DBC contract counts: an id-110 frame of the wrong length (or an
