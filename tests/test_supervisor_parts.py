@@ -338,3 +338,28 @@ def test_a_stop_whose_node_is_never_reaped_returns_and_says_why(monkeypatch) -> 
     assert Unreaped.signals == ["TERM", "KILL"] and node.state == "stopped"
     (event,) = [e for e in logs if e["event"] == "node_not_reaped"]
     assert event["node_name"] == "stuck" and event["state"].split()[0] in {"R", "S"}
+
+
+def test_junk_on_the_pattern_state_topic_is_counted_not_believed_and_logged_once() -> None:
+    """Anyone on the network may put on pattern_state: a payload that is no PatternState leaves
+    the supervisor's view (what the operator-lost trip acts on) as it was, is counted, and is
+    logged at its first and every 1000th occurrence, not at each."""
+    from exolink import cdr
+    from exolink.config import bundled, parse
+    from exolink.supervisor.core import Supervisor
+    from structlog.testing import capture_logs
+
+    sup = Supervisor(parse(bundled("sim").read_text(), "sim.yaml"))
+    good = cdr.pattern_state(
+        1,
+        {"state": "running", "reason": "", "index": 0, "length": 2, "speed": 5}
+        | {"period_ms": 120.0, "file": "p.csv", "operator": "op1", "timing": "manager"},
+        [True] * 6,
+    )
+    with capture_logs() as logs:
+        sup._on_pattern_state(good)
+        for _ in range(1000):
+            sup._on_pattern_state(good[:20])
+    assert sup.pattern_state == ("running", "op1")
+    assert sum(sup.bad_samples.values()) == 1000
+    assert [e["count"] for e in logs if e["event"] == "bad_sample"] == [1, 1000]

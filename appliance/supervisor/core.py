@@ -87,6 +87,7 @@ class Supervisor:
         self.stopping = False
         self.notifier = Notifier()
         self.trigger_count = 0
+        self.bad_samples: dict[str, int] = {}  # "<topic>: <error>" -> count (see _bad_sample)
         self.last_trigger_ns: int | None = None
         self.health: canlink.LinkHealth | None = None
         self.link: canlink.LinkMonitor | None = None
@@ -299,7 +300,7 @@ class Supervisor:
         try:
             statuses = cdr.diagnostic_statuses(sample.payload.to_bytes())
         except ValueError as exc:  # anyone may put on the key: checked, never trusted
-            self.log.warning("bad_diagnostics", node_name=name, error=str(exc))
+            self._bad_sample(f"nodes/{name}/diagnostics", exc)
             return
         node.note_diagnostics(statuses)  # a bus reader's receive losses (rx_*) for status
         worst = max(statuses, key=lambda st: st.level, default=None)
@@ -307,11 +308,20 @@ class Supervisor:
             level = {0: "ok", 1: "warn", 2: "error"}.get(int(worst.level), "stale")
             node.health = f"{level}: {worst.message}" if level != "ok" else "ok"
 
+    def _bad_sample(self, topic: str, exc: ValueError) -> None:
+        """A sample the supervisor cannot read, counted; logged at the first and every 1000th
+        of its kind, as malformed CAN frames are: junk on the network must not flood the
+        journal the supervisor writes."""
+        key = f"{topic}: {exc}"
+        n = self.bad_samples[key] = self.bad_samples.get(key, 0) + 1
+        if n == 1 or n % 1000 == 0:
+            self.log.warning("bad_sample", topic=topic, error=str(exc), count=n)
+
     def _on_pattern_state(self, payload: bytes) -> None:
         try:
             state = cdr.pattern_state_of(payload)
         except ValueError as exc:
-            self.log.warning("bad_pattern_state", error=str(exc))
+            self._bad_sample("pattern_state", exc)
             return
         if state != self.pattern_state:
             self.pattern_state = state
