@@ -27,6 +27,7 @@ import msgspec
 from exolink import cdr, messaging
 from exolink.canbus import Cadence, Frame, open_reader
 from exolink.node import Node
+from exolink.phaseclock import PhaseClock
 from exolink.protocol import h2
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -115,6 +116,7 @@ class H2Reader(Node):
         self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         self.stats = ReaderStats()
         self.gaps = GapCounter(h2.PERIOD_S)
+        self.clock = PhaseClock()  # where the loop's CPU goes, by phase (stats: loop_cpu)
         self._q = m.serve(("nodes", self.name, "stats"), lambda _req: self._stats())
         self.js = cdr.JointStateCdr(h2.JOINTS)
         self._reported_out_of_range = 0
@@ -202,6 +204,7 @@ class H2Reader(Node):
             "node": self.name,  # a wildcard query's replies say whose they are
             **asdict(st),
             "joint_states_out": self.pub_js.counters(),
+            "loop_cpu": self.clock.counters(),
         }
 
     def _diagnostics(self) -> None:
@@ -253,12 +256,18 @@ class H2Reader(Node):
         next_diag = time.monotonic() + self.params.diagnostics_period_s
         last_restart = time.monotonic()
         timeout = self.cadence.idle_s
+        clock = self.clock
         while not stop.is_set():
+            clock.start()
             self.beat()
+            clock.mark("beat")
             frames = self.reader.read(timeout)
+            clock.mark("read")
             for frame in frames:
                 self.handle(frame)
+            clock.mark("handle")
             self.out.flush()
+            clock.mark("publish")
             timeout = self.cadence.timeout(bool(frames))
             now = time.monotonic()
             if now >= next_diag:
@@ -274,6 +283,7 @@ class H2Reader(Node):
                 last_restart = now
                 self.stats.stream_restarts += 1
                 self.bus.send(h2.encode_stream(True))
+            clock.mark("rest")
 
     def shutdown(self) -> None:
         for name in ("_q", "pub_js", "pub_fs", "pub_diag"):

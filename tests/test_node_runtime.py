@@ -156,3 +156,30 @@ def test_a_profiled_node_writes_its_loops_profile_and_only_the_named_ones_do(
     (tmp_path / "h2_reader.prof").unlink()
     run_for(Busy, session, 0.2)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_phase_clock_charges_cpu_to_the_phase_that_used_it_not_to_a_sleep() -> None:
+    """The loop figures the board proxy reports (manager, h2 reader): a phase that sleeps is
+    charged (almost) nothing however long it waits; one that computes, its CPU; only sampled
+    iterations count, and two readings give the window between them."""
+    from exolink import phaseclock
+
+    clock = phaseclock.PhaseClock(every=2)
+    first = clock.counters()
+    for _ in range(6):
+        clock.start()
+        time.sleep(0.02)
+        clock.mark("sleep")
+        t = time.thread_time()
+        while time.thread_time() - t < 0.005:
+            pass
+        clock.mark("work")
+    c = clock.counters()
+    assert (c["iterations"], c["sampled"]) == (6, 3)
+    assert c["us_per_iteration"]["work"] >= 5000
+    assert c["us_per_iteration"]["sleep"] < c["us_per_iteration"]["work"] / 2
+    w = phaseclock.window(first, c)
+    assert w["iterations"] == 6 and w["us_per_iteration"]["work"] >= 5000
+    assert phaseclock.window(c, c) == {"iterations": 0, "us_per_iteration": {}}
+    with pytest.raises(ValueError, match="every must be >= 1"):
+        phaseclock.PhaseClock(every=0)

@@ -124,6 +124,14 @@ def table(result: dict[str, Any]) -> str:
     row("  timing monitor socket drops", *pair("window", "timing", "socket_dropped"))
     row("H2 angle frames (110) n in window", *pair("window", "angles", "n"))
     row("H2 angle frames max dev ms", *pair("window", "angles", "max_dev_ms"))
+    row("manager cycles run in window", *pair("derived", "manager_cycles"))
+    for node in ("h2_reader", "controller_manager"):
+        lines.append(f"{node} loop CPU per iteration in window (us, thread CPU clock):")
+        for run in (g, n):
+            w = get(run, "derived", f"{node}_loop_cpu")
+            if isinstance(w, dict):
+                phases = " ".join(f"{k} {v:g}" for k, v in w["us_per_iteration"].items())
+                lines.append(f"  {run['kind']:6} {w['iterations']} iterations: {phases}")
     row("watchdog trips in window", *pair("derived", "watchdog_trips_in_window"))
     row("watchdog state at end", *pair("derived", "watchdog_state_end"))
     row("watchdog reason", *pair("derived", "watchdog_reason_end"))

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import structlog
-from exolink import messaging
+from exolink import messaging, phaseclock
 
 log = structlog.get_logger("bench-board")
 
@@ -374,6 +374,11 @@ def derived(m: dict[str, Any]) -> dict[str, Any]:
     c0, c1 = b.get("controllers", {}), a.get("controllers", {})
     if p1.get("timing") == "manager" and "written" in c0 and "written" in c1:
         out["pattern_sent"] = c1["written"] - c0["written"]  # the manager writes the pattern
+    for name, x0, x1 in (("h2_reader", r0, r1), ("controller_manager", c0, c1)):
+        if "loop_cpu" in x0 and "loop_cpu" in x1:  # where each loop's CPU went (phaseclock)
+            out[f"{name}_loop_cpu"] = phaseclock.window(x0["loop_cpu"], x1["loop_cpu"])
+    if "cycles" in c0 and "cycles" in c1:
+        out["manager_cycles"] = c1["cycles"] - c0["cycles"]
     rec0, rec1 = b.get("recorder", {}), a.get("recorder", {})
     for k in ("received", "written", "dropped"):
         if k in rec0 and k in rec1:

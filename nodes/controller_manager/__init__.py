@@ -48,6 +48,7 @@ from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused, Switch
+from exolink.phaseclock import PhaseClock
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
 
@@ -164,6 +165,7 @@ class ControllerManagerNode(Node):
         self.written = 0
         self.safe_sent = 0
         self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
+        self.clock = PhaseClock()  # where the loop's CPU goes, by phase (status: loop_cpu)
         self.pub_activity = self.ctx.messaging.publisher(ACTIVITY_TOPIC, ACTIVITY_TYPE, raw=True)
         self._told, self._told_at = -1, 0.0
         self._tell_lock = threading.Lock()
@@ -223,6 +225,7 @@ class ControllerManagerNode(Node):
                     "reader_opens": self.reader_opens,
                     "receive": reader.counters() if reader is not None else None,
                     "watchdog_word": self.arming.counters() if self.arming is not None else None,
+                    "loop_cpu": self.clock.counters(),
                 }
             if action == "state":
                 return self.manager.state_of(str(req.get("name", "")))
@@ -388,10 +391,13 @@ class ControllerManagerNode(Node):
 
     def run(self, stop: threading.Event) -> None:
         timeout = self.params.h2_timeout_ms / 1e3
+        clock = self.clock
         while not stop.is_set():
+            clock.start()
             idle = self.reader is None and not self.manager.busy()
             self.beat(idle)  # not idle: told before the reader opens, so before any set-point
             self._maybe_tell()
+            clock.mark("beat")
             if idle:  # a request (load, switch) wakes it at once
                 self.wake.wait(IDLE_BEAT_S)
                 self.wake.clear()
@@ -405,12 +411,15 @@ class ControllerManagerNode(Node):
                 self._silent("CAN read error: " + str(exc))
                 stop.wait(BEAT_S)
                 continue
+            clock.mark("read")
             self._on_frames(frames)
+            clock.mark("frames")
             if time.monotonic() - self.last_angle_mono > timeout:
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
                 self.manager.idle(self._not_armed())
             if not self.manager.busy():
                 self._close_reader()
+            clock.mark("rest")
 
     def _open_reader(self) -> None:
         # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
@@ -533,7 +542,9 @@ class ControllerManagerNode(Node):
         t0 = time.perf_counter()
         period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
         self.last_angle_ts = stamp
+        self.clock.mark("frames")  # the batch's decoding up to this cycle
         out = self.manager.cycle(state, stamp, period, self._not_armed())
+        self.clock.mark("cycle")
         frames = self._safe_frames(out)  # safe actions first, in the cycle's one send
         for w in out.writes:
             frames.append(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
@@ -547,6 +558,7 @@ class ControllerManagerNode(Node):
             frames.append(frame)
             self.mc_written += 1
         self._send(frames)
+        self.clock.mark("send")
         # The H2-silence clock restarts when the cycle ends, not when it began: a cycle that
         # took long (an activation on the board proxy: 408 ms) is the manager's lateness, and
         # the angle frames queued meanwhile are read next, before silence is judged.
