@@ -399,8 +399,10 @@ class FrameReader:
         every_s: float = 0.0,
         quiet: can.BusABC | None = None,
         stale_s: float = 0.0,
+        wake_ids: Iterable[int] = (),
     ) -> None:
         self.bus = bus
+        self.wake_ids = frozenset(wake_ids)  # with ``quiet``: the ids ``bus`` reads
         self.stale_s = stale_s
         self.quiet_bus = quiet
         self.every_s = every_s
@@ -474,6 +476,26 @@ class FrameReader:
         second to parse and decode. Made on first use (its buffers cost a few ms under TCG,
         and most readers never send a batch)."""
         return FrameWriter(self.quiet_bus or self.bus, self._cfg)
+
+    def set_ids(self, ids: Iterable[int]) -> None:
+        """Read ``ids`` from now on, without reopening: nothing queued is lost and the counters
+        go on. The waking ids stay as opened; the others become the kernel filter of the quiet
+        socket (of the one socket without one). On the sim bus the kernel keeps delivering the
+        sources it joined at open, and ids no longer read are dropped here (``filtered``)."""
+        new = frozenset(ids)
+        if new == self.ids:
+            return
+        if self.quiet_bus is not None:
+            rest = new - self.wake_ids
+            if not self.wake_ids <= new or not rest:
+                raise ValueError(
+                    f"set_ids {sorted(new)} must keep the waking ids {sorted(self.wake_ids)} "
+                    "and add others"
+                )
+            self.quiet_bus.set_filters(id_filters(rest))
+        else:
+            self.bus.set_filters(id_filters(new))
+        self.ids = new
 
     def close(self) -> None:
         """Shut down the buses this reader opened (the quiet one too)."""
@@ -980,4 +1002,6 @@ def open_reader(
     except BaseException:
         bus.shutdown()
         raise
-    return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, quiet=quiet, stale_s=stale_s)
+    return FrameReader(
+        bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, quiet=quiet, stale_s=stale_s, wake_ids=waking
+    )

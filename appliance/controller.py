@@ -111,6 +111,11 @@ class Controller:
     """
 
     Params: ClassVar[type[msgspec.Struct]] = NoParams
+    # What of ``State`` beyond positions (and the boards it writes) ``update`` reads: "torque",
+    # "feet". The manager reads those frames only while a loaded controller says so (two of
+    # the four it decoded per cycle for the gait, which reads neither); a controller that does
+    # not say gets both.
+    reads: ClassVar[frozenset[str]] = frozenset({"torque", "feet"})
 
     def __init__(self, name: str, params: Any) -> None:
         self.name = name

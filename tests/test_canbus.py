@@ -358,3 +358,32 @@ def test_a_reader_behind_by_more_than_a_batch_reads_its_two_sockets_in_step(grou
         assert reader.read(0.05) == [] and reader.behind_s == 0.0
         assert reader.counters()["dropped"] == 0
     tx.shutdown()
+
+
+def test_set_ids_changes_what_a_two_socket_reader_returns_without_reopening(group: str) -> None:
+    """The controller manager drops torque and foot-switch frames when no loaded controller
+    reads them, and takes them back, on the reader it has open: nothing queued is lost."""
+    cfg = CanConfig(interface="udp_multicast", channel=group)
+    with (
+        open_bus(cfg) as tx,
+        open_reader(cfg, [70, 110, 120, 130], wake_on=[110]) as reader,
+    ):
+
+        def cycle() -> list[int]:
+            for fid in (70, 120, 130, 110):
+                tx.send(can.Message(arbitration_id=fid, data=bytes(8), is_extended_id=False))
+            got: list[int] = []
+            end = time.monotonic() + 5
+            while 110 not in got and time.monotonic() < end:
+                got += [f.arbitration_id for f in reader.read(0.5)]
+            return got
+
+        assert cycle() == [70, 120, 130, 110]
+        reader.set_ids([70, 110])
+        assert cycle() == [70, 110]
+        with pytest.raises(ValueError, match="must keep the waking ids"):
+            reader.set_ids([70, 120])
+        reader.set_ids([70, 110, 130])
+        assert cycle() == [70, 130, 110]
+        reader.set_ids([70, 110, 120, 130])
+        assert cycle() == [70, 120, 130, 110]

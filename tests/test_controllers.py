@@ -486,6 +486,13 @@ def listing(app: Appliance) -> dict[str, dict[str, Any]]:
     return {c["name"]: c for c in json.loads(r.stdout)["controllers"]}
 
 
+def read_ids(app: Appliance) -> list[int]:
+    """The ids the manager's reader takes from the bus (``Controller.reads``)."""
+    r = ctl(app, "list", "--json")
+    assert r.returncode == 0, r.stderr
+    return list(json.loads(r.stdout)["read_ids"])
+
+
 def joint_frames(frames: list[Any], motor: int) -> list[h2.JointControl]:
     return [
         f
@@ -560,8 +567,13 @@ def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignor
     assert (
         ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 5
     )  # not loaded
+    # the built-ins read positions only: no torque (120) or foot-switch (130) frames are read
+    # for them; a lab controller that does not say what it reads gets both
+    assert read_ids(app) == [h2.JOINT_CONTROL, h2.JOINT_ANGLES]
     r = ctl(app, "load", "lab", "raiser")
     assert r.returncode == 0, r.stderr
+    wait_for(lambda: h2.JOINT_TORQUES in read_ids(app))
+    assert read_ids(app) == [70, 110, 120, 130]
     assert ctl(app, "switch", "--activate", "lab", "--deactivate", "b").returncode == 0
     assert ctl(app, "command", "lab", "r_knee=0").returncode == 0
     frames = collect(mbus, 0.5, {70})
@@ -841,9 +853,12 @@ def test_the_manager_reads_the_bus_only_while_a_controller_is_active(app, mbus) 
         assert ctl(app, "activate", "a").returncode == 0
         assert bus_sockets(pid) == idle + 2
         assert joint_frames(collect(mbus, 0.3, {70}), 2)
-        rx = json.loads(ctl(app, "list", "--json").stdout)["receive"]
-        # >= 4 frames per cycle reach it (110, 120, 130, MACCEPA board 0's on 70)
-        assert rx["frames"] >= 3 * rx["batches"] > 0, rx
+        listed = json.loads(ctl(app, "list", "--json").stdout)
+        rx = listed["receive"]
+        # 2 frames per cycle reach it (110, MACCEPA board 0's on 70; not 120 or 130, which no
+        # loaded controller reads), both in one wake-up
+        assert listed["read_ids"] == [70, 110]
+        assert rx["frames"] >= 1.5 * rx["batches"] > 0, rx
         assert ctl(app, "deactivate", "a").returncode == 0
         wait_for(lambda: bus_sockets(pid) == idle, timeout=5)
         collect(mbus, 0.1)  # frames in flight

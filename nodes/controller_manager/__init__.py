@@ -61,7 +61,10 @@ WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before act
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
 OPERATOR_MODES = ("position", "stiffness", "torque")
-READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_TORQUES, h2.FOOT_SWITCHES, h2.JOINT_CONTROL]
+# Always read: the angle frame starts a cycle; anyone's joint control (a disable or stop from
+# anyone stops that joint's controllers). The others only while a loaded controller reads them.
+READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
+EXTRA_IDS = {"torque": h2.JOINT_TORQUES, "feet": h2.FOOT_SWITCHES}
 # Every change of a controller's state goes out on ACTIVITY_TOPIC at once, and the whole list
 # again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
 # asking. On the board proxy the player's five state queries a second were four Zenoh hops and a
@@ -150,7 +153,9 @@ class ControllerManagerNode(Node):
         self.board_ids = set(boards)
         # Status frames (50/60/70 + board) and duty/stop (80 + board): a stop from anyone.
         mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
-        self.read_ids = sorted({*READ_IDS, *mc_ids})
+        self.base_ids = frozenset({*READ_IDS, *mc_ids})
+        self.read_ids = sorted(self.base_ids)  # the loaded controllers' extras: _update_reads
+        self._reads_version = -1
         self.bus = open_bus(self.ctx.config.can, filters=[])  # sends while the reader is closed
         self.writer = FrameWriter(self.bus, self.ctx.config.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued
@@ -223,6 +228,7 @@ class ControllerManagerNode(Node):
                     "malformed": dict(self.malformed),
                     "reading": self.reader is not None,
                     "reader_opens": self.reader_opens,
+                    "read_ids": self.read_ids,
                     "receive": reader.counters() if reader is not None else None,
                     "watchdog_word": self.arming.counters() if self.arming is not None else None,
                     "loop_cpu": self.clock.counters(),
@@ -402,6 +408,7 @@ class ControllerManagerNode(Node):
                 self.wake.wait(IDLE_BEAT_S)
                 self.wake.clear()
                 continue
+            self._update_reads()
             if self.reader is None:
                 self._open_reader()
             try:
@@ -420,6 +427,26 @@ class ControllerManagerNode(Node):
             if not self.manager.busy():
                 self._close_reader()
             clock.mark("rest")
+
+    def _update_reads(self) -> None:
+        """The frames to read for the loaded controllers (``Controller.reads``), applied to an
+        open reader's kernel filter at once; a kind no longer read is forgotten, so a later
+        reader of it never sees an old value. Between a load and its first frame (one cycle)
+        a new reader of torque sees zeros, as every controller does after the reader opens."""
+        if self.manager.version == self._reads_version:  # an int read: no lock per cycle
+            return
+        self._reads_version, reads = self.manager.reads()
+        ids = sorted(self.base_ids | {EXTRA_IDS[k] for k in reads if k in EXTRA_IDS})
+        if ids == self.read_ids:
+            return
+        self.read_ids = ids
+        if "torque" not in reads:
+            self.torque = (0,) * 6
+        if "feet" not in reads:
+            self.feet = None
+        if self.reader is not None:
+            self.reader.set_ids(ids)
+        self.log.info("read_ids", ids=ids)
 
     def _open_reader(self) -> None:
         # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames

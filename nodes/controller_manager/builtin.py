@@ -35,6 +35,8 @@ from exolink.protocol.h2 import JOINTS
 
 Joint = Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]
 JointList = Annotated[list[Joint], msgspec.Meta(min_length=1, max_length=6)]
+# Controller.reads of every built-in: positions (and the boards it writes) only.
+NO_EXTRA_READS: frozenset[str] = frozenset()
 
 
 def _unique(name: str, joints: list[str]) -> None:
@@ -75,6 +77,7 @@ class ForwardCommand(Controller):
     """Starts from ``initial``, else holds the joints where they are (position) or at zero torque."""
 
     Params = ForwardParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         _unique(self.name, list(self.params.joints))
@@ -125,6 +128,7 @@ class Operator(Controller):
     (a gait trajectory, say) refuses it with that owner named."""
 
     Params = OperatorParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         j, mode = self.params.joint, self.params.mode
@@ -185,6 +189,7 @@ class GaitPattern(Controller):
     cycle skips rows, never bunches them)."""
 
     Params = GaitParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         from exolink.nodes.pattern_player import period_s
@@ -256,6 +261,7 @@ class Pid(Controller):
     """Position -> torque, per joint: u = kp e + I + kd de/dt, I += ki e dt unless saturated."""
 
     Params = PidParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         p = self.params
@@ -321,6 +327,7 @@ class JointTrajectory(Controller):
     positions at activation through every way-point; holds the last point at the end."""
 
     Params = TrajectoryParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         p = self.params
@@ -433,6 +440,7 @@ class MaccepaSetpoint(Controller):
     carries it. Held until the next; the command timeout holds or stops the board."""
 
     Params = MaccepaSetpointParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         p = self.params
@@ -513,6 +521,7 @@ class MaccepaOperator(Controller):
     not named in a command keep this controller's last value (0 before the first)."""
 
     Params = MaccepaOperatorParams
+    reads = NO_EXTRA_READS
 
     def configure(self) -> None:
         p = self.params

@@ -337,6 +337,15 @@ class Manager:
                 return {"name": name, "state": None, "error": f"no controller {name!r}"}
             return {"name": name, "state": slot.state, "error": slot.error}
 
+    def reads(self) -> tuple[int, frozenset[str]]:
+        """(version, what of State beyond positions the loaded controllers read): the node
+        reads torque and foot-switch frames only for those (``Controller.reads``)."""
+        with self.lock:
+            out: frozenset[str] = frozenset()
+            for slot in self.slots.values():
+                out |= type(slot.ctrl).reads
+            return self.version, out
+
     def activity(self) -> tuple[int, list[tuple[str, str, str, str]]]:
         """(version, (name, type, state, error) per controller): what followers are told on
         every change, so they need not ask several times a second."""

@@ -308,6 +308,36 @@ def test_only_the_cycle_end_wakes_a_reader_on_socketcan(vcan0: str) -> None:
         tx.shutdown()
 
 
+def test_set_ids_moves_the_quiet_sockets_kernel_filter(vcan0: str) -> None:
+    """The controller manager's reader after the loaded controllers stop reading torque and
+    foot switches: their frames are no longer queued by the kernel (not dropped in Python:
+    ``filtered`` stays 0), and come back when a controller reads them again."""
+    reader = open_reader(
+        CanConfig(interface="socketcan", channel=vcan0), [70, 110, 120, 130], wake_on=[110]
+    )
+    tx = listener(vcan0)
+
+    def cycle() -> list[int]:
+        for fid in (70, 120, 130, 110):
+            tx.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
+        got: list[int] = []
+        end = time.monotonic() + 5
+        while 110 not in got and time.monotonic() < end:
+            got += [f.arbitration_id for f in reader.read(0.5)]
+        return got
+
+    try:
+        assert cycle() == [70, 120, 130, 110]
+        reader.set_ids([70, 110])
+        assert cycle() == [70, 110]
+        reader.set_ids([70, 110, 120, 130])
+        assert cycle() == [70, 120, 130, 110]
+        assert reader.filtered == 0 and reader.quiet_bus._is_filtered  # type: ignore[union-attr]
+    finally:
+        reader.close()
+        tx.shutdown()
+
+
 def test_a_reader_does_not_read_back_what_its_writer_sends(vcan0: str) -> None:
     """The controller manager's shape: 110 wakes, 70 is read quietly (anyone's joint control,
     the watchdog's disable), and its set-points go out on 70 through ``reader.writer``, which
