@@ -910,4 +910,5 @@ def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> N
     # a new start re-engages the manager (r_knee is switched back on by the pattern)
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: [f for f in joint_frames(collect(mbus, 0.1, {70}), 2) if f.mode == 1])
-    assert listing(app)["pattern"]["state"] == "active"
+    pattern = listing(app)["pattern"]
+    assert pattern["state"] == "active", pattern
