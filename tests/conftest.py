@@ -169,6 +169,18 @@ def bus_sockets(pid: int) -> int:
     return sum(1 for r in rows if r.split()[1].endswith(port) and r.split()[9] in inodes)
 
 
+def read_cycle(tx: can.BusABC, reader: FrameReader, ids: list[int]) -> list[int]:
+    """Send one frame of each of ``ids`` (the last one wakes ``reader``) and read until it
+    comes back: the ids the reader returned for that cycle, in order."""
+    for fid in ids:
+        tx.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
+    got: list[int] = []
+    end = time.monotonic() + 5
+    while ids[-1] not in got and time.monotonic() < end:
+        got += [f.arbitration_id for f in reader.read(0.5)]
+    return got
+
+
 def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.02) -> object:
     end = time.monotonic() + timeout
     while time.monotonic() < end:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import can
 import pytest
+from conftest import read_cycle
 from exolink.canbus import SO_TIMESTAMPNS, BatchReceiver, open_bus, open_reader, sim_source
 from exolink.config import CanConfig
 
@@ -370,13 +371,7 @@ def test_set_ids_changes_what_a_two_socket_reader_returns_without_reopening(grou
     ):
 
         def cycle() -> list[int]:
-            for fid in (70, 120, 130, 110):
-                tx.send(can.Message(arbitration_id=fid, data=bytes(8), is_extended_id=False))
-            got: list[int] = []
-            end = time.monotonic() + 5
-            while 110 not in got and time.monotonic() < end:
-                got += [f.arbitration_id for f in reader.read(0.5)]
-            return got
+            return read_cycle(tx, reader, [70, 120, 130, 110])
 
         assert cycle() == [70, 120, 130, 110]
         reader.set_ids([70, 110])

@@ -15,7 +15,7 @@ from pathlib import Path
 import can
 import pytest
 import yaml
-from conftest import wait_for
+from conftest import read_cycle, wait_for
 from exolink.canbus import FrameWriter, id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
 from exolink.nodes.simulator import SimParams, Simulator
@@ -318,13 +318,7 @@ def test_set_ids_moves_the_quiet_sockets_kernel_filter(vcan0: str) -> None:
     tx = listener(vcan0)
 
     def cycle() -> list[int]:
-        for fid in (70, 120, 130, 110):
-            tx.send(can.Message(arbitration_id=fid, data=bytes(6), is_extended_id=False))
-        got: list[int] = []
-        end = time.monotonic() + 5
-        while 110 not in got and time.monotonic() < end:
-            got += [f.arbitration_id for f in reader.read(0.5)]
-        return got
+        return read_cycle(tx, reader, [70, 120, 130, 110])
 
     try:
         assert cycle() == [70, 120, 130, 110]
