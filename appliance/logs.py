@@ -43,3 +43,13 @@ def setup(node: str, level: str | None = None, json: bool | None = None) -> stru
 
 def get(**bind: Any) -> structlog.BoundLogger:
     return structlog.get_logger().bind(**bind)
+
+
+RARELY_EVERY = 1000
+
+
+def rarely(n: int) -> bool:
+    """Whether the ``n``-th of a kind of junk (a malformed frame, an unreadable sample) is
+    logged: the first and every RARELY_EVERY-th. Each is counted where it arrives; anyone on
+    the network or the bus can send junk, and a flood of it must not flood the journal too."""
+    return n == 1 or n % RARELY_EVERY == 0

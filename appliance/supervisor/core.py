@@ -22,7 +22,7 @@ import msgspec
 import structlog
 import yaml
 import zenoh
-from exolink import cdr, liveness, messaging, roles
+from exolink import cdr, liveness, logs, messaging, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
@@ -309,12 +309,11 @@ class Supervisor:
             node.health = f"{level}: {worst.message}" if level != "ok" else "ok"
 
     def _bad_sample(self, topic: str, exc: ValueError) -> None:
-        """A sample the supervisor cannot read, counted; logged at the first and every 1000th
-        of its kind, as malformed CAN frames are: junk on the network must not flood the
-        journal the supervisor writes."""
+        """A sample the supervisor cannot read, counted by topic and error and logged rarely
+        (``logs.rarely``), as malformed CAN frames are."""
         key = f"{topic}: {exc}"
         n = self.bad_samples[key] = self.bad_samples.get(key, 0) + 1
-        if n == 1 or n % 1000 == 0:
+        if logs.rarely(n):
             self.log.warning("bad_sample", topic=topic, error=str(exc), count=n)
 
     def _on_pattern_state(self, payload: bytes) -> None:

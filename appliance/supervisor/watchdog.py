@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING
 
 import can
 import structlog
+from exolink import logs
 from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
 from exolink.protocol import h2, maccepa
@@ -427,7 +428,7 @@ class Watchdog:
         with self.lock:
             n = self._s.malformed.get(key, 0) + 1
             self._s.malformed[key] = n
-        if n == 1 or n % 1000 == 0:  # a flood of junk must not flood the journal too
+        if logs.rarely(n):
             self.log.warning("malformed_frame", id=msg.arbitration_id, reason=reason, count=n)
 
     def close(self) -> None:

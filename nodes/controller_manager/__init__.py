@@ -39,7 +39,7 @@ from typing import Annotated, Any, Literal
 
 import can
 import msgspec
-from exolink import cdr, roles
+from exolink import cdr, logs, roles
 from exolink.arming import ArmingState
 from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
 from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
@@ -496,7 +496,7 @@ class ControllerManagerNode(Node):
             reason = m.reason
         key = f"{f.arbitration_id} {reason}"
         n = self.malformed[key] = self.malformed.get(key, 0) + 1
-        if n == 1 or n % 1000 == 0:
+        if logs.rarely(n):
             self.log.warning("malformed_frame", id=f.arbitration_id, reason=reason, count=n)
         return d
 
