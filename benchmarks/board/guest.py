@@ -136,6 +136,12 @@ class Guest:
     def ssh(self, remote: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
         return subprocess.run(self.ssh_cmd(remote), capture_output=True, text=True, timeout=timeout)
 
+    def upload(self, local: Path, remote: str) -> None:
+        """Copy a file to the guest (the probe and unit scripts: stdlib-only, run by its
+        python3)."""
+        with open(local) as f:
+            subprocess.run(self.ssh_cmd(f"cat > {remote}"), stdin=f, check=True, timeout=120)
+
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()

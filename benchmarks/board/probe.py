@@ -11,6 +11,7 @@ allowed on, per-CPU idle, CAN link counters and kernel CAN stats.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -107,16 +108,18 @@ def _threads(pid: int) -> tuple[dict[str, int], int]:
     return ticks, switches
 
 
-def process(pid: int) -> dict[str, Any] | None:
+def process(pid: int, pss: bool = True) -> dict[str, Any] | None:
+    """``pss``: read smaps_rollup too (a walk of the process's page tables under its mmap lock:
+    slow on the proxy, so only the window's end snapshot, which reports memory, reads it)."""
     try:
         fields = _read(f"/proc/{pid}/stat").rsplit(")", 1)[1].split()
         status = _read(f"/proc/{pid}/status")
     except OSError:
         return None
-    try:
-        rollup = _read(f"/proc/{pid}/smaps_rollup")
-    except OSError:
-        rollup = ""
+    rollup = ""
+    if pss:
+        with contextlib.suppress(OSError):
+            rollup = _read(f"/proc/{pid}/smaps_rollup")
     thread_ticks, switches = _threads(pid)
     return {
         "pid": pid,
@@ -194,10 +197,10 @@ def calibrate() -> float:
     return round((time.thread_time() - t0) * 1e3, 2)
 
 
-def snapshot(pids: dict[str, int], channel: str) -> dict[str, Any]:
+def snapshot(pids: dict[str, int], channel: str, pss: bool = True) -> dict[str, Any]:
     return {
         "t": time.monotonic(),
-        "procs": {name: process(pid) for name, pid in pids.items()},
+        "procs": {name: process(pid, pss) for name, pid in pids.items()},
         "cpu": cpu_times(),
         "link": link(channel),
         "can_stats": can_stats(),
@@ -272,6 +275,13 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--channel", default="", help="CAN link to count frames on (vcan0)")
     p.add_argument("--nodes", default="", help="configured node names, comma-separated")
+    p.add_argument(
+        "--go",
+        action="store_true",
+        help="print PROBE_READY once started and calibrated, and begin the window only when a "
+        "line comes on stdin: the interpreter's start and the calibration (seconds of CPU 1 "
+        "on the proxy) then happen before the load, not at the window's edge",
+    )
     args = p.parse_args()
     sup = args.pid if args.pid else _systemd_main_pid(args.unit)
     if not sup:
@@ -280,7 +290,11 @@ def main() -> int:
     nodes = [n for n in args.nodes.split(",") if n]
     pids = find_appliance(sup, nodes)
     calibration_ms = calibrate()
-    first = snapshot(pids, args.channel)
+    if args.go:
+        sys.stdout.write("PROBE_READY\n")
+        sys.stdout.flush()
+        sys.stdin.readline()
+    first = snapshot(pids, args.channel, pss=False)
     sys.stdout.write(f"PROBE_T0 {json.dumps(sorted(pids))}\n")
     sys.stdout.flush()
     time.sleep(args.seconds)
