@@ -91,6 +91,8 @@ def table(result: dict[str, Any]) -> str:
     row("calibration (CPU ms, fixed Python loop)", *pair("window", "probe", "calibration_ms"))
     # units.py on CPU 0 after the window: what the appliance's CPU is made of on each machine
     row("unit: Python loop (CPU ms)", *pair("units", "python_loop_ms"))
+    row("unit: getppid() (CPU us per call)", *pair("units", "syscall_getppid_us"))
+    row("unit: thread_time() (CPU us per call)", *pair("units", "syscall_thread_time_us"))
     row("unit: 100 Hz sleep-wake (CPU us)", *pair("units", "wake_us"))
     for key, label in (
         ("", "one by one"),

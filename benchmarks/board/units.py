@@ -1,6 +1,6 @@
-"""Unit costs of a machine, the ones the appliance's CPU is made of: a Python loop, a wake-up, and a
-Zenoh sample through the board's router. Self-contained (stdlib + zenoh): bench-board runs it in
-the guest and natively; on a real BeagleBone with exolink installed,
+"""Unit costs of a machine, the ones the appliance's CPU is made of: a Python loop, a system call,
+a wake-up, and a Zenoh sample through the board's router. Self-contained (stdlib + zenoh):
+bench-board runs it in the guest and natively; on a real BeagleBone with exolink installed,
 ``/opt/exolink/bin/python units.py`` gives the figures to scale a proxy run by.
 
 Why: the proxy (qemu TCG) is a slow CPU but not a uniformly slow one. Measured there against this
@@ -39,6 +39,20 @@ def python_loop_ms() -> float:
     for i in range(LOOPS):
         acc += i * i % 7
     return round((time.thread_time() - t0) * 1e3, 2)
+
+
+def syscall_us(call: str) -> float:
+    """CPU us per system call that does next to nothing in the kernel: ``getppid``, and
+    ``thread_time`` (clock_gettime of the thread's CPU clock, which no vDSO serves), the call
+    the phase clock and the controller manager's budget make per controller update. TCG
+    emulates the kernel's entry, exit and page-table work instruction by instruction, so the
+    proxy may charge a call far more, relative to Python, than an A8 does (a few us there)."""
+    fn = {"getppid": os.getppid, "thread_time": time.thread_time}[call]
+    n = LOOPS // 10
+    t0 = time.thread_time()
+    for _ in range(n):
+        fn()
+    return round((time.thread_time() - t0) * 1e6 / n, 2)
 
 
 def wake_us(seconds: float) -> float:
@@ -168,6 +182,8 @@ def main() -> int:
     out = {
         "cpu": args.cpu,
         "python_loop_ms": python_loop_ms(),
+        "syscall_getppid_us": syscall_us("getppid"),
+        "syscall_thread_time_us": syscall_us("thread_time"),
         "wake_us": wake_us(args.seconds),
         "zenoh_us_per_sample": zenoh_hop(args.seconds, 1),
         "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
