@@ -6,10 +6,12 @@ stays light because every plugin imports it.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import msgspec
 import structlog
@@ -20,6 +22,11 @@ from exolink.liveness import Beater
 
 HEARTBEAT_PERIOD_S = 0.1  # the heartbeat thread's shortest period (see beat_period_s)
 TELEMETRY_PERIOD_S = 1.0  # the heartbeat on Zenoh: for people, not the watchdog
+R = TypeVar("R")
+# How an owned resource is released, in this order of preference: our readers, publishers and
+# arming views close; a Zenoh declaration undeclares; a python-can bus shuts down; a server
+# (Foxglove's) stops.
+_RELEASE = ("close", "undeclare", "shutdown", "stop")
 
 
 def beat_period_s(deadline_s: float) -> float:
@@ -50,9 +57,12 @@ class NodeContext:
 class Node:
     """Subclass, set ``Params`` to a msgspec Struct, implement ``run``.
 
-    ``configure`` opens what the node needs (buses, publishers, queryables) and may raise to
-    refuse to start; ``run`` loops until ``stop`` is set, calling ``beat()`` at least every
-    ``stall_s``; ``shutdown`` releases everything and must not raise.
+    ``configure`` opens what the node needs (buses, publishers, queryables) through ``own``
+    and may raise to refuse to start; ``run`` loops until ``stop`` is set, calling ``beat()``
+    at least every ``stall_s``; ``shutdown`` does what must happen while everything is still
+    open (a motion node's safe action) and must not raise. The runtime then releases what the
+    node owns, last opened first, also when ``configure`` raised half way: no node checks
+    which of its attributes exist.
     """
 
     Params: ClassVar[type[msgspec.Struct]] = NoParams
@@ -67,6 +77,27 @@ class Node:
         self.log = ctx.log
         self._last_beat = time.monotonic()
         self.liveness = Beater(None)  # the runtime connects it to the supervisor's pipe
+        self._owned = contextlib.ExitStack()
+
+    def own(self, resource: R) -> R:
+        """``resource``, released by the runtime after ``shutdown`` (``release``)."""
+        for method in _RELEASE:
+            fn = getattr(resource, method, None)
+            if callable(fn):
+                self._owned.callback(self._release_one, fn, type(resource).__name__)
+                return resource
+        raise TypeError(f"{type(resource).__name__} has none of {', '.join(_RELEASE)}")
+
+    def _release_one(self, fn: Callable[[], Any], what: str) -> None:
+        """One failed release must not keep the others open."""
+        try:
+            fn()
+        except Exception as exc:  # logged: the rest are still released
+            self.log.warning("release_failed", resource=what, error=str(exc))
+
+    def release(self) -> None:
+        """Release everything ``own`` was given, last first (idempotent)."""
+        self._owned.close()
 
     @property
     def name(self) -> str:

@@ -109,7 +109,11 @@ class NodeRunner:
 
     def run(self) -> int:
         """Blocking: configure, run, shut down. Returns the process exit code."""
-        self.node.configure()
+        try:
+            self.node.configure()
+        except BaseException:
+            self.node.release()  # what it opened before refusing
+            raise
         self._decls.append(
             self.session.liveliness().declare_token(self.msg.mgmt("nodes", self.name, "alive"))
         )
@@ -130,6 +134,7 @@ class NodeRunner:
         finally:
             self.stop.set()
             self.node.shutdown()
+            self.node.release()
             hb.join(1.0)
             for d in self._decls:
                 d.undeclare()

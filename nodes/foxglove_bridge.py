@@ -51,15 +51,19 @@ class FoxgloveBridge(Node):
         ns = m.namespace.strip("/")
         self.prefix = f"/{ns}/" if ns else "/"  # live topics only (replays have their own)
         self.wanted = {self.prefix + t.strip("/") for t in p.topics}
-        self.server = foxglove.start_server(
-            name=f"exolink {self.ctx.config.device}",
-            host=p.host,
-            port=p.port,
-            context=self.context,
-            server_listener=self,
+        self.server = self.own(
+            foxglove.start_server(
+                name=f"exolink {self.ctx.config.device}",
+                host=p.host,
+                port=p.port,
+                context=self.context,
+                server_listener=self,
+            )
         )
-        self.graph = self.ctx.session.liveliness().declare_subscriber(
-            f"{rosgraph.ADMIN_SPACE}/{m.domain_id}/**", self._on_token, history=True
+        self.own(
+            self.ctx.session.liveliness().declare_subscriber(
+                f"{rosgraph.ADMIN_SPACE}/{m.domain_id}/**", self._on_token, history=True
+            )
         )
         self.log.info("foxglove_bridge_listening", url=f"ws://{p.host}:{self.server.port}")
 
@@ -142,11 +146,7 @@ class FoxgloveBridge(Node):
             self.beat()
 
     def shutdown(self) -> None:
-        if hasattr(self, "graph"):
-            self.graph.undeclare()
-        with getattr(self, "_lock", threading.Lock()):
-            for sub, _clients in getattr(self, "subs", {}).values():
+        with self._lock:  # declared per client subscription, not owned
+            for sub, _clients in self.subs.values():
                 sub.undeclare()
             self.subs = {}
-        if hasattr(self, "server"):
-            self.server.stop()

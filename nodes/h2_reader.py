@@ -100,24 +100,30 @@ class H2Reader(Node):
         m = self.ctx.messaging
         wake = self.params.wake_on_id
         self.cadence = Cadence(h2.PERIOD_S, self.params.cycles_per_read)
-        self.reader = open_reader(
-            self.ctx.config.can,
-            h2.DATA_IDS,
-            every_s=self.cadence.every_s,
-            wake_on=[wake] if wake else None,
-            stale_s=self.params.stale_after_s,
+        self.reader = self.own(
+            open_reader(
+                self.ctx.config.can,
+                h2.DATA_IDS,
+                every_s=self.cadence.every_s,
+                wake_on=[wake] if wake else None,
+                stale_s=self.params.stale_after_s,
+            )
         )
         self.bus = self.reader.bus
         # Read in batches, joint_states reaches the recorder as one bundle per read
-        self.pub_js = m.publisher(
-            "joint_states", JOINT_STATE, raw=True, bundled=self.params.cycles_per_read > 1
+        self.pub_js = self.own(
+            m.publisher(
+                "joint_states", JOINT_STATE, raw=True, bundled=self.params.cycles_per_read > 1
+            )
         )
-        self.pub_fs = m.publisher("foot_switches", FOOT_SWITCHES, raw=True)
-        self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
+        self.pub_fs = self.own(m.publisher("foot_switches", FOOT_SWITCHES, raw=True))
+        self.pub_diag = self.own(
+            m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
+        )
         self.stats = ReaderStats()
         self.gaps = GapCounter(h2.PERIOD_S)
         self.clock = PhaseClock()  # where the loop's CPU goes, by phase (stats: loop_cpu)
-        self._q = m.serve(("nodes", self.name, "stats"), lambda _req: self._stats())
+        self.own(m.serve(("nodes", self.name, "stats"), lambda _req: self._stats()))
         self.js = cdr.JointStateCdr(h2.JOINTS)
         self._reported_out_of_range = 0
         self._reported_dropped = 0
@@ -284,11 +290,3 @@ class H2Reader(Node):
                 self.stats.stream_restarts += 1
                 self.bus.send(h2.encode_stream(True))
             clock.mark("rest")
-
-    def shutdown(self) -> None:
-        for name in ("_q", "pub_js", "pub_fs", "pub_diag"):
-            obj = getattr(self, name, None)
-            if obj is not None:
-                obj.undeclare() if name == "_q" else obj.close()
-        if hasattr(self, "reader"):
-            self.reader.close()

@@ -68,13 +68,13 @@ class H2Sender(Node):
         ]
         # What the H2 enforces now: the configured limits, until an operator sends stricter ones.
         self.h2_min, self.h2_max = list(p.min_angles), list(p.max_angles)
-        self.bus = open_bus(self.ctx.config.can, filters=[])
+        self.bus = self.own(open_bus(self.ctx.config.can, filters=[]))
         self.lock = threading.Lock()
-        self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
-        self.pub = self.ctx.messaging.publisher("joint_commands", JOINT_COMMAND, raw=True)
+        self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
+        self.pub = self.own(self.ctx.messaging.publisher("joint_commands", JOINT_COMMAND, raw=True))
         self.sent = 0
         self.refused = 0
-        self._q = self.ctx.messaging.serve(("h2", "command"), self.on_command, roles.OPERATOR)
+        self.own(self.ctx.messaging.serve(("h2", "command"), self.on_command, roles.OPERATOR))
         if p.send_limits_on_start:
             self._send(self.limit_frames)
 
@@ -228,14 +228,3 @@ class H2Sender(Node):
     def run(self, stop: threading.Event) -> None:
         while not stop.wait(0.1):
             self.beat()
-
-    def shutdown(self) -> None:
-        for obj in (getattr(self, "_q", None),):
-            if obj is not None:
-                obj.undeclare()
-        if getattr(self, "arming", None) is not None:
-            self.arming.close()  # type: ignore[union-attr]
-        if hasattr(self, "pub"):
-            self.pub.close()
-        if hasattr(self, "bus"):
-            self.bus.shutdown()

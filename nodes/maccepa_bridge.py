@@ -102,25 +102,28 @@ class MaccepaBridge(Node):
         m = self.ctx.messaging
         base, boards = self.params.wake_on_base, self.params.boards
         self.cadence = Cadence(BOARD_PERIOD_S, self.params.cycles_per_read)
-        self.reader = open_reader(
-            self.ctx.config.can,
-            maccepa.data_ids(boards),
-            every_s=self.cadence.every_s,
-            wake_on=[base + b for b in boards] if base else None,
-            stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
+        self.reader = self.own(
+            open_reader(
+                self.ctx.config.can,
+                maccepa.data_ids(boards),
+                every_s=self.cadence.every_s,
+                wake_on=[base + b for b in boards] if base else None,
+                stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
+            )
         )
         self.bus = self.reader.bus
         bundled = self.params.cycles_per_read > 1  # a read's states: one bundle for the recorder
         self.pubs = {
-            b: m.publisher(f"maccepa/b{b}/state", STATE, raw=True, bundled=bundled) for b in boards
+            b: self.own(m.publisher(f"maccepa/b{b}/state", STATE, raw=True, bundled=bundled))
+            for b in boards
         }
         self.cycles = {b: BoardCycle() for b in boards}
         self.template = cdr.MaccepaStateCdr()
         self.out = messaging.Outbox()  # a read's samples go out together, after its frames
-        self.arming = ArmingState(m) if self.params.require_armed else None
+        self.arming = self.own(ArmingState(m)) if self.params.require_armed else None
         self.malformed = 0
         self.lock = threading.Lock()
-        self._q = m.serve("maccepa", self.on_command, roles.OPERATOR)
+        self.own(m.serve("maccepa", self.on_command, roles.OPERATOR))
 
     def build(self, req: dict[str, Any]) -> list[can.Message]:
         board, kind = req.get("board"), req.get("kind")
@@ -204,13 +207,3 @@ class MaccepaBridge(Node):
                 self.handle(frame)
             self.out.flush()
             timeout = self.cadence.timeout(bool(frames))
-
-    def shutdown(self) -> None:
-        if hasattr(self, "_q"):
-            self._q.undeclare()
-        if getattr(self, "arming", None) is not None:
-            self.arming.close()
-        for p in getattr(self, "pubs", {}).values():
-            p.close()
-        if hasattr(self, "reader"):
-            self.reader.close()

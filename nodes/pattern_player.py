@@ -178,9 +178,9 @@ class PatternPlayer(Node):
     def configure(self) -> None:
         p = self.params
         self.pattern = load_pattern(p.pattern, p.min_angles, p.max_angles)
-        self.bus = open_bus(self.ctx.config.can, filters=[])  # sends only; see _watch_bus
+        self.bus = self.own(open_bus(self.ctx.config.can, filters=[]))  # sends only; _watch_bus
         self.watch: FrameReader | None = None
-        self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
+        self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
         self.lock = threading.RLock()
         self.wake = threading.Event()
         self.state, self.reason, self.index = "stopped", "", 0
@@ -196,15 +196,17 @@ class PatternPlayer(Node):
         self._starts = 0
         self._periodic_t0, self._periodic_i0 = time.monotonic(), 0
         self.sent = 0
-        self.pub = self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True)
+        self.pub = self.own(self.ctx.messaging.publisher("pattern_state", STATE_TYPE, raw=True))
         self._activity = threading.Event()  # the manager changed a controller's state
         self._disengage_due = False  # stopped here without the manager knowing: tell it
         if self.timing == "manager":
-            self._activity_sub = self.ctx.messaging.subscribe_raw(
-                ACTIVITY_TOPIC, ACTIVITY_TYPE, lambda _payload: self._activity.set()
+            self.own(
+                self.ctx.messaging.subscribe_raw(
+                    ACTIVITY_TOPIC, ACTIVITY_TYPE, lambda _payload: self._activity.set()
+                )
             )
-        self._q = self.ctx.messaging.serve(
-            "pattern", self.on_command, roles.status_or(roles.OPERATOR)
+        self.own(
+            self.ctx.messaging.serve("pattern", self.on_command, roles.status_or(roles.OPERATOR))
         )
 
     # --- commands -------------------------------------------------------------------------
@@ -630,16 +632,7 @@ class PatternPlayer(Node):
 
     def shutdown(self) -> None:
         with self.lock:
-            if getattr(self, "task", None) is not None:
+            if self.task is not None:
                 self.task.stop()
-        for name in ("_q", "_activity_sub"):
-            if hasattr(self, name):
-                getattr(self, name).undeclare()
-        if getattr(self, "arming", None) is not None:
-            self.arming.close()
-        if hasattr(self, "pub"):
-            self.pub.close()
-        if getattr(self, "watch", None) is not None:
-            self.watch.close()
-        if hasattr(self, "bus"):
-            self.bus.shutdown()
+            if self.watch is not None:  # opened per start, not owned
+                self.watch.close()

@@ -292,8 +292,10 @@ class Recorder(Node):
             messaging.topic_selector(m.domain_id, m.namespace, t) for t in self.params.topics
         ]
         self.inbox: Inbox | None = None  # while recording (see _subscribe)
-        self.pub_diag = m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
-        self._q = m.serve("record", self.on_command, roles.status_or(roles.OPERATOR))
+        self.pub_diag = self.own(
+            m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
+        )
+        self.own(m.serve("record", self.on_command, roles.status_or(roles.OPERATOR)))
         if self.params.autostart:
             self.start_recording(dict(self.params.labels))
 
@@ -621,15 +623,11 @@ class Recorder(Node):
         self.pub_diag.put(payload, now)
 
     def shutdown(self) -> None:
-        if getattr(self, "file", None) is not None:
+        if self.file is not None:
             try:  # what the inbox still holds goes into the file
                 self._write_all(self._take(float("inf")))
                 self._close()
             except OSError as exc:
                 self.log.error("recording_close_failed", error=str(exc))
-        if getattr(self, "inbox", None) is not None:
-            self.inbox.close()  # type: ignore[union-attr]
-        if hasattr(self, "_q"):
-            self._q.undeclare()
-        if hasattr(self, "pub_diag"):
-            self.pub_diag.close()
+        if self.inbox is not None:  # opened per recording, not owned
+            self.inbox.close()

@@ -118,13 +118,15 @@ class TimingMonitor(Node):
 
     def configure(self) -> None:
         # one wake per READ_EVERY_S, not one per frame (see READ_EVERY_S)
-        self.reader = open_reader(
-            self.ctx.config.can, self.params.ids, every_s=READ_EVERY_S, rcvbuf=RCVBUF_BYTES
+        self.reader = self.own(
+            open_reader(
+                self.ctx.config.can, self.params.ids, every_s=READ_EVERY_S, rcvbuf=RCVBUF_BYTES
+            )
         )
         self.bus = self.reader.bus
         self.lock = threading.Lock()
         self.stamps = {fid: StampRing() for fid in self.params.ids}
-        self._q = self.ctx.messaging.serve("timing", self.on_query)
+        self.own(self.ctx.messaging.serve("timing", self.on_query))
 
     def _key_stamps(self, fid: int, dlc: int | None, byte0: int | None) -> list[float]:
         with self.lock:
@@ -161,9 +163,3 @@ class TimingMonitor(Node):
                     ring = self.stamps.get(msg.arbitration_id)
                     if ring is not None:  # the kernel filter lets only these through
                         ring.add(msg.timestamp, msg.data)
-
-    def shutdown(self) -> None:
-        if hasattr(self, "_q"):
-            self._q.undeclare()
-        if hasattr(self, "bus"):
-            self.bus.shutdown()

@@ -8,6 +8,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+import can
 import msgspec
 import pytest
 import zenoh
@@ -183,3 +184,50 @@ def test_phase_clock_charges_cpu_to_the_phase_that_used_it_not_to_a_sleep() -> N
     assert phaseclock.window(c, c) == {"iterations": 0, "us_per_iteration": {}}
     with pytest.raises(ValueError, match="every must be >= 1"):
         phaseclock.PhaseClock(every=0)
+
+
+class Released:
+    """Records when it is released (the order is what is checked); ``fails``: its close raises."""
+
+    def __init__(self, log: list[str], name: str, fails: bool = False) -> None:
+        self.log, self.name, self.fails = log, name, fails
+
+    def close(self) -> None:
+        self.log.append(self.name)
+        if self.fails:
+            raise OSError(f"{self.name} would not close")
+
+
+class RefusesHalfWay(Node):
+    """Opens a real bus and two more resources, one whose release fails, then refuses to start."""
+
+    def configure(self) -> None:
+        self.order: list[str] = []
+        self.bus = self.own(can.Bus(interface="virtual", channel="own-test"))
+        self.own(Released(self.order, "first"))
+        self.own(Released(self.order, "breaks", fails=True))
+        self.own(Released(self.order, "last"))
+        raise ValueError("refused after opening")
+
+
+def test_what_a_node_owns_is_released_last_first_even_when_configure_refuses(
+    session: zenoh.Session,
+) -> None:
+    cfg = config.parse(config.bundled("sim").read_text())
+    runner = NodeRunner(RefusesHalfWay, cfg, "h2_reader", session)
+    with capture_logs() as logs, pytest.raises(ValueError, match="refused after opening"):
+        runner.run()
+    node = runner.node
+    assert node.order == ["last", "breaks", "first"]  # type: ignore[attr-defined]
+    assert node.bus._is_shutdown  # type: ignore[attr-defined]  # python-can's own flag
+    failed = [e for e in logs if e["event"] == "release_failed"]
+    assert [(e["resource"], e["error"]) for e in failed] == [("Released", "breaks would not close")]
+    node.release()  # again: nothing is released twice
+    assert node.order == ["last", "breaks", "first"]  # type: ignore[attr-defined]
+
+
+def test_own_refuses_what_it_could_not_release(session: zenoh.Session) -> None:
+    cfg = config.parse(config.bundled("sim").read_text())
+    node = NodeRunner(StallsOnce, cfg, "h2_reader", session).node
+    with pytest.raises(TypeError, match="int has none of close, undeclare, shutdown, stop"):
+        node.own(42)

@@ -156,7 +156,7 @@ class ControllerManagerNode(Node):
         self.base_ids = frozenset({*READ_IDS, *mc_ids})
         self.read_ids = sorted(self.base_ids)  # the loaded controllers' extras: _update_reads
         self._reads_version = -1
-        self.bus = open_bus(self.ctx.config.can, filters=[])  # sends while the reader is closed
+        self.bus = self.own(open_bus(self.ctx.config.can, filters=[]))  # sends, reader closed
         self.writer = FrameWriter(self.bus, self.ctx.config.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued
         self.opened = 0.0  # monotonic time the reader opened
@@ -166,7 +166,7 @@ class ControllerManagerNode(Node):
         self.malformed: dict[str, int] = {}  # "<id> <reason>" -> count
         self.mc_written = 0
         self.mc_safe_sent = 0
-        self.arming = ArmingState(self.ctx.messaging) if p.require_armed else None
+        self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
         self.written = 0
         self.safe_sent = 0
         self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
@@ -174,11 +174,13 @@ class ControllerManagerNode(Node):
         # one reads the thread's CPU clock 7 times, each a system call; at 100 cycles/s that
         # is still ~190 samples a minute.
         self.clock = PhaseClock(every=32)
-        self.pub_activity = self.ctx.messaging.publisher(ACTIVITY_TOPIC, ACTIVITY_TYPE, raw=True)
+        self.pub_activity = self.own(
+            self.ctx.messaging.publisher(ACTIVITY_TOPIC, ACTIVITY_TYPE, raw=True)
+        )
         self._told, self._told_at = -1, 0.0
         self._tell_lock = threading.Lock()
         self._maybe_tell()  # the controllers loaded from params
-        self._q = self.ctx.messaging.serve("controllers", self.on_request, self._needs)
+        self.own(self.ctx.messaging.serve("controllers", self.on_request, self._needs))
 
     @staticmethod
     def _needs(request: dict[str, Any]) -> str:
@@ -630,18 +632,8 @@ class ControllerManagerNode(Node):
             self.log.warning("controllers_stopped_h2_silent", reason=reason)
 
     def shutdown(self) -> None:
-        if hasattr(self, "manager"):
-            out = self.manager.stop_all("controller manager shutting down")
-            if hasattr(self, "bus"):
-                self._safe(out)
-        if hasattr(self, "_q"):
-            self._q.undeclare()
-        if hasattr(self, "pub_activity"):
-            self._maybe_tell()  # every controller stopped: followers hear it before we go
-            self.pub_activity.close()
-        if getattr(self, "arming", None) is not None:
-            self.arming.close()  # type: ignore[union-attr]
-        if getattr(self, "reader", None) is not None:
-            self._close_reader()
-        if hasattr(self, "bus"):
-            self.bus.shutdown()
+        """The safe action while the bus is open (the runtime releases it next)."""
+        out = self.manager.stop_all("controller manager shutting down")
+        self._safe(out)
+        self._maybe_tell()  # every controller stopped: followers hear it before we go
+        self._close_reader()  # opened while a controller is active, not owned

@@ -306,9 +306,9 @@ class SimulatorNode(Node):
     stall_s = 1.0
 
     def configure(self) -> None:
-        self.reader = open_reader(self.ctx.config.can, Simulator.command_ids(self.params))
+        self.reader = self.own(open_reader(self.ctx.config.can, Simulator.command_ids(self.params)))
         self.sim = Simulator(self.reader.bus, self.params, self.reader)
-        self._q = self.ctx.messaging.serve(("sim", "fault"), self._on_fault, roles.ADMIN)
+        self.own(self.ctx.messaging.serve(("sim", "fault"), self._on_fault, roles.ADMIN))
 
     def _on_fault(self, req: dict[str, Any]) -> dict[str, Any]:
         try:
@@ -320,9 +320,3 @@ class SimulatorNode(Node):
 
     def run(self, stop: threading.Event) -> None:
         self.sim.run(stop, self.beat)
-
-    def shutdown(self) -> None:
-        if hasattr(self, "_q"):
-            self._q.undeclare()
-        if hasattr(self, "reader"):
-            self.reader.close()
