@@ -241,6 +241,63 @@ def decode_bundle(raw: bytes) -> tuple[bytes, list[tuple[int, int, bytes]]]:
     return gid, items
 
 
+OnMessage = Callable[[str, int, int, bytes], None]  # data key, sequence number, source ns, CDR
+
+
+class MessageSubscription:
+    """A laptop's subscription to a topic's messages, each handed to ``on_message`` with its
+    data key, sequence number, source time and CDR bytes.
+
+    A bundled topic (one with a bundle token: joint_states and the MACCEPA states when the
+    board reads in batches) is taken as its bundles, one sample per batch: the publisher then
+    puts its messages one by one only for subscribers of the topic's own key (a ROS 2 tool,
+    Foxglove), and on the board proxy each such sample cost ~0.5 ms of the one core in the
+    publisher and as much in the router, 100 a second for joint_states. The messages are the
+    same (CDR, sequence numbers, stamps); they arrive in bursts, one per batch (up to 90 ms
+    later at the board's cadence, as the one-by-one samples of that batch already do).
+    Whether a topic is bundled is asked once, at subscription: a publisher that appears later
+    is taken as it then is only by a new subscription. ``bundles=False``: one by one always.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        device: str,
+        selector: str,
+        on_message: OnMessage,
+        bundles: bool = True,
+        ask_s: float = 3.0,
+    ) -> None:
+        self._on, self._device = on_message, device
+        self.malformed = 0  # bundles that did not decode (anything may arrive)
+        where = bundle_key(device, selector)
+        self.bundled = bundles and any(
+            r.ok is not None for r in session.liveliness().get(where, timeout=ask_s)
+        )
+        if self.bundled:
+            self._sub = session.declare_subscriber(where, self._bundle)
+        else:
+            self._sub = session.declare_subscriber(selector, self._single)
+
+    def _single(self, sample: zenoh.Sample) -> None:
+        att = sample.attachment
+        seq, ns, _gid = decode_attachment(att.to_bytes()) if att is not None else (0, 0, b"")
+        self._on(str(sample.key_expr), seq, ns, sample.payload.to_bytes())
+
+    def _bundle(self, sample: zenoh.Sample) -> None:
+        try:
+            key = bundled_data_key(self._device, str(sample.key_expr))
+            _gid, items = decode_bundle(sample.payload.to_bytes())
+        except ValueError:
+            self.malformed += 1
+            return
+        for seq, ns, payload in items:
+            self._on(key, seq, ns, payload)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
 def serialize(msg: Any, typename: str) -> bytes:
     return bytes(typestore().serialize_cdr(msg, typename))
 

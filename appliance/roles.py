@@ -94,6 +94,7 @@ def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> d
 def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
     """Zenoh's ``access_control`` section for the supervisor's router."""
     data = [f"{domain_id}/**"]
+    bundles = [f"exolink/*/bundle/{domain_id}/**"]  # messaging.bundle_key of a data key
     graph = [ROS_GRAPH.format(domain=domain_id)]
 
     def ros_keys(names: dict[str, str], role: str) -> list[str]:
@@ -131,6 +132,16 @@ def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
             graph,
         ),
         _rule("see ros graph", ["liveliness_token", "reply"], ["egress"], graph),
+        # A bundled topic's batches (exolink.messaging bundle_key): the same data as its key,
+        # one sample per batch, for a laptop client (messaging.MessageSubscription). Only the
+        # appliance puts there.
+        _rule(
+            "read bundles",
+            ["declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"],
+            ["ingress"],
+            bundles,
+        ),
+        _rule("receive bundles", ["put", "liveliness_token", "reply"], ["egress"], bundles),
         _rule("logs", ["declare_subscriber"], ["ingress"], ["exolink/*/log/*"]),
         _rule("receive logs", ["put"], ["egress"], ["exolink/*/log/*"]),
     ]
@@ -149,6 +160,7 @@ def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
             _rule(f"{role} ros2 answers", ["reply", "declare_queryable"], ["egress"], services),
         ]
         granted = [f"{role} queries", f"{role} replies", "read data", "receive data"]
+        granted += ["read bundles", "receive bundles"]
         granted += ["see nodes", "node tokens", "ros graph", "see ros graph"]
         granted += [f"{role} ros2 calls", f"{role} ros2 answers"]
         if topics:  # put, and the appliance's subscription announced (a publisher sends

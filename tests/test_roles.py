@@ -41,15 +41,23 @@ def board_logins(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
     return board_file, logins
 
 
-@pytest.fixture
-def guarded(tmp_path: Path, write_config, spawn) -> tuple[Appliance, Path, dict[str, Path]]:  # type: ignore[no-untyped-def]
+def _guarded(tmp_path: Path, write_config, spawn, reader_cycles: int = 1):  # type: ignore[no-untyped-def]
+    """The sim appliance with every login; ``reader_cycles``: the h2 reader's cycles_per_read
+    (more than 1: joint_states is bundled, as on the board)."""
     board_file, logins = board_logins(tmp_path)
     nodes = yaml.safe_load(bundled("sim").read_text())["nodes"]
     for n in nodes:
         if n["name"] == "recorder":
             n["params"]["directory"] = str(tmp_path / "rec")
+        if n["plugin"] == "h2_reader":
+            n.setdefault("params", {})["cycles_per_read"] = reader_cycles
     cfg = write_config(nodes=nodes, zenoh={"config_file": str(board_file)})
     return Appliance(cfg, spawn, login=logins["admin"]), board_file, logins
+
+
+@pytest.fixture
+def guarded(tmp_path: Path, write_config, spawn) -> tuple[Appliance, Path, dict[str, Path]]:  # type: ignore[no-untyped-def]
+    return _guarded(tmp_path, write_config, spawn)  # type: ignore[no-any-return]
 
 
 class Inbox:
@@ -289,4 +297,54 @@ def test_ros2_services_and_topics_follow_the_roles(guarded, monkeypatch) -> None
         if sdk.ZenohSession._instance is not None:
             sdk.ZenohSession._instance.close()
             sdk.ZenohSession._instance = None
+        inside.close()
+
+
+def test_an_observer_reads_a_bundled_topic_as_bundles_and_cannot_forge_one(
+    tmp_path: Path,
+    write_config,  # type: ignore[no-untyped-def]
+    spawn,  # type: ignore[no-untyped-def]
+) -> None:
+    """The board's joint_states (read 4 cycles at a time) through an observer's login: every
+    message, in order, from the bundles, and the reader puts none one by one for it; a
+    bundle the observer puts reaches nobody."""
+    app, board_file, logins = _guarded(tmp_path, write_config, spawn, reader_cycles=4)
+    laptop = messaging.open_client_session(app.at, str(logins["observer"]))
+    inside = messaging.open_client_session(app.at, str(board_file))
+    got: list[tuple[str, int, int, bytes]] = []
+    try:
+        wait_for(lambda: app.node("h2_reader")["state"] == "running", timeout=20)
+        selector = messaging.topic_selector(0, "h2", "joint_states")
+        sub = messaging.MessageSubscription(
+            laptop, DEVICE, selector, lambda *m: got.append(m), ask_s=5
+        )
+        assert sub.bundled
+        wait_for(lambda: len(got) >= 40, timeout=10)
+        seqs = [m[1] for m in got]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # none missing, in order
+        assert all(k.startswith("0/h2/joint_states/") for k, *_ in got)
+        msg = messaging.deserialize(got[-1][3], "sensor_msgs/msg/JointState")
+        assert len(msg.position) == 6
+        stats = messaging.request(inside, messaging.mgmt_key(DEVICE, "nodes", "h2_reader", "stats"))
+        assert stats["joint_states_out"]["sent"] == 0, stats["joint_states_out"]
+        assert stats["joint_states_out"]["bundles"] > 0
+        # `exolink echo` takes the bundles too: messages, and still nothing one by one.
+        r = app.cli("echo", "joint_states", "-n", "5", "--json", login=logins["observer"])
+        assert r.returncode == 0 and r.stdout.count('"position"') == 5, r.stderr
+        stats = messaging.request(inside, messaging.mgmt_key(DEVICE, "nodes", "h2_reader", "stats"))
+        assert stats["joint_states_out"]["sent"] == 0, stats["joint_states_out"]
+
+        # Forged: an observer's bundle never reaches the appliance's recorder (or anyone).
+        seen = Inbox(inside, messaging.bundle_selector(DEVICE))
+        wait_for(lambda: seen.payloads(), timeout=5)  # the reader's own bundles do arrive
+        forged = messaging.encode_bundle(bytes(16), [(1, 1, b"forged")])
+        key = messaging.bundle_key(DEVICE, "0/h2/joint_states/x/y")
+        for _ in range(20):
+            laptop.put(key, forged)
+            time.sleep(0.01)
+        time.sleep(0.5)
+        assert forged not in seen.payloads()
+        sub.close()
+    finally:
+        laptop.close()
         inside.close()

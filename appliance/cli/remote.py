@@ -114,11 +114,6 @@ def to_builtin(obj: Any) -> Any:
     return obj
 
 
-def _decode_sample(sample: Any) -> tuple[str, str, Any]:
-    topic, typename = messaging.parse_key(str(sample.key_expr))
-    return topic, typename, messaging.deserialize(sample.payload.to_bytes(), typename)
-
-
 # --- data topics ------------------------------------------------------------------------------
 
 
@@ -151,11 +146,11 @@ def cmd_echo(args: argparse.Namespace) -> int:
     done = threading.Event()
     count = [0]
 
-    def on(sample: Any) -> None:
+    def on(key: str, _seq: int, _ns: int, payload: bytes) -> None:
         if done.is_set():
             return
-        _topic, typename, msg = _decode_sample(sample)
-        data = to_builtin(msg)
+        _topic, typename = messaging.parse_key(key)
+        data = to_builtin(messaging.deserialize(payload, typename))
         line = json.dumps(data) if args.json else _pretty(data, typename=typename)
         try:
             sys.stdout.write(line + ("\n" if args.json else "\n---\n"))
@@ -169,17 +164,21 @@ def cmd_echo(args: argparse.Namespace) -> int:
             done.set()
 
     with remote(args) as r:
-        sub = r.session.declare_subscriber(r.selector(args.topic), on)
+        # A bundled topic (joint_states on the board) as its bundles: the board then puts
+        # nothing one by one for this laptop (messaging.MessageSubscription).
+        sub = messaging.MessageSubscription(
+            r.session, r.device, r.selector(args.topic), on, ask_s=min(args.timeout, 3.0)
+        )
         start = time.monotonic()
         while not done.wait(0.1):
             if count[0] == 0 and time.monotonic() - start > args.timeout:
-                sub.undeclare()
+                sub.close()
                 return fail(
                     f"no messages on {args.topic} within {args.timeout:g} s "
                     f"(appliance at {args.at}; see `exolink topics`)",
                     EXIT_UNREACHABLE,
                 )
-        sub.undeclare()
+        sub.close()
     return 0
 
 
