@@ -38,8 +38,8 @@ print(" ".join(map(str, lat)))
 def latency_and_cpu(
     seconds: float, cycles_per_read: int = 1, zenoh_own_threads: bool = False
 ) -> dict[str, Any]:
-    """The sim config's appliance; ``cycles_per_read``: the h2 reader's (the board config's 4:
-    a quarter of the wake-ups and Zenoh bursts, every sample up to 30 ms later);
+    """The sim config's appliance; ``cycles_per_read``: the h2 reader's (4: a quarter of the
+    wake-ups and Zenoh bursts, every sample up to 30 ms later; the board config's, below);
     ``zenoh_own_threads``: Zenoh's own runtimes instead of the configs' ``zenoh.threads: 1``."""
     nodes = None
     if cycles_per_read != 1:
@@ -165,11 +165,25 @@ def max_rate(quick: bool) -> dict[str, Any]:
     }
 
 
+def board_cycles_per_read() -> int:
+    """The h2 reader's ``cycles_per_read`` in board.yaml: what the board runs."""
+    nodes = yaml.safe_load(bundled("board").read_text())["nodes"]
+    reader = next(n for n in nodes if n["plugin"] == "h2_reader")
+    return int(reader.get("params", {}).get("cycles_per_read", 1))
+
+
 def run(quick: bool) -> dict[str, Any]:
-    board = latency_and_cpu(5 if quick else 20, cycles_per_read=4)
+    secs = 5 if quick else 20
+    board_n = board_cycles_per_read()
+    cadenced = {n: latency_and_cpu(secs, cycles_per_read=n) for n in sorted({4, board_n})}
+
+    def trim(r: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in r.items() if k not in ("rss_mb", "pss_mb")}
+
     return {
-        **latency_and_cpu(5 if quick else 20),
-        "board_cadence_4": {k: v for k, v in board.items() if k not in ("rss_mb", "pss_mb")},
+        **latency_and_cpu(secs),
+        "board_cadence_4": trim(cadenced[4]),
+        "board_config": {"cycles_per_read": board_n, **trim(cadenced[board_n])},
         "zenoh_own_threads": latency_and_cpu(5 if quick else 20, zenoh_own_threads=True),
         "import": import_time(),
         "max_rate": max_rate(quick),

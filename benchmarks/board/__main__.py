@@ -20,7 +20,7 @@ from typing import Any
 import structlog
 
 from benchmarks.board import card as cardlib
-from benchmarks.board import ladder, runs
+from benchmarks.board import ladder, runs, scenario
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -110,6 +110,7 @@ def table(result: dict[str, Any]) -> str:
         sums.append(round(sum(v), 1) if v else None)
     row("appliance %cpu on CPU 0 (sum)", *sums)
     row("joint_states rate on laptop (Hz)", *pair("window", "joint_states", "rate_hz"))
+    row("  taken as", *pair("window", "joint_states", "taken_as"))
     row("joint_states min/s", *pair("window", "joint_states", "per_second_min"))
     row("joint_states max gap (ms)", *pair("window", "joint_states", "max_gap_ms"))
     row("joint_states seq missed", *pair("window", "joint_states", "seq_missed"))
@@ -310,12 +311,19 @@ def main() -> int:
         "deterministic, in-process, slower nodes; files beside the console log, top functions "
         "in the JSON",
     )
+    p.add_argument(
+        "--laptop-one-by-one",
+        action="store_true",
+        help="the laptop takes joint_states one message per sample, as a ROS 2 tool does, "
+        "not as the bundles exolink's client takes (the board then puts each message for it)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
         print(table(json.loads(Path(args.show).read_text())))
         return 0
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
+    scenario.ONE_BY_ONE = args.laptop_one_by_one
     ladder_nodes = None if args.ladder is None else tuple(filter(None, args.ladder.split(",")))
     without = tuple(filter(None, args.without.split(",")))
     t0 = time.monotonic()
@@ -325,6 +333,7 @@ def main() -> int:
         "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "seconds": args.seconds,
         "timings": args.timings,
+        "laptop_joint_states": "one by one" if args.laptop_one_by_one else "bundles if bundled",
         "checkout": cardlib.checkout_info(REPO),
         "host": {
             "cpus": os.cpu_count(),

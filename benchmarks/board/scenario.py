@@ -27,6 +27,10 @@ from exolink import messaging, phaseclock
 log = structlog.get_logger("bench-board")
 
 SIMULATOR_CPU = 1
+# The laptop takes joint_states one message per sample, as a ROS 2 tool or Foxglove does
+# (--laptop-one-by-one), instead of as bundles, as exolink's own client does: the board then
+# puts every message for it (~100 samples/s more through its router).
+ONE_BY_ONE = False
 HANDSHAKE_S = 60.0
 PATTERN_JOINTS = ["r_hip", "r_knee", "l_hip", "l_knee"]
 PATTERN_SPEED = 10
@@ -147,11 +151,9 @@ class JointStates:
     counting: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def on_sample(self, sample: Any) -> None:
+    def on_message(self, _key: str, seq: int, _ns: int, _payload: bytes) -> None:
         if not self.counting:
             return
-        att = sample.attachment
-        seq = messaging.decode_attachment(att.to_bytes())[0] if att else 0
         with self.lock:
             self.arrivals.append(time.monotonic())
             self.seqs.append(seq)
@@ -194,8 +196,7 @@ class Laptop:
         # never connected to the proxy (600 s of retries, last stop).
         self.session = messaging.open_client_session(at, zenoh_config, handshake_s=HANDSHAKE_S)
         self.joint_states = JointStates()
-        key = messaging.topic_selector(0, "h2", "joint_states")
-        self._sub = self.session.declare_subscriber(key, self.joint_states.on_sample)
+        self._sub: messaging.MessageSubscription | None = None
         self.holder: subprocess.Popen[str] | None = None
 
     def call(self, *path: str, body: dict[str, Any] | None = None, timeout: float = 10) -> Any:
@@ -232,9 +233,27 @@ class Laptop:
                 if st.get("ok"):
                     last = dict(st)
                     if beating(st, expected):
+                        self._subscribe()
                         return last, True
             time.sleep(2)
         return last, False
+
+    def _subscribe(self) -> None:
+        """joint_states, once the h2 reader runs: whether it is bundled is asked of its tokens
+        (a laptop client takes a bundled topic as bundles, unless ONE_BY_ONE)."""
+        if self._sub is None:
+            key = messaging.topic_selector(0, "h2", "joint_states")
+            on = self.joint_states.on_message
+            self._sub = messaging.MessageSubscription(
+                self.session, self.device, key, on, bundles=not ONE_BY_ONE
+            )
+
+    @property
+    def joint_states_shape(self) -> str:
+        """How the laptop takes joint_states: as bundles or one message per sample."""
+        if self._sub is None:
+            return "not subscribed"
+        return "bundles" if self._sub.bundled else "one by one"
 
     def arm_and_start_pattern(self, timeout: float = 120) -> dict[str, Any]:
         """``exolink arm`` (retried while refused), select, speed 10, ``pattern start`` held."""
@@ -272,8 +291,9 @@ class Laptop:
         return out.replace("\r", "\n")[-2000:]
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self._sub.undeclare()
+        if self._sub is not None:
+            with contextlib.suppress(Exception):
+                self._sub.close()
         self.session.close()
 
 
@@ -344,7 +364,8 @@ def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float)
         return out
     laptop.joint_states.counting = False
     return out | {
-        "joint_states": laptop.joint_states.summary(t0, seconds),
+        "joint_states": laptop.joint_states.summary(t0, seconds)
+        | {"taken_as": laptop.joint_states_shape},
         "timing": timing,
         "angles": angles,
         "before": before,
