@@ -23,9 +23,14 @@ class ArmingState:
         self._state, self._reason, self._seen = "unknown", "no word from the watchdog yet", 0.0
         self.stale_s = stale_s
         # How the watchdog's word reaches this node: events taken and the longest wait between
-        # two (the board proxy stopped patterns for "no word for 3 s" with the watchdog armed)
+        # two (the board proxy stopped patterns for "no word for 3 s" with the watchdog armed),
+        # split by the words' own stamps into the supervisor's side (the longest gap between
+        # two stamps: it published late) and the way here (the longest receive - stamp).
         self.received = 0
         self.max_gap_s = 0.0
+        self.stamp_gap_max_s = 0.0
+        self.delivery_max_s = 0.0
+        self._stamp = 0
         self._sub = msg.subscribe_raw(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
         try:
             reply = msg.request("watchdog")
@@ -37,15 +42,22 @@ class ArmingState:
     def _on_event(self, payload: bytes) -> None:
         try:
             state, reason, _detail, _frames = cdr.watchdog_event(payload)
+            stamp = cdr.stamp_ns(payload, WATCHDOG_TYPE)
         except ValueError:
             return  # not a WatchdogEvent: never taken as a state (stale soon means not armed)
-        self._update(state, reason)
+        self._update(state, reason, stamp)
 
-    def _update(self, state: str, reason: str) -> None:
+    def _update(self, state: str, reason: str, stamp: int = 0) -> None:
+        """``stamp``: the word's publish time (ns since the epoch; 0: a reply, not timed)."""
         now = time.monotonic()
         with self._lock:
             if self._seen:
                 self.max_gap_s = max(self.max_gap_s, now - self._seen)
+            if stamp:  # the board's one clock: publish and receive times compare
+                self.delivery_max_s = max(self.delivery_max_s, time.time() - stamp / 1e9)
+                if self._stamp:
+                    self.stamp_gap_max_s = max(self.stamp_gap_max_s, (stamp - self._stamp) / 1e9)
+                self._stamp = max(self._stamp, stamp)
             self.received += 1
             self._state, self._reason, self._seen = state, reason, now
 
@@ -56,6 +68,8 @@ class ArmingState:
             return {
                 "received": self.received,
                 "max_gap_s": round(self.max_gap_s, 3),
+                "stamp_gap_max_s": round(self.stamp_gap_max_s, 3),
+                "delivery_max_s": round(self.delivery_max_s, 3),
                 "age_s": None if age is None else round(age, 3),
             }
 

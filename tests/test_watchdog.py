@@ -14,6 +14,7 @@ from collections.abc import Iterator
 import can
 import pytest
 from conftest import wait_for
+from exolink import cdr
 from exolink.canbus import FrameReader, open_bus, open_reader
 from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2, maccepa
@@ -252,3 +253,14 @@ def test_a_nodes_view_of_the_watchdog_counts_its_words_and_the_longest_wait() ->
     a._update("armed", "operator")
     c = a.counters()
     assert c["received"] == 2 and 0.05 <= c["max_gap_s"] < 1 and c["age_s"] < 1  # type: ignore[operator]
+    # Real words carry their publish time: one published 2 s after the last, and one that took
+    # 1.5 s on the way, are told apart (the supervisor late, or the delivery).
+    now = time.time_ns()
+    a._on_event(cdr.watchdog_event_msg(now - 4_000_000_000, "armed", "operator", "", 0))
+    a._on_event(cdr.watchdog_event_msg(now - 2_000_000_000, "armed", "operator", "", 0))
+    a._on_event(cdr.watchdog_event_msg(now - 1_500_000_000, "armed", "operator", "", 0))
+    c = a.counters()
+    assert c["received"] == 5 and c["stamp_gap_max_s"] == 2.0, c
+    assert 4.0 <= c["delivery_max_s"] < 5.0, c  # type: ignore[operator]
+    a._on_event(b"\x00\x01\x00\x00garbage")  # not a WatchdogEvent: not taken, not counted
+    assert a.counters()["received"] == 5
