@@ -24,14 +24,15 @@ class ArmingState:
         self.stale_s = stale_s
         # How the watchdog's word reaches this node: events taken and the longest wait between
         # two (the board proxy stopped patterns for "no word for 3 s" with the watchdog armed),
-        # split by the words' own stamps into the supervisor's side (the longest gap between
-        # two stamps: it published late) and the way here (the longest receive - stamp).
+        # split by the times the supervisor put them (the sample's attachment) into its side
+        # (the longest gap between two puts: it published late) and the way here (the longest
+        # receive - put).
         self.received = 0
         self.max_gap_s = 0.0
         self.stamp_gap_max_s = 0.0
         self.delivery_max_s = 0.0
         self._stamp = 0
-        self._sub = msg.subscribe_raw(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event)
+        self._sub = msg.subscribe_raw(WATCHDOG_TOPIC, WATCHDOG_TYPE, self._on_event, timed=True)
         try:
             reply = msg.request("watchdog")
             if reply.get("ok"):
@@ -39,16 +40,15 @@ class ArmingState:
         except messaging.Unreachable:
             pass  # stays "unknown" until the first event
 
-    def _on_event(self, payload: bytes) -> None:
+    def _on_event(self, payload: bytes, sent_ns: int = 0) -> None:
         try:
             state, reason, _detail, _frames = cdr.watchdog_event(payload)
-            stamp = cdr.stamp_ns(payload, WATCHDOG_TYPE)
         except ValueError:
             return  # not a WatchdogEvent: never taken as a state (stale soon means not armed)
-        self._update(state, reason, stamp)
+        self._update(state, reason, sent_ns)
 
     def _update(self, state: str, reason: str, stamp: int = 0) -> None:
-        """``stamp``: the word's publish time (ns since the epoch; 0: a reply, not timed)."""
+        """``stamp``: when the supervisor put the word (ns since the epoch; 0: not known)."""
         now = time.monotonic()
         with self._lock:
             if self._seen:

@@ -312,13 +312,6 @@ class _Reader:
         return int(n)
 
 
-def stamp_ns(payload: bytes, typename: str) -> int:
-    """The header stamp (builtin_interfaces/Time, the first field) of a stamped message, in ns
-    since the epoch; ValueError when the payload cannot hold one."""
-    sec, nanosec = _Reader(payload, typename).get("iI")
-    return int(sec) * 1_000_000_000 + int(nanosec)
-
-
 def watchdog_event(payload: bytes) -> tuple[str, str, str, int]:
     """(state, reason, detail, frames_sent) of an exolink_msgs/WatchdogEvent; ValueError when
     the payload is not one (it comes over the network: checked, never trusted)."""

@@ -10,6 +10,7 @@ Management uses JSON queries under ``exolink/<device>/...``; every reply says ok
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import struct
@@ -685,13 +686,25 @@ class Messaging:
         return self.session.declare_subscriber(self.key(topic, typename), on_sample)
 
     def subscribe_raw(
-        self, topic: str, typename: str, callback: Callable[[bytes], None]
+        self, topic: str, typename: str, callback: Callable[..., None], timed: bool = False
     ) -> zenoh.Subscriber:
-        """CDR bytes to a decoder of the caller's (exolink.cdr): no typestore in the process."""
+        """CDR bytes to a decoder of the caller's (exolink.cdr): no typestore in the process.
+        ``timed``: also the time the publisher put it (ns since the epoch, from the sample's
+        attachment; 0 without a readable one)."""
         self._token(rosgraph.SUBSCRIPTION, topic, typename, None)
-        return self.session.declare_subscriber(
-            self.key(topic, typename), lambda sample: callback(sample.payload.to_bytes())
-        )
+        if not timed:
+            return self.session.declare_subscriber(
+                self.key(topic, typename), lambda sample: callback(sample.payload.to_bytes())
+            )
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            sent = 0
+            if (att := sample.attachment) is not None:
+                with contextlib.suppress(ValueError):
+                    sent = decode_attachment(att.to_bytes())[1]
+            callback(sample.payload.to_bytes(), sent)
+
+        return self.session.declare_subscriber(self.key(topic, typename), on_sample)
 
     def mgmt(self, *path: str) -> str:
         return mgmt_key(self.device, *path)

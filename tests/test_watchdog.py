@@ -241,7 +241,7 @@ def test_a_nodes_view_of_the_watchdog_counts_its_words_and_the_longest_wait() ->
     from exolink.arming import ArmingState
 
     class Msg:
-        def subscribe_raw(self, *_a: object) -> None:
+        def subscribe_raw(self, *_a: object, **_k: object) -> None:
             return None
 
         def request(self, *_a: object) -> dict[str, object]:
@@ -253,14 +253,16 @@ def test_a_nodes_view_of_the_watchdog_counts_its_words_and_the_longest_wait() ->
     a._update("armed", "operator")
     c = a.counters()
     assert c["received"] == 2 and 0.05 <= c["max_gap_s"] < 1 and c["age_s"] < 1  # type: ignore[operator]
-    # Real words carry their publish time: one published 2 s after the last, and one that took
-    # 1.5 s on the way, are told apart (the supervisor late, or the delivery).
+    # Words come with the time the supervisor put them: one put 2 s after the last, and one
+    # that took 4 s on the way, are told apart (the supervisor late, or the delivery). The
+    # message's own stamp is when the state began, not when it was put.
     now = time.time_ns()
-    a._on_event(cdr.watchdog_event_msg(now - 4_000_000_000, "armed", "operator", "", 0))
-    a._on_event(cdr.watchdog_event_msg(now - 2_000_000_000, "armed", "operator", "", 0))
-    a._on_event(cdr.watchdog_event_msg(now - 1_500_000_000, "armed", "operator", "", 0))
+    word = cdr.watchdog_event_msg(now - 100_000_000_000, "armed", "operator", "", 0)
+    a._on_event(word, now - 4_000_000_000)
+    a._on_event(word, now - 2_000_000_000)
+    a._on_event(word, now - 1_500_000_000)
     c = a.counters()
     assert c["received"] == 5 and c["stamp_gap_max_s"] == 2.0, c
     assert 4.0 <= c["delivery_max_s"] < 5.0, c  # type: ignore[operator]
-    a._on_event(b"\x00\x01\x00\x00garbage")  # not a WatchdogEvent: not taken, not counted
+    a._on_event(b"\x00\x01\x00\x00garbage", now)  # not a WatchdogEvent: not taken
     assert a.counters()["received"] == 5
