@@ -10,7 +10,6 @@ Management uses JSON queries under ``exolink/<device>/...``; every reply says ok
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import struct
@@ -270,7 +269,7 @@ class MessageSubscription:
         ask_s: float = 3.0,
     ) -> None:
         self._on, self._device = on_message, device
-        self.malformed = 0  # bundles that did not decode (anything may arrive)
+        self.malformed = 0  # bundles or attachments that did not decode (anything may arrive)
         where = bundle_key(device, selector)
         self.bundled = bundles and any(
             r.ok is not None for r in session.liveliness().get(where, timeout=ask_s)
@@ -281,8 +280,11 @@ class MessageSubscription:
             self._sub = session.declare_subscriber(selector, self._single)
 
     def _single(self, sample: zenoh.Sample) -> None:
-        att = sample.attachment
-        seq, ns, _gid = decode_attachment(att.to_bytes()) if att is not None else (0, 0, b"")
+        try:
+            seq, ns, _gid = source_of(sample)
+        except ValueError:
+            self.malformed += 1  # as a bundle that does not decode
+            return
         self._on(str(sample.key_expr), seq, ns, sample.payload.to_bytes())
 
     def _bundle(self, sample: zenoh.Sample) -> None:
@@ -488,6 +490,13 @@ class Meta:
 
 def encode_attachment(seq: int, source_ns: int, gid: bytes) -> bytes:
     return rosgraph.encode_attachment(seq, source_ns, gid)
+
+
+def source_of(sample: zenoh.Sample) -> tuple[int, int, bytes]:
+    """(sequence number, source ns, GID) from a sample's attachment; zeros without one,
+    ValueError for one that does not decode (it came over the network)."""
+    att = sample.attachment
+    return (0, 0, b"") if att is None else decode_attachment(att.to_bytes())
 
 
 def decode_attachment(raw: bytes) -> tuple[int, int, bytes]:
@@ -698,10 +707,10 @@ class Messaging:
             )
 
         def on_sample(sample: zenoh.Sample) -> None:
-            sent = 0
-            if (att := sample.attachment) is not None:
-                with contextlib.suppress(ValueError):
-                    sent = decode_attachment(att.to_bytes())[1]
+            try:
+                sent = source_of(sample)[1]
+            except ValueError:
+                sent = 0  # the payload is still the caller's to judge; only its time is lost
             callback(sample.payload.to_bytes(), sent)
 
         return self.session.declare_subscriber(self.key(topic, typename), on_sample)
