@@ -25,6 +25,7 @@ from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import structlog
+from exolink import canfilter
 from exolink.config import CanConfig
 
 if TYPE_CHECKING:
@@ -400,6 +401,7 @@ class FrameReader:
         quiet: can.BusABC | None = None,
         stale_s: float = 0.0,
         wake_ids: Iterable[int] = (),
+        drop: Sequence[canfilter.Drop] = (),
     ) -> None:
         self.bus = bus
         self.wake_ids = frozenset(wake_ids)  # with ``quiet``: the ids ``bus`` reads
@@ -443,6 +445,12 @@ class FrameReader:
         size = _CAN_FRAME.size if cfg.interface == "socketcan" else _MSG_SIZE
         self._rx = {s: BatchReceiver(s, size) for s in (self._sock, self._quiet) if s is not None}
         self._cfg = cfg
+        # Content filters (canfilter): the kernel's on SocketCAN, else these rules in Python.
+        self._drops = canfilter.Predicate(drop)
+        if cfg.interface == "socketcan" and self._drops:
+            for s in self._rx:
+                canfilter.attach(s, drop)
+            self._drops = canfilter.Predicate(())
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
             self.rcvbuf = size_receive_buffer(self._sock, want)
@@ -585,6 +593,9 @@ class FrameReader:
                 msg.is_remote_frame,
                 msg.is_error_frame,
             )
+            if self._dropped(frame):
+                self.filtered += 1
+                return []
             return [frame]
         sock, quiet = self._sock, self._quiet
         behind = not self.complete  # the last read left frames queued or held: no waiting
@@ -696,7 +707,18 @@ class FrameReader:
         if self.ids is not None and (frame.is_extended_id or fid not in self.ids):
             self.filtered += 1  # past the kernel filter (too many ids for it, or not exact)
             return None
+        if self._dropped(frame):
+            self.filtered += 1
+            return None
         return frame
+
+    def _dropped(self, f: Frame) -> bool:
+        """A content filter's drop, where no kernel ran it (the simulated and virtual buses)."""
+        return (
+            bool(self._drops)
+            and not (f.is_extended_id or f.is_remote_frame or f.is_error_frame)
+            and self._drops.drops(f.arbitration_id, f.data)
+        )
 
 
 class _IoVec(ctypes.Structure):
@@ -980,16 +1002,25 @@ def open_reader(
     every_s: float = 0.0,
     wake_on: Iterable[int] | None = None,
     stale_s: float = 0.0,
+    drop: Sequence[canfilter.Drop] = (),
 ) -> FrameReader:
     """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends, ``close()``
     closes. ``rcvbuf``: the receive queue to ask for, in bytes (default: ``RCVBUF_BYTES``);
     ``every_s``: wake at most that often while frames flow; ``wake_on``: only these of ``ids``
     wake the reader, the others are read with them (FrameReader's ``quiet``; a bus without
     sockets, the in-process virtual one, wakes for every id); ``stale_s``: skip (and count)
-    frames read later than that after arrival (0: never)."""
+    frames read later than that after arrival (0: never); ``drop``: frames of these ids never
+    delivered (canfilter: the kernel's socket filter on SocketCAN)."""
+    drop = canfilter.check(drop)
     if ids is None or wake_on is None or cfg.interface not in RCVBUF_BYTES:
         bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
-        return FrameReader(bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s)
+        try:
+            return FrameReader(
+                bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s, drop=drop
+            )
+        except BaseException:
+            bus.shutdown()
+            raise
     waking = sorted(set(wake_on) & set(ids))
     rest = sorted(set(ids) - set(waking))
     if not waking or not rest:
@@ -1002,6 +1033,19 @@ def open_reader(
     except BaseException:
         bus.shutdown()
         raise
-    return FrameReader(
-        bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, quiet=quiet, stale_s=stale_s, wake_ids=waking
-    )
+    try:
+        return FrameReader(
+            bus,
+            cfg,
+            ids,
+            rcvbuf=rcvbuf,
+            every_s=every_s,
+            quiet=quiet,
+            stale_s=stale_s,
+            wake_ids=waking,
+            drop=drop,
+        )
+    except BaseException:
+        quiet.shutdown()
+        bus.shutdown()
+        raise

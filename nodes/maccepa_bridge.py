@@ -28,6 +28,7 @@ import msgspec
 from exolink import cdr, messaging, roles
 from exolink.arming import ArmingState
 from exolink.canbus import Cadence, open_reader
+from exolink.canfilter import Drop
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, maccepa
@@ -102,13 +103,17 @@ class MaccepaBridge(Node):
         m = self.ctx.messaging
         base, boards = self.params.wake_on_base, self.params.boards
         self.cadence = Cadence(BOARD_PERIOD_S, self.params.cycles_per_read)
+        ids = maccepa.data_ids(boards)
         self.reader = self.own(
             open_reader(
                 self.ctx.config.can,
-                maccepa.data_ids(boards),
+                ids,
                 every_s=self.cadence.every_s,
                 wake_on=[base + b for b in boards] if base else None,
                 stale_s=STALE_S,  # a bridge that fell behind publishes news, not old frames
+                # The H2's frames on board 0 and 5's controller ids (joint control on 70: the
+                # manager's set-points, 400 a second with the gait) never reach the bridge.
+                drop=[Drop(i, n) for i, n in maccepa.h2_shaped(ids)],
             )
         )
         self.bus = self.reader.bus

@@ -125,6 +125,14 @@ def _signal_mask(cls: type, name: str) -> bytes:
 
 
 MODE_MASK = _signal_mask(JointControl, "mode")  # joint control's mode byte, per h2.dbc
+MODE_BYTE = MODE_MASK.index(0xFF)
+
+
+def dlc_of(frame_id: int) -> int | None:
+    """The length of the H2 frame with this id (None: not an H2 id): where another protocol
+    shares an id (MACCEPA status on 70 and 75), the length tells the two apart."""
+    entry = _TABLE.by_id.get(frame_id)
+    return entry[0].dlc if entry is not None else None
 
 
 def decode(msg: can.Message) -> H2Frame | Unknown:

@@ -7,9 +7,11 @@ decoding never raises, encoding validates first so an invalid command makes no f
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import can
+from exolink.protocol import h2
 from exolink.protocol.dbc import FrameSpec, ProtocolError, bundled, load
 
 BOARDS = range(10)
@@ -92,6 +94,24 @@ _BY_NAME = {spec.name: spec for spec, _, _ in _TABLE.values()}
 BOARD_DATA_IDS = tuple(
     fid for fid, (_, kind, _) in _TABLE.items() if kind in ("Sensors", "Positions", "Controller")
 )
+
+
+def dlc_of(frame_id: int) -> int | None:
+    """The length of the MACCEPA frame with this id (None: not a MACCEPA id)."""
+    entry = _TABLE.get(frame_id)
+    return entry[0].dlc if entry is not None else None
+
+
+def h2_shaped(ids: Iterable[int]) -> list[tuple[int, int]]:
+    """(id, length) of the H2 frames on these MACCEPA ids (the H2 uses 70, 75, 80 and 85, which
+    are boards 0 and 5's status and board 0 and 5's duty ids): a frame of that length there is
+    the H2's, not a board's (a reader of board frames need not receive it: exolink.canfilter)."""
+    out = []
+    for i in ids:
+        theirs, ours = h2.dlc_of(i), dlc_of(i)
+        if theirs is not None and theirs != ours:
+            out.append((i, theirs))
+    return out
 
 
 def data_ids(boards: list[int] | range) -> list[int]:

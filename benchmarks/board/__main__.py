@@ -94,6 +94,14 @@ def table(result: dict[str, Any]) -> str:
     row("unit: getppid() (CPU us per call)", *pair("units", "syscall_getppid_us"))
     row("unit: thread_time() (CPU us per call)", *pair("units", "syscall_thread_time_us"))
     row("unit: 100 Hz sleep-wake (CPU us)", *pair("units", "wake_us"))
+    row(
+        "unit: CAN frame read (CPU us)",
+        *pair("units", "can_receive_us", "read", "cpu_us_per_frame_sent"),
+    )
+    row(
+        "unit: CAN frame kernel-dropped (us)",
+        *pair("units", "can_receive_us", "kernel_dropped", "cpu_us_per_frame_sent"),
+    )
     for key, label in (
         ("", "one by one"),
         ("_burst4", "in fours"),

@@ -1,5 +1,6 @@
 """Unit costs of a machine, the ones the appliance's CPU is made of: a Python loop, a system call,
-a wake-up, and a Zenoh sample through the board's router. Self-contained (stdlib + zenoh):
+a wake-up, a CAN frame received (on a vcan: the guest), and a Zenoh sample through the board's
+router. Self-contained (stdlib + zenoh):
 bench-board runs it in the guest and natively; on a real BeagleBone with exolink installed,
 ``/opt/exolink/bin/python units.py`` gives the figures to scale a proxy run by.
 
@@ -15,11 +16,15 @@ Everything runs pinned to one CPU (the appliance's CPU 0 on the board) and repor
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import socket
+import struct
 import subprocess
 import sys
 import time
+from typing import Any
 
 PORT = 17931
 KEY = "exolink-units/sample"
@@ -165,16 +170,109 @@ def zenoh_hop(
     return {k: round((c1[k] - c0[k]) * 1e6 / samples) for k in c0}
 
 
+CAN_UNIT_ID = 0x7F0  # no node of the appliance reads it
+CAN_RATE = 1000  # frames/s, sent in bursts of 100 every 100 ms
+
+
+def _can_socket(channel: str) -> socket.socket:
+    s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    s.bind((channel,))
+    return s
+
+
+def _can_send(channel: str, seconds: float) -> None:
+    """The other CPU's sender (as the simulator is on the board proxy): CAN_RATE frames/s."""
+    with contextlib.suppress(OSError):
+        os.sched_setaffinity(0, {1})
+    s = _can_socket(channel)
+    s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")  # receives nothing
+    frame = struct.pack("=IB3x8s", CAN_UNIT_ID, 8, bytes(range(8)))
+    t = time.monotonic()
+    end = t + seconds
+    while t < end:
+        t += 0.1
+        time.sleep(max(0.0, t - time.monotonic()))
+        for _ in range(CAN_RATE // 10):
+            with contextlib.suppress(OSError):  # a full transmit queue: that frame is lost
+                s.send(frame)
+
+
+def _can_receive(channel: str, seconds: float, drop: bool) -> None:
+    """A reader of CAN_UNIT_ID on this CPU that takes its frames every 100 ms, one ``recv``
+    each (``drop``: the same socket with a content filter that drops them all in the kernel,
+    exolink.canfilter): prints its frames and CPU seconds over ``seconds``."""
+    s = _can_socket(channel)
+    s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, struct.pack("=II", CAN_UNIT_ID, 0x7FF))
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)  # as the appliance's readers
+    if drop:
+        from exolink import canfilter
+
+        canfilter.attach(s, [canfilter.Drop(CAN_UNIT_ID, 8)])
+    s.setblocking(False)
+    n, c0 = 0, time.process_time()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        time.sleep(0.1)
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                s.recvmsg(16, 64)
+                n += 1
+    sys.stdout.write(f"{n} {time.process_time() - c0}\n")
+
+
+def can_receive_us(seconds: float, channel: str = "vcan0") -> dict[str, Any] | None:
+    """CPU of one reader per CAN frame it is sent, on this CPU, frames sent from the other:
+    ``read`` takes them (kernel queue, receive, timestamp, Python), ``kernel_dropped`` has
+    them dropped by a content filter before they queue (what canfilter saves a reader per
+    frame it never needed). None without a vcan (natively)."""
+    if not os.path.exists(f"/sys/class/net/{channel}") or os.cpu_count() == 1:
+        return None
+    me = [sys.executable, os.path.abspath(__file__), "--endpoint", channel]
+    out: dict[str, Any] = {"frames_per_s": CAN_RATE}
+    for case in ("read", "kernel_dropped"):
+        role = "can-drop" if case == "kernel_dropped" else "can-read"
+        sender = subprocess.Popen([*me, "--role", "can-send", "--seconds", str(seconds + 2)])
+        try:
+            r = subprocess.run(
+                [*me, "--role", role, "--seconds", str(seconds)],
+                capture_output=True,
+                text=True,
+                timeout=seconds + 60,
+            )
+        finally:
+            sender.wait(seconds + 60)
+        try:
+            got, cpu = r.stdout.split()
+        except ValueError:  # e.g. an installed exolink without canfilter
+            out[case] = {"error": r.stderr.strip().splitlines()[-1:] or f"rc {r.returncode}"}
+            continue
+        out[case] = {
+            "received": int(got),
+            "cpu_us_per_frame_sent": round(float(cpu) * 1e6 / (CAN_RATE * seconds), 1),
+        }
+    return out
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--cpu", type=int, default=0, help="the CPU everything runs on")
-    p.add_argument("--role", choices=["router", "sub", "pub"], help=argparse.SUPPRESS)
+    p.add_argument(
+        "--role",
+        choices=["router", "sub", "pub", "can-send", "can-read", "can-drop"],
+        help=argparse.SUPPRESS,
+    )
     p.add_argument("--endpoint", help=argparse.SUPPRESS)
     p.add_argument("--burst", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--topics", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--channel", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.role in ("can-send", "can-read", "can-drop"):
+        if args.role == "can-send":
+            _can_send(args.endpoint, args.seconds)
+        else:
+            _can_receive(args.endpoint, args.seconds, drop=args.role == "can-drop")
+        return 0
     if args.role:
         _role(args.role, args.endpoint, args.seconds, args.burst, args.topics, args.channel)
         return 0
@@ -185,6 +283,7 @@ def main() -> int:
         "syscall_getppid_us": syscall_us("getppid"),
         "syscall_thread_time_us": syscall_us("thread_time"),
         "wake_us": wake_us(args.seconds),
+        "can_receive_us": can_receive_us(args.seconds),
         "zenoh_us_per_sample": zenoh_hop(args.seconds, 1),
         "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
         "zenoh_us_per_sample_burst4x5": zenoh_hop(args.seconds, 4, 5),

@@ -42,6 +42,7 @@ import msgspec
 from exolink import cdr, logs, roles
 from exolink.arming import ArmingState
 from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
+from exolink.canfilter import Drop
 from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
 from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
 from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
@@ -127,6 +128,20 @@ def _deadline(req: dict[str, Any]) -> float | None:
     return time.monotonic() + within
 
 
+def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
+    """What the manager's reader never needs of the ids it reads (exolink.canfilter: the kernel
+    drops them on SocketCAN). Of the H2's joint control only a disable or stop matters here (the
+    gait's set-points come from this process and are never read back; the MACCEPA bridge and
+    the timing monitor read them); board 0's status shares id 70 and matters only when board 0
+    is driven; an H2 frame on a driven board's id is the H2's."""
+    jc = h2.JOINT_CONTROL
+    rules = [Drop(jc, h2.dlc_of(jc) or 0, h2.MODE_BYTE, frozenset(SAFE_MODES))]
+    if 0 not in board_ids:
+        rules.append(Drop(jc, maccepa.dlc_of(jc) or 0))
+    rules += [Drop(i, n) for i, n in maccepa.h2_shaped(mc_ids) if i != jc]
+    return rules
+
+
 class ControllerManagerNode(Node):
     Params = ManagerParams
     stall_s = 2 * BEAT_S
@@ -154,6 +169,7 @@ class ControllerManagerNode(Node):
         # Status frames (50/60/70 + board) and duty/stop (80 + board): a stop from anyone.
         mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
         self.base_ids = frozenset({*READ_IDS, *mc_ids})
+        self.drops = drop_rules(self.board_ids, mc_ids)
         self.read_ids = sorted(self.base_ids)  # the loaded controllers' extras: _update_reads
         self._reads_version = -1
         self.bus = self.own(open_bus(self.ctx.config.can, filters=[]))  # sends, reader closed
@@ -457,7 +473,9 @@ class ControllerManagerNode(Node):
         # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
         # (torques, feet, anyone's joint control, the boards') are read with the next one, in
         # arrival order and before that cycle's set-points: one wake-up per cycle, not 4-6.
-        self.reader = open_reader(self.ctx.config.can, self.read_ids, wake_on=[h2.JOINT_ANGLES])
+        self.reader = open_reader(
+            self.ctx.config.can, self.read_ids, wake_on=[h2.JOINT_ANGLES], drop=self.drops
+        )
         self.opened = self.last_angle_mono = time.monotonic()
         self.reader_opens += 1
 

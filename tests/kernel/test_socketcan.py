@@ -362,6 +362,37 @@ def test_a_reader_does_not_read_back_what_its_writer_sends(vcan0: str) -> None:
         watcher.shutdown()
 
 
+def test_content_filters_drop_in_the_kernel_what_a_reader_never_needs(vcan0: str) -> None:
+    """The controller manager's and MACCEPA bridge's shape on id 70: the H2's set-points
+    (6 bytes, mode 1) and board 0's status (8 bytes) never reach a reader whose rules drop them;
+    a disable (mode 4), another length and the other ids do, in order. The kernel's socket
+    filter drops them (nothing in Python: ``filtered`` 0), and not as losses: ``dropped`` 0."""
+    from exolink.canfilter import Drop
+
+    rules = [Drop(70, 6, byte=1, keep=frozenset({4, 5})), Drop(70, 8)]
+    reader = open_reader(
+        CanConfig(interface="socketcan", channel=vcan0), [70, 110], wake_on=[110], drop=rules
+    )
+    tx = listener(vcan0)
+    try:
+        sent = [
+            (70, bytes([1, 1, 30, 0, 0, 0])),  # a set-point: dropped
+            (70, bytes(8)),  # board 0's status: dropped
+            (70, bytes([2, 4, 0, 0, 0, 0])),  # a disable: kept
+            (70, bytes(7)),  # malformed for both protocols: kept, for the reader to count
+            (70, bytes([3, 5, 0, 0, 0, 0])),  # a stop: kept
+            (110, bytes(6)),
+        ]
+        for fid, data in sent:
+            tx.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+        got = reader.read(5.0)
+        assert [(f.arbitration_id, f.data) for f in got] == [sent[2], sent[3], sent[4], sent[5]]
+        assert reader.filtered == 0 and reader.dropped == 0
+    finally:
+        reader.close()
+        tx.shutdown()
+
+
 ANGLES_LEN = len(h2.encode(h2.JointAngles(40, 60, 0, 40, 60, 0)).data)  # the contract's (6)
 
 
