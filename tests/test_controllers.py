@@ -16,6 +16,7 @@ from typing import Any, NamedTuple
 import pytest
 from conftest import Appliance, bus_sockets, collect, connect, wait_for
 from exolink import messaging, roles
+from exolink.config import ConfigError, load
 from exolink.controller import State
 from exolink.jointlimits import Limits, default_max, default_min
 from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
@@ -641,6 +642,50 @@ def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # ty
     r = ctl(app, "load", "a", "forward_command", "--params", "{}", "--replace", "--activate")
     assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
     assert listing(app)["a"]["claims"] == ["r_knee/position"]
+
+
+@pytest.fixture
+def every_other(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def]
+    """The manager as on the board: one update per two H2 cycles (``cycles_per_update``)."""
+    n = nodes(CTRL, deadline_ms=300)
+    n[2]["params"]["cycles_per_update"] = 2
+    return Appliance(write_config(nodes=n, watchdog={"h2_silence_ms": 500}), spawn)
+
+
+def test_an_update_every_other_cycle_writes_half_as_often_and_the_watchdog_stops_it(
+    every_other, mbus
+) -> None:  # type: ignore[no-untyped-def]
+    """cycles_per_update 2: at most one set-point per joint per two angle frames (the loop
+    sleeps through the other), the step limit kept per 10 ms of motion (3 deg per cycle: 6 per
+    update), and a trip disables the joints as at every cycle; nothing moves after it."""
+    app = every_other
+    app.arm()
+    assert ctl(app, "activate", "a", "left").returncode == 0
+    assert ctl(app, "command", "a", "r_knee=30").returncode == 0
+    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [30])
+    assert json.loads(ctl(app, "list", "--json").stdout)["cycles_per_update"] == 2
+    assert ctl(app, "command", "a", "r_knee=60").returncode == 0
+    frames = collect(mbus, 1.0, {70, 110})
+    knee = [f.setpoint for f in joint_frames(frames, 2)]
+    angles = sum(m.arbitration_id == 110 for m in frames)
+    assert knee[-1] == 60 and knee == sorted(knee), knee
+    assert {b - a for a, b in itertools.pairwise(knee)} <= {0, 6}, knee
+    assert 0 < len(knee) <= angles // 2 + 2, (len(knee), angles)
+    assert app.cli("estop").returncode == 0
+    collect(mbus, 0.3)  # the trip's frames and anything in flight
+    assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
+    assert listing(app)["a"]["state"] == "inactive"
+
+
+def test_cycles_per_update_needs_an_h2_timeout_above_its_wait(write_config) -> None:  # type: ignore[no-untyped-def]
+    """A silence limit the manager's own sleep could reach is a bad config: nothing starts,
+    and the error names the param's place and both values."""
+    n = nodes(CTRL)
+    n[2]["params"] |= {"cycles_per_update": 3, "h2_timeout_ms": 40}
+    with pytest.raises(ConfigError) as err:
+        load(write_config(nodes=n))
+    assert "nodes[2].params" in str(err.value), err.value
+    assert "h2_timeout_ms 40 must exceed 40 ms with cycles_per_update 3" in str(err.value)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])

@@ -197,6 +197,7 @@ class Manager:
         max_step_deg: int,
         budget_ms: float,
         boards: list[BoardLimits] | None = None,
+        cycles_per_update: int = 1,
     ) -> None:
         self.limits = limits
         self.boards: dict[int, BoardLimits] = {b.board: b for b in boards or []}
@@ -204,7 +205,10 @@ class Manager:
         self.gains_written: dict[int, tuple[float, float, float]] = {}  # board -> last gains
         # board -> (kind, value) last written and cycles since, for the refresh above
         self.drive_written: dict[int, tuple[str, float, int]] = {}
-        self.max_step = max_step_deg
+        # max_step_deg is per 10 ms H2 cycle: an update every n cycles may move n steps (the
+        # same speed limit); a held MACCEPA set-point is re-sent every ~100 ms either way.
+        self.max_step = max_step_deg * cycles_per_update
+        self.refresh_cycles = max(1, round(MACCEPA_REFRESH_CYCLES / cycles_per_update))
         self.default_budget_s = budget_ms / 1e3
         self.lock = threading.Lock()
         self.slots: dict[str, Slot] = {}
@@ -707,7 +711,7 @@ class Manager:
 
     def _compose_maccepa(self, out: Cycle) -> None:
         """Per owned board: the set-point (or duty) inside the board's range and step, written
-        when it changes and re-sent every ``MACCEPA_REFRESH_CYCLES`` while it holds; gains only
+        when it changes and re-sent every ``refresh_cycles`` updates while it holds; gains only
         when they change. A board whose value is not known yet gets no frame."""
         owners, held = self.owners, self.held
         for b, lim in self.boards.items():
@@ -755,7 +759,7 @@ class Manager:
 
     def _drive(self, out: Cycle, board: int, kind: str, value: float, controller: str) -> None:
         last = self.drive_written.get(board)
-        if last is not None and last[:2] == (kind, value) and last[2] + 1 < MACCEPA_REFRESH_CYCLES:
+        if last is not None and last[:2] == (kind, value) and last[2] + 1 < self.refresh_cycles:
             self.drive_written[board] = (kind, value, last[2] + 1)
             return
         self.drive_written[board] = (kind, value, 0)
