@@ -17,6 +17,7 @@ from typing import Annotated, Any
 
 import msgspec
 from exolink.canbus import open_reader
+from exolink.canfilter import Drop
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 
@@ -32,6 +33,7 @@ READ_EVERY_S = 0.25
 # monitor saw 168 of ~4000 set-points in a minute. 4 MiB asked (the kernel doubles it): ~25 s.
 # Memory is taken only while frames wait.
 RCVBUF_BYTES = 4 << 20
+MAX_ONLY = 3  # ids with ``only``: up to 9 content-filter rules each (canfilter.MAX_RULES)
 
 
 def deviation_stats(stamps: list[float], expected_s: float | None = None) -> dict[str, Any]:
@@ -106,10 +108,36 @@ class StampRing:
         return out
 
 
+class Only(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    dlc: Annotated[int, msgspec.Meta(ge=1, le=8)]
+    first_byte: list[Annotated[int, msgspec.Meta(ge=0, le=255)]] = []  # empty: any
+
+
 class TimingParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     ids: list[Annotated[int, msgspec.Meta(ge=0, le=0x7FF)]] = msgspec.field(
         default_factory=lambda: [70, 110]
     )
+    # Of these ids, only frames of this length (and first byte) are monitored; the others never
+    # reach the monitor (exolink.canfilter: the kernel drops them on SocketCAN). E.g.
+    # {70: {dlc: 6, first_byte: [1]}}: motor 1's set-points only, not the other joints' nor
+    # MACCEPA board 0's status on the same id (a third of the frames with the gait on 4 joints).
+    only: dict[int, Only] = {}
+
+    def __post_init__(self) -> None:
+        if stray := sorted(set(self.only) - set(self.ids)):
+            raise ValueError(f"only names ids {stray} that are not in ids {self.ids}")
+        if len(self.only) > MAX_ONLY:
+            raise ValueError(f"only: at most {MAX_ONLY} ids")
+
+    def drops(self) -> list[Drop]:
+        """``only`` as content filters: every other length of each id, and (with
+        ``first_byte``) that length's other first bytes."""
+        rules = []
+        for fid, o in self.only.items():
+            rules += [Drop(fid, n) for n in range(9) if n != o.dlc]
+            if o.first_byte:
+                rules.append(Drop(fid, o.dlc, 0, frozenset(o.first_byte)))
+        return rules
 
 
 class TimingMonitor(Node):
@@ -120,7 +148,11 @@ class TimingMonitor(Node):
         # one wake per READ_EVERY_S, not one per frame (see READ_EVERY_S)
         self.reader = self.own(
             open_reader(
-                self.ctx.config.can, self.params.ids, every_s=READ_EVERY_S, rcvbuf=RCVBUF_BYTES
+                self.ctx.config.can,
+                self.params.ids,
+                every_s=READ_EVERY_S,
+                rcvbuf=RCVBUF_BYTES,
+                drop=self.params.drops(),
             )
         )
         self.bus = self.reader.bus
@@ -137,6 +169,16 @@ class TimingMonitor(Node):
         fid, byte0, dlc = req.get("id"), req.get("byte0"), req.get("dlc")
         if fid not in self.params.ids:
             raise CommandRefused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
+        only = self.params.only.get(fid)
+        if only is not None and (
+            (dlc is not None and dlc != only.dlc)
+            or (byte0 is not None and only.first_byte and byte0 not in only.first_byte)
+        ):
+            raise CommandRefused(
+                f"id {fid} is monitored only for dlc {only.dlc}"
+                + (f" and first byte {only.first_byte}" if only.first_byte else "")
+                + " (params.only)"
+            )
         seconds = float(req.get("seconds", 0))
         if not 0 <= seconds <= 600:
             raise CommandRefused("seconds must be 0..600")

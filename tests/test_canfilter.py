@@ -18,11 +18,10 @@ from exolink import canfilter
 from exolink.canbus import open_bus, open_reader
 from exolink.canfilter import Drop, Predicate
 from exolink.config import CanConfig
+from exolink.nodes.controller_manager import drop_rules
 from exolink.protocol import h2, maccepa
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from nodes.controller_manager import drop_rules
 
 CAN_FRAME = struct.Struct("=IB3x8s")
 RULES = [Drop(70, 6, byte=1, keep=frozenset({4, 5})), Drop(70, 8), Drop(75, 6)]

@@ -60,3 +60,27 @@ def test_stamp_ring_keeps_the_last_frames_in_order_by_length_and_first_byte(adde
             ]
             assert ring.select(dlc, b0) == want
             assert ring.copy().select(dlc, b0) == want
+
+
+def test_only_keeps_one_motors_set_points_and_refuses_other_ids() -> None:
+    """``only``: of id 70 the monitor keeps motor 1's 6-byte joint control; the other motors'
+    and MACCEPA board 0's 8-byte status on the same id are dropped (in the kernel on SocketCAN:
+    the same rules, test_canfilter), other ids untouched; ``only`` for an unmonitored id or
+    more ids than the filter takes is a bad config."""
+    import msgspec
+    from exolink.canfilter import Predicate
+    from exolink.nodes.timing_monitor import TimingParams
+
+    p = msgspec.convert(
+        {"ids": [70, 110], "only": {70: {"dlc": 6, "first_byte": [1]}}}, TimingParams
+    )
+    pred = Predicate(p.drops())
+    assert not pred.drops(70, bytes([1, 1, 30, 0, 0, 0]))
+    assert pred.drops(70, bytes([2, 1, 30, 0, 0, 0]))
+    assert pred.drops(70, bytes(8)) and pred.drops(70, bytes([1]))
+    assert not pred.drops(110, bytes(6))
+    with pytest.raises(msgspec.ValidationError, match=r"only names ids \[70\] that are not in ids"):
+        msgspec.convert({"ids": [110], "only": {70: {"dlc": 6}}}, TimingParams)
+    four = {i: {"dlc": 6} for i in (1, 2, 3, 4)}
+    with pytest.raises(msgspec.ValidationError, match="at most 3 ids"):
+        msgspec.convert({"ids": [1, 2, 3, 4], "only": four}, TimingParams)

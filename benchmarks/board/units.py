@@ -171,6 +171,7 @@ def zenoh_hop(
 
 
 CAN_UNIT_ID = 0x7F0  # no node of the appliance reads it
+SO_TIMESTAMPNS = 35  # asm-generic/socket.h; Python does not export it
 CAN_RATE = 1000  # frames/s, sent in bursts of 100 every 100 ms
 
 
@@ -203,7 +204,7 @@ def _can_receive(channel: str, seconds: float, drop: bool) -> None:
     exolink.canfilter): prints its frames and CPU seconds over ``seconds``."""
     s = _can_socket(channel)
     s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, struct.pack("=II", CAN_UNIT_ID, 0x7FF))
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)  # as the appliance's readers
+    s.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)  # as the appliance's readers
     if drop:
         from exolink import canfilter
 

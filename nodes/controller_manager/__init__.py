@@ -450,7 +450,7 @@ class ControllerManagerNode(Node):
             self._update_reads()
             if self.reader is None:
                 self._open_reader()
-            self._until_due(stop)
+            self._until_due()
             try:
                 frames = self.reader.read(BEAT_S)  # type: ignore[union-attr]
             except (can.CanError, OSError) as exc:
@@ -475,15 +475,16 @@ class ControllerManagerNode(Node):
         n = self.params.cycles_per_update
         return n > 1 and last is not None and 0 <= stamp - last < (n - 0.5) * h2.PERIOD_S
 
-    def _until_due(self, stop: threading.Event) -> None:
+    def _until_due(self) -> None:
         """With ``cycles_per_update`` > 1: sleep until the frame of the next update is due
         (queued a quarter period ago), instead of waking for the angle frames in between: on
         the board a wake-up costs more than the frames it brings. Frames that come meanwhile
         (a disable from anyone) are read before that update's set-points are computed."""
         if self.next_update:
             wait = self.next_update + h2.PERIOD_S / 4 - time.time()
-            if wait > 0:  # never longer than one update (a wall clock stepped back)
-                stop.wait(min(wait, self.update_every_s + h2.PERIOD_S / 4))
+            if wait > 0:  # never longer than one update (a wall clock stepped back); a plain
+                # sleep: an Event's timed wait makes a lock and a condition per call
+                time.sleep(min(wait, self.update_every_s + h2.PERIOD_S / 4))
 
     def _update_reads(self) -> None:
         """The frames to read for the loaded controllers (``Controller.reads``), applied to an
