@@ -109,6 +109,7 @@ class StampRing:
 
 
 class Only(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    id: Annotated[int, msgspec.Meta(ge=0, le=0x7FF)]
     dlc: Annotated[int, msgspec.Meta(ge=1, le=8)]
     first_byte: list[Annotated[int, msgspec.Meta(ge=0, le=255)]] = []  # empty: any
 
@@ -119,24 +120,30 @@ class TimingParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     )
     # Of these ids, only frames of this length (and first byte) are monitored; the others never
     # reach the monitor (exolink.canfilter: the kernel drops them on SocketCAN). E.g.
-    # {70: {dlc: 6, first_byte: [1]}}: motor 1's set-points only, not the other joints' nor
+    # [{id: 70, dlc: 6, first_byte: [1]}]: motor 1's set-points only, not the other joints' nor
     # MACCEPA board 0's status on the same id (a third of the frames with the gait on 4 joints).
-    only: dict[int, Only] = {}
+    only: list[Only] = []
 
     def __post_init__(self) -> None:
-        if stray := sorted(set(self.only) - set(self.ids)):
+        named = [o.id for o in self.only]
+        if stray := sorted(set(named) - set(self.ids)):
             raise ValueError(f"only names ids {stray} that are not in ids {self.ids}")
-        if len(self.only) > MAX_ONLY:
+        if len(set(named)) != len(named):
+            raise ValueError(f"only names an id twice ({named})")
+        if len(named) > MAX_ONLY:
             raise ValueError(f"only: at most {MAX_ONLY} ids")
+
+    def only_for(self, fid: int) -> Only | None:
+        return next((o for o in self.only if o.id == fid), None)
 
     def drops(self) -> list[Drop]:
         """``only`` as content filters: every other length of each id, and (with
         ``first_byte``) that length's other first bytes."""
         rules = []
-        for fid, o in self.only.items():
-            rules += [Drop(fid, n) for n in range(9) if n != o.dlc]
+        for o in self.only:
+            rules += [Drop(o.id, n) for n in range(9) if n != o.dlc]
             if o.first_byte:
-                rules.append(Drop(fid, o.dlc, 0, frozenset(o.first_byte)))
+                rules.append(Drop(o.id, o.dlc, 0, frozenset(o.first_byte)))
         return rules
 
 
@@ -169,7 +176,7 @@ class TimingMonitor(Node):
         fid, byte0, dlc = req.get("id"), req.get("byte0"), req.get("dlc")
         if fid not in self.params.ids:
             raise CommandRefused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
-        only = self.params.only.get(fid)
+        only = self.params.only_for(fid) if isinstance(fid, int) else None
         if only is not None and (
             (dlc is not None and dlc != only.dlc)
             or (byte0 is not None and only.first_byte and byte0 not in only.first_byte)

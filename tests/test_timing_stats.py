@@ -72,7 +72,7 @@ def test_only_keeps_one_motors_set_points_and_refuses_other_ids() -> None:
     from exolink.nodes.timing_monitor import TimingParams
 
     p = msgspec.convert(
-        {"ids": [70, 110], "only": {70: {"dlc": 6, "first_byte": [1]}}}, TimingParams
+        {"ids": [70, 110], "only": [{"id": 70, "dlc": 6, "first_byte": [1]}]}, TimingParams
     )
     pred = Predicate(p.drops())
     assert not pred.drops(70, bytes([1, 1, 30, 0, 0, 0]))
@@ -80,7 +80,7 @@ def test_only_keeps_one_motors_set_points_and_refuses_other_ids() -> None:
     assert pred.drops(70, bytes(8)) and pred.drops(70, bytes([1]))
     assert not pred.drops(110, bytes(6))
     with pytest.raises(msgspec.ValidationError, match=r"only names ids \[70\] that are not in ids"):
-        msgspec.convert({"ids": [110], "only": {70: {"dlc": 6}}}, TimingParams)
-    four = {i: {"dlc": 6} for i in (1, 2, 3, 4)}
+        msgspec.convert({"ids": [110], "only": [{"id": 70, "dlc": 6}]}, TimingParams)
+    four = [{"id": i, "dlc": 6} for i in (1, 2, 3, 4)]
     with pytest.raises(msgspec.ValidationError, match="at most 3 ids"):
         msgspec.convert({"ids": [1, 2, 3, 4], "only": four}, TimingParams)
