@@ -38,16 +38,46 @@ def test_missing_interface_names_the_fix() -> None:
         canlink.health("can7")
 
 
-def test_link_monitor_keeps_its_socket_and_names_the_fix() -> None:
-    m = canlink.LinkMonitor("lo")  # no CAN link in this kernel: loopback has a state too
-    try:
-        assert m.health().state == "up"
-        sock = m._ip
-        assert m.health().state == "up" and m._ip is sock  # one netlink socket, kept
-    finally:
-        m.close()
+def test_link_monitor_follows_the_drivers_error_frames_and_names_the_fix() -> None:
+    """The state machine on the driver's error frames (no CAN socket in this kernel: the
+    frames are given to it here; tests/kernel/test_socketcan.py injects them on a vcan), the
+    link's up/down from sysfs (loopback: no CAN state, "up")."""
+    m = canlink.LinkMonitor("lo")
+    assert m.health().state == "up"
+    err, crtl, cnt = canlink.ERR_FLAG, canlink.ERR_CRTL, canlink.ERR_CNT
+    m.on_error_frame(err | crtl | cnt, 8, bytes([0, 0x08, 0, 0, 0, 0, 97, 3]))  # tx warning
+    assert m.health() == canlink.LinkHealth("error-warning", 97, 3)
+    m.on_error_frame(err | crtl | cnt, 8, bytes([0, 0x20, 0, 0, 0, 0, 130, 5]))  # tx passive
+    assert m.health().state == "error-passive" and m.health().bad
+    m.on_error_frame(err | canlink.ERR_BUSOFF, 8, bytes(8))
+    assert m.health().state == "bus-off"
+    m.on_error_frame(err | canlink.ERR_RESTARTED, 8, bytes(8))
+    h = m.health()
+    assert (h.state, h.txerr, h.rxerr, h.restarts) == ("error-active", 0, 0, 1) and not h.bad
+    m.on_error_frame(70, 6, bytes(8))  # not an error frame: ignored
+    assert m.health().state == "error-active"
     with pytest.raises(canlink.CanLinkError, match=r"no network interface 'can7'"):
         canlink.LinkMonitor("can7").health()
+
+
+def test_the_supervisor_never_loads_pyroute2(tmp_path: Path) -> None:
+    """Bring-up runs pyroute2 in a child (``bring_up_apart``: a missing link refused there,
+    named here); the supervisor's modules and its link monitor do not import it."""
+    code = (
+        "import sys\n"
+        "from exolink.config import CanConfig\n"
+        "from exolink.supervisor import canlink, core\n"
+        "m = canlink.LinkMonitor('lo'); m.health(); m.wait(0.01); m.close()\n"
+        "try:\n"
+        "    canlink.bring_up_apart(CanConfig(channel='can7'))\n"
+        "except canlink.CanLinkError as exc:\n"
+        "    print('refused:', exc)\n"
+        "print('pyroute2' in sys.modules)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "refused: no network interface 'can7'" in r.stdout, r.stdout
+    assert r.stdout.strip().endswith("False"), r.stdout
 
 
 def test_link_health_bad_states() -> None:

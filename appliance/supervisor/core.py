@@ -110,7 +110,7 @@ class Supervisor:
             if cfg.can.require_overlay:
                 canlink.check_overlay()
             if cfg.can.bring_up:
-                canlink.bring_up(cfg.can)
+                canlink.bring_up_apart(cfg.can)  # pyroute2 in a child, never resident here
         # On SocketCAN the kernel's broadcast manager watches ids 110 and 70 for the watchdog
         # (exolink.cyclic) and its own socket only sends; the simulated bus has no such thing.
         watches: list[CyclicWatch] = []
@@ -143,9 +143,7 @@ class Supervisor:
         )
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
-        # The first link check imports pyroute2 (~4 s on an emulated A8): here, before READY, not
-        # in the loop systemd watches (with bring_up false it killed the supervisor at each start).
-        self._check_bus()
+        self._check_bus()  # before READY: a link already bad is known at start
         if cfg.can.interface == "socketcan":
             self._link_thread = threading.Thread(target=self._link_loop, daemon=True, name="link")
             self._link_thread.start()
@@ -446,14 +444,18 @@ class Supervisor:
         return due
 
     def _link_loop(self) -> None:
-        """The CAN link's state and error counters, polled off the safety loop: one netlink
-        round trip through pyroute2 costs ~2 ms on x86 and tens of ms on the emulated A8, and a
-        slow one (seen under TCG at start-up) must delay neither the watchdog's checks nor
-        systemd's ping. Every 2 s: pyroute2 makes an asyncio loop per request, a quarter of the
-        supervisor's samples on the emulated A8 at 1/s (py-spy in the guest). A bus-off link
-        also silences the H2, which the watchdog trips on within h2_silence_ms anyway."""
-        while not self.stop_event.wait(HEALTH_PERIOD_S):
-            self._check_bus()
+        """The CAN link's state and error counters, off the safety loop: woken by the driver's
+        error frame at a state change (a bus-off trips at once) and every HEALTH_PERIOD_S for
+        the link's up/down (sysfs). A bus-off link also silences the H2, which the watchdog
+        trips on within h2_silence_ms anyway."""
+        while not self.stop_event.is_set():
+            link = self.link
+            if link is None:
+                self.stop_event.wait(HEALTH_PERIOD_S)
+            else:
+                link.wait(HEALTH_PERIOD_S)
+            if not self.stop_event.is_set():
+                self._check_bus()
 
     def _publish_diagnostics(self) -> None:
         wd = self.watchdog.snapshot()

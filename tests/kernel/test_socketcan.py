@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -116,6 +118,49 @@ def test_netlink_up_down_and_bitrate_refusal(vcan0: str) -> None:
     monitor.close()
     with pytest.raises(canlink.CanLinkError, match="vcan0 cannot take a bitrate"):
         canlink.set_bitrate(vcan0, 1_000_000)
+
+
+def test_link_monitor_wakes_on_the_drivers_error_frames_not_on_data(vcan0: str) -> None:
+    """The supervisor's link monitor on a real CAN socket: data frames never reach it (its
+    kernel filter), error frames of the watched classes do (vcan has no controller: they are
+    injected as the c_can driver sends them, counters in bytes 6-7), and a bus-off is reported
+    as such; a bus-error flood class is not watched."""
+    m = canlink.LinkMonitor(vcan0)
+    tx = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    tx.bind((vcan0,))
+    frame = struct.Struct("=IB3x8s")
+    try:
+        assert m.health().state == "up" and not m.wait(0.05)
+        tx.send(frame.pack(110, 6, bytes(8)))
+        tx.send(frame.pack(canlink.ERR_FLAG | 0x80, 8, bytes(8)))  # CAN_ERR_BUSERROR: unwatched
+        assert not m.wait(0.3)
+        passive = canlink.ERR_FLAG | canlink.ERR_CRTL | canlink.ERR_CNT
+        tx.send(frame.pack(passive, 8, bytes([0, 0x10, 0, 0, 0, 0, 5, 128])))
+        assert m.wait(2.0)
+        assert m.health() == canlink.LinkHealth("error-passive", 5, 128)
+        tx.send(frame.pack(canlink.ERR_FLAG | canlink.ERR_BUSOFF, 8, bytes(8)))
+        assert m.wait(2.0) and m.health().state == "bus-off"
+        canlink.set_state(vcan0, up=False)
+        assert m.health().state == "bus-off"  # the driver takes the carrier down with it
+        canlink.set_state(vcan0, up=True)
+        assert not m.wait(0.2)  # its socket reports the link's down (ENETDOWN): it lets it go
+        m._socket()  # ... and opens a new one at its next wait (here: before the frame)
+        tx.close()
+        tx = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        tx.bind((vcan0,))
+        tx.send(frame.pack(canlink.ERR_FLAG | canlink.ERR_RESTARTED, 8, bytes(8)))
+        assert m.wait(2.0) and m.health().state == "error-active" and m.restarts == 1
+    finally:
+        tx.close()
+        m.close()
+
+
+def test_bring_up_runs_apart_and_a_refusal_names_the_link(vcan0: str) -> None:
+    canlink.set_state(vcan0, up=False)
+    canlink.bring_up_apart(CanConfig(interface="socketcan", channel=vcan0))
+    assert canlink.health(vcan0).state == "up"
+    with pytest.raises(canlink.CanLinkError, match="no network interface 'can7'"):
+        canlink.bring_up_apart(CanConfig(interface="socketcan", channel="can7"))
 
 
 def write_config(tmp_path: Path, channel: str, nodes: list[dict]) -> Path:
