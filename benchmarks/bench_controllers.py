@@ -12,6 +12,8 @@ the MACCEPA interface's cost per cycle inside ``cycle`` and the writes (the stat
 is outside that figure), ``board_frame_to_setpoint_ms`` the angle frame -> MACCEPA set-point frame
 latency of the cycles that write one.
 
+``controllers_1_every_2_cycles``: the 1-controller case at the board's ``cycles_per_update: 2``.
+
 ``cpu_us_per_cycle`` / ``cpu_pct``: the manager process's CPU over the window (its reads, decoding,
 Zenoh and the loop), per H2 cycle and as % of one core; ``controllers_0_idle`` is the manager
 with controllers loaded and none active (off the bus since issue 18's ladder showed it costing
@@ -30,13 +32,17 @@ from benchmarks.harness import Appliance, Drained, cpu_s, pct
 JOINTS3 = ["r_knee", "l_knee", "r_hip"]
 
 
-def measure(n_controllers: int, seconds: float, board: bool = False) -> dict[str, Any]:
-    """``n_controllers`` 0: one loaded, none activated (the idle manager)."""
+def measure(
+    n_controllers: int, seconds: float, board: bool = False, cycles_per_update: int = 1
+) -> dict[str, Any]:
+    """``n_controllers`` 0: one loaded, none activated (the idle manager); ``cycles_per_update``
+    2: the board config's manager (an update per two H2 cycles; half the cycles get no command
+    by design)."""
     controllers = [
         {"name": f"c{i}", "type": "forward_command", "params": {"joints": [j]}}
         for i, j in enumerate(JOINTS3[: max(n_controllers, 1)])
     ]
-    manager: dict[str, Any] = {"controllers": controllers}
+    manager: dict[str, Any] = {"controllers": controllers, "cycles_per_update": cycles_per_update}
     if board:
         controllers.append(
             {"name": "m0", "type": "maccepa_setpoint", "params": {"board": 0, "gains": {"kp": 2}}}
@@ -124,4 +130,5 @@ def run(quick: bool) -> dict[str, Any]:
     out = {"controllers_0_idle": measure(0, seconds)}
     out.update({f"controllers_{n}": measure(n, seconds) for n in (1, 3)})
     out["controllers_1_maccepa"] = measure(1, seconds, board=True)
+    out["controllers_1_every_2_cycles"] = measure(1, seconds, cycles_per_update=2)
     return out
