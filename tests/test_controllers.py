@@ -900,10 +900,11 @@ def test_the_manager_reads_the_bus_only_while_a_controller_is_active(app, mbus) 
         assert joint_frames(collect(mbus, 0.3, {70}), 2)
         listed = json.loads(ctl(app, "list", "--json").stdout)
         rx = listed["receive"]
-        # 2 frames per cycle reach it (110, MACCEPA board 0's on 70; not 120 or 130, which no
-        # loaded controller reads), both in one wake-up
+        # 1 frame per cycle reaches it (110; not 120 or 130, which no loaded controller reads,
+        # nor MACCEPA board 0's status on 70, which its content filter drops: on the sim bus
+        # in Python, counted in filtered; on SocketCAN in the kernel, tests/kernel)
         assert listed["read_ids"] == [70, 110]
-        assert rx["frames"] >= 1.5 * rx["batches"] > 0, rx
+        assert rx["frames"] >= rx["batches"] > 0 and rx["filtered"] > 0, rx
         assert ctl(app, "deactivate", "a").returncode == 0
         wait_for(lambda: bus_sockets(pid) == idle, timeout=5)
         collect(mbus, 0.1)  # frames in flight

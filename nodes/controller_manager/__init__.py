@@ -439,11 +439,15 @@ class ControllerManagerNode(Node):
         clock = self.clock
         while not stop.is_set():
             clock.start()
-            idle = self.reader is None and not self.manager.busy()
-            self.beat(idle)  # not idle: told before the reader opens, so before any set-point
+            busy = self.reader is not None or self.manager.busy()
+            # Idle (held to the appliance's default deadline) until a controller drives: the
+            # reader's opening and an activation (hundreds of ms on the board proxy: its stock
+            # 50 ms deadline tripped the watchdog at every gait start) come before the first
+            # set-point, and _send says "not idle" before that one goes out.
+            self.beat(not (busy and self.manager.driving()))
             self._maybe_tell()
             clock.mark("beat")
-            if idle:  # a request (load, switch) wakes it at once
+            if not busy:  # a request (load, switch) wakes it at once
                 self.wake.wait(IDLE_BEAT_S)
                 self.wake.clear()
                 continue
@@ -655,6 +659,8 @@ class ControllerManagerNode(Node):
                 continue
             frames.append(frame)
             self.mc_written += 1
+        if out.writes or out.maccepa:
+            self.beat(False)  # driving from this cycle on: its own deadline, before it drives
         self._send(frames)
         self.clock.mark("send")
         # The H2-silence clock restarts when the cycle ends, not when it began: a cycle that

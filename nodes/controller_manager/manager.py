@@ -551,6 +551,11 @@ class Manager:
         with self.lock:
             return bool(self.pending) or any(s.state == "active" for s in self.slots.values())
 
+    def driving(self) -> bool:
+        """A controller is active: the manager writes motion each cycle."""
+        with self.lock:
+            return any(s.state == "active" for s in self.slots.values())
+
     def active(self) -> list[str]:
         with self.lock:
             return [s.name for s in self.slots.values() if s.state == "active"]
