@@ -388,6 +388,9 @@ class FrameReader:
     it brings, so a reader that does not need each frame at once (the timing monitor, which
     works from kernel timestamps) trades that latency for CPU. Never longer than the caller's
     timeout; 0 (default) wakes for each frame.
+
+    ``drop``: content filters (``exolink.canfilter``), frames of its ids it never needs: the
+    kernel's socket filter on SocketCAN, these rules in Python on the other buses (``filtered``).
     """
 
     def __init__(
