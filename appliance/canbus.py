@@ -300,9 +300,11 @@ def _explain(cfg: CanConfig, exc: Exception) -> str:
 
 # --- the receive hot path ----------------------------------------------------------------------
 
-_CAN_FRAME = struct.Struct("=IB3x8s")  # linux/can.h struct can_frame
-_CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
-_CAN_FLAGS = _CAN_EFF_FLAG | _CAN_RTR_FLAG | _CAN_ERR_FLAG
+CAN_FRAME = struct.Struct(
+    "=IB3x8s"
+)  # linux/can.h struct can_frame: id, len, pad, res0, len8_dlc, data
+_CAN_EFF_FLAG, _CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
+_CAN_FLAGS = _CAN_EFF_FLAG | _CAN_RTR_FLAG | CAN_ERR_FLAG
 _TIMESPEC = struct.Struct("@ll")
 _BATCH = 64  # frames read per socket and wake-up at most
 SO_RCVBUFFORCE, SO_MEMINFO = 33, 55  # asm-generic/socket.h; not exported by Python
@@ -445,15 +447,15 @@ class FrameReader:
         self._sock = _bus_socket(bus, cfg)
         self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)
-        size = _CAN_FRAME.size if cfg.interface == "socketcan" else _MSG_SIZE
+        size = CAN_FRAME.size if cfg.interface == "socketcan" else _MSG_SIZE
         self._rx = {s: BatchReceiver(s, size) for s in (self._sock, self._quiet) if s is not None}
         self._cfg = cfg
         # Content filters (canfilter): the kernel's on SocketCAN, else these rules in Python.
-        self._drops = canfilter.Predicate(drop)
-        if cfg.interface == "socketcan" and self._drops:
+        in_kernel = cfg.interface == "socketcan"
+        if in_kernel and drop:
             for s in self._rx:
                 canfilter.attach(s, drop)
-            self._drops = canfilter.Predicate(())
+        self._drops = canfilter.Predicate(() if in_kernel else drop)
         if self._sock is not None:
             want = rcvbuf or RCVBUF_BYTES[cfg.interface]
             self.rcvbuf = size_receive_buffer(self._sock, want)
@@ -648,7 +650,7 @@ class FrameReader:
         be queued); never blocks. Kernel receive times (SO_TIMESTAMPNS, set by python-can and
         SimBus); a frame without one gets the time it was read."""
         rx = self._rx[sock]
-        if rx.msg_size == _CAN_FRAME.size:
+        if rx.msg_size == CAN_FRAME.size:
             return self._drain_socketcan(rx)
         got = rx.receive()
         out: list[Frame] = []
@@ -668,7 +670,7 @@ class FrameReader:
         out: list[Frame] = []
         append, now = out.append, 0.0
         for (can_id, dlc, payload), ok, ts in zip(
-            _CAN_FRAME.iter_unpack(data), whole, stamps, strict=True
+            CAN_FRAME.iter_unpack(data), whole, stamps, strict=True
         ):
             if not ok or dlc > 8:  # truncated (a CAN FD frame) or a length no frame has
                 self.malformed += 1
@@ -685,7 +687,7 @@ class FrameReader:
                         payload[:dlc],
                         ext,
                         bool(can_id & _CAN_RTR_FLAG),
-                        bool(can_id & _CAN_ERR_FLAG),
+                        bool(can_id & CAN_ERR_FLAG),
                     )
                 )
             else:
@@ -903,7 +905,7 @@ class FrameWriter:
     def __init__(self, bus: can.BusABC, cfg: CanConfig) -> None:
         self.bus = bus
         self.fd = bus.socket.fileno() if cfg.interface == "socketcan" else None  # type: ignore[attr-defined]
-        self._data, _, self._iov, self._msgs = _mmsg_buffers(_CAN_FRAME.size, 0)
+        self._data, _, self._iov, self._msgs = _mmsg_buffers(CAN_FRAME.size, 0)
         self._addr = ctypes.addressof(self._msgs)
         self._view = memoryview(self._data).cast("B")
 
@@ -930,7 +932,7 @@ class FrameWriter:
             )
 
     def _send_batch(self, msgs: Sequence[can.Message]) -> None:
-        view, size = self._view, _CAN_FRAME.size
+        view, size = self._view, CAN_FRAME.size
         for i, m in enumerate(msgs):
             can_id = m.arbitration_id
             if m.is_extended_id:
@@ -938,8 +940,8 @@ class FrameWriter:
             if m.is_remote_frame:
                 can_id |= _CAN_RTR_FLAG
             if m.is_error_frame:
-                can_id |= _CAN_ERR_FLAG
-            _CAN_FRAME.pack_into(view, i * size, can_id, m.dlc, bytes(m.data))
+                can_id |= CAN_ERR_FLAG
+            CAN_FRAME.pack_into(view, i * size, can_id, m.dlc, bytes(m.data))
         total, done, tries = len(msgs), 0, 0
         while done < total:
             n = _sendmmsg(

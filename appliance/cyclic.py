@@ -32,15 +32,14 @@ import struct
 import time
 from typing import NamedTuple
 
-from exolink.canbus import SO_TIMESTAMPNS, CanOpenError, Frame
+from exolink.canbus import CAN_FRAME, SO_TIMESTAMPNS, CanOpenError, Frame
 
 _HEAD_FMT = "@3I4l2I"
 _HEAD = struct.Struct(_HEAD_FMT + "x" * (-struct.calcsize(_HEAD_FMT) % 8))
-_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: id, len, pad, res0, len8_dlc, data
 _TIMESPEC = struct.Struct("@ll")
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _ANC = socket.CMSG_SPACE(_TIMESPEC.size)
-_FULL = _HEAD.size + _FRAME.size
+_FULL = _HEAD.size + CAN_FRAME.size
 _TIMER = socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_RX_ANNOUNCE_RESUME
 
 
@@ -77,7 +76,7 @@ class CyclicWatch:
             sec, usec = int(timeout_s), round((timeout_s % 1) * 1e6)
             flags = socket.CAN_BCM_RX_CHECK_DLC | (_TIMER if timeout_s else 0)
             head = _HEAD.pack(socket.CAN_BCM_RX_SETUP, flags, 0, sec, usec, 0, 0, can_id, 1)
-            self._sock.send(head + _FRAME.pack(can_id, 8, mask))
+            self._sock.send(head + CAN_FRAME.pack(can_id, 8, mask))
         except OSError as exc:
             self._sock.close()
             raise CanOpenError(
@@ -106,7 +105,7 @@ class CyclicWatch:
                 out.append(self._changed(data, anc))
 
     def _changed(self, data: bytes, anc: list[tuple[int, int, bytes]]) -> Event:
-        raw_id, length, payload = _FRAME.unpack_from(data, _HEAD.size)
+        raw_id, length, payload = CAN_FRAME.unpack_from(data, _HEAD.size)
         at = time.time()
         for level, kind, value in anc:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 8:

@@ -9,13 +9,12 @@ tests/kernel/test_socketcan.py runs it on a real vcan in User-Mode Linux."""
 from __future__ import annotations
 
 import socket
-import struct
 import time
 
 import can
 import pytest
 from exolink import canfilter
-from exolink.canbus import open_bus, open_reader
+from exolink.canbus import CAN_FRAME, open_bus, open_reader
 from exolink.canfilter import Drop, Predicate
 from exolink.config import CanConfig
 from exolink.nodes.controller_manager import drop_rules
@@ -23,7 +22,6 @@ from exolink.protocol import h2, maccepa
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-CAN_FRAME = struct.Struct("=IB3x8s")
 RULES = [Drop(70, 6, byte=1, keep=frozenset({4, 5})), Drop(70, 8), Drop(75, 6)]
 
 

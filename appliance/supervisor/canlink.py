@@ -21,10 +21,12 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from exolink.canbus import CAN_ERR_FLAG, CAN_FRAME
 from exolink.config import CanConfig
 
 # DCAN1 (0x481d0000) in Debian's am335x-boneblack.dtb (kernel 6.12); the overlay sets it "okay".
@@ -176,11 +178,11 @@ def health(channel: str) -> LinkHealth:
 
 # linux/can/error.h and linux/can/raw.h (Python exports neither)
 CAN_RAW_ERR_FILTER = 2
-ERR_FLAG, ERR_CRTL, ERR_BUSOFF, ERR_RESTARTED, ERR_CNT = 0x20000000, 0x4, 0x40, 0x100, 0x200
+ERR_FLAG = CAN_ERR_FLAG
+ERR_CRTL, ERR_BUSOFF, ERR_RESTARTED, ERR_CNT = 0x4, 0x40, 0x100, 0x200
 CRTL_WARNING, CRTL_PASSIVE, CRTL_ACTIVE = 0x04 | 0x08, 0x10 | 0x20, 0x40
 # State changes only: bus-error and protocol classes can come thousands a second on a bad bus.
 WATCHED = ERR_CRTL | ERR_BUSOFF | ERR_RESTARTED
-_FRAME = struct.Struct("=IB3x8s")
 
 
 class LinkMonitor:
@@ -222,15 +224,15 @@ class LinkMonitor:
             got = False
             while True:
                 try:
-                    raw = sock.recv(_FRAME.size)
+                    raw = sock.recv(CAN_FRAME.size)
                 except BlockingIOError:
                     return got
-                if len(raw) == _FRAME.size:
-                    self.on_error_frame(*_FRAME.unpack(raw))
+                if len(raw) == CAN_FRAME.size:
+                    self.on_error_frame(*CAN_FRAME.unpack(raw))
                     got = True
         except (OSError, CanLinkError):  # the link is gone: health() says so, then reopen
             self.close()
-            select.select((), (), (), timeout)
+            time.sleep(timeout)
             return False
 
     def on_error_frame(self, can_id: int, dlc: int, data: bytes) -> None:

@@ -171,11 +171,14 @@ class ControllerManagerNode(Node):
                 f"{self.name} params: maccepa boards {missing} are not in watchdog.maccepa_boards "
                 f"({guarded}): the watchdog would not stop them on a trip"
             )
-        n = p.cycles_per_update
         self.manager = Manager(
-            limits, p.max_step_deg, p.update_budget_ms, list(p.maccepa), cycles_per_update=n
+            limits,
+            p.max_step_deg,
+            p.update_budget_ms,
+            list(p.maccepa),
+            cycles_per_update=p.cycles_per_update,
         )
-        self.update_every_s = n * h2.PERIOD_S
+        self.update_every_s = p.cycles_per_update * h2.PERIOD_S
         for n, spec in enumerate(p.controllers):
             try:
                 self.manager.load(spec.name, spec.type, spec.params, spec.budget_ms)
@@ -484,8 +487,9 @@ class ControllerManagerNode(Node):
         (queued a quarter period ago), instead of waking for the angle frames in between: on
         the board a wake-up costs more than the frames it brings. Frames that come meanwhile
         (a disable from anyone) are read before that update's set-points are computed."""
-        if self.next_update:
-            wait = self.next_update + h2.PERIOD_S / 4 - time.time()
+        last = self.last_angle_ts  # the last update's frame (or a cold reader's last)
+        if self.params.cycles_per_update > 1 and last is not None:
+            wait = last + self.update_every_s + h2.PERIOD_S / 4 - time.time()
             if wait > 0:  # never longer than one update (a wall clock stepped back); a plain
                 # sleep: an Event's timed wait makes a lock and a condition per call
                 time.sleep(min(wait, self.update_every_s + h2.PERIOD_S / 4))
@@ -536,7 +540,6 @@ class ControllerManagerNode(Node):
         self.feet: tuple[int, int, int, int] | None = None
         self.last_angle_ts: float | None = None
         self.last_angle_mono = time.monotonic()
-        self.next_update = 0.0  # wall clock (frame stamps'): when the next update's frame is due
         self.skipped = 0  # angle frames read since the last update and not run
 
     def _warm(self) -> bool:
@@ -642,8 +645,6 @@ class ControllerManagerNode(Node):
         t0 = time.perf_counter()
         period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
         self.last_angle_ts = stamp
-        if self.params.cycles_per_update > 1:
-            self.next_update = stamp + self.update_every_s
         self.clock.mark("frames")  # the batch's decoding up to this cycle
         out = self.manager.cycle(state, stamp, period, self._not_armed())
         self.clock.mark("cycle")

@@ -7,7 +7,6 @@ import json
 import os
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import threading
@@ -18,7 +17,7 @@ import can
 import pytest
 import yaml
 from conftest import read_cycle, wait_for
-from exolink.canbus import FrameWriter, id_filters, open_bus, open_reader
+from exolink.canbus import CAN_FRAME, FrameWriter, id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
 from exolink.nodes.simulator import SimParams, Simulator
 from exolink.protocol import h2
@@ -128,7 +127,7 @@ def test_link_monitor_wakes_on_the_drivers_error_frames_not_on_data(vcan0: str) 
     m = canlink.LinkMonitor(vcan0)
     tx = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
     tx.bind((vcan0,))
-    frame = struct.Struct("=IB3x8s")
+    frame = CAN_FRAME
     try:
         assert m.health().state == "up" and not m.wait(0.05)
         tx.send(frame.pack(110, 6, bytes(8)))
