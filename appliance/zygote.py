@@ -10,8 +10,8 @@ its own afterwards. A node is forked through a short-lived intermediate, so it i
 the supervisor (a child subreaper), which waits for it exactly as for a process it spawned.
 
 Protocol (SOCK_SEQPACKET from the supervisor): {ready} once imported; then per node a JSON
-request {name, config, env} with two file descriptors, the node's stdout and its liveness pipe,
-and the reply {pid} or {error}.
+request {name, config, env} with three file descriptors, the node's stdout, its liveness pipe
+and its deadline timer, and the reply {pid} or {error}.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def serve(fd: int) -> None:
     sock.send(b'{"ready": true}')  # imports done: the supervisor waits for this before any request
     while True:
         try:
-            msg, fds, _flags, _addr = socket.recv_fds(sock, MAX_REQUEST, 2)
+            msg, fds, _flags, _addr = socket.recv_fds(sock, MAX_REQUEST, 3)
         except OSError:
             return
         if not msg:
@@ -66,8 +66,8 @@ def serve(fd: int) -> None:
 
 
 def _spawn(req: dict[str, Any], fds: list[int], sock: socket.socket) -> int:
-    if len(fds) != 2:
-        raise ValueError(f"expected 2 file descriptors, got {len(fds)}")
+    if len(fds) != 3:
+        raise ValueError(f"expected 3 file descriptors, got {len(fds)}")
     r, w = os.pipe()
     mid = os.fork()
     if mid == 0:  # intermediate: fork the node, report its pid, leave at once
@@ -98,7 +98,7 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
         sock.close()
         own_process_group()
         set_comm(f"exo-{req['name']}")
-        out, live = fds
+        out, live, timer = fds
         os.dup2(out, 1)
         os.dup2(out, 2)
         os.close(out)
@@ -107,6 +107,7 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
         os.environ.clear()
         os.environ.update(req["env"])
         os.environ[exolink.liveness.ENV] = str(live)
+        os.environ[exolink.liveness.TIMER_ENV] = str(timer)
         args = [str(req["name"]), "-c", str(req["config"])]
         sys.argv = [exolink.runtime.__file__, *args]
         try:

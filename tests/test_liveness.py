@@ -89,3 +89,27 @@ def test_a_channel_closed_meanwhile_does_not_stop_the_others_beats() -> None:
     finally:
         ok.close()
         gone.close()
+
+
+def test_a_wakeup_ends_a_wait_from_another_thread_and_only_once() -> None:
+    """The supervisor loop's alarm (exolink.wakeup): a set before the wait ends it at once, a
+    set during it ends it early, a wait without one runs out; a set is consumed by the wait
+    that saw it, and the pipe opens only on first use (after the zygote's fork)."""
+    import threading
+
+    from exolink.wakeup import Wakeup
+
+    w = Wakeup()
+    assert w._fds is None
+    assert w.wait(0.01) is False
+    w.set()
+    w.set()  # two sets before one wait: one wake, then none
+    assert w.wait(5.0) is True
+    assert w.wait(0.01) is False
+    threading.Timer(0.05, w.set).start()
+    assert w.wait(30.0) is True
+    w.set()
+    w.clear()  # seen by a wait on its descriptor among others
+    assert w.wait(0.01) is False
+    w.close()
+    w.set()  # after close: nothing, no error

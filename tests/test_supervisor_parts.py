@@ -199,7 +199,7 @@ def test_the_loop_sleeps_until_the_nearest_deadline() -> None:
     """No 100 Hz tick: the supervisor wakes when a heartbeat would be late (the pattern player's
     50 ms deadline in board.yaml is the nearest), a restart is due, or the watchdog has work."""
     from exolink.config import bundled, parse
-    from exolink.supervisor.core import MAX_SLEEP_S, Supervisor
+    from exolink.supervisor.core import MAX_SLEEP_S, STARTING_SLEEP_S, Supervisor
     from exolink.supervisor.processes import NodeProcess
 
     cfg = parse(bundled("board").read_text(), "board.yaml")
@@ -211,16 +211,27 @@ def test_the_loop_sleeps_until_the_nearest_deadline() -> None:
 
     sup.watchdog = Idle()  # type: ignore[assignment]
     now = 1000.0
+    grace = cfg.watchdog.start_grace_ms / 1000
+
+    def judged(node: NodeProcess) -> None:  # as _check_nodes leaves it (due_at)
+        node.due_at = sup._due(node, now, grace)
+
     for ncfg in cfg.nodes:
         node = NodeProcess(ncfg, "", lambda _e: None, lambda _n, _l: None)
         node.state, node.heartbeat_at = "running", now
+        judged(node)
         sup.nodes[ncfg.name] = node
     assert sup._next_due(now) == now + 0.05  # the motion nodes' heartbeat_deadline_ms
     for name in [n.name for n in cfg.nodes if n.heartbeat_deadline_ms == 50]:
         del sup.nodes[name]
     assert sup._next_due(now) == now + MAX_SLEEP_S  # 500 ms deadlines: the cap comes first
     sup.nodes["recorder"].state, sup.nodes["recorder"].next_start = "backoff", now + 0.03
+    judged(sup.nodes["recorder"])
     assert sup._next_due(now) == now + 0.03
+    sup.nodes["recorder"].state, sup.nodes["recorder"].heartbeat_at = "running", None
+    sup.nodes["recorder"].started_at = now
+    judged(sup.nodes["recorder"])  # starting: looked at often, for its first beat
+    assert sup._next_due(now) == now + STARTING_SLEEP_S
 
 
 def test_an_idle_motion_node_is_held_to_the_default_deadline_until_it_says_otherwise() -> None:
@@ -278,6 +289,68 @@ def test_an_idle_motion_node_is_held_to_the_default_deadline_until_it_says_other
     finally:
         node.kill()
         node.channel.close()
+
+
+def test_between_sweeps_the_loop_reads_only_the_nodes_whose_deadline_came() -> None:
+    """The manager's 50 ms deadline wakes the loop ~20 times a second: those wakes read its
+    pipe, not the others' (their beats wait for their own deadlines or the next sweep), and a
+    hung node with a 500 ms deadline is still caught at that deadline, not at a sweep."""
+    from exolink import liveness
+    from exolink.config import bundled, parse
+    from exolink.supervisor.core import SWEEP_S, Supervisor
+    from exolink.supervisor.processes import NodeProcess
+
+    cfg = parse(bundled("board").read_text(), "board.yaml")
+    sup = Supervisor(cfg)
+    trips: list[str] = []
+
+    class Armed:
+        armed = True
+
+        def trip(self, _reason: str, detail: str) -> None:
+            trips.append(detail)
+
+        def next_due(self) -> float:
+            return float("inf")
+
+    sup.watchdog = Armed()  # type: ignore[assignment]
+    beaters = {}
+    for name in ("controller_manager", "h2_reader"):
+        node = NodeProcess(cfg.node(name), "", lambda _e: None, lambda _n, _l: None)
+        node.channel = liveness.Channel()
+        beaters[name] = liveness.Beater(node.channel.child_fd)
+        node.proc = subprocess.Popen(["sleep", "60"])
+        node.state, node.heartbeat_at = "running", 999.0
+        sup.nodes[name] = node
+    manager, reader = sup.nodes["controller_manager"], sup.nodes["h2_reader"]
+    try:
+        for name in beaters:
+            beaters[name].beat(1000.0)
+        sup._check_nodes(1000.0)  # the first look is a sweep: both read
+        assert manager.heartbeat_at == reader.heartbeat_at == 1000.0
+        t = 1000.0
+        while t < 1000.0 + min(SWEEP_S, 0.5) - 0.06:  # the manager beats every 20 ms ...
+            t = round(t + 0.02, 3)
+            beaters["controller_manager"].beat(t)
+            beaters["h2_reader"].beat(t)  # ... and so does the reader
+            if t >= sup._next_due(t):
+                sup._check_nodes(t)
+        assert manager.heartbeat_at is not None and manager.heartbeat_at > 1000.3
+        assert reader.heartbeat_at == 1000.0  # its beats wait in its pipe
+        assert trips == []
+        beaters["controller_manager"].beat(1000.5)
+        sup._check_nodes(1000.5)  # the reader's deadline: its pipe read, on time
+        assert reader.heartbeat_at == t and trips == []
+        hung = reader.due_at + 0.001  # then it hangs: caught at its deadline
+        beaters["controller_manager"].beat(hung)
+        sup._check_nodes(hung)
+        assert trips and trips[-1].startswith("h2_reader: no heartbeat for 501 ms")
+        assert reader.state == "killed"
+    finally:
+        for node in sup.nodes.values():
+            node.kill()
+            assert node.channel is not None
+            node.channel.close()
 
 
 def test_a_trip_wakes_the_supervisor_for_its_repeats() -> None:
@@ -393,3 +466,101 @@ def test_junk_on_the_pattern_state_topic_is_counted_not_believed_and_logged_once
     assert sup.pattern_state == ("running", "op1")
     assert sum(sup.bad_samples.values()) == 1000
     assert [e["count"] for e in logs if e["event"] == "bad_sample"] == [1, 1000]
+
+
+def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
+    """Each beat sets the node's timerfd to the beat's time plus its deadline (exolink.liveness):
+    the loop does not poll that deadline, the kernel wakes it when a node misses it, and the
+    pipe then judges. A timer that ran out while the pipe holds a later beat (the node was
+    preempted between the two) leaves the node to polling until its timer is set again."""
+    import math
+
+    from exolink import liveness
+    from exolink.config import bundled, parse
+    from exolink.supervisor.core import MAX_SLEEP_S, Supervisor
+    from exolink.supervisor.processes import NodeProcess
+
+    cfg = parse(bundled("board").read_text(), "board.yaml")
+    sup = Supervisor(cfg)
+    trips: list[str] = []
+
+    class Armed:
+        armed = True
+
+        def trip(self, _reason: str, detail: str) -> None:
+            trips.append(detail)
+
+        def next_due(self) -> float:
+            return float("inf")
+
+    sup.watchdog = Armed()  # type: ignore[assignment]
+    node = NodeProcess(cfg.node("controller_manager"), "", lambda _e: None, lambda _n, _l: None)
+    node.channel = liveness.Channel()
+    beater = liveness.Beater(node.channel.child_fd, (node.channel.timer, 0.05, 0.5))
+    node.proc = subprocess.Popen(["sleep", "60"])
+    node.state, node.heartbeat_at = "running", time.monotonic()
+    sup.nodes = {node.name: node}
+    try:
+        beater.beat()
+        now = time.monotonic()
+        sup._check_nodes(now)
+        assert node.due_at == math.inf and node.channel.armed()
+        assert sup._next_due(now) == now + MAX_SLEEP_S  # no 50 ms polling
+        # preempted between its record and its timer: the timer runs out, the pipe is newer
+        time.sleep(0.03)
+        liveness.Beater(node.channel.child_fd).beat()  # a record, no timer set
+        woke, ready = sup.wake.wait_any(5.0, [node.channel.timer])
+        assert ready == [node.channel.timer] and not woke
+        sup._timer_ran_out(node, ready[0])
+        sup._check_nodes(time.monotonic())
+        assert trips == [] and node.due_at < math.inf  # polled until its next beat
+        # then hung: the timer has run out, so the polled deadline catches it
+        time.sleep(max(0.0, node.due_at - time.monotonic()) + 0.001)
+        sup._check_nodes(time.monotonic())
+        assert trips and trips[0].startswith("controller_manager: no heartbeat for")
+        assert trips[0].endswith("(deadline 50 ms)") and node.state == "killed"
+    finally:
+        node.kill()
+        node.channel.close()
+
+
+def test_a_hung_node_is_judged_when_its_timer_runs_out() -> None:
+    from exolink import liveness
+    from exolink.config import bundled, parse
+    from exolink.supervisor.core import Supervisor
+    from exolink.supervisor.processes import NodeProcess
+
+    cfg = parse(bundled("board").read_text(), "board.yaml")
+    sup = Supervisor(cfg)
+    trips: list[str] = []
+
+    class Armed:
+        armed = True
+
+        def trip(self, _reason: str, detail: str) -> None:
+            trips.append(detail)
+
+        def next_due(self) -> float:
+            return float("inf")
+
+    sup.watchdog = Armed()  # type: ignore[assignment]
+    node = NodeProcess(cfg.node("controller_manager"), "", lambda _e: None, lambda _n, _l: None)
+    node.channel = liveness.Channel()
+    beater = liveness.Beater(node.channel.child_fd, (node.channel.timer, 0.05, 0.5))
+    node.proc = subprocess.Popen(["sleep", "60"])
+    node.state, node.heartbeat_at = "running", time.monotonic()
+    sup.nodes = {node.name: node}
+    try:
+        beater.beat(idle=True)  # idle: the default deadline
+        sup._check_nodes(time.monotonic())
+        t0 = time.monotonic()
+        beater.beat(idle=False)  # driving: its own 50 ms from this beat, then silent
+        _, ready = sup.wake.wait_any(5.0, [node.channel.timer])
+        assert ready == [node.channel.timer] and time.monotonic() - t0 >= 0.05
+        sup._timer_ran_out(node, ready[0])
+        sup._check_nodes(time.monotonic())
+        assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)")
+        assert node.state == "killed"
+    finally:
+        node.kill()
+        node.channel.close()

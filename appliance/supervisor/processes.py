@@ -50,6 +50,9 @@ class NodeProcess:
     last_exit: str = ""
     next_start: float = 0.0
     heartbeat_at: float | None = None
+    # When the supervisor's loop next judges it (monotonic; 0: at its next wake). Another
+    # thread that changes ``state`` sets it to 0, under ``lock``.
+    due_at: float = 0.0
     idle: bool = False  # its last beat said it has nothing to drive (exolink.liveness)
     start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
     deliberate_stop: bool = False
@@ -62,7 +65,8 @@ class NodeProcess:
         default_factory=lambda: collections.deque(maxlen=LOG_LINES)
     )
     lock: threading.RLock = field(default_factory=threading.RLock)
-    channel: liveness.Channel | None = None  # this spawn's liveness pipe
+    channel: liveness.Channel | None = None  # this spawn's liveness pipe and deadline timer
+    deadlines: tuple[float, float] | None = None  # (own, idle) s: its beats set the timer by them
     zygote: Zygote | None = None  # forks the node from a pre-imported runtime; else exec
 
     @property
@@ -92,11 +96,13 @@ class NodeProcess:
                 self.channel.close()
             self.channel = liveness.Channel()
             env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
+            if self.deadlines is not None:
+                env[liveness.DEADLINES_ENV] = ",".join(f"{d:g}" for d in self.deadlines)
             self.proc = self._spawn(env)
             self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
-            self.idle = False
+            self.idle, self.due_at = False, 0.0
             plain_priority(self.proc.pid)
             threading.Thread(
                 target=self._wait, args=(self.proc,), daemon=True, name=f"wait-{self.name}"
@@ -109,7 +115,9 @@ class NodeProcess:
         assert self.channel is not None
         if self.zygote is not None:
             try:
-                return self.zygote.spawn(self.name, self.config_path, env, self.channel.child_fd)
+                return self.zygote.spawn(
+                    self.name, self.config_path, env, [self.channel.child_fd, self.channel.timer]
+                )
             except (OSError, RuntimeError) as exc:  # a start is worth more than a fast one
                 structlog.get_logger().warning("zygote_failed", node=self.name, error=str(exc))
         cmd = [sys.executable, "-m", "exolink.runtime", self.name, "-c", self.config_path]
@@ -117,10 +125,14 @@ class NodeProcess:
             cmd,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
-            env={**env, liveness.ENV: str(self.channel.child_fd)},
+            env={
+                **env,
+                liveness.ENV: str(self.channel.child_fd),
+                liveness.TIMER_ENV: str(self.channel.timer),
+            },
             stdin=subprocess.DEVNULL,
             process_group=0,  # not a session of its own: see zygote.own_process_group
-            pass_fds=(self.channel.child_fd,),
+            pass_fds=(self.channel.child_fd, self.channel.timer),
         )
 
     def _wait(self, proc: subprocess.Popen[bytes] | Forked) -> None:
@@ -143,7 +155,7 @@ class NodeProcess:
         with self.lock:
             proc = self.proc
             self.deliberate_stop = True
-            self.state = "stopped"
+            self.state, self.due_at = "stopped", 0.0
         if proc is None or proc.poll() is not None:
             return
         proc.terminate()
@@ -170,7 +182,7 @@ class NodeProcess:
         with self.lock:
             if self.proc is not None and self.proc.poll() is None:
                 self.proc.kill()
-                self.state = "killed"
+                self.state, self.due_at = "killed", 0.0
 
     def poll_liveness(self, now: float) -> bool:
         """Takes the beats that arrived since the last tick; True on this spawn's first one."""
@@ -196,7 +208,7 @@ class NodeProcess:
         delay_ms = min(r.backoff_initial_ms * 2 ** len(self.restart_times), r.backoff_max_ms)
         self.restart_times.append(now)
         self.restarts += 1
-        self.state, self.next_start = "backoff", now + delay_ms / 1000
+        self.state, self.next_start, self.due_at = "backoff", now + delay_ms / 1000, 0.0
         return True
 
     def describe(self) -> dict[str, Any]:
@@ -297,7 +309,7 @@ class Zygote:
             raise OSError("zygote exited before it was ready")
         self._sock.settimeout(ZYGOTE_TIMEOUT_S)
 
-    def spawn(self, name: str, config: str, env: dict[str, str], live_fd: int) -> Forked:
+    def spawn(self, name: str, config: str, env: dict[str, str], live_fds: list[int]) -> Forked:
         """A forked node; any failure retires the zygote for good (a late reply must never be
         taken as the answer to a later request) and the caller starts the node by exec."""
         if self.broken:
@@ -306,7 +318,7 @@ class Zygote:
         try:
             req = json.dumps({"name": name, "config": config, "env": env}).encode()
             with self._lock:
-                socket.send_fds(self._sock, [req], [w, live_fd])
+                socket.send_fds(self._sock, [req], [w, *live_fds])
                 reply = json.loads(self._sock.recv(4096) or b"{}")
         except (OSError, ValueError) as exc:
             os.close(r)

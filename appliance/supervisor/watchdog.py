@@ -20,7 +20,7 @@ kernel timestamps); armed, it sleeps until the silence deadline of the last angl
 ten wake-ups a second while the H2 streams, none per frame); not armed, a joint-control frame
 (id 70) wakes it at once, since a motion frame then must be answered now, and it looks at least
 every half silence limit so that arming sees fresh H2 data. Arming, disarming and trips wake it
-through a socket pair to switch between the two.
+through a pipe (exolink.wakeup) to switch between the two.
 
 On SocketCAN no frame is read at all: the kernel's broadcast manager (exolink.cyclic) times the
 angle frames and this thread hears only of a silence, a resumption or a frame whose length
@@ -44,9 +44,7 @@ fatal; an id-70 frame of 8 bytes is MACCEPA board 0's and is left alone.
 
 from __future__ import annotations
 
-import contextlib
 import errno
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -59,6 +57,7 @@ from exolink import logs
 from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
 from exolink.protocol import h2, maccepa
+from exolink.wakeup import Wakeup
 
 if TYPE_CHECKING:
     from exolink.cyclic import CyclicWatch, Event
@@ -133,9 +132,7 @@ class Watchdog:
         self._stop = threading.Event()
         # Wakes the listener when arming changes what it waits for (armed: a deadline; not
         # armed: id-70 frames too).
-        self._poke_r, self._poke_w = socket.socketpair()
-        self._poke_r.setblocking(False)
-        self._poke_w.setblocking(False)
+        self._pokes = Wakeup()  # arming, disarming, trips, close: the listener looks again
         self._rx = threading.Thread(target=self._listen, daemon=True, name="watchdog-rx")
 
     def start(self) -> None:
@@ -343,8 +340,7 @@ class Watchdog:
         return t < self._left_armed_at
 
     def _poke(self) -> None:
-        with contextlib.suppress(BlockingIOError, OSError):  # full: a wake is pending anyway
-            self._poke_w.send(b"!")
+        self._pokes.set()
 
     def _listen(self) -> None:
         limit = self.cfg.h2_silence_ms / 1000
@@ -368,8 +364,7 @@ class Watchdog:
                 time.sleep(0.1)
                 continue
             now = time.monotonic()
-            with contextlib.suppress(BlockingIOError, OSError):
-                self._poke_r.recv(64)
+            self._pokes.clear()
             # How late it looked: after the deadline it slept to, or after the frame that woke it.
             due = start + timeout
             for msg in frames:
@@ -385,7 +380,7 @@ class Watchdog:
     def _wake_fds(self) -> list[int]:
         """What ends the listener's wait besides frames: the poke, the kernel's watches (the
         id-70 one comes and goes with arming)."""
-        return [self._poke_r.fileno()] + [
+        return [self._pokes.fileno()] + [
             w.fileno() for w in (self.angles, self.control) if w is not None
         ]
 
@@ -436,8 +431,7 @@ class Watchdog:
         self._poke()
         if self._rx.is_alive():
             self._rx.join(1)
-        self._poke_r.close()
-        self._poke_w.close()
+        self._pokes.close()
         with self._kernel_lock:
             self._reopen = None  # a trip while closing opens no new watch
             for watch in (self.angles, self.control):
