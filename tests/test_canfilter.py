@@ -17,7 +17,7 @@ from exolink import canfilter
 from exolink.canbus import CAN_FRAME, open_bus, open_reader
 from exolink.canfilter import Drop, Predicate
 from exolink.config import CanConfig
-from exolink.nodes.controller_manager import drop_rules
+from exolink.nodes.controller_manager import drop_rules, one_socket
 from exolink.protocol import h2, maccepa
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -84,6 +84,17 @@ def test_the_manager_keeps_disables_and_stops_and_a_configured_board_0() -> None
     assert driving.drops(maccepa.DUTY_BASE, bytes(6))  # the H2's max angles on id 80
     assert not driving.drops(maccepa.DUTY_BASE, bytes(8))  # board 0's duty / stop control
     assert not driving.drops(h2.JOINT_ANGLES, bytes(6))
+
+
+def test_the_manager_reads_one_socket_only_where_the_rest_is_rare_news() -> None:
+    """Its filters leave of id 70 only disables and stops (rare): angles and 70 share a socket
+    on SocketCAN. Torques, foot switches or a driven board 0's status stream every cycle: they
+    go on a second socket that never wakes the loop; the simulated bus filters after the wake."""
+    jc, ja = h2.JOINT_CONTROL, h2.JOINT_ANGLES
+    assert one_socket("socketcan", [jc, ja], set())
+    assert not one_socket("socketcan", [jc, ja, h2.JOINT_TORQUES], set())
+    assert not one_socket("socketcan", [jc, ja], {0})  # board 0's status is on 70
+    assert not one_socket("udp_multicast", [jc, ja], set())
 
 
 def test_bad_rules_are_refused_by_name() -> None:

@@ -48,7 +48,13 @@ from exolink.jointlimits import Angles, Caps, Limits, default_max, default_min
 from exolink.maccepalimits import GAINS, KINDS, BoardLimits, target
 from exolink.messaging import CommandRefused
 from exolink.node import Node
-from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused, Switch
+from exolink.nodes.controller_manager.manager import (
+    GC_CLOCK,
+    Cycle,
+    Manager,
+    ManagerRefused,
+    Switch,
+)
 from exolink.phaseclock import PhaseClock
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -139,6 +145,20 @@ def _deadline(req: dict[str, Any]) -> float | None:
     if not isinstance(within, int | float) or isinstance(within, bool) or not 0 < within <= 10:
         raise CommandRefused(f"within_s must be a number of seconds in (0, 10], not {within!r}")
     return time.monotonic() + within
+
+
+def one_socket(interface: str, read_ids: list[int], board_ids: set[int]) -> bool:
+    """One socket reads all: every id besides the angle frame reaches this process only as
+    rare news, which may then wake the loop (on SocketCAN, whose kernel runs the content
+    filters: of id 70 only anyone's disable or stop, board 0's status when it is not driven
+    being dropped too). A second socket for them cost each update a second receive call and a
+    merge, for a socket almost always empty. The simulated bus filters in Python, after the
+    wake-up, and gives a socket its own frames back: two sockets there."""
+    return (
+        interface == "socketcan"
+        and set(read_ids) <= {h2.JOINT_ANGLES, h2.JOINT_CONTROL}
+        and 0 not in board_ids
+    )
 
 
 def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
@@ -274,6 +294,7 @@ class ControllerManagerNode(Node):
                     "receive": reader.counters() if reader is not None else None,
                     "watchdog_word": self.arming.counters() if self.arming is not None else None,
                     "loop_cpu": self.clock.counters(),
+                    "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
                 }
             if action == "state":
                 return self.manager.state_of(str(req.get("name", "")))
@@ -510,27 +531,38 @@ class ControllerManagerNode(Node):
             self.torque = (0,) * 6
         if "feet" not in reads:
             self.feet = None
-        if self.reader is not None:
+        if self.reader is not None and self.reader.quiet_bus is None and not self._one_socket():
+            self._close_reader(forget=False)  # the new ids must not wake it: reopened below
+        elif self.reader is not None:
             self.reader.set_ids(ids)
         self.log.info("read_ids", ids=ids)
 
+    def _one_socket(self) -> bool:
+        return one_socket(self.ctx.config.can.interface, self.read_ids, self.board_ids)
+
     def _open_reader(self) -> None:
         # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
-        # (torques, feet, anyone's joint control, the boards') are read with the next one, in
-        # arrival order and before that cycle's set-points: one wake-up per cycle, not 4-6.
+        # (torques, feet, the boards') are read with the next one, in arrival order and before
+        # that cycle's set-points: one wake-up per cycle, not 4-6. Anyone's disable or stop
+        # alone is rare: then one socket (_one_socket).
         self.reader = open_reader(
-            self.ctx.config.can, self.read_ids, wake_on=[h2.JOINT_ANGLES], drop=self.drops
+            self.ctx.config.can,
+            self.read_ids,
+            wake_on=None if self._one_socket() else [h2.JOINT_ANGLES],
+            drop=self.drops,
         )
         self.opened = self.last_angle_mono = time.monotonic()
         self.reader_opens += 1
 
-    def _close_reader(self) -> None:
+    def _close_reader(self, forget: bool = True) -> None:
         """Idle: frames no longer reach this process, and what it knew of the bus is dropped
-        (a controller activated later starts from fresh frames)."""
+        (a controller activated later starts from fresh frames). ``forget=False``: reopened at
+        once with other sockets (``_update_reads``), the state stands."""
         reader, self.reader = self.reader, None
         if reader is not None:
             reader.close()
-        self._forget_state()
+        if forget:
+            self._forget_state()
 
     def _forget_state(self) -> None:
         self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame

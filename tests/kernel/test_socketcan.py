@@ -376,14 +376,19 @@ def test_set_ids_moves_the_quiet_sockets_kernel_filter(vcan0: str) -> None:
         tx.shutdown()
 
 
-def test_a_reader_does_not_read_back_what_its_writer_sends(vcan0: str) -> None:
-    """The controller manager's shape: 110 wakes, 70 is read quietly (anyone's joint control,
-    the watchdog's disable), and its set-points go out on 70 through ``reader.writer``, which
-    sends on the quiet socket: SocketCAN never gives a socket its own frames, so the manager
-    does not decode its own set-points; another process's 70 still arrives, and an independent
-    listener sees every frame."""
+@pytest.mark.parametrize("wake_on", [[110], None], ids=["two sockets", "one socket"])
+def test_a_reader_does_not_read_back_what_its_writer_sends(
+    vcan0: str, wake_on: list[int] | None
+) -> None:
+    """The controller manager's shapes: 110 wakes and 70 is read quietly (anyone's joint
+    control, the watchdog's disable), or one socket reads both (``one_socket``); its set-points
+    go out on 70 through ``reader.writer``, which sends on the socket that reads 70: SocketCAN
+    never gives a socket its own frames, so the manager does not decode its own set-points;
+    another process's 70 still arrives, and an independent listener sees every frame."""
     tx, watcher = listener(vcan0), listener(vcan0)
-    reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [70, 110], wake_on=[110])
+    reader = open_reader(
+        CanConfig(interface="socketcan", channel=vcan0), [70, 110], wake_on=wake_on
+    )
     try:
         mine = [
             can.Message(arbitration_id=70, data=bytes([m, 3, 0, 0, 0, 0]), is_extended_id=False)
