@@ -363,6 +363,8 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
         "parseInt(document.querySelectorAll('#rec-state dd')[3].textContent) >= 300"
     )
     page.click("#page-recording button[data-argv*=stop]")
+    # The file is listed while it is written: plotted only once the recorder has closed it.
+    page.wait_for_function("document.querySelector('#rec-state dd').textContent.startsWith('idle')")
     link = page.wait_for_selector("#rec-files a")
     href = link.get_attribute("href")
     assert href

@@ -151,6 +151,10 @@ async def recording_plot(request: web.Request) -> web.StreamResponse:
         data = await asyncio.to_thread(hub_module.recording_plot, str(path))
     except RecordingError as exc:
         return web.json_response({"ok": False, "error": str(exc)})
+    except Exception as exc:  # a file still being written (no summary yet), or damaged
+        return web.json_response(
+            {"ok": False, "error": f"{path.name} cannot be read ({type(exc).__name__}: {exc})"}
+        )
     return web.json_response({"ok": True, **data})
 
 
