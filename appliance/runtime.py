@@ -79,7 +79,10 @@ class NodeRunner:
                 logging = time.monotonic() >= quiet_until
                 if logging:
                     self.log.warning(
-                        "loop_stalled", limit_s=self.node.stall_s, stalls_not_logged=unlogged
+                        "loop_stalled",
+                        limit_s=self.node.stall_s,
+                        stalls_not_logged=unlogged,
+                        loop_thread=_thread_state(threading.main_thread().native_id),
                     )
                     unlogged = 0
             elif healthy and stalled_since is not None:
@@ -120,7 +123,11 @@ class NodeRunner:
         self._decls.append(
             self.msg.serve(("nodes", self.name, "params"), self._params, roles.ADMIN)
         )
-        self.node.beat()  # the loop's stall clock starts now, not at construction
+        # The loop's stall clock starts now, not at construction. Idle: nothing is driven
+        # before the loop runs, whose first beat that is not idle comes before it drives
+        # anything; a motion node's own 50 ms from here killed a restarted controller manager
+        # whose loop first beat 67 ms later on the board proxy (exolink.liveness).
+        self.node.beat(idle=True)
         hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         hb.start()
         self.log.info("node_running", pid=os.getpid())
@@ -143,6 +150,18 @@ class NodeRunner:
                 self.session.close()
             self.log.info("node_stopped", code=code)
         return code
+
+
+def _thread_state(tid: int | None) -> str:
+    """A thread of this process as the kernel sees it now (state, wait channel): runnable (R)
+    in a stalled loop says the core was busy with others, not that the loop blocked."""
+    try:
+        with open(f"/proc/self/task/{tid}/stat") as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]
+        with open(f"/proc/self/task/{tid}/wchan") as f:
+            return f"{state} {f.read().strip() or '-'}"
+    except (OSError, IndexError):
+        return "?"
 
 
 @contextlib.contextmanager

@@ -231,3 +231,35 @@ def test_own_refuses_what_it_could_not_release(session: zenoh.Session) -> None:
     node = NodeRunner(StallsOnce, cfg, "h2_reader", session).node
     with pytest.raises(TypeError, match="int has none of close, undeclare, shutdown, stop"):
         node.own(42)
+
+
+class SlowLoopStart(Node):
+    """Configured, then its loop's first beat comes late (a motion node on a busy core)."""
+
+    def run(self, stop: threading.Event) -> None:
+        time.sleep(0.2)
+        while not stop.wait(0.02):
+            self.beat()
+
+
+def test_the_beat_after_configure_is_idle_until_the_loop_beats(session: zenoh.Session) -> None:
+    """The runtime's beat after configure says idle (the default deadline): nothing is driven
+    before the loop runs, whose first beat is not idle. A motion node held to its own 50 ms
+    from there was killed when its loop first beat 67 ms later (board proxy, a restart)."""
+    from exolink.liveness import _RECORD, Beater, Channel
+
+    cfg = config.parse(config.bundled("sim").read_text())
+    channel = Channel()
+    runner = NodeRunner(SlowLoopStart, cfg, "h2_reader", session)
+    runner.node.liveness = Beater(channel.child_fd)
+    t = threading.Thread(target=runner.run)
+    t.start()
+    try:
+        time.sleep(0.5)
+        data = os.read(channel.fileno(), 65536)
+    finally:
+        runner.stop.set()
+        t.join(5)
+        channel.close()
+    idle = [rec[1] for rec in _RECORD.iter_unpack(data[: len(data) - len(data) % _RECORD.size])]
+    assert idle[0] is True and idle[-1] is False, idle

@@ -31,7 +31,14 @@ from exolink.messaging import CommandRefused
 from exolink.protocol import h2
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
-from exolink.supervisor.processes import Exit, NodeProcess, Zygote, apply_priority, relay
+from exolink.supervisor.processes import (
+    Exit,
+    NodeProcess,
+    Zygote,
+    apply_priority,
+    proc_state,
+    relay,
+)
 from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
@@ -293,8 +300,20 @@ class Supervisor:
                 self.watchdog.trip("heartbeat late", detail)
             # A hung node is killed so its sockets close: a broadcast-manager task it set up in the
             # kernel would otherwise go on sending. The restart policy brings it back.
-            self.log.error("node_hung_killed", node_name=node.name, detail=detail)
+            self.log.error(
+                "node_hung_killed", node_name=node.name, detail=detail, threads=self._threads_now()
+            )
             node.kill()
+
+    def _threads_now(self) -> dict[str, str]:
+        """Each node's main thread as the kernel sees it when one is found hung: runnable (R)
+        while it missed its deadline says the core was busy with others; sleeping in a futex,
+        that it waited for a lock (the GIL); elsewhere, where it blocked."""
+        out = {}
+        for n in self.nodes.values():
+            if (pid := n.pid) is not None:
+                out[n.name] = proc_state(pid)
+        return out
 
     def _judge_node(
         self, node: NodeProcess, now: float, grace: float, beating: set[Any] | None
