@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import free_port
@@ -295,33 +296,13 @@ def test_between_sweeps_the_loop_reads_only_the_nodes_whose_deadline_came() -> N
     """The manager's 50 ms deadline wakes the loop ~20 times a second: those wakes read its
     pipe, not the others' (their beats wait for their own deadlines or the next sweep), and a
     hung node with a 500 ms deadline is still caught at that deadline, not at a sweep."""
-    from exolink import liveness
-    from exolink.config import bundled, parse
-    from exolink.supervisor.core import SWEEP_S, Supervisor
-    from exolink.supervisor.processes import NodeProcess
+    from exolink.supervisor.core import SWEEP_S
 
-    cfg = parse(bundled("board").read_text(), "board.yaml")
-    sup = Supervisor(cfg)
-    trips: list[str] = []
-
-    class Armed:
-        armed = True
-
-        def trip(self, _reason: str, detail: str) -> None:
-            trips.append(detail)
-
-        def next_due(self) -> float:
-            return float("inf")
-
-    sup.watchdog = Armed()  # type: ignore[assignment]
+    sup, trips = _supervisor_recording_trips()
     beaters = {}
     for name in ("controller_manager", "h2_reader"):
-        node = NodeProcess(cfg.node(name), "", lambda _e: None, lambda _n, _l: None)
-        node.channel = liveness.Channel()
-        beaters[name] = liveness.Beater(node.channel.child_fd)
-        node.proc = subprocess.Popen(["sleep", "60"])
-        node.state, node.heartbeat_at = "running", 999.0
-        sup.nodes[name] = node
+        node, beaters[name] = _sleeping_node(sup, name, timer=False)
+        node.heartbeat_at = 999.0
     manager, reader = sup.nodes["controller_manager"], sup.nodes["h2_reader"]
     try:
         for name in beaters:
@@ -468,20 +449,13 @@ def test_junk_on_the_pattern_state_topic_is_counted_not_believed_and_logged_once
     assert [e["count"] for e in logs if e["event"] == "bad_sample"] == [1, 1000]
 
 
-def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
-    """Each beat sets the node's timerfd to the beat's time plus its deadline (exolink.liveness):
-    the loop does not poll that deadline, the kernel wakes it when a node misses it, and the
-    pipe then judges. A timer that ran out while the pipe holds a later beat (the node was
-    preempted between the two) leaves the node to polling until its timer is set again."""
-    import math
-
-    from exolink import liveness
+def _supervisor_recording_trips() -> tuple[Any, list[str]]:
+    """A supervisor (board config) whose watchdog only records trips, with no nodes yet."""
     from exolink.config import bundled, parse
-    from exolink.supervisor.core import MAX_SLEEP_S, Supervisor
-    from exolink.supervisor.processes import NodeProcess
+    from exolink.supervisor.core import Supervisor
 
-    cfg = parse(bundled("board").read_text(), "board.yaml")
-    sup = Supervisor(cfg)
+    sup = Supervisor(parse(bundled("board").read_text(), "board.yaml"))
+    sup.nodes = {}
     trips: list[str] = []
 
     class Armed:
@@ -493,13 +467,45 @@ def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
         def next_due(self) -> float:
             return float("inf")
 
-    sup.watchdog = Armed()  # type: ignore[assignment]
-    node = NodeProcess(cfg.node("controller_manager"), "", lambda _e: None, lambda _n, _l: None)
+    sup.watchdog = Armed()
+    return sup, trips
+
+
+def _sleeping_node(sup: Any, name: str, timer: bool) -> tuple[Any, Any]:
+    """Node ``name`` of the board config as a ``sleep`` process with a liveness pipe (and its
+    deadline timer, set by the beater's beats: own deadline and idle), and the beater its loop
+    would hold."""
+    from exolink import liveness
+    from exolink.supervisor.processes import NodeProcess
+
+    cfg = sup.cfg
+    node = NodeProcess(cfg.node(name), "", lambda _e: None, lambda _n, _l: None)
     node.channel = liveness.Channel()
-    beater = liveness.Beater(node.channel.child_fd, (node.channel.timer, 0.05, 0.5))
+    deadlines = (node.channel.timer, cfg.deadline_s(node.cfg), cfg.deadline_s(node.cfg, True))
+    beater = liveness.Beater(node.channel.child_fd, deadlines if timer else None)
     node.proc = subprocess.Popen(["sleep", "60"])
     node.state, node.heartbeat_at = "running", time.monotonic()
-    sup.nodes = {node.name: node}
+    sup.nodes[name] = node
+    return node, beater
+
+
+def _manager_with_timer() -> tuple[Any, Any, Any, list[str]]:
+    sup, trips = _supervisor_recording_trips()
+    node, beater = _sleeping_node(sup, "controller_manager", timer=True)
+    return sup, node, beater, trips
+
+
+def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
+    """Each beat sets the node's timerfd to the beat's time plus its deadline (exolink.liveness):
+    the loop does not poll that deadline, the kernel wakes it when a node misses it, and the
+    pipe then judges. A timer that ran out while the pipe holds a later beat (the node was
+    preempted between the two) leaves the node to polling until its timer is set again."""
+    import math
+
+    from exolink import liveness
+    from exolink.supervisor.core import MAX_SLEEP_S
+
+    sup, node, beater, trips = _manager_with_timer()
     try:
         beater.beat()
         now = time.monotonic()
@@ -525,31 +531,7 @@ def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
 
 
 def test_a_hung_node_is_judged_when_its_timer_runs_out() -> None:
-    from exolink import liveness
-    from exolink.config import bundled, parse
-    from exolink.supervisor.core import Supervisor
-    from exolink.supervisor.processes import NodeProcess
-
-    cfg = parse(bundled("board").read_text(), "board.yaml")
-    sup = Supervisor(cfg)
-    trips: list[str] = []
-
-    class Armed:
-        armed = True
-
-        def trip(self, _reason: str, detail: str) -> None:
-            trips.append(detail)
-
-        def next_due(self) -> float:
-            return float("inf")
-
-    sup.watchdog = Armed()  # type: ignore[assignment]
-    node = NodeProcess(cfg.node("controller_manager"), "", lambda _e: None, lambda _n, _l: None)
-    node.channel = liveness.Channel()
-    beater = liveness.Beater(node.channel.child_fd, (node.channel.timer, 0.05, 0.5))
-    node.proc = subprocess.Popen(["sleep", "60"])
-    node.state, node.heartbeat_at = "running", time.monotonic()
-    sup.nodes = {node.name: node}
+    sup, node, beater, trips = _manager_with_timer()
     try:
         beater.beat(idle=True)  # idle: the default deadline
         sup._check_nodes(time.monotonic())
