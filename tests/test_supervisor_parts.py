@@ -546,3 +546,20 @@ def test_a_hung_node_is_judged_when_its_timer_runs_out() -> None:
     finally:
         node.kill()
         node.channel.close()
+
+
+def test_an_old_spawns_exit_after_a_restart_leaves_the_new_one_alone() -> None:
+    """`exolink restart`: the stopped spawn's exit can be reported after the next one started
+    (CI saw the restarted simulator shown as stopped): it neither trips nor changes the state."""
+    from exolink.supervisor.processes import Exit
+
+    sup, trips = _supervisor_recording_trips()
+    node, _ = _sleeping_node(sup, "controller_manager", timer=False)
+    try:
+        sup._on_exit(Exit(node.name, None, "SIGTERM", True, pid=node.proc.pid + 100_000))
+        assert node.state == "running" and trips == []
+        sup._on_exit(Exit(node.name, None, "SIGKILL", False, pid=node.proc.pid))
+        assert trips and node.state != "running"  # its own exit still counts
+    finally:
+        node.kill()
+        node.channel.close()

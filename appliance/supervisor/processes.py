@@ -35,6 +35,7 @@ class Exit:
     code: int | None  # None: killed by a signal
     signal: str | None
     deliberate: bool
+    pid: int | None = None  # which spawn exited (a restart may have started the next already)
 
 
 @dataclass
@@ -141,7 +142,7 @@ class NodeProcess:
             sig = signal.Signals(-rc).name if rc < 0 else None
             self.last_exit = sig or f"exit {rc}"
             deliberate = self.deliberate_stop
-        self.on_exit(Exit(self.name, None if rc < 0 else rc, sig, deliberate))
+        self.on_exit(Exit(self.name, None if rc < 0 else rc, sig, deliberate, proc.pid))
 
     def _read(self, proc: subprocess.Popen[bytes] | Forked) -> None:
         assert proc.stdout is not None
