@@ -107,6 +107,7 @@ def table(result: dict[str, Any]) -> str:
         ("_burst4", "in fours"),
         ("_burst4x5", "4 x 5 topics"),
         ("_burst4x5_channel", "4 x 5, sub drains"),
+        ("_burst4x5_unix", "4 x 5, unix sockets"),
     ):
         hop = [_hop(v) for v in pair("units", f"zenoh_us_per_sample{key}")]
         row(f"unit: Zenoh sample {label} (us)", *hop)
@@ -135,7 +136,7 @@ def table(result: dict[str, Any]) -> str:
     row("  timing monitor socket drops", *pair("window", "timing", "socket_dropped"))
     row("H2 angle frames (110) n in window", *pair("window", "angles", "n"))
     row("H2 angle frames max dev ms", *pair("window", "angles", "max_dev_ms"))
-    row("manager cycles run in window", *pair("derived", "manager_cycles"))
+    row("manager cycles/s (before..after)", *pair("derived", "manager_cycles_per_s"))
     for node in ("h2_reader", "controller_manager"):
         lines.append(f"{node} loop CPU per iteration in window (us, thread CPU clock):")
         for run in (g, n):
@@ -154,6 +155,7 @@ def table(result: dict[str, Any]) -> str:
         *(get(g, "logs", "window_loop_stalled"), get(n, "logs", "since_arm_loop_stalled")),
     )
     row("node restarts in window", _restarts(g), _restarts(n))
+    row("qemu code-buffer flushes (arm..stop)", get(g, "qemu_jit", "flushes_under_load"), "n/a")
     row("cold start to all beating (s)", *pair("boot", "all_nodes_beating_s"))
     row("supervisor restarts by systemd", get(g, "supervisor_restarts_by_systemd_at_end"), "n/a")
     row("  of them during the load", _load_restarts(g), "n/a")

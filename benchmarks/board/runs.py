@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,7 @@ def _run_load(
     probe_cmd: list[str],
     seconds: float,
     profiler: list[str] | None = None,
+    jit: Callable[[], dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Arm, the pattern held, settle, then the window measured by the probe and the laptop.
 
@@ -74,7 +76,7 @@ def _run_load(
         [*probe_cmd, "--go"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
     )
     try:
-        return _load_window(laptop, probe, seconds, profiler)
+        return _load_window(laptop, probe, seconds, profiler, jit)
     finally:
         if probe.poll() is None:
             probe.kill()
@@ -85,6 +87,7 @@ def _load_window(
     probe: subprocess.Popen[str],
     seconds: float,
     profiler: list[str] | None,
+    jit: Callable[[], dict[str, Any]] | None,
 ) -> dict[str, Any]:
     assert probe.stdin is not None and probe.stdout is not None
     out: dict[str, Any] = {}
@@ -94,6 +97,10 @@ def _load_window(
     else:
         out["window"] = {"error": f"the probe ended before it was ready (rc {probe.wait()})"}
         return out
+    # Read before the load and after it, not at the window's edges: the monitor's `info jit`
+    # walks every translated block holding QEMU's global lock, a 100 ms stall of the guest
+    # (the watchdog tripped on H2 silence at a window's start when it was read there).
+    jit0 = jit() if jit is not None else {}
     out["operator"] = laptop.arm_and_start_pattern()
     time.sleep(SETTLE_S)
     if not _pattern_running(laptop):
@@ -115,7 +122,18 @@ def _load_window(
     finally:
         _end_profiler(prof, out)
     out["held_pattern_cli"] = laptop.stop_pattern()
+    if jit is not None:
+        out["qemu_jit"] = _jit_window(jit0, jit())
     out["derived"] = scenario.derived(out["window"])
+    return out
+
+
+def _jit_window(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]:
+    """TCG's code-buffer flushes from the arm to the pattern's stop, the window among them
+    (each stalls the whole guest: a trip then is the emulator's, see guest.py)."""
+    out = {"before": before, "after": after}
+    if "flushes" in before and "flushes" in after:
+        out["flushes_under_load"] = after["flushes"] - before["flushes"]
     return out
 
 
@@ -266,7 +284,7 @@ def run_guest(
             result["logs"] = _guest_logs(guest, result)
             return result
         if laptop is not None and "laptop_error" not in result:
-            result |= _run_load(laptop, probe_cmd, seconds, profiler)
+            result |= _run_load(laptop, probe_cmd, seconds, profiler, guest.jit)
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
         result["supervisor_restarts_by_systemd_at_end"] = _nrestarts(guest)

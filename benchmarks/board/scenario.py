@@ -340,6 +340,7 @@ def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float)
     laptop (it could not connect) only the probe's figures."""
     assert probe.stdout is not None
     before = counters(laptop) if laptop is not None else {}
+    t_before = time.monotonic()
     line = ""
     for line in probe.stdout:
         if line.startswith("PROBE_T0"):
@@ -363,13 +364,16 @@ def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float)
     if laptop is None:
         return out
     laptop.joint_states.counting = False
+    after = counters(laptop)
     return out | {
         "joint_states": laptop.joint_states.summary(t0, seconds)
         | {"taken_as": laptop.joint_states_shape},
         "timing": timing,
         "angles": angles,
         "before": before,
-        "after": counters(laptop),
+        "after": after,
+        # the two readings are further apart than the window (the timing queries end after it)
+        "counters_span_s": round(time.monotonic() - t_before, 1),
     }
 
 
@@ -406,6 +410,8 @@ def derived(m: dict[str, Any]) -> dict[str, Any]:
             out[f"{name}_loop_cpu"] = phaseclock.window(x0["loop_cpu"], x1["loop_cpu"])
     if "cycles" in c0 and "cycles" in c1:
         out["manager_cycles"] = c1["cycles"] - c0["cycles"]
+        if m.get("counters_span_s"):
+            out["manager_cycles_per_s"] = round(out["manager_cycles"] / m["counters_span_s"], 1)
     rec0, rec1 = b.get("recorder", {}), a.get("recorder", {})
     for k in ("received", "written", "dropped"):
         if k in rec0 and k in rec1:

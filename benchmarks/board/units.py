@@ -23,6 +23,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -133,13 +134,16 @@ def _role(role: str, endpoint: str, seconds: float, burst: int, topics: int, cha
 
 
 def zenoh_hop(
-    seconds: float, burst: int, topics: int = 1, channel: bool = False
+    seconds: float, burst: int, topics: int = 1, channel: bool = False, unix: bool = False
 ) -> dict[str, float]:
     """``topics`` x 100 samples/s (each topic's ``burst`` puts every ``burst`` x 10 ms) from a
     client publisher through a router to a client subscriber: each process's CPU per sample, in
     us. ``burst=4, topics=5`` is the nominal load's shape (a reader waking every 4th cycle);
-    ``channel``: the subscriber drains a ring channel instead of a callback per sample."""
+    ``channel``: the subscriber drains a ring channel instead of a callback per sample;
+    ``unix``: the links are unix stream sockets, not TCP on loopback (the kernel's share)."""
     endpoint = f"tcp/127.0.0.1:{PORT + burst * topics + channel}"
+    if unix:
+        endpoint = f"unixsock-stream/{tempfile.gettempdir()}/exolink-units-{os.getpid()}.sock"
     me = [sys.executable, os.path.abspath(__file__), "--role"]
 
     def start(role: str, secs: float) -> subprocess.Popen[str]:
@@ -289,6 +293,7 @@ def main() -> int:
         "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
         "zenoh_us_per_sample_burst4x5": zenoh_hop(args.seconds, 4, 5),
         "zenoh_us_per_sample_burst4x5_channel": zenoh_hop(args.seconds, 4, 5, channel=True),
+        "zenoh_us_per_sample_burst4x5_unix": zenoh_hop(args.seconds, 4, 5, unix=True),
     }
     sys.stdout.write("UNITS_RESULT " + json.dumps(out) + "\n")
     return 0
