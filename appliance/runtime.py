@@ -167,7 +167,8 @@ def _thread_state(tid: int | None) -> str:
 @contextlib.contextmanager
 def profiled(name: str) -> Iterator[None]:
     """``EXOLINK_PROFILE_DIR``: the node's loop (its main thread) under cProfile, written to
-    ``DIR/<name>.prof`` when the loop ends (before shutdown, which a slow stop may not finish);
+    ``DIR/<name>-<pid>.prof`` when the loop ends (before shutdown, which a slow stop may not
+    finish; a file per spawn: one restarted after a bench's window overwrote the window's);
     ``EXOLINK_PROFILE_NODES`` (comma-separated): only these nodes. In-process: py-spy sampling
     from outside fell minutes behind on the board proxy and took the simulator's CPU."""
     where = os.environ.get("EXOLINK_PROFILE_DIR")
@@ -184,7 +185,7 @@ def profiled(name: str) -> Iterator[None]:
     finally:
         prof.disable()
         os.makedirs(where, exist_ok=True)
-        prof.dump_stats(os.path.join(where, f"{name}.prof"))
+        prof.dump_stats(os.path.join(where, f"{name}-{os.getpid()}.prof"))
 
 
 def stop_on_signals(stop: threading.Event, log: Any) -> None:

@@ -359,7 +359,8 @@ def _fetch_cprofiles(guest: Guest, work: Path, nodes: tuple[str, ...]) -> dict[s
     console log as ``cprofile-<node>.prof``, its top functions in the JSON."""
     out: dict[str, Any] = {}
     for name in nodes:
-        r = guest.ssh(f"base64 -w0 {GUEST_CPROFILE}/{name}.prof")
+        # the largest: a spawn restarted after the window writes its own, short, profile
+        r = guest.ssh(f"base64 -w0 $(ls -S {GUEST_CPROFILE}/{name}-*.prof | head -1)")
         if r.returncode != 0 or not r.stdout.strip():
             out[name] = {"error": (r.stderr or "no profile written").strip()[-300:]}
             continue
