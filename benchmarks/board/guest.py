@@ -6,8 +6,9 @@ Zenoh port and ssh to 127.0.0.1.
 
 Two artifacts of the emulator, not of a board, stalled the guest's CPU 0 for 50-250 ms and tripped
 the stock 50 ms deadline (seen with QEMU 7.2, ftrace in the guest and ``info jit``):
-- TCG's translated-code buffer (1 GiB by default) filled about 5 minutes after boot (the boot's
-  wheel install and nine Python processes' code), and its flush stops every vCPU while the hot
+- TCG's translated-code buffer (1 GiB by default) holds ~0.96 GiB at the window's start (the boot's
+  wheel install and nine Python processes' code) and filled minutes later (6 min after boot in a
+  guest with ssh logins, ~40 MB each); its flush stops every vCPU while the hot
   code is translated again: ``TB_SIZE_MB`` holds a whole run, and the monitor's flush count is
   read before the load and after it (``jit``; never during: it stalls the guest too).
 - Each ssh login (key exchange, PAM session, logind) stalled CPU 0 although sshd runs on CPU 1;
