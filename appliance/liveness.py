@@ -64,15 +64,18 @@ class _Timers:
             )
             self._ctypes = ctypes
 
+    def _check(self, rc: int) -> int:
+        """libc's return code, or the OSError its errno names."""
+        if rc < 0:
+            err = self._ctypes.get_errno()
+            raise OSError(err, os.strerror(err))
+        return int(rc)
+
     def create(self) -> int:
         flags = os.O_NONBLOCK | os.O_CLOEXEC  # TFD_NONBLOCK, TFD_CLOEXEC
         if self._os:
             return os.timerfd_create(time.CLOCK_MONOTONIC, flags=flags)
-        fd = self._create(time.CLOCK_MONOTONIC, flags)
-        if fd < 0:
-            err = self._ctypes.get_errno()
-            raise OSError(err, os.strerror(err))
-        return int(fd)
+        return self._check(self._create(time.CLOCK_MONOTONIC, flags))
 
     def arm_at(self, fd: int, t: float) -> None:
         """Expire once at monotonic time ``t`` (> 0)."""
@@ -81,17 +84,13 @@ class _Timers:
             return
         spec = self._spec()
         spec.value.sec, spec.value.nsec = int(t), int((t % 1) * 1e9)
-        if self._set(fd, _TFD_TIMER_ABSTIME, self._ctypes.byref(spec), None) < 0:
-            err = self._ctypes.get_errno()
-            raise OSError(err, os.strerror(err))
+        self._check(self._set(fd, _TFD_TIMER_ABSTIME, self._ctypes.byref(spec), None))
 
     def armed(self, fd: int) -> bool:
         if self._os:
             return os.timerfd_gettime(fd)[0] > 0
         spec = self._spec()
-        if self._get(fd, self._ctypes.byref(spec)) < 0:
-            err = self._ctypes.get_errno()
-            raise OSError(err, os.strerror(err))
+        self._check(self._get(fd, self._ctypes.byref(spec)))
         return bool(spec.value.sec or spec.value.nsec)
 
 
