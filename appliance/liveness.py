@@ -86,15 +86,17 @@ class _Timers:
         spec.value.sec, spec.value.nsec = int(t), int((t % 1) * 1e9)
         self._check(self._set(fd, _TFD_TIMER_ABSTIME, self._ctypes.byref(spec), None))
 
-    def armed(self, fd: int) -> bool:
+    def remaining(self, fd: int) -> float:
+        """Seconds until it expires (0: not set, or run out)."""
         if self._os:
-            return os.timerfd_gettime(fd)[0] > 0
+            return float(os.timerfd_gettime(fd)[0])
         spec = self._spec()
         self._check(self._get(fd, self._ctypes.byref(spec)))
-        return bool(spec.value.sec or spec.value.nsec)
+        return spec.value.sec + spec.value.nsec / 1e9
 
 
 _TFD_TIMER_ABSTIME = 1
+TIMER_SLACK_S = 0.001  # the node adds its deadline to its beat's time in floating point
 TIMERS = _Timers()
 
 
@@ -132,10 +134,13 @@ class Channel:
         except (BlockingIOError, OSError):
             return False
 
-    def armed(self) -> bool:
-        """The node set its timer and it has not run out (else the supervisor polls)."""
+    def armed(self, longest_s: float) -> bool:
+        """The node set its timer, no further ahead than ``longest_s`` (its longest deadline),
+        and it has not run out; else the supervisor polls. The timer is set by the node's own
+        process, like its beats, whose times are never taken from the future either: one set
+        too far (a bug) must not put off the node's judgment to the next sweep."""
         try:
-            return TIMERS.armed(self.timer)
+            return 0 < TIMERS.remaining(self.timer) <= longest_s + TIMER_SLACK_S
         except OSError:
             return False
 

@@ -510,7 +510,7 @@ def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
         beater.beat()
         now = time.monotonic()
         sup._check_nodes(now)
-        assert node.due_at == math.inf and node.channel.armed()
+        assert node.due_at == math.inf and node.channel.armed(0.5)
         assert sup._next_due(now) == now + MAX_SLEEP_S  # no 50 ms polling
         # preempted between its record and its timer: the timer runs out, the pipe is newer
         time.sleep(0.03)
@@ -540,6 +540,28 @@ def test_a_hung_node_is_judged_when_its_timer_runs_out() -> None:
         _, ready = sup.wake.wait_any(5.0, [node.channel.timer])
         assert ready == [node.channel.timer] and time.monotonic() - t0 >= 0.05
         sup._timer_ran_out(node, ready[0])
+        sup._check_nodes(time.monotonic())
+        assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)")
+        assert node.state == "killed"
+    finally:
+        node.kill()
+        node.channel.close()
+
+
+def test_a_timer_set_past_the_nodes_longest_deadline_is_not_trusted() -> None:
+    """The node's own process sets its timer, as it writes its beats: one set a minute ahead
+    (a bug) does not leave a hung node to the next sweep; its deadline is polled."""
+    import math
+
+    from exolink import liveness
+
+    sup, node, beater, trips = _manager_with_timer()
+    try:
+        beater.beat()
+        liveness.TIMERS.arm_at(node.channel.timer, time.monotonic() + 60)
+        sup._check_nodes(time.monotonic())
+        assert node.due_at < math.inf
+        time.sleep(max(0.0, node.due_at - time.monotonic()) + 0.001)
         sup._check_nodes(time.monotonic())
         assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)")
         assert node.state == "killed"

@@ -356,7 +356,8 @@ class Supervisor:
         hb = node.heartbeat_at
         if hb is None:  # starting: its first beat brings its priority
             return min(now + STARTING_SLEEP_S, node.started_at + grace)
-        if not expired and node.channel is not None and node.channel.armed():
+        longest = max(self.cfg.deadline_s(node.cfg), self.cfg.deadline_s(node.cfg, idle=True))
+        if not expired and node.channel is not None and node.channel.armed(longest):
             return math.inf
         due = hb + self.cfg.deadline_s(node.cfg, node.idle)  # the beats in its pipe read then
         if node.idle:  # its first beat that is not idle is judged on time
