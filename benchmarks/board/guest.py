@@ -138,6 +138,9 @@ class Guest:
         return self.proc is not None and self.proc.poll() is None
 
     def ssh_cmd(self, remote: str) -> list[str]:
+        return [*self._ssh_options(), "root@127.0.0.1", remote]
+
+    def _ssh_options(self) -> list[str]:
         return [
             "ssh",
             "-i",
@@ -160,8 +163,6 @@ class Guest:
             f"ControlPath={self._sockets}/ssh",
             "-o",
             "ControlPersist=yes",
-            "root@127.0.0.1",
-            remote,
         ]
 
     def ssh(self, remote: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -204,7 +205,7 @@ class Guest:
         if self.proc is not None and self.proc.poll() is None:
             with contextlib.suppress(OSError, subprocess.SubprocessError):
                 subprocess.run(
-                    [*self.ssh_cmd("true")[:-2], "-O", "exit", "root@127.0.0.1"],
+                    [*self._ssh_options(), "-O", "exit", "root@127.0.0.1"],
                     capture_output=True,
                     timeout=10,
                 )
