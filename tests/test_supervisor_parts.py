@@ -495,6 +495,14 @@ def _manager_with_timer() -> tuple[Any, Any, Any, list[str]]:
     return sup, node, beater, trips
 
 
+def _judged_hung_on_its_50_ms(sup: Any, node: Any, trips: list[str]) -> None:
+    """The loop's next look trips the watchdog once, on the manager's own deadline, and kills
+    the node."""
+    sup._check_nodes(time.monotonic())
+    assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)")
+    assert node.state == "killed"
+
+
 def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
     """Each beat sets the node's timerfd to the beat's time plus its deadline (exolink.liveness):
     the loop does not poll that deadline, the kernel wakes it when a node misses it, and the
@@ -540,9 +548,7 @@ def test_a_hung_node_is_judged_when_its_timer_runs_out() -> None:
         _, ready = sup.wake.wait_any(5.0, [node.channel.timer])
         assert ready == [node.channel.timer] and time.monotonic() - t0 >= 0.05
         sup._timer_ran_out(node, ready[0])
-        sup._check_nodes(time.monotonic())
-        assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)")
-        assert node.state == "killed"
+        _judged_hung_on_its_50_ms(sup, node, trips)
     finally:
         node.kill()
         node.channel.close()
@@ -562,9 +568,7 @@ def test_a_timer_set_past_the_nodes_longest_deadline_is_not_trusted() -> None:
         sup._check_nodes(time.monotonic())
         assert node.due_at < math.inf
         time.sleep(max(0.0, node.due_at - time.monotonic()) + 0.001)
-        sup._check_nodes(time.monotonic())
-        assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)")
-        assert node.state == "killed"
+        _judged_hung_on_its_50_ms(sup, node, trips)
     finally:
         node.kill()
         node.channel.close()
