@@ -110,9 +110,11 @@ def test_timeout_stop_and_not_armed_stop_the_board() -> None:
     import time
 
     m = manager()
-    m.load("m0", "maccepa_setpoint", {"board": 0, "timeout_s": 0.001, "on_timeout": "stop"})
+    # 50 ms: the switch's own cycle runs the first update, and with 1 ms a loaded CI host
+    # once took longer than that between activation and update (the stop came a cycle early)
+    m.load("m0", "maccepa_setpoint", {"board": 0, "timeout_s": 0.05, "on_timeout": "stop"})
     switch(m, ["m0"])
-    time.sleep(0.01)
+    time.sleep(0.1)
     out = m.cycle(STATE, 0.0, 0.01, None)
     assert out.safe_boards == {0} and "no command" in m.slots["m0"].error
     m.load("m1", "maccepa_setpoint", {"board": 0})
