@@ -36,6 +36,8 @@ from exolink.supervisor.processes import (
     NodeProcess,
     Zygote,
     apply_priority,
+    become_subreaper,
+    kill_strays,
     proc_state,
     relay,
 )
@@ -49,6 +51,7 @@ if TYPE_CHECKING:
 
 MAX_SLEEP_S = 0.25  # the loop looks at least this often, whatever its deadlines say
 SWEEP_S = 1.0  # and at every node at least this often (_check_nodes)
+STRAY_SWEEP_S = 5.0  # and for node processes it does not count as any node's (_kill_strays)
 STARTING_SLEEP_S = 0.02  # while a node awaits its first beat (its priority comes with it)
 HEALTH_PERIOD_S = 2.0
 SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU starved of it)
@@ -197,6 +200,10 @@ class Supervisor:
     def _start_zygote(self) -> Zygote | None:
         """Nodes fork from a pre-imported runtime (fast restarts, shared pages) unless
         EXOLINK_SPAWN=exec asks for a fresh interpreter per node (tests that hook its start)."""
+        try:
+            become_subreaper()
+        except OSError as exc:
+            self.log.warning("subreaper_unavailable", error=str(exc))
         if os.environ.get("EXOLINK_SPAWN") == "exec":
             return None
         try:
@@ -210,35 +217,35 @@ class Supervisor:
     # --- events from other threads ----------------------------------------------------------
 
     def _on_exit(self, ex: Exit) -> None:
+        """A spawn's exit, under its node's lock (NodeProcess._wait): nothing starts a
+        successor while this runs, so the state set here is this spawn's own."""
         node = self.nodes[ex.node]
         what = ex.signal or f"exit code {ex.code}"
         if self.stopping:
             return
-        with node.lock:
-            current = node.proc.pid if node.proc is not None else None
-        if ex.pid is not None and current is not None and ex.pid != current:
-            # A restart (`exolink restart`) stopped it and started the next spawn before this
-            # report: the new one is not "stopped" (seen in CI: restarted, then shown stopped).
+        if not ex.current:  # a restart replaced it already: its successor's state stands
             self.log.info("node_old_spawn_exited", node_name=ex.node, pid=ex.pid, how=what)
             return
-        if node.cfg.critical:
-            why = "critical node stopped by operator" if ex.deliberate else "critical node exited"
-            self.watchdog.trip(why, f"{ex.node}: {what}")
-        self.log.warning("node_exited", node_name=ex.node, how=what, deliberate=ex.deliberate)
-        with node.lock:
-            if ex.deliberate:
+        if ex.deliberate:  # a stop or restart asked it to go (and tripped, if critical)
+            self.log.info("node_stopped", node_name=ex.node, pid=ex.pid, how=what)
+            if node.state == "stopping":
                 node.state = "stopped"
-            elif node.failed_by_policy(ex.code):
-                if not node.schedule_restart(time.monotonic()):
-                    self.log.error(
-                        "node_failed_permanently",
-                        node_name=ex.node,
-                        restarts=node.restarts,
-                        window_s=node.cfg.restart.window_s,
-                    )
-            else:
-                node.state = "exited"
             node.due_at = 0.0
+            return
+        if node.cfg.critical:
+            self.watchdog.trip("critical node exited", f"{ex.node}: {what}")
+        self.log.warning("node_exited", node_name=ex.node, how=what, pid=ex.pid)
+        if node.failed_by_policy(ex.code):
+            if not node.schedule_restart(time.monotonic()):
+                self.log.error(
+                    "node_failed_permanently",
+                    node_name=ex.node,
+                    restarts=node.restarts,
+                    window_s=node.cfg.restart.window_s,
+                )
+        else:
+            node.state = "exited"
+        node.due_at = 0.0
         self.wake.set()  # a restart may be due before the loop's next deadline
 
     def _on_line(self, name: str, line: str) -> None:
@@ -485,12 +492,15 @@ class Supervisor:
         its largest share of one A8 core with nothing due."""
         next_state = time.monotonic()
         ping = self.notifier.ping_interval_s
-        next_ping = time.monotonic()
+        next_ping = next_stray = time.monotonic()
         while not self.stop_event.is_set():
             now = time.monotonic()
             self.watchdog.check()
             self._check_nodes(now)
             self._check_operator(now)
+            if now >= next_stray:
+                next_stray = now + STRAY_SWEEP_S
+                self._kill_strays()
             if now >= next_state:
                 next_state = now + STATE_PERIOD_S
                 self._publish_watchdog(self.watchdog.snapshot())
@@ -514,6 +524,28 @@ class Supervisor:
             for fd in ready:
                 self._timer_ran_out(timers[fd], fd)
         return 0
+
+    def _own_pids(self) -> set[int]:
+        """The processes the supervisor watches: each node's current spawn and the ones being
+        stopped, and the zygote."""
+        pids = set()
+        if self.zygote is not None:
+            pids.add(self.zygote.proc.pid)
+        for node in self.nodes.values():
+            with node.lock:  # a spawn in progress holds it: its pid is known once it is free
+                pids |= node.stopping_pids
+                if node.proc is not None:
+                    pids.add(node.proc.pid)
+        return pids
+
+    def _kill_strays(self) -> None:
+        for pid, name in kill_strays(self._own_pids):
+            self.log.error(
+                "stray_node_killed",
+                pid=pid,
+                process=name,
+                why="a node process no node counts as its own: it ran unwatched",
+            )
 
     def _timer_ran_out(self, node: NodeProcess, fd: int) -> None:
         """A node's deadline timer ran out: judged at once (its pipe says whether it beat
@@ -672,18 +704,19 @@ class Supervisor:
 
     def api_control(self, req: dict[str, Any]) -> dict[str, Any]:
         node, action = self._node(req), req.get("action")
-        if action == "start":
+        if action not in ("start", "stop", "restart"):
+            raise CommandRefused(f"unknown action {action!r} (start, stop or restart)")
+        if action != "start" and node.cfg.critical:
+            # Before the process goes, whatever the order its exit is reported in: a critical
+            # node down is a trip (and arming waits for it to beat again).
+            why = "stopped" if action == "stop" else "restarted"
+            self.watchdog.trip(f"critical node {why} by operator", node.name)
+        if action != "start":
+            node.stop()
+        if action != "stop":
             with node.lock:
                 node.restart_times.clear()
                 node.start()
-        elif action == "stop":
-            node.stop()
-        elif action == "restart":
-            node.stop()
-            with node.lock:
-                node.start()
-        else:
-            raise CommandRefused(f"unknown action {action!r} (start, stop or restart)")
         self.wake.set()  # a started node is looked at for its first beat at once
         return {"node": node.describe()}
 

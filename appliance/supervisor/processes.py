@@ -34,8 +34,11 @@ class Exit:
     node: str
     code: int | None  # None: killed by a signal
     signal: str | None
-    deliberate: bool
-    pid: int | None = None  # which spawn exited (a restart may have started the next already)
+    deliberate: bool  # a stop or restart asked this spawn to go
+    pid: int | None = None
+    # The node's current spawn: False for one a restart has already replaced, whose exit
+    # must not change the state of its successor.
+    current: bool = True
 
 
 @dataclass
@@ -44,7 +47,7 @@ class NodeProcess:
     config_path: str
     on_exit: Callable[[Exit], None]
     on_line: Callable[[str, str], None]
-    state: str = "stopped"  # starting | running | backoff | stopped | failed | exited
+    state: str = "stopped"  # running | stopping | stopped | killed | backoff | failed | exited
     proc: subprocess.Popen[bytes] | None = None
     started_at: float = 0.0  # monotonic
     restarts: int = 0
@@ -56,7 +59,10 @@ class NodeProcess:
     due_at: float = 0.0
     idle: bool = False  # its last beat said it has nothing to drive (exolink.liveness)
     start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
-    deliberate_stop: bool = False
+    # Spawns counted, and the pids asked to stop: an exit is judged by its own spawn, never by
+    # whatever the node is by the time its report comes (see _wait).
+    spawns: int = 0
+    stopping_pids: set[int] = field(default_factory=set)
     health: str = ""  # from the node's own diagnostics, if it publishes any
     # A bus reader's receive losses and backlog: its diagnostics values named rx_* (dropped,
     # late, lag_max_ms, ...), as of its last report.
@@ -100,13 +106,18 @@ class NodeProcess:
             if self.deadlines is not None:
                 env[liveness.DEADLINES_ENV] = ",".join(f"{d:g}" for d in self.deadlines)
             self.proc = self._spawn(env)
+            self.spawns += 1
+            self.stopping_pids.clear()  # an older spawn's exit is judged not current anyway
             self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
-            self.heartbeat_at, self.start_s, self.deliberate_stop = None, None, False
+            self.heartbeat_at, self.start_s = None, None
             self.idle, self.due_at = False, 0.0
             plain_priority(self.proc.pid)
             threading.Thread(
-                target=self._wait, args=(self.proc,), daemon=True, name=f"wait-{self.name}"
+                target=self._wait,
+                args=(self.proc, self.spawns),
+                daemon=True,
+                name=f"wait-{self.name}",
             ).start()
             threading.Thread(
                 target=self._read, args=(self.proc,), daemon=True, name=f"log-{self.name}"
@@ -136,13 +147,21 @@ class NodeProcess:
             pass_fds=(self.channel.child_fd, self.channel.timer),
         )
 
-    def _wait(self, proc: subprocess.Popen[bytes] | Forked) -> None:
+    def _wait(self, proc: subprocess.Popen[bytes] | Forked, spawn: int) -> None:
+        """The exit of spawn number ``spawn``, reported under the node's lock: whether it is
+        still the node's current spawn and what the supervisor makes of its exit are one step,
+        so a restart can never start a successor in between (it then saw its predecessor's exit
+        taken for its own: "stopped", with its process running unwatched)."""
         rc = proc.wait()
+        sig = signal.Signals(-rc).name if rc < 0 else None
         with self.lock:
-            sig = signal.Signals(-rc).name if rc < 0 else None
-            self.last_exit = sig or f"exit {rc}"
-            deliberate = self.deliberate_stop
-        self.on_exit(Exit(self.name, None if rc < 0 else rc, sig, deliberate, proc.pid))
+            deliberate = proc.pid in self.stopping_pids
+            self.stopping_pids.discard(proc.pid)
+            current = spawn == self.spawns
+            if current:
+                self.last_exit = sig or f"exit {rc}"
+            exit_ = Exit(self.name, None if rc < 0 else rc, sig, deliberate, proc.pid, current)
+            self.on_exit(exit_)
 
     def _read(self, proc: subprocess.Popen[bytes] | Forked) -> None:
         assert proc.stdout is not None
@@ -152,13 +171,23 @@ class NodeProcess:
             self.on_line(self.name, line)
 
     def stop(self, timeout: float = 3.0) -> None:
-        """SIGTERM, then SIGKILL after ``timeout``: a node never outlives a stop request."""
+        """SIGTERM, then SIGKILL after ``timeout``: a node never outlives a stop request. The
+        node is "stopping" until its process is gone, then "stopped"."""
         with self.lock:
-            proc = self.proc
-            self.deliberate_stop = True
-            self.state, self.due_at = "stopped", 0.0
-        if proc is None or proc.poll() is not None:
-            return
+            proc, spawn = self.proc, self.spawns
+            if proc is not None:  # exited already or not: its report is of a deliberate stop
+                self.stopping_pids.add(proc.pid)
+            alive = proc is not None and proc.poll() is None
+            self.state, self.due_at = ("stopping" if alive else "stopped"), 0.0
+        try:
+            if alive:
+                self._end(proc, timeout)  # type: ignore[arg-type]
+        finally:
+            with self.lock:
+                if self.spawns == spawn and self.state == "stopping":
+                    self.state = "stopped"
+
+    def _end(self, proc: subprocess.Popen[bytes] | Forked, timeout: float = 3.0) -> None:
         proc.terminate()
         try:
             proc.wait(timeout)
@@ -280,6 +309,16 @@ class Forked:
 PR_SET_CHILD_SUBREAPER = 36
 
 
+def become_subreaper() -> None:
+    """Orphans of this process' descendants (a forked node, whatever a node left behind)
+    become its children instead of init's, so none escapes the stray sweep (kill_strays)."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
+
+
 class Zygote:
     """The supervisor's end of ``exolink.zygote``: one request at a time, a node pid back.
 
@@ -289,11 +328,7 @@ class Zygote:
     again (seconds on the A8)."""
 
     def __init__(self) -> None:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:  # orphaned nodes come to us
-            raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
+        become_subreaper()  # the zygote's forks come to us
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.proc = Forked(_fork_zygote(self._sock, theirs), None)
         plain_priority(self.proc.pid)  # its forks must not inherit the supervisor's nice
@@ -432,6 +467,53 @@ def proc_state(pid: int) -> str:
             return f"{state}, wchan {f.read().strip() or '-'}"
     except OSError as exc:
         return f"gone ({exc.strerror})"
+
+
+def children(pid: int) -> dict[int, tuple[str, str]]:
+    """Every child of ``pid`` -> (state letter, comm), from each of its threads' list: a
+    subreaper's orphans are re-parented to one of its threads."""
+    out: dict[int, tuple[str, str]] = {}
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/children") as f:
+                kids = [int(c) for c in f.read().split()]
+        except OSError:
+            continue
+        for kid in kids:
+            try:
+                with open(f"/proc/{kid}/stat") as f:
+                    head, _, rest = f.read().rpartition(")")
+                out[kid] = (rest.split()[0], head.partition("(")[2])
+            except (OSError, IndexError):
+                continue  # gone meanwhile
+    return out
+
+
+NODE_COMM = "exo-"  # a forked node's process name (exolink.zygote.set_comm)
+
+
+def kill_strays(known: Callable[[], set[int]]) -> list[tuple[int, str]]:
+    """Node processes among this process' children that no node counts as its own (and the
+    zombies of such), killed and reaped: a node process the supervisor does not watch must not
+    run. ``known`` is asked after the children are listed, so a node forked meanwhile is
+    either not listed yet or already known."""
+    kids = children(os.getpid())
+    mine = known()
+    strays = []
+    for pid, (state, name) in kids.items():
+        if pid in mine or not name.startswith(NODE_COMM):
+            continue
+        if state not in ("Z", "X"):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+            strays.append((pid, name))
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(pid, os.WNOHANG)
+    return strays
 
 
 def proc_usage(pid: int) -> dict[str, float]:
