@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 import yaml
+from exolink.jointlimits import Limits, LimitsConfig
 
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 NodeName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,39}$")]
@@ -22,6 +23,8 @@ PositiveMs = Annotated[int, msgspec.Meta(ge=1, le=600_000)]
 BoardId = Annotated[int, msgspec.Meta(ge=0, le=9)]
 
 SIM_MULTICAST_GROUP = "239.74.163.2"
+# Node params that were joint limits: refused with a pointer to the `limits:` section.
+MOVED_TO_LIMITS = ("min_angles", "max_angles", "torque_cap", "stiffness_cap", "max_step_deg")
 T = TypeVar("T", bound=msgspec.Struct)
 
 
@@ -124,6 +127,12 @@ class ApplianceConfig(_Strict, kw_only=True):
     zenoh: ZenohConfig = ZenohConfig()
     trigger: TriggerConfig = TriggerConfig()
     watchdog: WatchdogConfig = WatchdogConfig()
+    # The lab's joint limits: every motion obeys them, whoever asks (exolink.jointlimits).
+    limits: LimitsConfig = LimitsConfig()
+    # Where the appliance keeps what an operator set at run time (stricter joint limits), so it
+    # survives a node's restart and a reboot; unset: the supervisor's own working directory
+    # (kept while it runs: `make sim`).
+    state_dir: str | None = None
     nodes: list[NodeConfig] = msgspec.field(default_factory=list)
     # Where this config came from; set by the loader, not by the file.
     source: str = "<memory>"
@@ -133,6 +142,10 @@ class ApplianceConfig(_Strict, kw_only=True):
         (nothing to drive, see exolink.liveness) never shorter than the watchdog's."""
         own = node.heartbeat_deadline_ms or self.watchdog.heartbeat_deadline_ms
         return max(own, self.watchdog.heartbeat_deadline_ms if idle else 0) / 1000
+
+    def joint_limits(self) -> Limits:
+        """The configured limits, checked (parse has refused a config whose are not)."""
+        return Limits.configured(self.limits)
 
     def node(self, name: str) -> NodeConfig:
         for node in self.nodes:
@@ -245,6 +258,11 @@ def parse(
     dependencies; the supervisor checks all of them in a throwaway child (``check_all_apart``).
     """
     cfg, root = decode_yaml(text, source, ApplianceConfig)
+    try:
+        cfg.joint_limits()
+    except ValueError as exc:
+        path = str(exc).split(":", 1)[0]
+        raise ConfigError(f"{source}:{_line_of(root, path)}: {exc}") from None
     _check_nodes(cfg, root, check)
     return cfg
 
@@ -260,6 +278,14 @@ def _check_nodes(
             line = _line_of(root, f"nodes[{i}].name")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
         seen.add(node.name)
+        for key in node.params:
+            if key in MOVED_TO_LIMITS:
+                line = _line_of(root, f"nodes[{i}].params.{key}")
+                raise ConfigError(
+                    f"{cfg.source}:{line}: nodes[{i}].params.{key}: joint limits and caps live "
+                    "in the top-level `limits:` section (one place for every node: "
+                    "limits.max_step_deg, limits.joints.<joint>.min/max/torque/stiffness)"
+                )
         if check is not None and node.name not in check:
             continue
         try:

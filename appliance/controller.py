@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import msgspec
+from exolink.jointlimits import Limits
 from exolink.maccepalimits import KINDS as MACCEPA_INTERFACES
 from exolink.maccepalimits import BoardLimits, target
 from exolink.protocol.h2 import JOINTS
@@ -123,6 +124,10 @@ class Controller:
         # The MACCEPA boards the manager drives and their limits (set by the manager before
         # ``configure``), so a controller can refuse a command the manager would saturate.
         self.boards: dict[int, BoardLimits] = {}
+        # The joint limits in force when it was loaded (also set before ``configure``): a
+        # controller that knows its outputs ahead (a pattern) refuses a plan outside them
+        # whole instead of having it saturated point by point.
+        self.limits: Limits | None = None
 
     def claims(self) -> list[str]:
         raise NotImplementedError

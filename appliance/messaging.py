@@ -10,8 +10,11 @@ Management uses JSON queries under ``exolink/<device>/...``; every reply says ok
 
 from __future__ import annotations
 
+import contextlib
+import inspect
 import json
 import os
+import queue
 import struct
 import threading
 import time
@@ -729,14 +732,16 @@ class Messaging:
     def serve(
         self,
         path: str | tuple[str, ...],
-        handler: Callable[[dict[str, Any]], dict[str, Any] | None],
+        handler: Handler,
         needs: Needs = roles.OBSERVER,
+        slow: Callable[[dict[str, Any]], bool] | None = None,
+        lane: SlowLane | None = None,
     ) -> zenoh.Queryable:
         """This appliance's management queryable at ``exolink/<device>/<path>`` (see serve)."""
         if self._commands is None:
             self._commands = CommandLog(self)
         parts = (path,) if isinstance(path, str) else path
-        return serve(self.session, self.mgmt(*parts), handler, needs, self._commands)
+        return serve(self.session, self.mgmt(*parts), handler, needs, self._commands, slow, lane)
 
     def request(
         self, *path: str, body: dict[str, Any] | None = None, timeout_s: float = 0.5
@@ -811,17 +816,81 @@ class CommandLog:
             self._pub.put(cdr.string_msg(json.dumps(entry)))
 
 
+class Unlogged(dict[str, Any]):
+    """A handler's reply that the command log leaves out: a keep-alive that repeats what was
+    logged when it began (an operator's presence renewed twice a second)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Caller:
+    """Who sent a request: the login Zenoh proved (the key's last chunk, see roles), never
+    text the client chose."""
+
+    login: str
+
+
+Handler = (
+    Callable[[dict[str, Any]], dict[str, Any] | None]
+    | Callable[[dict[str, Any], Caller], dict[str, Any] | None]
+)
+SLOW_QUEUE = 32  # requests waiting for a queryable's slow lane; more are refused at once
+
+
+def _takes_caller(handler: Handler) -> bool:
+    try:
+        params = inspect.signature(handler).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    positional = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    return sum(p.kind in positional for p in params) >= 2
+
+
 def serve(
     session: zenoh.Session,
     key: str,
-    handler: Callable[[dict[str, Any]], dict[str, Any] | None],
+    handler: Handler,
     needs: Needs = roles.OBSERVER,
     log: CommandLog | None = None,
+    slow: Callable[[dict[str, Any]], bool] | None = None,
+    lane: SlowLane | None = None,
 ) -> zenoh.Queryable:
     """A JSON queryable at ``key/<login>``: the login (proven by Zenoh's access control on a
     board with logins) must hold the role the request needs; refusals and bugs become errors.
     Commands (more than observer needed, or an action such as e-stop) go into ``log`` with the
-    login that sent them, accepted or not."""
+    login that sent them, accepted or not. A handler that takes a second argument gets the
+    ``Caller``. Requests that ``slow`` picks (ones that wait, e.g. for a cycle) run on a thread
+    of their own, in order, so they never hold Zenoh's callback thread: with one Zenoh thread
+    per process, that would hold every other request and subscription of the process.
+    ``lane``: a lane shared with other queryables (one order for all of them; the caller
+    closes it), else one of its own, closed with the queryable."""
+    with_caller = _takes_caller(handler)
+    own_lane = SlowLane(key) if slow is not None and lane is None else None
+    lane = lane or own_lane
+
+    def finish(
+        query: zenoh.Query,
+        user: str,
+        request: dict[str, Any],
+        needed: str,
+        reply: dict[str, Any],
+        quiet: bool = False,
+    ) -> None:
+        _reply(query, reply)
+        command = needed != roles.OBSERVER or request.get("action") not in (None, "status")
+        if log is not None and command and not quiet and user != roles.APPLIANCE_USER:
+            log.write(user, key, request, reply)
+
+    def answer(query: zenoh.Query, user: str, request: dict[str, Any], needed: str) -> None:
+        quiet = False
+        try:
+            out = handler(request, Caller(user)) if with_caller else handler(request)  # type: ignore[call-arg]
+            quiet = isinstance(out, Unlogged)
+            reply = {"ok": True, **(out or {})}
+        except (CommandRefused, roles.Forbidden) as exc:
+            reply = {"ok": False, "error": str(exc)}
+        except Exception as exc:  # never leave a caller waiting on a handler bug
+            reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+        finish(query, user, request, needed, reply, quiet)
 
     def on_query(query: zenoh.Query) -> None:
         qkey = str(query.key_expr)
@@ -835,19 +904,65 @@ def serve(
                 raise CommandRefused("request must be a JSON object")
             needed = needs(request) if callable(needs) else needs
             roles.check(user, needed, f"{key.split('/', 2)[-1]} {request.get('action', '')}")
-            reply = {"ok": True, **(handler(request) or {})}
         except (CommandRefused, roles.Forbidden) as exc:
-            reply = {"ok": False, "error": str(exc)}
+            finish(query, user, request, needed, {"ok": False, "error": str(exc)})
+            return
         except json.JSONDecodeError as exc:
-            reply = {"ok": False, "error": f"request is not valid JSON: {exc}"}
-        except Exception as exc:  # never leave a caller waiting on a handler bug
-            reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
-        query.reply(query.key_expr, json.dumps(reply).encode())
-        command = needed != roles.OBSERVER or request.get("action") not in (None, "status")
-        if log is not None and command and user != roles.APPLIANCE_USER:
-            log.write(user, key, request, reply)
+            _reply(query, {"ok": False, "error": f"request is not valid JSON: {exc}"})
+            return
+        if lane is not None and slow is not None and slow(request):
+            if not lane.put(lambda: answer(query, user, request, needed)):
+                busy = {"ok": False, "error": f"{key}: busy, {SLOW_QUEUE} requests wait"}
+                finish(query, user, request, needed, busy)
+            return
+        answer(query, user, request, needed)
 
-    return session.declare_queryable(f"{key}/*", on_query)
+    queryable = session.declare_queryable(f"{key}/*", on_query)
+    return queryable if own_lane is None else _WithLane(queryable, own_lane)  # type: ignore[return-value]
+
+
+def _reply(query: zenoh.Query, reply: dict[str, Any]) -> None:
+    """The one reply, and the query finalized at once: the asker's consolidation holds replies
+    until then (a query answered from the slow lane waited for its timeout otherwise)."""
+    query.reply(query.key_expr, json.dumps(reply).encode())
+    query.drop()
+
+
+class SlowLane:
+    """One thread that runs slow requests in order (a bounded queue): of one queryable, or of
+    several that share it."""
+
+    def __init__(self, key: str) -> None:
+        self._q: queue.Queue[Callable[[], None] | None] = queue.Queue(SLOW_QUEUE)
+        self._t = threading.Thread(target=self._run, daemon=True, name=f"slow-{key[-12:]}")
+        self._t.start()
+
+    def put(self, job: Callable[[], None]) -> bool:
+        try:
+            self._q.put_nowait(job)
+            return True
+        except queue.Full:
+            return False
+
+    def _run(self) -> None:
+        while (job := self._q.get()) is not None:
+            job()
+
+    def close(self) -> None:
+        with contextlib.suppress(queue.Full):
+            self._q.put_nowait(None)
+        self._t.join(2)
+
+
+class _WithLane:
+    """A queryable and its slow lane, undeclared and stopped together."""
+
+    def __init__(self, queryable: zenoh.Queryable, lane: SlowLane) -> None:
+        self._queryable, self._lane = queryable, lane
+
+    def undeclare(self) -> None:
+        self._queryable.undeclare()
+        self._lane.close()
 
 
 class Unreachable(Exception):

@@ -7,7 +7,8 @@ query only keys ending in its own name, so a handler reads a caller's identity f
 Zenoh has already proven it. What a role may do is then decided here (``allows``), per request.
 
 - ``observer``: data, status, e-stop.
-- ``operator``: also arm and disarm, joint commands, patterns, recording, trigger.
+- ``operator``: also arm and disarm, hold motion (presence), joint commands, patterns,
+  recording, trigger.
 - ``admin``: also node start/stop/restart, params, logs, simulator faults.
 - ``exolink``: the appliance's own processes (the login in /etc/exolink/zenoh.json5, readable by
   the service only); they declare queryables and publish data, which no laptop login may.
@@ -112,15 +113,14 @@ def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
             "see nodes",
             ["liveliness_query", "declare_liveliness_subscriber"],
             ["ingress"],
-            ["exolink/*/nodes/*/alive", "exolink/*/operators/*"],
+            ["exolink/*/nodes/*/alive"],
         ),
         _rule(
             "node tokens",
             ["liveliness_token", "reply"],
             ["egress"],
-            ["exolink/*/nodes/*/alive", "exolink/*/operators/*"],
+            ["exolink/*/nodes/*/alive"],
         ),
-        _rule("hold a pattern", ["liveliness_token"], ["ingress"], ["exolink/*/operators/*"]),
         # `exolink play` (operator and up) republishes a recording under replay/, never live keys.
         _rule("replay", ["put", "delete"], ["ingress"], [f"{domain_id}/replay/**"]),
         # The ROS 2 graph (rmw_zenoh): every login reads it and declares its own node and
@@ -171,7 +171,7 @@ def access_control(domain_id: int, namespace: str = "h2") -> dict[str, Any]:
             ]
             granted += [f"{role} ros2 topics", f"{role} ros2 readers"]
         if _RANK[role] >= _RANK[OPERATOR]:
-            granted += ["hold a pattern", "replay"]
+            granted += ["replay"]
         if role == ADMIN:
             granted += ["logs", "receive logs"]
         policies.append({"id": role, "rules": granted, "subjects": [role]})

@@ -24,6 +24,7 @@ import zenoh
 from exolink import messaging
 from exolink.canbus import Frame, FrameReader, open_reader
 from exolink.config import CanConfig, bundled, load
+from exolink.holder import Holder
 from exolink.supervisor import canlink
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
@@ -203,6 +204,17 @@ def connect(endpoint: str, timeout: float = 30.0) -> zenoh.Session:
                 raise
 
 
+def connect_as(endpoint: str, login: Path | None, timeout: float = 30.0) -> zenoh.Session:
+    """``connect`` with a laptop login file (a board with logins), or none."""
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            return messaging.open_client_session(endpoint, str(login) if login else None)
+        except messaging.Unreachable:
+            if time.monotonic() > end:
+                raise
+
+
 def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
     """Until every named node has declared its liveliness token (it does so after configure())."""
     s = connect(endpoint, timeout)
@@ -247,13 +259,18 @@ class Proc:
 @pytest.fixture
 def spawn(tmp_path: Path) -> Iterator[Callable[..., Proc]]:
     procs: list[Proc] = []
+    cleanups: list[Callable[[], None]] = []  # run before the processes stop (holders, sessions)
 
     def start(*args: str, name: str = "proc") -> Proc:
         p = Proc(list(args), tmp_path / f"{name}-{len(procs)}.log")
         procs.append(p)
         return p
 
+    start.cleanups = cleanups  # type: ignore[attr-defined]
     yield start
+    for c in reversed(cleanups):
+        with contextlib.suppress(Exception):
+            c()
     for p in reversed(procs):
         p.stop()
 
@@ -266,6 +283,7 @@ class Appliance:
         self.at = messaging.local_endpoint(self.cfg.zenoh)
         self.login = login  # the laptop login file the CLI uses (a board with logins)
         self.proc = spawn("up", "-c", str(cfg_path), name="up")
+        self._cleanups: list[Callable[[], None]] = getattr(spawn, "cleanups", [])
         self.session = None
         wait_for(lambda: self.cli("status").returncode == 0, timeout=20)
         if wait_nodes:
@@ -301,6 +319,26 @@ class Appliance:
     def arm_as(self, login: Path | None) -> None:
         r = wait_for(lambda: (x := self.cli("arm", login=login)).returncode == 0 and x, timeout=10)
         assert "armed" in r.stdout  # type: ignore[union-attr]
+
+    def hold(self, login: Path | None = None, take_over: bool = False) -> Holder:
+        """Motion held from this test, as `exolink hold` holds it (renewed from a thread until
+        the test ends): nothing moves a joint without a holder."""
+        who = login or self.login
+        session = connect_as(self.at, who)
+        user = messaging.client_login(str(who) if who else None)
+        key = messaging.mgmt_key(self.cfg.device, "controllers")
+
+        def call(body: dict) -> dict:
+            return messaging.request(session, key, body, 10.0, user)
+
+        holder = Holder(call, "test")
+        holder.acquire(take_over)
+        self._cleanups += [session.close, holder.release]
+        return holder
+
+    def arm_and_hold(self) -> Holder:
+        self.arm()
+        return self.hold()
 
 
 # --- kernel-level fixtures (tests/kernel): real vcan0 and vfat card (UML guest), gpio-sim (qemu) ---

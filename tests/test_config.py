@@ -28,18 +28,37 @@ def test_bundled_configs_load() -> None:
 
 
 def test_shipped_configs_leave_motion_to_the_controller_manager() -> None:
-    """Issue 20: one writer of motion. In both shipped configs the manager runs and every node
-    that could write a motion frame hands it over (the pattern, operator commands, the MACCEPA
-    bridge's set-points); the watchdog keeps its own socket."""
+    """One writer of motion: in both shipped configs the manager runs; no other node serves a
+    motion command (the h2 sender is gone, the player and the MACCEPA bridge write nothing)."""
     for name in ("sim", "board"):
         cfg = load(bundled(name))
         running = {n.name: n for n in cfg.nodes if n.enabled}
         assert "controller_manager" in running, name
-        assert node_params(cfg, "h2_sender").motion_via_manager, name
-        assert node_params(cfg, "pattern_player").timing == "manager", name
-        bridge = node_params(cfg, "maccepa_bridge")
-        managed = {b.board for b in node_params(cfg, "controller_manager").maccepa}
-        assert bridge.motion_via_manager or not managed & set(bridge.boards), name
+        assert "h2_sender" not in {n.plugin for n in cfg.nodes}, name
+        assert cfg.joint_limits().torque_cap == (20, 20, 10, 20, 20, 10), name
+
+
+def test_limits_have_one_home_and_contradictions_are_refused() -> None:
+    """Joint limits live in the top-level `limits:` section only: a node's old limit params
+    are refused naming where they go, and limits outside the mechanical ranges (the tester's
+    +-180) or min above max are refused naming file, line and path."""
+    base = "device: x\nnodes:\n  - {name: cm, plugin: controller_manager, params: {min_angles: [0,0,0,0,0,0]}}\n"
+    with pytest.raises(ConfigError, match=r"a\.yaml:3: nodes\[0\]\.params\.min_angles: joint limits"):
+        parse(base, "a.yaml")
+    wide = "device: x\nlimits:\n  joints:\n    r_knee: {min: -180, max: 180}\n"
+    with pytest.raises(ConfigError, match=r"a\.yaml:4: limits\.joints\.r_knee\.min: -180 deg is outside"):
+        parse(wide, "a.yaml")
+    crossed = "device: x\nlimits:\n  joints:\n    l_hip: {min: 50, max: 10}\n"
+    with pytest.raises(ConfigError, match=r"limits\.joints\.l_hip: min 50 must be below max 10"):
+        parse(crossed, "a.yaml")
+    cap = "device: x\nlimits:\n  joints:\n    l_hip: {torque: 200}\n"
+    with pytest.raises(ConfigError, match=r"a\.yaml:4: limits\.joints\.l_hip\.torque: Expected `int` <= 127"):
+        parse(cap, "a.yaml")
+    unknown = "device: x\nlimits:\n  joints:\n    l_elbow: {max: 10}\n"
+    with pytest.raises(ConfigError, match=r"a\.yaml:4: limits\.joints\.l_elbow: unknown key"):
+        parse(unknown, "a.yaml")
+    lim = parse("device: x\n", "a.yaml").joint_limits()  # no section: safe defaults
+    assert lim.torque_cap == (20, 20, 10, 20, 20, 10) and lim.torque_step == (2,) * 6
 
 
 def test_good_config_and_typed_params() -> None:

@@ -14,7 +14,6 @@ from exolink.plugins import available
 # Nodes whose every dependency is light: no rosbags (generic CDR) and hence no numpy.
 LEAN = {
     "h2_reader",
-    "h2_sender",
     "pattern_player",
     "timing_monitor",
     "maccepa_bridge",

@@ -29,7 +29,7 @@ def test_foxglove_client_receives_joint_states_at_the_stream_rate(
 ) -> None:  # type: ignore[no-untyped-def]
     port = free_port()
     nodes = yaml.safe_load(bundled("sim").read_text())["nodes"]
-    nodes = [n for n in nodes if n["name"] in ("simulator", "h2_reader", "h2_sender")]
+    nodes = [n for n in nodes if n["name"] in ("simulator", "h2_reader", "controller_manager")]
     nodes.append({"name": "foxglove_bridge", "plugin": "foxglove_bridge",
                   "params": {"host": "127.0.0.1", "port": port}})  # fmt: skip
     app = Appliance(write_config(nodes=nodes), spawn)

@@ -19,11 +19,11 @@ import pytest
 from conftest import Appliance, connect, wait_for
 from exolink import messaging
 
-CRITICAL = ["h2_reader", "h2_sender", "controller_manager"]
+CRITICAL = ["h2_reader", "pattern_player", "controller_manager"]
 NODES = [
     {"name": "simulator", "plugin": "simulator"},
     {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-    {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+    {"name": "pattern_player", "plugin": "pattern_player", "critical": True},
     {
         "name": "controller_manager",
         "plugin": "controller_manager",
@@ -217,7 +217,7 @@ def test_a_nodes_orphan_is_killed_by_the_supervisor(write_config, spawn, in_node
     """A child a node left behind (re-parented to the supervisor, a subreaper) runs unwatched:
     the supervisor's sweep kills it and says so."""
     in_node(
-        "h2_sender",
+        "pattern_player",
         """
 import ctypes, os, time
 if os.fork() == 0:
@@ -228,7 +228,7 @@ if os.fork() == 0:
     )
     app = Appliance(write_config(nodes=NODES), spawn)
     supervisor = app.status()["pid"]
-    os.kill(app.node("h2_sender")["pid"], signal.SIGKILL)  # its child is the supervisor's now
+    os.kill(app.node("pattern_player")["pid"], signal.SIGKILL)  # its child is the supervisor's now
     wait_for(lambda: "stray_node_killed" in app.proc.output(), timeout=20)
     line = next(ln for ln in app.proc.output().splitlines() if "stray_node_killed" in ln)
     assert '"process": "exo-orphan"' in line, line

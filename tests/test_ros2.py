@@ -83,7 +83,7 @@ def test_a_ros2_laptop_sees_echoes_calls_and_publishes(appliance) -> None:  # ty
     assert [(p.node_name, p.node_namespace) for p in info.publishers] == [("h2_reader", "/h2")]
     node_tokens = [k for k in _graph(port) if k.split("/")[5] == "NN"]
     nodes = {k.split("/")[8] for k in node_tokens}
-    assert {"supervisor", "h2_reader", "h2_sender", "pattern_player", "recorder"} <= nodes
+    assert {"supervisor", "h2_reader", "controller_manager", "pattern_player", "recorder"} <= nodes
 
     # joint_states echoed with the type (and its hash) learnt from the graph.
     js_type = found["/h2/joint_states"][0]  # type: ignore[index]
@@ -197,7 +197,7 @@ def test_humble_switch(tmp_path: Path, write_config, spawn) -> None:  # type: ig
     """zenoh.ros_distro: humble: keys and tokens carry Humble's TypeHashNotSupported, GIDs
     Humble's 24 bytes; a client that sends 16-byte GIDs (Jazzy's form) is still answered."""
     nodes = [n for n in yaml.safe_load(bundled("sim").read_text())["nodes"]
-             if n["name"] in ("simulator", "h2_reader", "h2_sender")]  # fmt: skip
+             if n["name"] in ("simulator", "h2_reader", "controller_manager")]  # fmt: skip
     app = Appliance(write_config(nodes=nodes, zenoh={"ros_distro": "humble"}), spawn)
     port = int(app.at.rsplit(":", 1)[1])
     try:

@@ -17,7 +17,7 @@ from exolink.protocol import h2
 NODES = [
     {"name": "simulator", "plugin": "simulator"},
     {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-    {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+    {"name": "controller_manager", "plugin": "controller_manager", "critical": True},
 ]
 DISABLED = [h2.JointControl(m, 4, 0, 0) for m in range(1, 7)]
 
@@ -38,9 +38,9 @@ def assert_all_disabled(frames: list[can.Message]) -> None:
     assert sorted(set(got)) == DISABLED, got
 
 
-@pytest.mark.parametrize("victim", ["h2_reader", "h2_sender"])
+@pytest.mark.parametrize("victim", ["h2_reader", "controller_manager"])
 def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, victim) -> None:  # type: ignore[no-untyped-def]
-    app.arm()
+    app.arm_and_hold()
     assert app.cli("send", "position", "r_knee", "30").returncode == 0
     pid = app.node(victim)["pid"]
     collect(mbus, 0.1)
@@ -68,28 +68,28 @@ def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, vict
 
 def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
-    pid = app.node("h2_sender")["pid"]
+    pid = app.node("controller_manager")["pid"]
     collect(mbus, 0.1)
     os.kill(pid, signal.SIGSTOP)
     try:
         frames = collect(mbus, 1.5, {70})
         assert_all_disabled(frames)
         wd = app.status()["watchdog"]
-        assert wd["reason"] == "heartbeat late" and "h2_sender: no heartbeat for" in wd["detail"]
+        assert wd["reason"] == "heartbeat late" and "controller_manager: no heartbeat for" in wd["detail"]
         # The hung node is killed (its sockets, and any kernel BCM task, close) and restarted.
-        wait_for(lambda: app.node("h2_sender")["pid"] not in (None, pid), timeout=15)
+        wait_for(lambda: app.node("controller_manager")["pid"] not in (None, pid), timeout=15)
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGCONT)
 
 
 def test_forged_heartbeats_do_not_keep_a_stopped_node_alive(app, mbus) -> None:  # type: ignore[no-untyped-def]
-    """Issue 19 (1): anyone on the Zenoh port published junk on h2_sender's heartbeat key while the
+    """Anyone on the Zenoh port published junk on a node's heartbeat key while the
     node was SIGSTOPped, and the watchdog stayed armed. Liveness now comes over the node's own pipe."""
     app.arm()
-    pid = app.node("h2_sender")["pid"]
+    pid = app.node("controller_manager")["pid"]
     s = messaging.open_client_session(app.at)
-    key = messaging.topic_key(0, "h2", "nodes/h2_sender/heartbeat", "exolink_msgs/msg/Heartbeat")
+    key = messaging.topic_key(0, "h2", "nodes/controller_manager/heartbeat", "exolink_msgs/msg/Heartbeat")
     pub = s.declare_publisher(key)
     collect(mbus, 0.1)
     os.kill(pid, signal.SIGSTOP)
@@ -100,7 +100,7 @@ def test_forged_heartbeats_do_not_keep_a_stopped_node_alive(app, mbus) -> None: 
             frames += collect(mbus, 0.02, {70})
         assert_all_disabled(frames)
         wd = app.status()["watchdog"]
-        assert wd["reason"] == "heartbeat late" and "h2_sender: no heartbeat for" in wd["detail"]
+        assert wd["reason"] == "heartbeat late" and "controller_manager: no heartbeat for" in wd["detail"]
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGCONT)
@@ -126,6 +126,7 @@ def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None
 
 
 def test_estop_and_disarm_refuse_motion(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    app.hold()
     r = app.cli("send", "position", "l_knee", "20")
     assert r.returncode == 5 and "watchdog is disarmed" in r.stderr
     app.arm()
@@ -159,7 +160,7 @@ def test_management_commands(app) -> None:  # type: ignore[no-untyped-def]
     r = app.cli("restart", "nosuch")
     assert (
         r.returncode == 5
-        and "unknown node 'nosuch' (configured: simulator, h2_reader, h2_sender)" in r.stderr
+        and "unknown node 'nosuch' (configured: simulator, h2_reader, controller_manager)" in r.stderr
     )
     old = app.node("simulator")["pid"]
     r = app.cli("restart", "simulator")
@@ -195,11 +196,11 @@ def test_management_commands(app) -> None:  # type: ignore[no-untyped-def]
 def test_stop_of_critical_node_trips(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
     collect(mbus, 0.1)
-    assert app.cli("stop", "h2_sender").returncode == 0
+    assert app.cli("stop", "controller_manager").returncode == 0
     assert_all_disabled(collect(mbus, 0.5, {70}))
     assert app.status()["watchdog"]["reason"] == "critical node stopped by operator"
     r = app.cli("arm")
-    assert r.returncode == 5 and "critical node h2_sender is stopped" in r.stderr
+    assert r.returncode == 5 and "critical node controller_manager is stopped" in r.stderr
 
 
 def test_restart_cap_marks_node_failed(write_config, spawn, mbus) -> None:  # type: ignore[no-untyped-def]

@@ -414,7 +414,7 @@ def test_a_stop_whose_node_is_never_reaped_returns_and_says_why(monkeypatch) -> 
             raise subprocess.TimeoutExpired("unreaped", timeout or 0)
 
     node = processes.NodeProcess(
-        NodeConfig(name="stuck", plugin="h2_sender"), "", lambda _e: None, lambda _n, _l: None
+        NodeConfig(name="stuck", plugin="h2_reader"), "", lambda _e: None, lambda _n, _l: None
     )
     node.proc = Unreaped()  # type: ignore[assignment]
     with structlog.testing.capture_logs() as logs:
@@ -424,27 +424,26 @@ def test_a_stop_whose_node_is_never_reaped_returns_and_says_why(monkeypatch) -> 
     assert event["node_name"] == "stuck" and event["state"].split()[0] in {"R", "S"}
 
 
-def test_junk_on_the_pattern_state_topic_is_counted_not_believed_and_logged_once() -> None:
-    """Anyone on the network may put on pattern_state: a payload that is no PatternState leaves
-    the supervisor's view (what the operator-lost trip acts on) as it was, is counted, and is
-    logged at its first and every 1000th occurrence, not at each."""
-    from exolink import cdr
+def test_junk_on_a_nodes_diagnostics_is_counted_not_believed_and_logged_once() -> None:
+    """Anyone on the network may put on a node's diagnostics key: a payload that is no
+    DiagnosticArray leaves the supervisor's view of the node (what `exolink status` shows) as
+    it was, is counted, and is logged at its first and every 1000th occurrence, not at each."""
+    from exolink import cdr, messaging
     from exolink.config import bundled, parse
     from exolink.supervisor.core import Supervisor
+    from exolink.supervisor.processes import NodeProcess
     from structlog.testing import capture_logs
 
     sup = Supervisor(parse(bundled("sim").read_text(), "sim.yaml"))
-    good = cdr.pattern_state(
-        1,
-        {"state": "running", "reason": "", "index": 0, "length": 2, "speed": 5}
-        | {"period_ms": 120.0, "file": "p.csv", "operator": "op1", "timing": "manager"},
-        [True] * 6,
-    )
+    cfg = sup.cfg.node("recorder")
+    sup.nodes = {"recorder": NodeProcess(cfg, "", lambda _e: None, lambda _n, _l: None)}
+    key = messaging.topic_key(0, "h2", "nodes/recorder/diagnostics", messaging.DIAGNOSTICS_TYPE)
+    good = cdr.diagnostics(1, "recorder", 2, "disk full", "sim", {})
     with capture_logs() as logs:
-        sup._on_pattern_state(good)
+        sup._node_diagnostics(key, good)
         for _ in range(1000):
-            sup._on_pattern_state(good[:20])
-    assert sup.pattern_state == ("running", "op1")
+            sup._node_diagnostics(key, good[:20])
+    assert sup.nodes["recorder"].health == "error: disk full"
     assert sum(sup.bad_samples.values()) == 1000
     assert [e["count"] for e in logs if e["event"] == "bad_sample"] == [1, 1000]
 

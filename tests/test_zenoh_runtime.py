@@ -32,12 +32,12 @@ def test_one_zenoh_thread_per_process_and_nested_commands_answer(write_config, s
     app = Appliance(write_config(zenoh={"threads": 1}), spawn)
     assert os.environ.get("ZENOH_RUNTIME") == env_before  # set in the supervisor, not here
     sup = app.proc.p.pid
-    sender = app.node("h2_sender")["pid"]
-    for pid in (sup, sender):
+    manager = app.node("controller_manager")["pid"]
+    for pid in (sup, manager):
         names = _threads(pid)
         assert "app-0" in names and not [n for n in names if n.startswith(("rx-", "tx-"))], names
-    app.arm()
-    # the sender's handler asks the manager from inside its queryable: a nested query
+    app.arm_and_hold()
+    # a command that waits for the manager's cycle (a switch) answers
     r = app.cli("send", "position", "l_ankle", "5")
     assert r.returncode == 0 and "held by controller operator.l_ankle.position" in r.stdout, r
     # the player asks the manager to load and activate the gait's trajectory controller

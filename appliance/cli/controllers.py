@@ -11,8 +11,50 @@ from typing import Any
 from exolink.cli.remote import _guard, _Leaves, common, remote
 
 
+def _limits(lim: dict[str, Any]) -> list[str]:
+    """The limits in force, one line per joint, and who set them."""
+    who = (
+        f"set by {lim['set_by']} at {_time(lim['set_at_ns'])}"
+        if lim.get("set_by")
+        else "the config's"
+    )
+    lines = [f"limits   {who}; step {lim['max_step_deg']} deg per 10 ms"]
+    if lim.get("unreadable"):
+        lines.append(f"         UNREADABLE (motion refused): {lim['unreadable']}")
+    for j, v in lim["joints"].items():
+        lines.append(
+            f"  {j:<8} {v['min']:>4}..{v['max']:<4} deg  torque {v['torque']} "
+            f"(+-{v['torque_step']} per 10 ms)  stiffness {v['stiffness']} %"
+        )
+    return lines
+
+
+def _presence(p: dict[str, Any]) -> str:
+    h = p.get("holder")
+    lost = f"lost after {p['lost_after_s']:g} s, {p['losses']} lost so far"
+    if h is None:
+        return f"motion   held by nobody (motion refused; `exolink hold`); {lost}"
+    return (
+        f"motion   held by {h['login']} ({h['what']}) since {_time(h['since_ns'])}, "
+        f"renewed {h['renewed_s_ago']} s ago; {lost}"
+    )
+
+
+def _time(ns: int | None) -> str:
+    import datetime
+
+    if not ns:
+        return "-"
+    return datetime.datetime.fromtimestamp(ns / 1e9).strftime("%Y-%m-%d %H:%M:%S")
+
+
 def show(s: dict[str, Any]) -> str:
-    lines = [f"cycles {s['cycles']}  written {s['written']}  safe-action frames {s['safe']}"]
+    lines = []
+    if s.get("presence"):
+        lines.append(_presence(s["presence"]))
+    if s.get("limits"):
+        lines += _limits(s["limits"])
+    lines.append(f"cycles {s['cycles']}  written {s['written']}  safe-action frames {s['safe']}")
     if s.get("maccepa"):  # boards the manager drives: who owns what, what it last wrote
         lines.append(
             f"maccepa frames written {s.get('maccepa_written', 0)}  "

@@ -7,13 +7,13 @@ import json
 import sys
 import threading
 import time
-import uuid
 from pathlib import Path
 from typing import Any
 
 from exolink import messaging
-from exolink.cli.errors import EXIT_UNREACHABLE, fail
+from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
 from exolink.cli.remote import _guard, _Leaves, _number, common, hold, remote
+from exolink.holder import Holder, HoldRefused, describe
 
 # --- pattern ----------------------------------------------------------------------------------
 
@@ -46,7 +46,7 @@ def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
 
 # `pattern start` waits for the player, which waits up to 5 s for the controller manager to
 # start the gait (pattern_player.ENGAGE_WAIT_S): a CLI that gave up first would leave a
-# pattern running with nobody holding it (the watchdog then trips for the lost operator).
+# pattern running with its holder gone (the manager then stops it and trips the watchdog).
 START_TIMEOUT_S = 8.0
 
 
@@ -56,48 +56,91 @@ def cmd_pattern(args: argparse.Namespace) -> int:
     if action == "start":
         args.timeout = max(args.timeout, START_TIMEOUT_S)
     with remote(args) as r:
-        if action != "start" or args.detach:
+        if action != "start" or args.detach:  # detached: whoever holds motion watches it
             sys.stdout.write(_show(r.call("pattern", body=body)) + "\n")
             return 0
-        return _hold(r, body)
+        return _attached(r, body, args.take_over)
 
 
-def _hold(r: Any, body: dict[str, Any]) -> int:
-    """Start and stay attached: this session's liveliness token is the operator's presence.
+def _attached(r: Any, body: dict[str, Any], take_over: bool) -> int:
+    """Hold motion, start, and stay: this process's renewals are the operator's presence.
 
-    If this laptop vanishes (Wi-Fi drop, closed lid), the watchdog trips after operator_lost_ms.
-    Ctrl-C stops the pattern.
+    If this laptop freezes or vanishes, the manager stops the pattern and trips the watchdog
+    after operator_lost_ms. Ctrl-C stops the pattern and lets go.
     """
-    operator = uuid.uuid4().hex[:12]
-    token = r.session.liveliness().declare_token(
-        messaging.mgmt_key(r.device, "operators", operator)
-    )
+    ended = threading.Event()
+    holder = _holder(r, "exolink pattern start", ended)
     try:
-        sys.stdout.write(_show(r.call("pattern", body={**body, "operator": operator})) + "\n")
+        holder.acquire(take_over)
+    except HoldRefused as exc:
+        return fail(
+            f"refused: {exc} (a pattern started with --detach is watched by that holder)",
+            EXIT_REFUSED,
+        )
+    try:
+        sys.stdout.write(_show(r.call("pattern", body=body)) + "\n")
         sys.stdout.write("holding the pattern; Ctrl-C stops it\n")
-        done = threading.Event()
 
         def on_state(msg: Any, _m: messaging.Meta) -> None:
             if msg.state != "running":
                 sys.stdout.write(
                     f"pattern {msg.state}{' (' + msg.reason + ')' if msg.reason else ''}\n"
                 )
-                done.set()
+                ended.set()
 
         m = messaging.Messaging(r.session, _FakeCfg(r))
         sub = m.subscribe("pattern_state", "exolink_msgs/msg/PatternState", on_state)
         try:
-            while not done.wait(1.0):
+            while not ended.wait(1.0):
                 s = r.call("pattern", body={"action": "status"})
                 sys.stdout.write("\r" + _show(s) + "   ")
                 sys.stdout.flush()
+            if holder.ended:
+                sys.stdout.write(f"\nno longer holding motion: {holder.ended}\n")
         except KeyboardInterrupt:
             sys.stdout.write("\n" + _show(r.call("pattern", body={"action": "stop"})) + "\n")
         finally:
             sub.undeclare()
     finally:
-        token.undeclare()
+        holder.release()
     return 0
+
+
+def _holder(r: Any, what: str, ended: threading.Event) -> Holder:
+    def told(why: str) -> None:
+        sys.stdout.write(f"\nno longer holding motion: {why}\n")
+        sys.stdout.flush()
+        ended.set()
+
+    return Holder(lambda b: r.ask("controllers", body=b), describe(what), told)
+
+
+@_guard
+def cmd_hold(args: argparse.Namespace) -> int:
+    """Hold motion until Ctrl-C (or another client takes over): what an operator keeps running
+    while motion is commanded from other terminals, the dashboard or ROS 2."""
+    ended = threading.Event()
+    with remote(args) as r:
+        holder = _holder(r, "exolink hold", ended)
+        try:
+            reply = holder.acquire(args.take_over)
+        except HoldRefused as exc:
+            return fail(f"refused: {exc}", EXIT_REFUSED)
+        sys.stdout.write(
+            f"holding motion (it stops if this laptop is silent for {holder.lost_after_s:g} s);"
+            f" driving now: {', '.join(reply.get('driving', [])) or '-'}; Ctrl-C lets go\n"
+        )
+        sys.stdout.flush()
+        try:
+            while not ended.wait(0.2):
+                pass
+        except KeyboardInterrupt:
+            pass
+        finally:
+            holder.release()
+        if not holder.ended:
+            sys.stdout.write("\nreleased: whatever it held has stopped\n")
+    return 0 if not holder.ended else EXIT_REFUSED
 
 
 class _FakeCfg:
@@ -114,7 +157,7 @@ class _FakeCfg:
 
 
 def maccepa_body(args: argparse.Namespace) -> dict[str, Any]:
-    """The MACCEPA bridge request of a parsed `exolink maccepa ...` (also the dashboard's)."""
+    """The controller manager's MACCEPA request of a parsed `exolink maccepa ...` (also the dashboard's)."""
     body: dict[str, Any] = {"board": args.board, "kind": args.kind}
     if args.kind == "gains":
         body |= {"kp": args.kp, "ki": args.ki, "kd": args.kd, "controller": args.controller}
@@ -131,7 +174,7 @@ def cmd_maccepa(args: argparse.Namespace) -> int:
         return _watch(args)
     with remote(args) as r:
         reply = r.call("maccepa", body=maccepa_body(args))
-    if reply.get("controller"):  # the bridge handed it to the controller manager
+    if reply.get("controller"):  # held by the board's operator controller in the manager
         sys.stdout.write(f"ok held by controller {reply['controller']}\n")
     else:
         sys.stdout.write("ok " + " ".join(reply["frames"]) + "\n")
@@ -217,8 +260,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
     p = sub.add_parser("pattern", help="gait pattern player")
     s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
-    q = s.add_parser("start", help="start (stays attached: Ctrl-C stops; --detach returns at once)")
+    q = s.add_parser(
+        "start",
+        help="start, holding motion (stays attached: Ctrl-C stops); --detach: leave it to "
+        "whoever holds motion (`exolink hold`)",
+    )
     q.add_argument("--detach", action="store_true")
+    q.add_argument("--take-over", action="store_true", help="take motion from its holder")
     for name in ("stop", "pause", "restart", "status"):
         s.add_parser(name)
     q = s.add_parser("speed", help="speed LEVEL (1..10; 10 = a set-point every 20 ms)")
@@ -232,6 +280,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     q.add_argument("file")
     p.set_defaults(func=cmd_pattern)
+
+    p = sub.add_parser(
+        "hold",
+        parents=[parent],
+        help="hold motion until Ctrl-C: nothing moves a joint without a holder",
+    )
+    p.add_argument("--take-over", action="store_true", help="take motion from its holder")
+    p.set_defaults(func=cmd_hold)
 
     p = sub.add_parser("maccepa", help="MACCEPA actuator boards")
     p.add_argument("board", type=int)

@@ -63,11 +63,16 @@ class Remote:
             time.sleep(0.1)
 
     def call(self, *path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
-        key = messaging.mgmt_key(self.device, *path)
-        reply = messaging.request(self.session, key, body or {}, self.timeout, self.user)
+        reply = self.ask(*path, body=body)
         if not reply.get("ok"):
             raise Refused(str(reply.get("error", "refused")))
         return reply
+
+    def ask(self, *path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The reply as it came, refusals included (``ok``, ``error``); Unreachable when
+        nothing answers."""
+        key = messaging.mgmt_key(self.device, *path)
+        return messaging.request(self.session, key, body or {}, self.timeout, self.user)
 
     def selector(self, topic: str) -> str:
         if topic.startswith("/"):
@@ -256,7 +261,7 @@ def cmd_hz(args: argparse.Namespace) -> int:
     return 0
 
 
-# --- commands to the H2 sender ---------------------------------------------------------------
+# --- commands to the H2 (the controller manager) ---------------------------------------------
 
 
 def _number(text: str) -> float:
@@ -287,7 +292,7 @@ def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
 
 
 def h2_body(args: argparse.Namespace) -> dict[str, Any]:
-    """The h2_sender request of a parsed `exolink send ...` (also what the dashboard sends)."""
+    """The H2 command of a parsed `exolink send ...` (also what the dashboard sends)."""
     what = args.what
     if what in ("joint", "position", "stiffness"):
         return {
@@ -307,6 +312,8 @@ def h2_body(args: argparse.Namespace) -> dict[str, Any]:
         }
     if what == "limits":
         body: dict[str, Any] = {"kind": "limits"}
+        if args.reset:
+            body["reset"] = True
         if args.min is not None:
             body["min"] = args.min
         if args.max is not None:
@@ -464,9 +471,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     for name in ("disable", "stop"):
         q = s.add_parser(name, help=f"{name} JOINT|all")
         q.add_argument("joint")
-    q = s.add_parser("limits", help="limits --min a,b,c,d,e,f --max a,b,c,d,e,f (deg)")
+    q = s.add_parser(
+        "limits",
+        help="limits --min a,b,c,d,e,f --max a,b,c,d,e,f (deg; only inside the config's); "
+        "--reset: the config's",
+    )
     q.add_argument("--min", type=_angles)
     q.add_argument("--max", type=_angles)
+    q.add_argument("--reset", action="store_true", help="back to the config's limits")
     q = s.add_parser("stream", help="stream on|off")
     q.add_argument("state", choices=["on", "off"])
     p.set_defaults(func=cmd_send)

@@ -24,7 +24,6 @@ import json
 import math
 import os
 import time
-import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,6 +34,7 @@ from exolink import cdr, messaging, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.cli.remote import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
+from exolink.holder import Holder, HoldRefused, describe
 from exolink.protocol import h2
 
 log = structlog.get_logger("exolink.dashboard")
@@ -77,9 +77,10 @@ class Hub:
         self.pattern: dict[str, Any] | None = None
         self.watchdog: dict[str, Any] | None = None
         self.trigger: dict[str, Any] | None = None
-        self._token: Any = None
+        # Motion held from this dashboard: taken when a page first asks for motion and nobody
+        # holds it, renewed while a page is open (exolink.holder).
+        self.holder: Holder | None = None
         self._watched = asyncio.Event()  # a page is open: subscribe, decode and poll
-        self.operator = f"dashboard-{uuid.uuid4().hex[:8]}"
 
     # --- lifecycle ------------------------------------------------------------------------
 
@@ -147,7 +148,7 @@ class Hub:
         self._follows.clear()
         self._subs.clear()
         self._rings.clear()
-        self._drop_token()
+        self._release_hold()
 
     # --- Zenoh callbacks (Zenoh's threads: keep them short) -------------------------------
 
@@ -218,15 +219,15 @@ class Hub:
     def attach(self, ws: Any) -> None:
         self.clients.add(ws)
         self._watched.set()
-        if self._token is None and self.role != roles.OBSERVER:
-            self._declare_token()
 
     def detach(self, ws: Any) -> None:
         self.clients.discard(ws)
         self.follow(ws, None)
         if not self.clients:
-            # Nobody is watching: a running pattern must not go on without its operator.
-            self._drop_token()
+            # Nobody is watching: what this dashboard started must not go on without its
+            # operator: the manager stops it and trips once the renewals have stopped.
+            if self.holder is not None:
+                self.holder.abandon()
             self._watched.clear()
 
     def follow(self, ws: Any, node: str | None) -> None:
@@ -263,21 +264,32 @@ class Hub:
             if not ws.closed:
                 asyncio.ensure_future(ws.send_str(text)).add_done_callback(_ignore_result)
 
-    def _declare_token(self) -> None:
-        """The operator's presence, held while a page is open (as `exolink pattern start`
-        holds it while it runs): losing the last page trips the watchdog if a pattern runs."""
-        try:
-            self._token = self.remote.session.liveliness().declare_token(
-                messaging.mgmt_key(self.remote.device, "operators", self.operator)
-            )
-        except Exception as exc:
-            log.warning("operator_token_failed", error=str(exc))
+    def _hold(self) -> None:
+        """Hold motion for the page that asks for it, unless this dashboard holds it already
+        or someone else does (then that holder watches it; the manager refuses motion when
+        nobody does)."""
+        if self.role == roles.OBSERVER or (self.holder is not None and self.holder.holding):
+            return
 
-    def _drop_token(self) -> None:
-        if self._token is not None:
-            with contextlib.suppress(Exception):
-                self._token.undeclare()
-            self._token = None
+        def call(body: dict[str, Any]) -> dict[str, Any]:
+            key = messaging.mgmt_key(self.remote.device, "controllers")
+            return messaging.request(
+                self.remote.session, key, body, self.remote.timeout, self.remote.user
+            )
+
+        holder = Holder(call, describe("exolink dashboard"))
+        try:
+            holder.acquire()
+        except (HoldRefused, messaging.Unreachable) as exc:
+            log.info("dashboard_not_holding", reason=str(exc))
+            return
+        self.holder = holder
+        log.info("dashboard_holding_motion")
+
+    def _release_hold(self) -> None:
+        if self.holder is not None:
+            self.holder.release()
+            self.holder = None
 
     def _broadcast(self, message: dict[str, Any]) -> None:
         if not self.clients:
@@ -417,8 +429,8 @@ class Hub:
 
     async def send(self, cmd: Command) -> dict[str, Any]:
         body = dict(cmd.body)
-        if cmd.path == ("pattern",) and body.get("action") == "start":
-            body["operator"] = self.operator
+        if cmd.motion or (cmd.path == ("maccepa",) and body.get("kind") == "gains"):
+            await asyncio.to_thread(self._hold)
         if cmd.path == ("watchdog",) and body.get("action") == "estop":
             body["by"] = f"dashboard ({os.environ.get('USER', self.role)})"
         timeout = cmd.timeout_s or self.remote.timeout

@@ -199,6 +199,14 @@ def encode_joint_control(
     motor: int | str, mode: int | str, setpoint: float = 0, stiffness: float = 0
 ) -> can.Message:
     """Joint control (id 70). Position set-points must lie in the joint's mechanical range."""
+    return _message(joint_control(motor, mode, setpoint, stiffness))
+
+
+def joint_control(
+    motor: int | str, mode: int | str, setpoint: float = 0, stiffness: float = 0
+) -> JointControl:
+    """A joint command checked as its frame would be (ProtocolError names what is wrong),
+    without making the frame: a command checked here is encoded once, where it is sent."""
     m = motor_id(motor)
     md = mode_id(mode)
     sp = _whole(setpoint, "setpoint")
@@ -212,7 +220,7 @@ def encode_joint_control(
         raise ProtocolError(f"stiffness is only valid in stiffness mode, got {st}")
     if md in (MODES["disabled"], MODES["stopped"]) and sp != 0:
         raise ProtocolError(f"mode {MODE_NAMES[md]} takes no set-point, got {sp}")
-    return _message(JointControl(m, md, sp, st))
+    return JointControl(m, md, sp, st)
 
 
 def encode_accepted_angles(kind: str, angles: dict[str, float] | list[float]) -> can.Message:

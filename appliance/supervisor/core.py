@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import structlog
 import yaml
-import zenoh
 from exolink import cdr, liveness, logs, messaging, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
@@ -58,7 +57,6 @@ SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU star
 STATE_PERIOD_S = 1.0
 TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
 DIAGNOSTICS_TYPE = messaging.DIAGNOSTICS_TYPE
-PATTERN_TYPE = "exolink_msgs/msg/PatternState"
 
 
 def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
@@ -109,9 +107,6 @@ class Supervisor:
         self._decls: list[Any] = []
         self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
         self.nodes: dict[str, NodeProcess] = {}
-        self.pattern_state: tuple[str, str] = ("stopped", "")
-        self.operators: set[str] = set()
-        self.operator_lost_at: dict[str, float] = {}
 
     # --- start-up ---------------------------------------------------------------------------
 
@@ -167,20 +162,17 @@ class Supervisor:
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE, raw=True)
         self._serve_api()
         self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
-        self._decls.append(
-            self.msg.subscribe_raw("pattern_state", PATTERN_TYPE, self._on_pattern_state)
-        )
         diag_key = self.msg.key("nodes/*/diagnostics", DIAGNOSTICS_TYPE)
-        self._decls.append(self.session.declare_subscriber(diag_key, self._on_node_diagnostics))
         self._decls.append(
-            self.session.liveliness().declare_subscriber(
-                self.msg.mgmt("operators", "*"), self._on_operator, history=True
+            self.session.declare_subscriber(
+                diag_key,
+                lambda s: self._node_diagnostics(str(s.key_expr), s.payload.to_bytes()),
             )
         )
         self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
         self.trigger_out = trigger.open_output(cfg.trigger)
         config_path = self._workdir / "appliance.yaml"
-        config_path.write_text(yaml.safe_dump(_config_data(cfg), sort_keys=False))
+        config_path.write_text(yaml.safe_dump(_config_data(cfg, self._workdir), sort_keys=False))
         for ncfg in cfg.nodes:
             node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
             node.zygote = self.zygote
@@ -371,15 +363,15 @@ class Supervisor:
             due = min(due, now + self.cfg.deadline_s(node.cfg))
         return due
 
-    def _on_node_diagnostics(self, sample: Any) -> None:
+    def _node_diagnostics(self, key: str, payload: bytes) -> None:
         """The worst status a node reports (e.g. the recorder's disk full) shows in `exolink status`."""
-        parts = str(sample.key_expr).split("/")
+        parts = key.split("/")
         name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
         node = self.nodes.get(name)
         if node is None:
             return
         try:
-            statuses = cdr.diagnostic_statuses(sample.payload.to_bytes())
+            statuses = cdr.diagnostic_statuses(payload)
         except ValueError as exc:  # anyone may put on the key: checked, never trusted
             self._bad_sample(f"nodes/{name}/diagnostics", exc)
             return
@@ -396,38 +388,6 @@ class Supervisor:
         n = self.bad_samples[key] = self.bad_samples.get(key, 0) + 1
         if logs.rarely(n):
             self.log.warning("bad_sample", topic=topic, error=str(exc), count=n)
-
-    def _on_pattern_state(self, payload: bytes) -> None:
-        try:
-            state = cdr.pattern_state_of(payload)
-        except ValueError as exc:
-            self._bad_sample("pattern_state", exc)
-            return
-        if state != self.pattern_state:
-            self.pattern_state = state
-            self.wake.set()
-
-    def _on_operator(self, sample: Any) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.operators.add(name)
-        else:
-            self.operators.discard(name)
-            self.operator_lost_at.setdefault(name, time.monotonic())
-            self.wake.set()
-
-    def _check_operator(self, now: float) -> None:
-        """A pattern started from a laptop stops if that laptop's session is gone (DESIGN)."""
-        state, operator = self.pattern_state
-        if not (self.cfg.watchdog.trip_on_operator_lost and state == "running" and operator):
-            return
-        if operator in self.operators:
-            self.operator_lost_at.pop(operator, None)
-            return
-        lost = self.operator_lost_at.setdefault(operator, now)
-        if (now - lost) * 1000 >= self.cfg.watchdog.operator_lost_ms:
-            self.watchdog.trip("operator lost", f"session {operator} gone while the pattern runs")
-            self.pattern_state = ("stopped", "")
 
     def _check_bus(self) -> None:
         if self.cfg.can.interface != "socketcan":
@@ -497,7 +457,6 @@ class Supervisor:
             now = time.monotonic()
             self.watchdog.check()
             self._check_nodes(now)
-            self._check_operator(now)
             if now >= next_stray:
                 next_stray = now + STRAY_SWEEP_S
                 self._kill_strays()
@@ -556,17 +515,12 @@ class Supervisor:
                 node.due_at = 0.0
 
     def _next_due(self, now: float) -> float:
-        """The nearest deadline of the nodes (their ``due_at``), the watchdog and the operator
-        check."""
-        due = min(
+        """The nearest deadline of the nodes (their ``due_at``) and the watchdog."""
+        return min(
             now + MAX_SLEEP_S,
             self.watchdog.next_due(),
             min((n.due_at for n in self.nodes.values()), default=math.inf),
         )
-        state, operator = self.pattern_state
-        if state == "running" and (lost := self.operator_lost_at.get(operator)) is not None:
-            due = min(due, lost + self.cfg.watchdog.operator_lost_ms / 1000)
-        return due
 
     def _link_loop(self) -> None:
         """The CAN link's state and error counters, off the safety loop: woken by the driver's
@@ -738,6 +692,9 @@ class Supervisor:
             self.watchdog.disarm()
         elif action == "estop":
             self.watchdog.trip("operator e-stop", str(req.get("by", "")))
+        elif action == "trip":  # the appliance's own nodes (the motion holder lost)
+            reason, detail = str(req.get("reason", "")), str(req.get("detail", ""))
+            self.watchdog.trip(reason[:80] or "node request", detail[:300])
         elif action is not None:
             raise CommandRefused(f"unknown watchdog action {action!r} (arm, disarm or estop)")
         s = self.watchdog.snapshot()
@@ -758,13 +715,21 @@ class Supervisor:
 
 
 def _watchdog_needs(req: dict[str, Any]) -> str:
-    """E-stop is every login's; arming and disarming are the operator's."""
-    return roles.OPERATOR if req.get("action") in ("arm", "disarm") else roles.OBSERVER
+    """E-stop is every login's; arming and disarming are the operator's; a trip with a reason
+    of its own only the appliance's nodes'."""
+    action = req.get("action")
+    if action == "trip":
+        return roles.APPLIANCE_USER
+    return roles.OPERATOR if action in ("arm", "disarm") else roles.OBSERVER
 
 
-def _config_data(cfg: ApplianceConfig) -> dict[str, Any]:
+def _config_data(cfg: ApplianceConfig, workdir: Path) -> dict[str, Any]:
+    """The config the nodes read: the file's, with a state directory (the operator's limits)
+    in the supervisor's working directory when the file names none."""
     data: dict[str, Any] = msgspec.to_builtins(cfg)
     data.pop("source", None)
+    if data.get("state_dir") is None:
+        data["state_dir"] = str(workdir / "state")
     return data
 
 

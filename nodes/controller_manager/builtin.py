@@ -5,13 +5,14 @@
 - ``pid``: position set-point -> torque set-point (torque mode), with anti-windup (the
   integral stops growing while the output is saturated, and is clamped) and an output cap.
 - ``operator``: one joint held at what ``exolink send`` last asked (made by the manager).
-- ``gait_pattern``: the pattern player's rows at its speed levels (``timing: manager``).
+- ``gait_pattern``: the pattern player's rows at its speed levels, checked whole against the
+  limits in force (angles, and the step limit at its speed) before any is written.
 - ``joint_trajectory``: time-stamped way-points, linearly interpolated from where the joints are
   at activation; the gait pattern becomes one of these later.
 - ``maccepa_setpoint``: a MACCEPA board's set-point (and optionally its gains) an operator sends,
   checked against the board's configured limits, with forward_command's timeout (hold or stop).
-- ``maccepa_operator``: one board's set-point, duty or gains as the MACCEPA bridge last
-  forwarded them (``motion_via_manager``; made by the manager).
+- ``maccepa_operator``: one board's set-point, duty or gains as ``exolink maccepa`` last sent
+  them (made by the manager).
 """
 
 from __future__ import annotations
@@ -200,7 +201,43 @@ class GaitPattern(Controller):
         self.period_s = period_s
         self.cols = [(interface(j, "position"), JOINTS.index(j)) for j in self.params.joints]
         self.speed, self.index = self.params.speed, self.params.start
+        if self.limits is not None:  # the whole sequence, before any of it is written
+            self._check_angles()
+            self._check_steps(self.speed)
         self._anchor(self.index)
+
+    def _check_angles(self) -> None:
+        lim = self.limits
+        assert lim is not None
+        for n, row in enumerate(self.params.rows):
+            for _key, j in self.cols:
+                lo, hi = lim.min_angles[j], lim.max_angles[j]
+                if not lo <= row[j] <= hi:
+                    raise ValueError(
+                        f"{self.name}: row {n + 1}: {JOINTS[j]} {row[j]} deg is outside the "
+                        f"limits in force {lo}..{hi}"
+                    )
+
+    def _check_steps(self, speed: int) -> None:
+        """Refuse a speed at which the pattern would outrun the step limit (the manager would
+        saturate it: the joints lag the pattern instead of walking it)."""
+        lim, rows = self.limits, self.params.rows
+        if lim is None:
+            return
+        cycles = 1.0 if not self.params.interpolate else max(1.0, self.period_s(speed) / 0.01)
+        worst, where = 0.0, ""
+        for n in range(len(rows)):
+            a, b = rows[n], rows[(n + 1) % len(rows)]
+            for _key, j in self.cols:
+                step = abs(b[j] - a[j]) / cycles
+                if step > worst:
+                    worst, where = step, f"row {n + 1} -> {(n + 1) % len(rows) + 1}, {JOINTS[j]}"
+        if worst > lim.max_step_deg:
+            raise ValueError(
+                f"{self.name}: at speed {speed} the pattern moves {worst:.3g} deg per 10 ms "
+                f"cycle ({where}), over the step limit {lim.max_step_deg} deg "
+                "(limits.max_step_deg): choose a lower speed"
+            )
 
     def _anchor(self, index: int) -> None:
         self.i0, self.t0 = index, None  # the next update's time is row i0's
@@ -216,6 +253,10 @@ class GaitPattern(Controller):
             level = request["speed"]
             if isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= 10:
                 raise Refused(f"{self.name}: speed must be a whole level 1..10, got {level!r}")
+            try:
+                self._check_steps(level)
+            except ValueError as exc:
+                raise Refused(str(exc)) from None
             self.speed = level
         if "index" in request:
             i = request["index"]
@@ -515,7 +556,7 @@ class MaccepaOperatorParams(msgspec.Struct, forbid_unknown_fields=True, frozen=T
 
 class MaccepaOperator(Controller):
     """One board's set-point, duty or gains, held at what the MACCEPA bridge last forwarded
-    (``exolink maccepa N setpoint|duty|gains`` with the bridge's ``motion_via_manager``).
+    (``exolink maccepa N setpoint|duty|gains``).
 
     The manager makes one per board and kind on demand (``operator.maccepa<N>.<kind>``). Gains
     not named in a command keep this controller's last value (0 before the first)."""

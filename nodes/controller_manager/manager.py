@@ -91,6 +91,7 @@ class Slot:
     overruns: int = 0
     overran_last: float = 0.0  # CPU of the last update if it overran the budget, else 0
     limited: int = 0
+    written: int = 0  # joint set-points written for it
 
     def joints(self) -> set[int]:
         return {JOINTS.index(t) for t in (c.split("/")[0] for c in self.claims) if t in JOINTS}
@@ -114,6 +115,7 @@ class Slot:
             "budget_ms": round(self.budget_s * 1e3, 3),
             "overruns": self.overruns,
             "limited": self.limited,
+            "written": self.written,
             **self.ctrl.status(),
         }
 
@@ -205,20 +207,19 @@ class Manager:
     def __init__(
         self,
         limits: Limits,
-        max_step_deg: int,
         budget_ms: float,
         boards: list[BoardLimits] | None = None,
         cycles_per_update: int = 1,
     ) -> None:
-        self.limits = limits
+        self.limits = limits  # in force: the config's, narrowed by an operator (set_limits)
         self.boards: dict[int, BoardLimits] = {b.board: b for b in boards or []}
         self.last_sp: dict[int, float] = {}  # board -> last set-point written
         self.gains_written: dict[int, tuple[float, float, float]] = {}  # board -> last gains
         # board -> (kind, value) last written and cycles since, for the refresh above
         self.drive_written: dict[int, tuple[str, float, int]] = {}
-        # max_step_deg is per 10 ms H2 cycle: an update every n cycles may move n steps (the
+        # Rate limits are per 10 ms H2 cycle: an update every n cycles may move n steps (the
         # same speed limit); a held MACCEPA set-point is re-sent every ~100 ms either way.
-        self.max_step = max_step_deg * cycles_per_update
+        self.cycles_per_update = cycles_per_update
         self.update_period_s = cycles_per_update * PERIOD_S
         self.refresh_cycles = max(1, round(MACCEPA_REFRESH_CYCLES / cycles_per_update))
         self.default_budget_s = budget_ms / 1e3
@@ -227,11 +228,18 @@ class Manager:
         self.owners: dict[str, str] = {}  # interface -> active controller
         self.held: dict[str, Any] = {}  # interface -> last value (a gains triple for gains)
         self.last_pos: list[int | None] = [None] * len(JOINTS)  # last position written
+        self.last_torque: list[int | None] = [None] * len(JOINTS)  # last torque written
         self.pending: list[Switch] = []
         self.cycles = 0
         self.gaps = 0  # cycles where a claimed joint got no frame (no value yet)
         self.overhead_s: deque[float] = deque(maxlen=2000)
         self.version = 0  # counts loads, unloads and state changes: what `activity` describes
+
+    def set_limits(self, limits: Limits) -> None:
+        """The limits in force from the next cycle on (an operator narrowed or reset them)."""
+        with self.lock:
+            self.limits = limits
+            self.version += 1
 
     # --- loading ----------------------------------------------------------------------------
 
@@ -273,6 +281,7 @@ class Manager:
             raise ManagerRefused(f"controller {name}: budget_ms must be in (0, 1000]")
         ctrl: Controller = cls(name, p)
         ctrl.boards = dict(self.boards)
+        ctrl.limits = self.limits  # a controller that knows its plan checks it whole
         try:
             ctrl.configure()
             claims = check_claims(name, ctrl.claims(), self.boards)
@@ -329,6 +338,22 @@ class Manager:
         with self.lock:
             return list(self.slots)
 
+    def superseded(self, names: list[str], prefix: str) -> list[str]:
+        """The active controllers named ``prefix...`` (the operator's one-off holds) that own a
+        joint or board one of ``names`` claims."""
+        with self.lock:
+            wanted = set()
+            for n in names:
+                slot = self._slot(n)
+                wanted |= {c.split("/")[0] for c in slot.claims}
+            return sorted(
+                {
+                    owner
+                    for c, owner in self.owners.items()
+                    if owner.startswith(prefix) and owner not in names and c.split("/")[0] in wanted
+                }
+            )
+
     def owners_of(self, joint: str) -> dict[str, str]:
         """The interfaces of ``joint`` (or of a board, ``maccepa0``) that an active controller
         owns, and who owns them."""
@@ -351,7 +376,7 @@ class Manager:
             slot = self.slots.get(name)
             if slot is None:
                 return {"name": name, "state": None, "error": f"no controller {name!r}"}
-            return {"name": name, "state": slot.state, "error": slot.error}
+            return {"name": name, "state": slot.state, "error": slot.error, "written": slot.written}
 
     def reads(self) -> tuple[int, frozenset[str]]:
         """(version, what of State beyond positions the loaded controllers read): the node
@@ -486,11 +511,12 @@ class Manager:
                         f"{n} refused to activate: {type(exc).__name__}: {exc}"
                     ) from None
                 written = list(self.last_pos)  # before the releases clear them
+                written_t = list(self.last_torque)
                 written_sp = dict(self.last_sp)
                 for n in sw.deactivate:
                     self._release(self.slots[n], "")
                 for slot in started:
-                    self._claim(slot, state, written, written_sp)  # type: ignore[arg-type]
+                    self._claim(slot, state, written, written_sp, written_t)  # type: ignore[arg-type]
             except ManagerRefused as exc:
                 sw.error = str(exc)
             sw.done.set()
@@ -503,11 +529,16 @@ class Manager:
         self.pending = keep
 
     def _claim(
-        self, slot: Slot, state: State, written: list[int | None], written_sp: dict[int, float]
+        self,
+        slot: Slot,
+        state: State,
+        written: list[int | None],
+        written_sp: dict[int, float],
+        written_t: list[int | None],
     ) -> None:
         """The step limit of a joint (or a MACCEPA set-point) handed over in this switch
         continues from what its previous owner last wrote; one nobody was writing starts from
-        where it is (a board's lever; 0 for a velocity controller)."""
+        where it is (a board's lever; 0 for a velocity controller; a torque from 0)."""
         slot.state, slot.error = "active", ""
         self.version += 1
         for c in slot.claims:
@@ -523,6 +554,8 @@ class Manager:
             j = JOINTS.index(target)
             if kind == "position":
                 self.last_pos[j] = written[j] if written[j] is not None else state.position[j]
+            elif kind == "torque":
+                self.last_torque[j] = written_t[j]
 
     def _safe_deactivate(self, slot: Slot) -> None:
         try:
@@ -549,6 +582,8 @@ class Manager:
                     continue
                 if kind == "position":
                     self.last_pos[JOINTS.index(target)] = None
+                elif kind == "torque":
+                    self.last_torque[JOINTS.index(target)] = None
 
     # --- the loop ---------------------------------------------------------------------------
 
@@ -734,14 +769,17 @@ class Manager:
                 mode = STIFFNESS if stiff else POSITION
             else:
                 continue
-            last = self.last_pos[j] if mode != TORQUE else None
-            sp2, st2 = limits.saturate(j, mode, sp, st, last, self.max_step)
+            last = self.last_pos[j] if mode != TORQUE else self.last_torque[j]
+            sp2, st2 = limits.saturate(j, mode, sp, st, last, self.cycles_per_update)
             if sp2 != sp or st2 != st:
                 self.slots[owner].limited += 1
             if limits.violation(j, mode, sp2, st2) is not None:  # cannot happen: belt
                 continue
             if mode != TORQUE:
                 self.last_pos[j] = sp2
+            else:
+                self.last_torque[j] = sp2
+            self.slots[owner].written += 1
             out.writes.append(Write(j + 1, mode, sp2, st2))
         if self.boards:
             self._compose_maccepa(out)

@@ -1,0 +1,461 @@
+"""What the controller manager serves: the controllers, the H2's commands (``exolink send``), the
+MACCEPA boards' commands (``exolink maccepa``) and the operator's presence (``exolink hold``).
+
+Every way motion is asked for (the CLI, the dashboard, ROS 2's ``cmd/joint`` and
+``joint_command`` through the supervisor, a controller loaded by hand) reaches these handlers in
+one hop from the router and is checked here once, by the one set of rules: the limits in force
+(``intent``), the watchdog armed, a holder present, the joint not driven by someone else. The
+frames are encoded once, where they are sent (the node's cycle).
+
+Requests that switch controllers wait for a cycle boundary: they run in order on one thread of
+their own (``messaging.SlowLane``), never on Zenoh's callback thread, which also carries the
+watchdog's word and the presence keep-alives (answered at once).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import can
+from exolink import cdr, roles
+from exolink.maccepalimits import GAINS, KINDS, target
+from exolink.messaging import Caller, CommandRefused, SlowLane, Unlogged
+from exolink.nodes.controller_manager.intent import IntentRefused
+from exolink.nodes.controller_manager.manager import GC_CLOCK, ManagerRefused, Switch
+from exolink.plugins import controller_types
+from exolink.protocol import ProtocolError, h2, maccepa
+
+if TYPE_CHECKING:
+    from exolink.nodes.controller_manager.node import ControllerManagerNode
+
+SWITCH_WAIT_S = 1.0
+OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
+OPERATOR_MODES = ("position", "stiffness", "torque")
+SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
+DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
+# controllers actions answered on Zenoh's thread: reads and the presence keep-alive
+FAST = ("list", "types", "state", "hold", "release")
+JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
+
+
+def _controllers_needs(request: dict[str, Any]) -> str:
+    return roles.OBSERVER if request.get("action", "list") in FAST[:3] else roles.OPERATOR
+
+
+def _slow_controllers(request: dict[str, Any]) -> bool:
+    return request.get("action", "list") not in FAST
+
+
+def _in_order(_request: dict[str, Any]) -> bool:
+    return True
+
+
+def _deadline(req: dict[str, Any]) -> float | None:
+    """``within_s``: the asker waits this long for the answer, so nothing it asked for may take
+    effect after that (it would then say the request failed while the manager drove on)."""
+    within = req.get("within_s")
+    if within is None:
+        return None
+    if not isinstance(within, int | float) or isinstance(within, bool) or not 0 < within <= 10:
+        raise CommandRefused(f"within_s must be a number of seconds in (0, 10], not {within!r}")
+    return time.monotonic() + within
+
+
+def _frames(frames: list[can.Message]) -> list[str]:
+    return [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]
+
+
+class ManagerApi:
+    """The requests of ``ControllerManagerNode`` (a mixin: it uses the node's manager, intent,
+    presence and bus)."""
+
+    def serve_api(self: ControllerManagerNode) -> None:
+        m = self.ctx.messaging
+        lane = self.own(SlowLane("controller_manager"))  # released after the queryables
+        self.pub_commands = self.own(m.publisher("joint_commands", JOINT_COMMAND, raw=True))
+        self.own(
+            m.serve(
+                "controllers",
+                self.on_controllers,
+                _controllers_needs,
+                slow=_slow_controllers,
+                lane=lane,
+            )
+        )
+        self.own(m.serve(("h2", "command"), self.on_h2, roles.OPERATOR, _in_order, lane))
+        self.own(m.serve("maccepa", self.on_maccepa, roles.OPERATOR, _in_order, lane))
+
+    # --- checks -------------------------------------------------------------------------------
+
+    def may_move(self: ControllerManagerNode) -> None:
+        """Refused unless motion may start now: armed, a holder present, the limits known."""
+        for why in (self._not_armed(), self.presence.check(), self.limits.check()):
+            if why:
+                raise CommandRefused(why)
+
+    # --- controllers --------------------------------------------------------------------------
+
+    def on_controllers(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+        try:
+            return self._controllers(req, caller)
+        finally:
+            self._maybe_tell()
+
+    def _controllers(
+        self: ControllerManagerNode, req: dict[str, Any], caller: Caller
+    ) -> dict[str, Any]:
+        action = req.get("action", "list")
+        try:
+            if action == "list":
+                return self.status()
+            if action == "state":
+                return self.manager.state_of(str(req.get("name", "")))
+            if action == "types":
+                return {"types": controller_types()}
+            if action == "hold":
+                return self._hold(req, caller)
+            if action == "release":
+                return self._release(req)
+            if action == "load":
+                return self._load(req)
+            if action == "unload":
+                self.manager.unload(str(req.get("name", "")))
+                return {}
+            if action == "command":
+                name = str(req.get("name", ""))
+                if name in self.manager.active():  # it moves a joint now
+                    self.may_move()
+                body = {k: v for k, v in req.items() if k not in ("action", "name")}
+                return self.manager.command(name, body)
+            if action in ("activate", "deactivate", "switch"):
+                return self._switch(action, req)
+        except ManagerRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(
+            f"unknown controllers action {action!r} "
+            "(list, types, state, load, unload, activate, deactivate, switch, command, hold, "
+            "release)"
+        )
+
+    def status(self: ControllerManagerNode) -> dict[str, Any]:
+        reader = self.reader  # may close meanwhile: its counters stay readable
+        return {
+            **self.manager.status(),
+            "limits": self.limits.describe(),
+            "presence": self.presence.describe(),
+            "written": self.written,
+            "safe": self.safe_sent,
+            "late_cycles": self.late_cycles,
+            "cycles_per_update": self.params.cycles_per_update,
+            "maccepa_written": self.mc_written,
+            "maccepa_safe": self.mc_safe_sent,
+            "malformed": dict(self.malformed),
+            "reading": self.reader is not None,
+            "reader_opens": self.reader_opens,
+            "read_ids": self.read_ids,
+            "receive": reader.counters() if reader is not None else None,
+            "watchdog_word": self.arming.counters() if self.arming is not None else None,
+            "loop_cpu": self.clock.counters(),
+            "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
+        }
+
+    def _hold(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
+        try:
+            out = self.presence.hold(
+                req.get("holder"), caller.login, req.get("what"), bool(req.get("take_over"))
+            )
+        except IntentRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        reply = {
+            **out,
+            "driving": self.manager.active(),
+            "presence_lost_after_s": self.presence.lost_s,
+        }
+        return Unlogged(reply) if out["renewed"] else reply  # renewals: twice a second
+
+    def _release(self: ControllerManagerNode, req: dict[str, Any]) -> dict[str, Any]:
+        """A holder lets go: what it held stops (the safe action), without a trip."""
+        released = self.presence.release(req.get("holder"))
+        if released and self.manager.active():
+            self.stop_all("its holder released motion")
+        return {"released": released}
+
+    def _load(self: ControllerManagerNode, req: dict[str, Any]) -> dict[str, Any]:
+        """``replace``: a controller of that name is deactivated and unloaded first;
+        ``activate``: the new one is activated at the next cycle (within ``within_s`` of this
+        request, if given). One request instead of four (what the pattern player sends). An
+        activation refused (not armed, nobody holding motion, a claim held, no cycle in time)
+        leaves the controllers as they were, except that a replaced one that was active is
+        now inactive."""
+        params = req.get("params") or {}
+        if not isinstance(params, dict):
+            raise CommandRefused("params must be an object")
+        name, kind = str(req.get("name", "")), str(req.get("type", ""))
+        activate = bool(req.get("activate"))
+        until = _deadline(req)
+        if activate:
+            self.may_move()
+        replace = bool(req.get("replace"))
+        slot = self.manager.prepare(name, kind, params, req.get("budget_ms"), replacing=replace)
+        if replace and name in self.manager.active():
+            self._switch("deactivate", {"names": [name]})
+        old = self.manager.add(slot, replace=replace)
+        if not activate:
+            return slot.status()
+        try:
+            active = self._switch("activate", {"names": [name]}, until)
+        except CommandRefused:
+            self.manager.put_back(slot, old)  # nothing half-done: as before the request
+            raise
+        return {**slot.status(), **active}
+
+    def _switch(
+        self: ControllerManagerNode, action: str, req: dict[str, Any], until: float | None = None
+    ) -> dict[str, Any]:
+        """Applied at one cycle boundary, or refused whole. An activation supersedes the
+        operator's one-off holds (``operator.*``) on the joints and boards it claims, in the
+        same switch: the operator who starts a pattern means the pattern to drive.
+        ``until`` (monotonic): the asker's own limit, waited for instead of SWITCH_WAIT_S, never
+        passed."""
+
+        def names(key: str) -> list[str]:
+            v = req.get(key, [])
+            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+                raise CommandRefused(f"{key} must be a list of controller names")
+            return v
+
+        if action == "switch":
+            sw = Switch(names("activate"), names("deactivate"))
+        elif action == "activate":
+            sw = Switch(names("names"), [])
+        else:
+            sw = Switch([], names("names"))
+        if sw.activate:
+            self.may_move()
+            held = self.manager.superseded(sw.activate, OPERATOR + ".")
+            sw.deactivate += [n for n in held if n not in sw.deactivate]
+        wait = SWITCH_WAIT_S if until is None else until - time.monotonic()
+        if wait <= 0:
+            raise CommandRefused("the request's within_s ran out before its switch")
+        self.manager.request(sw)
+        self.wake.set()
+        if not sw.done.wait(wait) and self.manager.withdraw(sw):
+            raise CommandRefused(
+                f"no H2 cycle within {wait:.2g} s to switch at (is the H2 streaming?)"
+            )
+        sw.done.wait()
+        if sw.error is not None:
+            raise CommandRefused(sw.error)
+        return {"active": self.manager.active()}
+
+    # --- the H2's commands --------------------------------------------------------------------
+
+    def on_h2(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+        """``exolink send``: joint control (motion held by the joint's operator controller;
+        disable and stop at once, always allowed), the accepted angles (the operator's limits),
+        the data stream. Nothing is sent unless the whole command is valid."""
+        kind = req.get("kind")
+        try:
+            if kind == "joint":
+                return self._joint(req, caller)
+            if kind == "limits":
+                return self._limits(req, caller)
+            if kind == "stream":
+                on = req.get("on")
+                if not isinstance(on, bool):
+                    raise CommandRefused("stream needs 'on': true or false")
+                frames = [h2.encode_stream(on)]
+                self.send_now(frames)
+                return {"frames": _frames(frames)}
+        except ProtocolError as exc:
+            raise CommandRefused(str(exc)) from None
+        except ManagerRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(f"unknown command kind {kind!r} (joint, limits or stream)")
+
+    def _joint(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
+        joint = req.get("joint")
+        mode = h2.mode_id(req.get("mode", ""))
+        if mode in SAFE_MODES:  # can only make things safer: always, and at once
+            motors = range(1, 7) if joint == "all" else [h2.motor_id(joint)]  # type: ignore[arg-type]
+            commands = [h2.joint_control(m, mode) for m in motors]
+            what = f"{'all joints' if joint == 'all' else joint} {h2.MODE_NAMES[mode]}"
+            frames = self.stop_joints({m - 1 for m in motors}, mode, f"{what} by {caller.login}")
+            for jc in commands:
+                self._record(jc, caller)
+            return {"frames": _frames(frames)}
+        if joint == "all":
+            raise CommandRefused("'all' joints is only for disabled or stopped")
+        jc = h2.joint_control(joint, mode, req.get("setpoint", 0), req.get("stiffness", 0))  # type: ignore[arg-type]
+        i = jc.motor - 1
+        lim = self.limits.in_force
+        by = self.limits.set_by
+        where = f" (set by {by.login})" if by is not None else " (the config's limits:)"
+        if why := lim.violation(i, mode, jc.setpoint, jc.stiffness, where=where):
+            raise CommandRefused(why)
+        self.may_move()
+        reply = self._operator(h2.JOINTS[i], h2.MODE_NAMES[mode], jc.setpoint, jc.stiffness)
+        self._record(jc, caller)
+        return reply
+
+    def _operator(
+        self: ControllerManagerNode, joint: str, mode: str, setpoint: int, stiffness: int
+    ) -> dict[str, Any]:
+        """Held by that joint's own operator controller, made on first use. A joint another
+        controller drives is refused with that controller named; a joint the operator drove in
+        another mode changes mode at one cycle boundary."""
+        name, mine = f"{OPERATOR}.{joint}.{mode}", f"{OPERATOR}.{joint}."
+        for key, owner in self.manager.owners_of(joint).items():
+            if not owner.startswith(mine):
+                raise CommandRefused(
+                    f"{joint} is driven by controller {owner} ({key}): "
+                    f"`exolink controllers deactivate {owner}` first"
+                )
+        if name not in self.manager.names():
+            self.manager.load(name, "operator", {"joint": joint, "mode": mode})
+        reply = self.manager.command(name, {"setpoint": setpoint, "stiffness": stiffness})
+        if name not in self.manager.active():
+            before = [n for n in self.manager.active() if n.startswith(mine)]
+            self._switch("switch", {"activate": [name], "deactivate": before})
+        return {"controller": name, "frames": [], **reply}
+
+    def _limits(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+        """The operator's accepted angles: only narrower than the config's, kept before they
+        take effect (they survive a restart), then in force for every way in and sent to the
+        H2. ``reset``: back to the config's."""
+        if req.get("reset"):
+            lo = hi = None
+        else:
+            got = {k: req[k] for k in ("min", "max") if k in req}
+            if not got:
+                raise CommandRefused(
+                    "limits needs 'min' and/or 'max' (six angles in degrees), or 'reset'"
+                )
+            checked = {k: h2.decode(h2.encode_accepted_angles(k, v)) for k, v in got.items()}
+            lo = list(checked["min"]) if "min" in checked else None
+            hi = list(checked["max"]) if "max" in checked else None
+        try:
+            new = self.limits.set(lo, hi, caller.login)
+        except IntentRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        self.manager.set_limits(new)
+        frames = self.limit_frames()
+        self.send_now(frames)
+        return {"frames": _frames(frames), "limits": self.limits.describe()}
+
+    def _record(self: ControllerManagerNode, jc: h2.JointControl, caller: Caller) -> None:
+        """An accepted command on ``joint_commands``, with the login that sent it."""
+        now = time.time_ns()
+        joint = h2.JOINTS[jc.motor - 1]
+        payload = cdr.joint_command(now, joint, jc.mode, jc.setpoint, jc.stiffness, caller.login)
+        self.pub_commands.put(payload, now)
+
+    # --- the MACCEPA boards' commands ---------------------------------------------------------
+
+    def on_maccepa(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+        """``exolink maccepa N ...``: set-point, duty and gains held by that board's operator
+        controller for the kind (``operator.maccepa0.setpoint``); stop control at once."""
+        board, kind = req.get("board"), req.get("kind")
+        if board not in self.board_ids:
+            configured = ", ".join(str(b) for b in sorted(self.board_ids)) or "none"
+            raise CommandRefused(
+                f"MACCEPA board {board!r} is not driven by the controller manager "
+                f"(params.maccepa: {configured})"
+            )
+        try:
+            if kind == "stop":
+                frames = self.stop_boards({board}, f"{target(board)} stopped by {caller.login}")  # type: ignore[arg-type]
+                return {"frames": _frames(frames)}
+            if kind in KINDS:
+                self._check_maccepa(board, kind, req)  # type: ignore[arg-type]
+                self.may_move()
+                return self._maccepa(board, kind, req)  # type: ignore[arg-type]
+        except ProtocolError as exc:
+            raise CommandRefused(str(exc)) from None
+        except ManagerRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(f"unknown MACCEPA command {kind!r} (gains, setpoint, duty, stop)")
+
+    def _check_maccepa(
+        self: ControllerManagerNode, board: int, kind: str, req: dict[str, Any]
+    ) -> None:
+        """The codec's checks (ProtocolError names what is wrong); the board's limits are the
+        controller's and the manager's."""
+        lim = self.manager.boards[board]
+        ctl = req.get("controller", lim.controller)
+        if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
+            raise CommandRefused(
+                f"{target(board)} runs its {lim.controller} controller under the controller "
+                f"manager (params.maccepa), not {ctl!r}"
+            )
+        if kind == "gains":
+            gains = [(g, req[g]) for g in GAINS if req.get(g) is not None]
+            if not gains:
+                raise CommandRefused("gains needs at least one of kp, ki, kd")
+            for g, v in gains:
+                maccepa.encode_gain(board, g, v, lim.controller)
+        elif kind == "setpoint":
+            maccepa.encode_setpoint(board, req.get("value"), lim.controller)
+        else:
+            maccepa.encode_duty(board, req.get("value"))
+
+    def _maccepa(
+        self: ControllerManagerNode, board: int, kind: str, req: dict[str, Any]
+    ) -> dict[str, Any]:
+        """Set-point and duty drive the board and replace each other at one cycle boundary;
+        gains are their own interface (tuning while something else drives the board). An
+        interface another controller owns is refused with that controller named."""
+        group = DRIVE if kind in DRIVE else ("gains",)
+        name, mine = f"{OPERATOR}.{target(board)}.{kind}", f"{OPERATOR}.{target(board)}."
+        for key, owner in self.manager.owners_of(target(board)).items():
+            if key.split("/")[1] in group and not owner.startswith(mine):
+                raise CommandRefused(
+                    f"{target(board)} is driven by controller {owner} ({key}): "
+                    f"`exolink controllers deactivate {owner}` first"
+                )
+        if name not in self.manager.names():
+            self.manager.load(name, "maccepa_operator", {"board": board, "kind": kind})
+        body = {g: req.get(g) for g in GAINS} if kind == "gains" else {"value": req.get("value")}
+        reply = self.manager.command(name, body)
+        if name not in self.manager.active():
+            before = [
+                n
+                for n in self.manager.active()
+                if n.startswith(mine) and n.rpartition(".")[2] in group
+            ]
+            self._switch("switch", {"activate": [name], "deactivate": before})
+        return {"controller": name, "frames": [], **reply}
+
+    # --- presence -----------------------------------------------------------------------------
+
+    def check_presence(self: ControllerManagerNode) -> None:
+        """A holder whose keep-alive ran out while something drives: everything stops now
+        (the safe action) and the watchdog is asked to trip (latched until re-armed)."""
+        lost = self.presence.lapsed()
+        if lost is None:
+            return
+        detail = (
+            f"{lost.login} ({lost.what or 'no description'}) sent no keep-alive for "
+            f"{self.presence.lost_s:g} s"
+        )
+        if not self.manager.active():
+            self.log.info("presence_expired", detail=detail)
+            return
+        self.stop_all(f"operator lost: {detail}")
+        self.log.error("operator_lost", detail=detail)
+        if self.ctx.config.watchdog.trip_on_operator_lost:
+            self._ask_trip("operator lost", detail)
+
+    def _ask_trip(self: ControllerManagerNode, reason: str, detail: str) -> None:
+        """The supervisor's watchdog trips (its answer is not waited for by the loop)."""
+
+        def ask() -> None:
+            try:
+                body = {"action": "trip", "reason": reason, "detail": detail}
+                self.ctx.messaging.command("watchdog", body=body, timeout_s=2.0)
+            except CommandRefused as exc:
+                self.log.error("trip_request_failed", reason=reason, error=str(exc))
+
+        threading.Thread(target=ask, daemon=True, name="trip").start()

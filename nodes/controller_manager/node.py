@@ -1,0 +1,579 @@
+"""The controller manager's node: read -> update -> write once per H2 cycle, paced by the
+joint-angle frame (id 110); the only writer of motion (its requests: ``api``).
+
+The node reads the H2 frames itself (one FrameReader: angles, torques, foot switches, and joint
+control so it sees a disable from anyone), and the status frames of the MACCEPA boards in
+``params.maccepa`` (sensors, positions, controller; their duty/stop frame too, so it sees a stop
+from anyone), hands each cycle to ``Manager`` with the angle frame's kernel timestamp and the
+measured period, and writes what comes back. MACCEPA frames are decoded by the MACCEPA codec
+after the H2 codec had its say (the ids overlap: protocol/README.md); a frame neither decodes is
+counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safety around the loop:
+
+- nothing is written unless the watchdog is armed and someone holds motion (``intent``); a trip
+  (seen on Zenoh, or as its disable frames on the bus, whichever comes first) deactivates every
+  controller, and they stay inactive until an operator re-arms and activates them again; a
+  holder lost stops them all and trips the watchdog;
+- every output is saturated to the limits in force (the config's ``limits:``, narrowed by an
+  operator: ``intent``), which are also sent to the H2 at start;
+- a type 4/5 frame for a claimed joint from any sender stops the controllers driving it (their
+  next set-point would switch the joint back on); so does "stop control" for a claimed board;
+  a disable asked of this node is sent after the cycle in flight, never before its set-points;
+- the safe action of a MACCEPA board is "stop control", sent by this node whenever a controller
+  on it fails or stops, and on a trip (the watchdog also stops ``watchdog.maccepa_boards``, which
+  must include every board configured here: checked at start);
+- no angle frame for ``h2_timeout_ms`` while controllers are active: their joints get the safe
+  action and every controller stops (the watchdog trips on the same silence a little later);
+- the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
+  (``heartbeat_deadline_ms: 50`` in the configs).
+
+Off the bus while idle: with no controller active and no switch queued the node holds no socket
+that frames reach (a send-only bus stays, for commands and safe actions): reading and decoding
+every H2 and MACCEPA frame for nothing took >= 47 % of the board proxy's CPU 0. A queued switch
+opens the reader; activations wait until it is warm (every configured board's position frame
+seen, or ``WARM_S``) so a controller never starts from a stale or missing state, and the state
+from before the reader closed (boards, torques, feet) is dropped with it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import can
+import msgspec
+from exolink import cdr, logs
+from exolink.arming import ArmingState
+from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
+from exolink.canfilter import Drop
+from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
+from exolink.maccepalimits import BoardLimits, target
+from exolink.node import Node
+from exolink.nodes.controller_manager.api import ManagerApi
+from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
+from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused
+from exolink.phaseclock import PhaseClock
+from exolink.protocol import ProtocolError, h2, maccepa
+
+BEAT_S = 0.02
+# Nothing active: the loop beats idle this often (exolink.liveness: then held to the appliance's
+# default deadline), not 50 times a second: ~1.2 ms of the board proxy's CPU per wake-up. It
+# also judges the holder's keep-alive this often.
+IDLE_BEAT_S = 0.2
+WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
+SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
+# Always read: the angle frame starts a cycle; anyone's joint control (a disable or stop from
+# anyone stops that joint's controllers). The others only while a loaded controller reads them.
+READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
+EXTRA_IDS = {"torque": h2.JOINT_TORQUES, "feet": h2.FOOT_SWITCHES}
+# Every change of a controller's state goes out on ACTIVITY_TOPIC at once, and the whole list
+# again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
+# asking. On the board proxy the player's five state queries a second were four Zenoh hops and a
+# handler each, all on the one core.
+ACTIVITY_REFRESH_S = 60.0
+
+
+class ControllerSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    name: str
+    type: str
+    params: dict[str, Any] = {}
+    budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None
+
+
+class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    # (Joint limits, caps and the step limit are the config's `limits:` section.)
+    # Send the accepted angles in force to the H2 at start (the operator's, if they sent any).
+    send_limits_on_start: bool = True
+    # CPU one controller's update may take per cycle before it is deactivated.
+    update_budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 2.0
+    h2_timeout_ms: Annotated[int, msgspec.Meta(ge=15, le=1000)] = 50
+    # Run read -> update -> write once per this many H2 cycles (10 ms each), on the newest
+    # angle frame; the loop sleeps in between instead of waking per frame. 2 on the board:
+    # set-points every 20 ms, the thesis' own rate (its fastest pattern sent a row per joint
+    # every 20 ms), at half the CPU of waking each cycle on one A8 core.
+    cycles_per_update: Annotated[int, msgspec.Meta(ge=1, le=5)] = 1
+    safe_action: Literal["disable", "stop"] = "disable"
+    require_armed: bool = True
+    # MACCEPA boards this manager drives (maccepa<N>/setpoint|duty|gains) and their limits.
+    maccepa: list[BoardLimits] = []
+    controllers: list[ControllerSpec] = []  # loaded (inactive) at start
+
+    def __post_init__(self) -> None:
+        gap_ms = (self.cycles_per_update + 1) * h2.PERIOD_S * 1e3  # the longest between reads
+        if self.cycles_per_update > 1 and self.h2_timeout_ms <= gap_ms:
+            raise ValueError(
+                f"h2_timeout_ms {self.h2_timeout_ms} must exceed {gap_ms:g} ms with "
+                f"cycles_per_update {self.cycles_per_update}"
+            )
+
+
+@lru_cache(maxsize=4096)
+def _frame(motor: int, mode: int, setpoint: int, stiffness: int) -> can.Message:
+    """Encoded once per distinct command (the codec checks ranges again): a holding joint costs
+    a dictionary look-up per cycle, not an encode."""
+    return h2.encode_joint_control(motor, mode, setpoint, stiffness)
+
+
+@lru_cache(maxsize=4096)
+def _mframe(board: int, kind: str, value: float, controller: str) -> can.Message:
+    """A MACCEPA command through the MACCEPA codec (which checks ranges again), cached like
+    ``_frame``: a held set-point costs a look-up per cycle."""
+    if kind == "setpoint":
+        return maccepa.encode_setpoint(board, value, controller)
+    if kind == "duty":
+        return maccepa.encode_duty(board, value)
+    return maccepa.encode_gain(board, kind, value, controller)
+
+
+def one_socket(interface: str, read_ids: list[int], board_ids: set[int]) -> bool:
+    """One socket reads all: every id besides the angle frame reaches this process only as
+    rare news, which may then wake the loop (on SocketCAN, whose kernel runs the content
+    filters: of id 70 only anyone's disable or stop, board 0's status when it is not driven
+    being dropped too). A second socket for them cost each update a second receive call and a
+    merge, for a socket almost always empty. The simulated bus filters in Python, after the
+    wake-up, and gives a socket its own frames back: two sockets there."""
+    return (
+        interface == "socketcan"
+        and set(read_ids) <= {h2.JOINT_ANGLES, h2.JOINT_CONTROL}
+        and 0 not in board_ids
+    )
+
+
+def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
+    """What the manager's reader never needs of the ids it reads (exolink.canfilter: the kernel
+    drops them on SocketCAN). Of the H2's joint control only a disable or stop matters here (the
+    gait's set-points come from this process and are never read back; the MACCEPA bridge and
+    the timing monitor read them); board 0's status shares id 70 and matters only when board 0
+    is driven; an H2 frame on a driven board's id is the H2's."""
+    jc = h2.JOINT_CONTROL
+    rules = [Drop(jc, h2.dlc_of(jc) or 0, h2.MODE_BYTE, frozenset(SAFE_MODES))]
+    if 0 not in board_ids:
+        rules.append(Drop(jc, maccepa.dlc_of(jc) or 0))
+    rules += [Drop(i, n) for i, n in maccepa.h2_shaped(mc_ids) if i != jc]
+    return rules
+
+
+class ControllerManagerNode(ManagerApi, Node):
+    Params = ManagerParams
+    stall_s = 2 * BEAT_S
+
+    def configure(self) -> None:
+        p, cfg = self.params, self.ctx.config
+        boards = [b.board for b in p.maccepa]
+        if len(set(boards)) != len(boards):
+            raise ValueError(f"{self.name} params: maccepa lists a board twice ({boards})")
+        guarded = cfg.watchdog.maccepa_boards
+        if missing := sorted(set(boards) - set(guarded)):
+            raise ValueError(
+                f"{self.name} params: maccepa boards {missing} are not in watchdog.maccepa_boards "
+                f"({guarded}): the watchdog would not stop them on a trip"
+            )
+        state_dir = Path(cfg.state_dir) if cfg.state_dir else None
+        if state_dir is None:
+            self.log.warning("no_state_dir", consequence="operator limits last until a restart")
+        self.limits = OperatorLimits(cfg.joint_limits(), state_dir)
+        self.presence = Presence(cfg.watchdog.operator_lost_ms / 1000)
+        self.manager = Manager(
+            self.limits.in_force,
+            p.update_budget_ms,
+            list(p.maccepa),
+            cycles_per_update=p.cycles_per_update,
+        )
+        self.update_every_s = p.cycles_per_update * h2.PERIOD_S
+        for n, spec in enumerate(p.controllers):
+            try:
+                self.manager.load(spec.name, spec.type, spec.params, spec.budget_ms)
+            except ManagerRefused as exc:
+                raise ValueError(f"{self.name} params: controllers[{n}]: {exc}") from None
+        self.safe_mode = h2.MODES["disabled" if p.safe_action == "disable" else "stopped"]
+        self.board_ids = set(boards)
+        # Status frames (50/60/70 + board) and duty/stop (80 + board): a stop from anyone.
+        mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
+        self.base_ids = frozenset({*READ_IDS, *mc_ids})
+        self.drops = drop_rules(self.board_ids, mc_ids)
+        self.read_ids = sorted(self.base_ids)  # the loaded controllers' extras: _update_reads
+        self._reads_version = -1
+        self.bus = self.own(open_bus(cfg.can, filters=[]))  # sends, reader closed
+        self.writer = FrameWriter(self.bus, cfg.can)
+        self.reader: FrameReader | None = None  # open while a controller is active or queued
+        # A cycle's set-points and a safe action asked by a request go out in the order they
+        # were decided: a disable is never overtaken by the set-points of the cycle in flight.
+        self.io_lock = threading.Lock()
+        self.opened = 0.0  # monotonic time the reader opened
+        self.wake = threading.Event()  # a queued switch: open the reader now
+        self.reader_opens = 0
+        self._forget_state()
+        self.malformed: dict[str, int] = {}  # "<id> <reason>" -> count
+        self.mc_written = 0
+        self.mc_safe_sent = 0
+        self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
+        self.written = 0
+        self.safe_sent = 0
+        self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
+        self._controller_s = 0.0  # the last cycle's time inside controllers' update
+        # Where the loop's CPU goes, by phase (status: loop_cpu). One cycle in 32: a sampled
+        # one reads the thread's CPU clock 7 times, each a system call; at 100 cycles/s that
+        # is still ~190 samples a minute.
+        self.clock = PhaseClock(every=32)
+        self.pub_activity = self.own(
+            self.ctx.messaging.publisher(ACTIVITY_TOPIC, ACTIVITY_TYPE, raw=True)
+        )
+        self._told, self._told_at = -1, 0.0
+        self._tell_lock = threading.Lock()
+        self._maybe_tell()  # the controllers loaded from params
+        if p.send_limits_on_start:  # what the H2 enforces itself: the limits in force
+            self.send_now(self.limit_frames())
+        self.serve_api()
+
+    def limit_frames(self) -> list[can.Message]:
+        lim = self.limits.in_force
+        return [
+            h2.encode_accepted_angles("min", list(lim.min_angles)),
+            h2.encode_accepted_angles("max", list(lim.max_angles)),
+        ]
+
+    # --- management ---------------------------------------------------------------------------
+
+    def _maybe_tell(self) -> None:
+        """Publish the controllers' states if they changed (or the refresh is due): one
+        comparison per cycle otherwise."""
+        if self._told == self.manager.version and (
+            time.monotonic() - self._told_at < ACTIVITY_REFRESH_S
+        ):
+            return
+        version, controllers = self.manager.activity()
+        with self._tell_lock:
+            now = time.monotonic()
+            if version < self._told or (
+                version == self._told and now - self._told_at < ACTIVITY_REFRESH_S
+            ):
+                return  # another thread told this version, or a later one, meanwhile
+            self._told, self._told_at = version, now
+            ns = time.time_ns()
+            self.pub_activity.put(cdr.controller_activity(ns, version, controllers), ns)
+
+    # --- writing ------------------------------------------------------------------------------
+
+    def send_now(self, frames: list[can.Message]) -> None:
+        """Frames a request asked for (limits, stream), after the cycle in flight."""
+        with self.io_lock:
+            self._send(frames)
+
+    def stop_joints(self, joints: set[int], mode: int, why: str) -> list[can.Message]:
+        """Joints disabled or stopped at a request: their controllers released first, so no
+        later cycle writes them, then the frames, after the cycle in flight."""
+        frames = [_frame(j + 1, mode, 0, 0) for j in sorted(joints)]
+        with self.io_lock:
+            self.manager.joints_disabled(joints, why)
+            self._send(frames)
+        self._maybe_tell()
+        return frames
+
+    def stop_boards(self, boards: set[int], why: str) -> list[can.Message]:
+        """MACCEPA boards' "stop control" at a request, as ``stop_joints``."""
+        frames = [maccepa.encode_stop(b) for b in sorted(boards)]
+        with self.io_lock:
+            self.manager.boards_stopped(boards, why)
+            self._send(frames)
+        self._maybe_tell()
+        return frames
+
+    def stop_all(self, why: str) -> None:
+        """Every controller stopped, its joints and boards in the safe action."""
+        with self.io_lock:
+            self._safe(self.manager.stop_all(why))
+        self._maybe_tell()
+
+    def _not_armed(self) -> str | None:
+        return self.arming.check() if self.arming is not None else None
+
+    def run(self, stop: threading.Event) -> None:
+        timeout = self.params.h2_timeout_ms / 1e3
+        clock = self.clock
+        while not stop.is_set():
+            clock.start()
+            busy = self.reader is not None or self.manager.busy()
+            # Idle (held to the appliance's default deadline) until a controller drives: the
+            # reader's opening and an activation (hundreds of ms on the board proxy: its stock
+            # 50 ms deadline tripped the watchdog at every gait start) come before the first
+            # set-point, and _send says "not idle" before that one goes out.
+            self.beat(not (busy and self.manager.driving()))
+            self.check_presence()
+            self._maybe_tell()
+            clock.mark("beat")
+            if not busy:  # a request (load, switch) wakes it at once
+                self.wake.wait(IDLE_BEAT_S)
+                self.wake.clear()
+                continue
+            self._update_reads()
+            if self.reader is None:
+                self._open_reader()
+            self._until_due()
+            try:
+                frames = self.reader.read(BEAT_S)  # type: ignore[union-attr]
+            except (can.CanError, OSError) as exc:
+                self.log.error("bus_read_error", error=str(exc))
+                self._silent("CAN read error: " + str(exc))
+                stop.wait(BEAT_S)
+                continue
+            clock.mark("read")
+            self._on_frames(frames)
+            clock.mark("frames")
+            if time.monotonic() - self.last_angle_mono > timeout:
+                self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
+                self.manager.idle(self._not_armed())
+            if not self.manager.busy():
+                self._close_reader()
+            clock.mark("rest")
+
+    def _not_due(self, stamp: float) -> bool:
+        """With ``cycles_per_update`` > 1: this angle frame came too soon after the last
+        update's (by the frames' own kernel stamps; a clock stepped back makes it due)."""
+        last = self.last_angle_ts
+        n = self.params.cycles_per_update
+        return n > 1 and last is not None and 0 <= stamp - last < (n - 0.5) * h2.PERIOD_S
+
+    def _until_due(self) -> None:
+        """With ``cycles_per_update`` > 1: sleep until the frame of the next update is due
+        (queued a quarter period ago), instead of waking for the angle frames in between: on
+        the board a wake-up costs more than the frames it brings. Frames that come meanwhile
+        (a disable from anyone) are read before that update's set-points are computed."""
+        last = self.last_angle_ts  # the last update's frame (or a cold reader's last)
+        if self.params.cycles_per_update > 1 and last is not None:
+            wait = last + self.update_every_s + h2.PERIOD_S / 4 - time.time()
+            if wait > 0:  # never longer than one update (a wall clock stepped back); a plain
+                # sleep: an Event's timed wait makes a lock and a condition per call
+                time.sleep(min(wait, self.update_every_s + h2.PERIOD_S / 4))
+
+    def _update_reads(self) -> None:
+        """The frames to read for the loaded controllers (``Controller.reads``), applied to an
+        open reader's kernel filter at once; a kind no longer read is forgotten, so a later
+        reader of it never sees an old value. Between a load and its first frame (one cycle)
+        a new reader of torque sees zeros, as every controller does after the reader opens."""
+        if self.manager.version == self._reads_version:  # an int read: no lock per cycle
+            return
+        self._reads_version, reads = self.manager.reads()
+        ids = sorted(self.base_ids | {EXTRA_IDS[k] for k in reads if k in EXTRA_IDS})
+        if ids == self.read_ids:
+            return
+        self.read_ids = ids
+        if "torque" not in reads:
+            self.torque = (0,) * 6
+        if "feet" not in reads:
+            self.feet = None
+        if self.reader is not None and self.reader.quiet_bus is None and not self._one_socket():
+            self._close_reader(forget=False)  # the new ids must not wake it: reopened below
+        elif self.reader is not None:
+            self.reader.set_ids(ids)
+        self.log.info("read_ids", ids=ids)
+
+    def _one_socket(self) -> bool:
+        return one_socket(self.ctx.config.can.interface, self.read_ids, self.board_ids)
+
+    def _open_reader(self) -> None:
+        # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
+        # (torques, feet, the boards') are read with the next one, in arrival order and before
+        # that cycle's set-points: one wake-up per cycle, not 4-6. Anyone's disable or stop
+        # alone is rare: then one socket (_one_socket).
+        self.reader = open_reader(
+            self.ctx.config.can,
+            self.read_ids,
+            wake_on=None if self._one_socket() else [h2.JOINT_ANGLES],
+            drop=self.drops,
+        )
+        self.opened = self.last_angle_mono = time.monotonic()
+        self.reader_opens += 1
+
+    def _close_reader(self, forget: bool = True) -> None:
+        """Idle: frames no longer reach this process, and what it knew of the bus is dropped
+        (a controller activated later starts from fresh frames). ``forget=False``: reopened at
+        once with other sockets (``_update_reads``), the state stands."""
+        with self.io_lock:  # a request's send may be using its socket
+            reader, self.reader = self.reader, None
+            if reader is not None:
+                reader.close()
+        if forget:
+            self._forget_state()
+
+    def _forget_state(self) -> None:
+        self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame
+        self.mview: dict[int, BoardState] = {}  # what cycles see: a copy taken when it changed
+        self.mchanged = False
+        self.torque: tuple[int, ...] = (0,) * 6
+        self.feet: tuple[int, int, int, int] | None = None
+        self.last_angle_ts: float | None = None
+        self.last_angle_mono = time.monotonic()
+        self.skipped = 0  # angle frames read since the last update and not run
+
+    def _warm(self) -> bool:
+        """A fresh reader has seen every configured board's positions (or waited WARM_S)."""
+        if time.monotonic() - self.opened >= WARM_S:
+            return True
+        return all((b := self.mstate.get(i)) and b.positions for i in self.board_ids)
+
+    def _decode(self, f: Any) -> Any:
+        """H2 first, then MACCEPA (ids 70/75/80/85 are both; the length tells): a frame neither
+        contract reads is counted by id and reason, never fatal."""
+        d = h2.decode(f)
+        if not isinstance(d, h2.Unknown):
+            return d
+        reason = d.reason
+        # Also without configured boards: id 70 is MACCEPA board 0's too (8 bytes), which is
+        # not a malformed H2 frame (the board proxy counted 93 in a second). Unconfigured
+        # boards' frames are then skipped (_board_frame).
+        m = maccepa.decode(f)
+        if not isinstance(m, maccepa.Unknown):
+            return m
+        if self.board_ids and m.reason != "unknown id":  # a MACCEPA id: its contract's reason
+            reason = m.reason
+        key = f"{f.arbitration_id} {reason}"
+        n = self.malformed[key] = self.malformed.get(key, 0) + 1
+        if logs.rarely(n):
+            self.log.warning("malformed_frame", id=f.arbitration_id, reason=reason, count=n)
+        return d
+
+    def _on_frames(self, frames: list[Any]) -> None:
+        decoded = [(f, self._decode(f)) for f in frames]
+        # Safety first: a disable/stop anywhere in the batch stops its joints' controllers
+        # before any set-point of this batch is computed.
+        stopped = {
+            d.motor - 1
+            for _f, d in decoded
+            if isinstance(d, h2.JointControl) and d.mode in SAFE_MODES and 1 <= d.motor <= 6
+        }
+        if stopped:
+            names = ", ".join(h2.JOINTS[j] for j in sorted(stopped))
+            self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
+        if self.board_ids:
+            halted = {
+                d.board
+                for _f, d in decoded
+                if isinstance(d, maccepa.Duty) and d.action == 0 and d.board in self.board_ids
+            }
+            if halted:
+                names = ", ".join(target(b) for b in sorted(halted))
+                self.manager.boards_stopped(halted, f"{names} stopped on the bus")
+        newest = max(
+            (i for i, (_f, d) in enumerate(decoded) if isinstance(d, h2.JointAngles)), default=-1
+        )
+        for i, (f, d) in enumerate(decoded):
+            if isinstance(d, h2.JointTorques):
+                self.torque = tuple(d)
+            elif isinstance(d, h2.FootSwitches):
+                self.feet = (d.r_heel, d.r_toe, d.l_heel, d.l_toe)
+            elif isinstance(d, h2.JointAngles):
+                if not self._warm():  # nothing is active while cold: activations wait
+                    self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
+                    self.manager.idle(self._not_armed())
+                    continue
+                if i != newest:  # read late, a newer cycle behind it: see _cycle
+                    self.skipped += 1
+                    continue
+                if self._not_due(f.timestamp):
+                    self.skipped += 1
+                    self.last_angle_mono = time.monotonic()  # the H2 is not silent
+                    continue
+                # an update every n cycles skips n - 1 by design; more were read late
+                self.late_cycles += max(0, self.skipped - self.params.cycles_per_update + 1)
+                self.skipped = 0
+                if self.mchanged:
+                    self.mview, self.mchanged = dict(self.mstate), False
+                self._cycle(f.timestamp, State(tuple(d), self.torque, self.feet, self.mview))
+            elif isinstance(d, maccepa.Sensors | maccepa.Positions | maccepa.Controller):
+                self._board_frame(d, f.timestamp)
+
+    def _board_frame(self, d: Any, stamp: float) -> None:
+        """A board's status frame: that board's state replaced whole (cycles hold immutable
+        ones), only for configured boards."""
+        b = d.board
+        if b not in self.board_ids:
+            return
+        old = self.mstate.get(b) or BoardState(b)
+        pos, sens, ctl = old.positions, old.sensors, old.controller
+        if isinstance(d, maccepa.Positions):
+            pos = (d.link, d.lever, d.extra_position, d.extra_sensor)
+        elif isinstance(d, maccepa.Sensors):
+            sens = (d.current, d.temperature, d.velocity, d.load)
+        else:
+            ctl = (d.setpoint, d.actuation, d.process_variable)
+        self.mstate[b] = BoardState(b, pos, sens, ctl, stamp)
+        self.mchanged = True
+
+    def _cycle(self, stamp: float, state: State) -> None:
+        """One H2 cycle, for the newest angle frame of a read. A read that finds several (the
+        loop ran late: on the board proxy a manager read 22 cycles at once) runs only the last
+        and counts the others in ``late_cycles``: replaying them wrote their set-points back to
+        back, each a step limit from the one before, so a joint's set-point could move 22 steps
+        within a millisecond. The controllers get the measured period since the last cycle run."""
+        t0 = time.perf_counter()
+        period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
+        self.last_angle_ts = stamp
+        self.clock.mark("frames")  # the batch's decoding up to this cycle
+        with self.io_lock:
+            self._cycle_io(state, stamp, period)
+        self.clock.mark("send")
+        # The H2-silence clock restarts when the cycle ends, not when it began: a cycle that
+        # took long (an activation on the board proxy: 408 ms) is the manager's lateness, and
+        # the angle frames queued meanwhile are read next, before silence is judged.
+        self.last_angle_mono = time.monotonic()
+        self.manager.overhead_s.append(time.perf_counter() - t0 - self._controller_s)
+
+    def _cycle_io(self, state: State, stamp: float, period: float) -> None:
+        """The cycle's outputs and their frames, decided and sent under ``io_lock``."""
+        out = self.manager.cycle(state, stamp, period, self._not_armed())
+        self._controller_s = out.controller_s
+        self.clock.mark("cycle")
+        frames = self._safe_frames(out)  # safe actions first, in the cycle's one send
+        for w in out.writes:
+            frames.append(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
+            self.written += 1
+        for m in out.maccepa:
+            try:
+                frame = _mframe(m.board, m.kind, m.value, m.controller)
+            except ProtocolError as exc:  # cannot happen after the limits: belt
+                self.log.error("maccepa_encode_refused", write=str(m), error=str(exc))
+                continue
+            frames.append(frame)
+            self.mc_written += 1
+        if out.writes or out.maccepa:
+            self.beat(False)  # driving from this cycle on: its own deadline, before it drives
+        self._send(frames)
+
+    def _safe(self, out: Cycle) -> None:
+        """The safe action of the joints and boards ``out`` names, sent now."""
+        self._send(self._safe_frames(out))
+
+    def _safe_frames(self, out: Cycle) -> list[can.Message]:
+        frames = []
+        for j in sorted(out.safe):
+            frames.append(_frame(j + 1, self.safe_mode, 0, 0))
+            self.safe_sent += 1
+        for b in sorted(out.safe_boards):
+            frames.append(maccepa.encode_stop(b))
+            self.mc_safe_sent += 1
+        return frames
+
+    def _send(self, frames: list[can.Message]) -> None:
+        """A cycle's frames in one system call on SocketCAN (canbus.FrameWriter), through the
+        reader's socket while it is open: a socket does not read its own frames back (another
+        socket of this process would, six more frames per cycle to decode)."""
+        if not frames:
+            return
+        reader = self.reader
+        try:
+            (reader.writer if reader is not None else self.writer).send(frames)
+        except can.CanError as exc:
+            self.log.error("send_failed", error=str(exc), frames=len(frames))
+
+    def _silent(self, reason: str) -> None:
+        if not self.manager.active():
+            return
+        self.stop_all(reason)
+        self.log.warning("controllers_stopped_h2_silent", reason=reason)
+
+    def shutdown(self) -> None:
+        """The safe action while the bus is open (the runtime releases it next)."""
+        self.stop_all("controller manager shutting down")  # followers hear it before we go
+        self._close_reader()  # opened while a controller is active, not owned
