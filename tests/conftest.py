@@ -322,7 +322,10 @@ class Appliance:
 
     def hold(self, login: Path | None = None, take_over: bool = False) -> Holder:
         """Motion held from this test, as `exolink hold` holds it (renewed from a thread until
-        the test ends): nothing moves a joint without a holder."""
+        the test ends): nothing moves a joint without a holder. Held once per appliance."""
+        held = getattr(self, "_holder", None)
+        if held is not None and held.holding and not take_over:
+            return held
         who = login or self.login
         session = connect_as(self.at, who)
         user = messaging.client_login(str(who) if who else None)
@@ -334,6 +337,7 @@ class Appliance:
         holder = Holder(call, "test")
         holder.acquire(take_over)
         self._cleanups += [session.close, holder.release]
+        self._holder = holder
         return holder
 
     def arm_and_hold(self) -> Holder:

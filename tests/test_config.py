@@ -43,16 +43,22 @@ def test_limits_have_one_home_and_contradictions_are_refused() -> None:
     are refused naming where they go, and limits outside the mechanical ranges (the tester's
     +-180) or min above max are refused naming file, line and path."""
     base = "device: x\nnodes:\n  - {name: cm, plugin: controller_manager, params: {min_angles: [0,0,0,0,0,0]}}\n"
-    with pytest.raises(ConfigError, match=r"a\.yaml:3: nodes\[0\]\.params\.min_angles: joint limits"):
+    with pytest.raises(
+        ConfigError, match=r"a\.yaml:3: nodes\[0\]\.params\.min_angles: joint limits"
+    ):
         parse(base, "a.yaml")
     wide = "device: x\nlimits:\n  joints:\n    r_knee: {min: -180, max: 180}\n"
-    with pytest.raises(ConfigError, match=r"a\.yaml:4: limits\.joints\.r_knee\.min: -180 deg is outside"):
+    with pytest.raises(
+        ConfigError, match=r"a\.yaml:4: limits\.joints\.r_knee\.min: -180 deg is outside"
+    ):
         parse(wide, "a.yaml")
     crossed = "device: x\nlimits:\n  joints:\n    l_hip: {min: 50, max: 10}\n"
     with pytest.raises(ConfigError, match=r"limits\.joints\.l_hip: min 50 must be below max 10"):
         parse(crossed, "a.yaml")
     cap = "device: x\nlimits:\n  joints:\n    l_hip: {torque: 200}\n"
-    with pytest.raises(ConfigError, match=r"a\.yaml:4: limits\.joints\.l_hip\.torque: Expected `int` <= 127"):
+    with pytest.raises(
+        ConfigError, match=r"a\.yaml:4: limits\.joints\.l_hip\.torque: Expected `int` <= 127"
+    ):
         parse(cap, "a.yaml")
     unknown = "device: x\nlimits:\n  joints:\n    l_elbow: {max: 10}\n"
     with pytest.raises(ConfigError, match=r"a\.yaml:4: limits\.joints\.l_elbow: unknown key"):

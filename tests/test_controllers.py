@@ -33,8 +33,14 @@ def manager(max_step: int = 60, budget_ms: float = 50.0, **caps: list[int]) -> M
         caps.get("torque", [127] * 6),
         caps.get("stiffness", [100] * 6),
         "test",
+        caps.get("torque_step"),
+        max_step,
     )
-    return Manager(limits, max_step, budget_ms)
+    return Manager(limits, budget_ms)
+
+
+# Any whole degree the protocol's int8 could carry: for reading a pattern file as it is.
+ANY_ANGLE = Limits((-90,) * 6, (120,) * 6, (127,) * 6, (100,) * 6)
 
 
 def switch(m: Manager, activate: list[str] = (), deactivate: list[str] = ()) -> Switch:  # type: ignore[assignment]
@@ -119,12 +125,18 @@ def player_on(manager: ManagerStandIn) -> Any:
     player.ctx = SimpleNamespace(messaging=manager)  # type: ignore[assignment]
     player.log = structlog.get_logger()
     player.lock = threading.RLock()
-    player.pattern = pp.load_pattern(pp.DEFAULT_PATTERN, default_min(), default_max())
+    player.pattern = pp.load_pattern(pp.DEFAULT_PATTERN, manager_limits())
     player.selected, player.speed, player.index = [True] * 6, 10, 0
-    player.timing, player.task, player.state, player._engaged = "manager", None, "stopped", 0
+    player.state, player.reason, player._engaged, player._starts = "stopped", "", 0, 0
+    player.sent, player.operator, player.arming = 0, "", None
+    player._t0, player._i0 = 0.0, 0
     player._activity, player._disengage_due = threading.Event(), False
     player.pub = SimpleNamespace(put=lambda *_a: None)
     return player
+
+
+def manager_limits() -> Limits:
+    return Limits.of(default_min(), default_max(), [127] * 6, [100] * 6, "test")
 
 
 def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation() -> None:
@@ -135,7 +147,7 @@ def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation
 
     manager = ManagerStandIn()
     with pytest.raises(CommandRefused, match="nothing answers"):
-        player_on(manager)._manager(("engage",))
+        player_on(manager)._engage()
     within = pp.ENGAGE_WAIT_S - pp.ENGAGE_MARGIN_S
     assert manager.asked == [
         ("load", within, pp.ENGAGE_WAIT_S),
@@ -154,7 +166,7 @@ def test_a_pattern_the_player_stops_for_a_stale_watchdog_word_is_stopped_in_the_
     player.arming = type("Stale", (), {"check": lambda _s: "no word from the watchdog for 3.0 s"})()
     player._publish = lambda: None
     player.state = "running"
-    assert player._guard() is False
+    player._guard()
     assert player.state == "stopped" and manager.asked == []  # not on the loop's thread
     stop = threading.Event()
     follower = threading.Thread(target=player._follow_manager, args=(stop,))
@@ -381,7 +393,7 @@ def test_gait_pattern_moves_between_rows_and_the_default_pattern_fits_the_shippe
     """The gait controller writes where the pattern is between rows, so the default pattern at
     speed 10 moves its knees 4 deg per 10 ms cycle, inside the shipped configs' step limit
     (8 deg per 20 ms row at once would not be); interpolate: false holds each row."""
-    from exolink.config import bundled, load, node_params
+    from exolink.config import bundled, load
     from exolink.nodes.controller_manager.builtin import GaitParams, GaitPattern
     from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
 
@@ -396,14 +408,14 @@ def test_gait_pattern_moves_between_rows_and_the_default_pattern_fits_the_shippe
         assert g.update(SITTING, 50.02, 0.01) == pytest.approx(
             {"r_hip/position": 20, "r_knee/position": 28}
         )
-    points = load_pattern(str(DEFAULT_PATTERN), [-90] * 6, [120] * 6).points
+    points = load_pattern(str(DEFAULT_PATTERN), ANY_ANGLE).points
     g = GaitPattern("g", msgspec_convert({"rows": points, "joints": list(h2.JOINTS), "speed": 10}, GaitParams))  # fmt: skip
     g.configure()
     g.activate(SITTING)
     out = [g.update(SITTING, 7.0 + 0.01 * k, 0.01) for k in range(3 * len(points))]
     step = max(abs(round(b[k]) - round(a[k])) for a, b in itertools.pairwise(out) for k in a)
     for name in ("sim", "board"):
-        assert step <= node_params(load(bundled(name)), "controller_manager").max_step_deg, name
+        assert step <= load(bundled(name)).joint_limits().max_step_deg, name
 
 
 def msgspec_convert(data: dict[str, Any], cls: type) -> Any:
@@ -453,15 +465,6 @@ CTRL = [
 ]
 
 
-# h2_sender handing motion to the manager (operator controllers)
-ROUTED_SENDER = {
-    "name": "h2_sender",
-    "plugin": "h2_sender",
-    "critical": True,
-    "params": {"motion_via_manager": True},
-}
-
-
 def nodes(controllers: list[dict[str, Any]], deadline_ms: int = 50) -> list[dict[str, Any]]:
     """``deadline_ms``: the manager's heartbeat deadline (300 where a test is not about hung
     detection: above a loaded machine's stalls)."""
@@ -474,7 +477,7 @@ def nodes(controllers: list[dict[str, Any]], deadline_ms: int = 50) -> list[dict
             "critical": True,
             "heartbeat_deadline_ms": deadline_ms,
             # Silence limits above a loaded test machine's stalls: these tests are not about them.
-            "params": {"controllers": controllers, "max_step_deg": 3, "h2_timeout_ms": 300},
+            "params": {"controllers": controllers, "h2_timeout_ms": 300},
         },
     ]
 
@@ -499,8 +502,13 @@ def lab_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 def app(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def]
     # deadline 300 ms: above a loaded CI machine's stalls (at 50 ms one tripped the watchdog
     # mid-test, whose disable frames then went out before the window the test looked in)
-    cfg = write_config(nodes=nodes(CTRL, deadline_ms=300), watchdog={"h2_silence_ms": 500})
+    cfg = write_config(
+        nodes=nodes(CTRL, deadline_ms=300), watchdog={"h2_silence_ms": 500}, limits=STEP_3
+    )
     return Appliance(cfg, spawn)
+
+
+STEP_3 = {"max_step_deg": 3}  # the limits: section's step (per 10 ms cycle) these tests count on
 
 
 def ctl(app: Appliance, *args: str) -> Any:
@@ -565,7 +573,7 @@ def switch_window(app: Appliance, mbus: Any) -> SwitchWindow:
 def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignore[no-untyped-def]
     r = ctl(app, "activate", "a")
     assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "a", "left").returncode == 0
     # one owner per interface: refused with the owner named
     r = ctl(app, "activate", "b")
@@ -582,7 +590,7 @@ def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignor
         warnings.warn(f"switch window {attempt} void: {window.void}; measured again", stacklevel=1)
         for name in ("a", "b", "left"):  # whatever the trip left active
             ctl(app, "deactivate", name)
-        app.arm()
+        app.arm_and_hold()
         assert ctl(app, "activate", "a", "left").returncode == 0
     else:
         pytest.fail(f"no switch window with a seeing listener and no trip: {window.void}")
@@ -621,7 +629,7 @@ def test_claims_switch_and_failure_on_the_bus(app, mbus) -> None:  # type: ignor
 
 
 def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # type: ignore[no-untyped-def]
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "a", "left").returncode == 0
     assert joint_frames(collect(mbus, 0.3, {70}), 2)
     assert app.cli("estop").returncode == 0
@@ -646,7 +654,7 @@ def test_trip_deactivates_all_until_rearm_and_activate(app, mbus) -> None:  # ty
     collect(mbus, 0.3)  # the trip's frames and anything in flight
     assert [f for f in (h2.decode(m) for m in collect(mbus, 0.5, {70})) if f.mode != 4] == []  # type: ignore[union-attr]
     assert listing(app)["a"]["state"] == "inactive"
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "a").returncode == 0
     # within_s: an activation that cannot happen within the asker's wait is refused, not applied
     # after the asker gave up, and the controllers stay as they were
@@ -676,7 +684,8 @@ def every_other(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def
     """The manager as on the board: one update per two H2 cycles (``cycles_per_update``)."""
     n = nodes(CTRL, deadline_ms=300)
     n[2]["params"]["cycles_per_update"] = 2
-    return Appliance(write_config(nodes=n, watchdog={"h2_silence_ms": 500}), spawn)
+    cfg = write_config(nodes=n, watchdog={"h2_silence_ms": 500}, limits=STEP_3)
+    return Appliance(cfg, spawn)
 
 
 def test_an_update_every_other_cycle_writes_half_as_often_and_the_watchdog_stops_it(
@@ -686,7 +695,7 @@ def test_an_update_every_other_cycle_writes_half_as_often_and_the_watchdog_stops
     sleeps through the other), the step limit kept per 10 ms of motion (3 deg per cycle: 6 per
     update), and a trip disables the joints as at every cycle; nothing moves after it."""
     app = every_other
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "a", "left").returncode == 0
     assert ctl(app, "command", "a", "r_knee=30").returncode == 0
     wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [30])
@@ -717,7 +726,7 @@ def test_cycles_per_update_needs_an_h2_timeout_above_its_wait(write_config) -> N
 
 @pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])
 def test_hung_or_killed_manager_disables_motors(app, mbus, sig) -> None:  # type: ignore[no-untyped-def]
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "a", "left").returncode == 0
     assert joint_frames(collect(mbus, 0.3, {70}), 2)
     pid = app.node("controller_manager")["pid"]
@@ -733,7 +742,7 @@ def test_hung_or_killed_manager_disables_motors(app, mbus, sig) -> None:  # type
 
 
 def test_h2_silent_claimed_joints_get_the_safe_action(app, mbus) -> None:  # type: ignore[no-untyped-def]
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "a").returncode == 0
     assert joint_frames(collect(mbus, 0.3, {70}), 2)
     from exolink import messaging
@@ -753,17 +762,17 @@ def test_h2_silent_claimed_joints_get_the_safe_action(app, mbus) -> None:  # typ
 
 @pytest.fixture
 def routed(write_config, spawn):  # type: ignore[no-untyped-def]
-    """h2_sender with motion_via_manager: `exolink send` motion becomes operator controllers."""
+    """`exolink send` motion becomes the manager's operator controllers."""
     gait = {"name": "gait", "type": "forward_command", "params": {"joints": ["r_knee"]}}
     cfg = write_config(
-        nodes=[*nodes([gait], deadline_ms=300), ROUTED_SENDER], watchdog={"h2_silence_ms": 500}
+        nodes=nodes([gait], deadline_ms=300), watchdog={"h2_silence_ms": 500}, limits=STEP_3
     )
     return Appliance(cfg, spawn)
 
 
 def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type: ignore[no-untyped-def]
     app = routed
-    app.arm()
+    app.arm_and_hold()
     r = app.cli("send", "position", "r_knee", "20")
     assert r.returncode == 0 and "held by controller operator.r_knee.position" in r.stdout, r
     # held every cycle by the manager (one writer), ramped by its step limit, until told else
@@ -775,7 +784,7 @@ def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type
     s = listing(app)
     assert s["operator.r_knee.torque"]["state"] == "active"
     assert s["operator.r_knee.position"]["state"] == "inactive"
-    # an operator's disable (still sent by h2_sender) releases the joint at once
+    # an operator's disable releases the joint at once
     assert app.cli("send", "disable", "r_knee").returncode == 0
     collect(mbus, 0.3)
     assert joint_frames(collect(mbus, 0.3, {70}), 2) == []
@@ -787,18 +796,18 @@ def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type
     r = app.cli("send", "position", "r_knee", "30")
     assert r.returncode == 5 and "r_knee is driven by controller gait" in r.stderr, r.stderr
     assert {f.setpoint for f in joint_frames(collect(mbus, 0.3, {70}), 2)} == {10}
-    # a laptop cannot hold a joint past the sender's checks: the manager's operator action is
-    # for the appliance's own login only (an open sim believes any login; this one is admin)
+    # a laptop cannot hold a joint past the checks: there is no side door to operator
+    # controllers (the old sender's `operator` action), only `exolink send`
     laptop = messaging.open_client_session(app.at)
     try:
         key = messaging.mgmt_key("sim", "controllers")
         body = {"action": "operator", "joint": "r_hip", "mode": "position", "setpoint": 5}
         r = messaging.request(laptop, key, body, 5.0, roles.ADMIN)
-        assert not r["ok"] and "needs the exolink role" in r["error"], r
+        assert not r["ok"] and "unknown controllers action 'operator'" in r["error"], r
     finally:
         laptop.close()
     assert "operator.r_hip.position" not in listing(app)
-    # the sender's own checks still come first (refused there, the manager never asked)
+    # the codec's checks come first (refused, nothing made)
     r = app.cli("send", "position", "r_hip", "500")
     assert r.returncode != 0 and "r_hip" in r.stderr
     # the watchdog stops an operator-held joint: after e-stop no set-point follows the disable
@@ -820,7 +829,7 @@ def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:
     runs the newest and counts the others (late_cycles). Replaying them wrote their set-points
     back to back, a step limit apart each: a burst that could move a joint many steps at once."""
     app = routed
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "gait").returncode == 0
     assert ctl(app, "command", "gait", "r_knee=30").returncode == 0
     wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 2))
@@ -844,16 +853,16 @@ def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:
 
 @pytest.fixture
 def gait(write_config, spawn):  # type: ignore[no-untyped-def]
-    """The pattern player with timing: manager and the sender routed: one writer, the manager."""
+    """The pattern player: one writer, the manager."""
     extra = [
-        ROUTED_SENDER,
         {
             "name": "pattern_player",
             "plugin": "pattern_player",
             "critical": True,
-            "params": {"timing": "manager", "speed": 10, "selected": ["r_hip", "r_knee"]},
+            "params": {"speed": 10, "selected": ["r_hip", "r_knee"]},
         },
     ]
+    # the sim config's step limit (5 deg per cycle): the default pattern at speed 10 needs 4
     cfg = write_config(nodes=[*nodes([], deadline_ms=300), *extra], watchdog={"h2_silence_ms": 500})
     return Appliance(cfg, spawn)
 
@@ -864,7 +873,7 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     app = gait
     r = app.cli("pattern", "start", "--detach")
     assert r.returncode == 5 and "not armed" in r.stderr, r.stderr
-    app.arm()
+    app.arm_and_hold()
     assert app.cli("pattern", "start", "--detach").returncode == 0, "start"
     mbus.q.queue.clear()
     frames = collect(mbus, 1.0, {70, 110})
@@ -873,7 +882,7 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     # one set-point per H2 cycle, where the pattern is then: at speed 10 (20 ms a row) each row
     # and the way to the next (interpolated), in the pattern's order (the step limit may
     # shorten the first swing)
-    points = load_pattern(str(DEFAULT_PATTERN), [-90] * 6, [120] * 6).points
+    points = load_pattern(str(DEFAULT_PATTERN), ANY_ANGLE).points
     rows = [p[0] for p in points]
     halfway = [v for a, b in zip(rows, rows[1:] + rows[:1], strict=True) for v in (a, (a + b) / 2)]
     assert abs(len(hips) - angles) <= 2, (len(hips), angles)
@@ -920,7 +929,7 @@ def test_the_manager_reads_the_bus_only_while_a_controller_is_active(app, mbus) 
     pid = app.node("controller_manager")["pid"]
     idle = bus_sockets(pid)
     assert json.loads(ctl(app, "list", "--json").stdout)["reading"] is False
-    app.arm()
+    app.arm_and_hold()
     for _round in range(2):
         assert ctl(app, "activate", "a").returncode == 0
         assert bus_sockets(pid) == idle + 2
@@ -956,7 +965,7 @@ def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> N
         messaging.topic_key(0, "h2", ACTIVITY_TOPIC, ACTIVITY_TYPE),
         lambda x: told.append(messaging.deserialize(x.payload.to_bytes(), ACTIVITY_TYPE)),
     )
-    app.arm()
+    app.arm_and_hold()
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 2))
     assert bus_sockets(pid) == before  # only its send-only socket, as when idle
@@ -970,11 +979,11 @@ def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> N
     wait_for(lambda: listing(app)["pattern"]["state"] != "active")
     wait_for(lambda: "stopped" in app.cli("pattern", "status").stdout, timeout=5)
     shown = app.cli("pattern", "status").stdout
-    assert "r_knee disabled or stopped on the bus" in shown, shown
+    assert "r_knee disabled by admin" in shown, shown  # the manager's word, with who
     last = told[-1]
     i = list(last.names).index("pattern")
     assert last.states[i] == "inactive" and last.types[i] == "gait_pattern", last
-    assert "r_knee disabled or stopped on the bus" in last.errors[i], last
+    assert "r_knee disabled by admin" in last.errors[i], last
     assert [m.version for m in told] == sorted({m.version for m in told})  # each change once
     sub.undeclare()
     laptop.close()

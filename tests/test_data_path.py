@@ -1,5 +1,5 @@
 """The first vertical slice across real processes: simulator -> CAN (udp_multicast) -> reader ->
-Zenoh -> a subscriber in another process, and CLI commands back through the sender."""
+Zenoh -> a subscriber in another process, and CLI commands back through the controller manager."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from conftest import EXOLINK, collect, connect, wait_alive, wait_for
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import load
+from exolink.holder import Holder
 from exolink.protocol import h2
 from rosbags.typesys import Stores, get_typestore
 
@@ -25,16 +26,20 @@ NODES = [
     {"name": "simulator", "plugin": "simulator"},
     {"name": "h2_reader", "plugin": "h2_reader"},
     {
-        "name": "h2_sender",
-        "plugin": "h2_sender",
-        "params": {
-            "require_armed": False,
-            "max_angles": [90, 80, 15, 90, 80, 15],
-            "torque_cap": [20, 20, 10, 20, 20, 10],
-            "stiffness_cap": [50, 50, 50, 50, 50, 50],
-        },
+        "name": "controller_manager",
+        "plugin": "controller_manager",
+        "params": {"require_armed": False},
     },
 ]
+# The lab's limits (the config's `limits:` section): stricter than the mechanical ranges.
+LIMITS = {
+    "joints": {
+        j: {"max": hi, "torque": cap, "stiffness": 50}
+        for j, hi, cap in zip(
+            h2.JOINTS, (90, 80, 15, 90, 80, 15), (20, 20, 10, 20, 20, 10), strict=True
+        )
+    }
+}
 
 SUBSCRIBER = r"""
 import sys, time, zenoh
@@ -70,7 +75,7 @@ def read_samples(path: Path) -> list[tuple[bytes, bytes, str]]:
 
 @pytest.fixture
 def appliance(write_config, spawn):  # type: ignore[no-untyped-def]
-    cfg_path = write_config(nodes=NODES)
+    cfg_path = write_config(nodes=NODES, limits=LIMITS)
     cfg = load(cfg_path)
     procs = {
         "simulator": spawn(
@@ -84,10 +89,20 @@ def appliance(write_config, spawn):  # type: ignore[no-untyped-def]
             name="simulator",
         ),
     }
-    for n in ("h2_reader", "h2_sender"):
+    for n in ("h2_reader", "controller_manager"):
         procs[n] = spawn("node", "run", n, "-c", str(cfg_path), name=n)
     wait_alive(messaging.local_endpoint(cfg.zenoh), list(procs))
     return cfg_path, cfg, procs
+
+
+def hold(cfg, spawn) -> Holder:  # type: ignore[no-untyped-def]
+    """Motion held as `exolink hold` would hold it, for the rest of the test."""
+    session = connect(messaging.local_endpoint(cfg.zenoh))
+    key = messaging.mgmt_key(cfg.device, "controllers")
+    holder = Holder(lambda b: messaging.request(session, key, b, 10.0), "test")
+    holder.acquire()
+    spawn.cleanups += [session.close, holder.release]
+    return holder
 
 
 def cli(cfg, *args: str, timeout: float = 20) -> subprocess.CompletedProcess[str]:  # type: ignore[no-untyped-def]
@@ -142,12 +157,15 @@ def test_joint_states_reach_another_process_with_sim_values(appliance, tmp_path,
     assert 9.0 < float(np.median(periods)) < 11.0  # 100 Hz from CAN timestamps
 
 
-def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> None:  # type: ignore[no-untyped-def]
+def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus, spawn) -> None:  # type: ignore[no-untyped-def]
     _cfg_path, cfg, procs = appliance
     wait_for(lambda: collect(mbus, 0.2, {h2.JOINT_ANGLES}), timeout=15)
     r = cli(cfg, "send", "position", "r_knee", "30")
-    assert r.returncode == 0, r.stderr + procs["h2_sender"].output()
-    assert r.stdout.startswith("ok 046#02011E")
+    assert r.returncode == 5 and "nobody holds motion" in r.stderr, r.stderr
+    hold(cfg, spawn)
+    r = cli(cfg, "send", "position", "r_knee", "30")
+    assert r.returncode == 0, r.stderr + procs["controller_manager"].output()
+    assert r.stdout.startswith("ok held by controller operator.r_knee.position")
     wait_for(lambda: any(h2.decode(m).r_knee == 30 for m in collect(mbus, 0.1, {110})), timeout=5)
 
     refusals = [
@@ -166,21 +184,26 @@ def test_cli_command_moves_joint_and_refusals_send_nothing(appliance, mbus) -> N
             ["send", "limits", "--max=95,80,15,90,80,15"],
             "r_hip: limits -20..95 reach outside the configured -20..90",
         ),
-        (["send", "torque", "r_knee", "21"], "r_knee torque 21 is above its cap 20"),
-        (["send", "torque", "r_ankle", "-11"], "r_ankle torque -11 is above its cap 10"),
-        (["send", "stiffness", "l_knee", "10", "60"], "l_knee stiffness 60 is above its cap 50"),
+        (["send", "torque", "r_knee", "21"], "r_knee torque 21 counts is above its cap 20"),
+        (["send", "torque", "r_ankle", "-11"], "r_ankle torque -11 counts is above its cap 10"),
+        (["send", "stiffness", "l_knee", "10", "60"], "l_knee stiffness 60 % is above its cap 50"),
     ]
+    mbus.q.queue.clear()  # the held r_knee's set-points so far
     for args, expected in refusals:
         r = cli(cfg, *args)
         assert r.returncode == 5, (args, r.stderr)
         assert expected in r.stderr, (args, r.stderr)
-    # The independent listener saw no command frame after the refusals.
-    assert collect(mbus, 0.5, {70, 75, 80, 85}) == []
+    # The independent listener saw no command frame of the refusals: only the held r_knee's.
+    assert {h2.decode(f) for f in collect(mbus, 0.5, {70, 75, 80, 85})} <= {
+        h2.JointControl(2, 1, 30, 0)
+    }
     r = cli(cfg, "send", "disable", "all")
     assert r.returncode == 0, r.stderr
-    frames = collect(mbus, 0.5, {70})
-    assert sorted(h2.decode(f).motor for f in frames) == [1, 2, 3, 4, 5, 6]
-    # Stricter limits sent to the H2 bind the sender too (configured r_knee max is 80).
+    frames = [h2.decode(f) for f in collect(mbus, 0.5, {70})]
+    disabled = [f for f in frames if f.mode == h2.MODES["disabled"]]
+    assert sorted(f.motor for f in disabled) == [1, 2, 3, 4, 5, 6]
+    assert frames[frames.index(disabled[-1]) + 1 :] == []  # nothing held after the disable
+    # Stricter limits an operator sends bind every later command (configured r_knee max is 80).
     assert cli(cfg, "send", "limits", "--max", "90,60,15,90,80,15").returncode == 0
     r = cli(cfg, "send", "position", "r_knee", "70")
     assert r.returncode == 5 and "outside the limits 0..60" in r.stderr, r.stderr

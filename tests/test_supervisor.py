@@ -75,7 +75,10 @@ def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore
         frames = collect(mbus, 1.5, {70})
         assert_all_disabled(frames)
         wd = app.status()["watchdog"]
-        assert wd["reason"] == "heartbeat late" and "controller_manager: no heartbeat for" in wd["detail"]
+        assert (
+            wd["reason"] == "heartbeat late"
+            and "controller_manager: no heartbeat for" in wd["detail"]
+        )
         # The hung node is killed (its sockets, and any kernel BCM task, close) and restarted.
         wait_for(lambda: app.node("controller_manager")["pid"] not in (None, pid), timeout=15)
     finally:
@@ -89,7 +92,9 @@ def test_forged_heartbeats_do_not_keep_a_stopped_node_alive(app, mbus) -> None: 
     app.arm()
     pid = app.node("controller_manager")["pid"]
     s = messaging.open_client_session(app.at)
-    key = messaging.topic_key(0, "h2", "nodes/controller_manager/heartbeat", "exolink_msgs/msg/Heartbeat")
+    key = messaging.topic_key(
+        0, "h2", "nodes/controller_manager/heartbeat", "exolink_msgs/msg/Heartbeat"
+    )
     pub = s.declare_publisher(key)
     collect(mbus, 0.1)
     os.kill(pid, signal.SIGSTOP)
@@ -100,7 +105,10 @@ def test_forged_heartbeats_do_not_keep_a_stopped_node_alive(app, mbus) -> None: 
             frames += collect(mbus, 0.02, {70})
         assert_all_disabled(frames)
         wd = app.status()["watchdog"]
-        assert wd["reason"] == "heartbeat late" and "controller_manager: no heartbeat for" in wd["detail"]
+        assert (
+            wd["reason"] == "heartbeat late"
+            and "controller_manager: no heartbeat for" in wd["detail"]
+        )
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGCONT)
@@ -160,7 +168,8 @@ def test_management_commands(app) -> None:  # type: ignore[no-untyped-def]
     r = app.cli("restart", "nosuch")
     assert (
         r.returncode == 5
-        and "unknown node 'nosuch' (configured: simulator, h2_reader, controller_manager)" in r.stderr
+        and "unknown node 'nosuch' (configured: simulator, h2_reader, controller_manager)"
+        in r.stderr
     )
     old = app.node("simulator")["pid"]
     r = app.cli("restart", "simulator")

@@ -72,6 +72,11 @@ class FrameSpec:
 
     def encode(self, values: tuple[float, ...] | list[float]) -> bytes:
         """Check every value against the DBC's bounds before packing: no half-valid frame."""
+        return self.struct.pack(*self.check(values))
+
+    def check(self, values: tuple[float, ...] | list[float]) -> list[int | float]:
+        """The raw values of a frame, each checked against the DBC's bounds (ProtocolError
+        names the signal): what ``encode`` packs, for a command checked before it is sent."""
         if len(values) != len(self.signals):
             raise ProtocolError(
                 f"{self.name}: expected {len(self.signals)} values, got {len(values)}"
@@ -94,7 +99,7 @@ class FrameSpec:
                     )
                 r = int(r)
             raw.append(r)
-        return self.struct.pack(*raw)
+        return raw
 
     def pack(self, values: tuple[float, ...] | list[float]) -> bytes:
         """Values a model computed and bounded itself (the simulator's boards): scaled and

@@ -220,7 +220,9 @@ def joint_control(
         raise ProtocolError(f"stiffness is only valid in stiffness mode, got {st}")
     if md in (MODES["disabled"], MODES["stopped"]) and sp != 0:
         raise ProtocolError(f"mode {MODE_NAMES[md]} takes no set-point, got {sp}")
-    return JointControl(m, md, sp, st)
+    jc = JointControl(m, md, sp, st)
+    _TABLE.spec[JointControl].check(tuple(jc))  # the DBC's bounds (stiffness 0..100, int8)
+    return jc
 
 
 def encode_accepted_angles(kind: str, angles: dict[str, float] | list[float]) -> can.Message:
