@@ -426,3 +426,61 @@ def test_a_bundled_topic_reaches_the_recorder_once(write_config, spawn, tmp_path
             m.sequence for _s, c, m in make_reader(f).iter_messages() if "joint_states" in c.topic
         ]
     assert len(seqs) > 150 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+
+# --- graph tokens from elsewhere never crowd out the appliance's topics --------------------------
+
+
+def fake_publishers(session, n: int, tag: str) -> rosgraph.RosNode:  # type: ignore[no-untyped-def]
+    """A ROS node with ``n`` publisher tokens on this session, for topics nobody publishes
+    (``/h2/<tag><i>``): what any login may declare (roles: "ros graph"). Its tokens live as
+    long as it does."""
+    node = rosgraph.RosNode(session, 0, "h2", "fake")
+    for i in range(n):
+        topic = f"/h2/{tag}{i}"
+        node.declare(rosgraph.PUBLISHER, topic, "std_msgs/msg/String", "RIHS01_" + "0" * 64)
+    return node
+
+
+def test_fake_graph_tokens_do_not_crowd_out_the_appliance(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Two laptop sessions declare 300 and 100 fake publisher tokens; after a recorder restart
+    the next recording still holds every topic of the appliance, each laptop session got at
+    most 64 topics and both together 128, and the refusals are counted in `record status`
+    (and --json) and in the file. (400 in all: from ~500 tokens on, this Zenoh's router no
+    longer keeps up: declaring 800 took ~25 s on this machine, with the old recorder too.)"""
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir)), spawn)
+    a, b = messaging.open_client_session(app.at), messaging.open_client_session(app.at)
+    try:
+        fakes = [fake_publishers(a, 300, "a"), fake_publishers(b, 100, "b")]
+        time.sleep(0.5)
+        assert app.cli("restart", "recorder").returncode == 0
+        wait_for(lambda: app.node("recorder")["heartbeat_age_s"] is not None, timeout=20)
+        assert app.cli("record", "start").returncode == 0
+        time.sleep(3)
+        assert app.cli("record", "stop").returncode == 0
+        wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+        status = json.loads(app.cli("record", "status", "--json").stdout)
+        text = app.cli("record", "status").stdout
+    finally:
+        for node in fakes:
+            node.close()
+        a.close()
+        b.close()
+    za, zb = str(a.zid()), str(b.zid())
+    assert status["refused_topics"] == 300 + 100 - 128
+    assert status["refused_from"] == {za: 300 - 64, zb: 100 - 64}
+    assert f"refused {400 - 128} topics" in text and za in text
+    [path] = recordings(rec_dir)
+    i = info(path)
+    for topic in (
+        "/h2/joint_states",
+        "/h2/foot_switches",
+        "/h2/watchdog",
+        "/h2/supervisor/diagnostics",
+        "/h2/nodes/h2_reader/diagnostics",
+    ):
+        assert i.topics.get(topic, {}).get("count", 0) > 0, topic
+    st = i.metadata["exolink.stats"]
+    assert st["refused_topics"] == str(400 - 128)
+    assert json.loads(st["refused_from"]) == {za: 236, zb: 36}

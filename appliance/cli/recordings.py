@@ -49,7 +49,18 @@ def cmd_record(args: argparse.Namespace) -> int:
             f"{s['state']}{err}  file {s['file'] or '-'}  size {s['size'] / 2**20:.2f} MiB  "
             f"messages {s['written']}/{s['received']}  dropped {s['dropped']}  files {len(s['files'])}\n"
         )
+        if s.get("refused_topics"):
+            sys.stdout.write(f"{_refused(s['refused_topics'], s.get('refused_from', {}))}\n")
     return 0
+
+
+def _refused(n: int, by: dict[str, int]) -> str:
+    """The recorder's refused topics, one line: how many, and from which sessions (zids)."""
+    who = ", ".join(f"{zid} {k}" for zid, k in sorted(by.items(), key=lambda kv: -kv[1]))
+    return (
+        f"refused {n} topics (graph tokens over the recorder's per-session or foreign limits; "
+        f"the appliance's own topics have their own): {who}"
+    )
 
 
 def _guard_file(func):  # type: ignore[no-untyped-def]
