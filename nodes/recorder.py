@@ -129,7 +129,15 @@ class McapFile:
         }
         self.path = path
         self.f = path.open("xb")  # never overwrite a recording
-        self.w = Writer(self.f, chunk_size=p.chunk_size, compression=comp[p.compression])
+        # CRCs of every chunk, of the data section and of the summary: readers tell a damaged
+        # file from a good one (exolink.recording.check), at one crc32 pass over what is written.
+        self.w = Writer(
+            self.f,
+            chunk_size=p.chunk_size,
+            compression=comp[p.compression],
+            enable_crcs=True,
+            enable_data_crcs=True,
+        )
         self.w.start(profile="ros2", library=f"exolink {__version__}")
         for name, data in metadata.items():
             self.w.add_metadata(name, data)

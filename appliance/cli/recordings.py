@@ -106,9 +106,20 @@ def cmd_info(args: argparse.Namespace) -> int:
     sys.stdout.write(
         f"triggers  {len(i.triggers)}" + "".join(f"\n  {_iso(t)}" for t in i.triggers) + "\n"
     )
+    sys.stdout.write(f"checked   {_checked(i.integrity)}\n")
     for topic, t in sorted(i.topics.items()):
         sys.stdout.write(f"  {topic:40} {t['type']:40} {t['count']:>8}\n")
     return 0
+
+
+def _checked(integrity: dict[str, Any]) -> str:
+    """What `info` verified, one line: chunks and CRCs."""
+    parts = [f"{integrity['chunks']} chunks CRC ok"]
+    if integrity["chunks_without_crc"]:
+        parts.append(f"{integrity['chunks_without_crc']} chunks without a CRC (unverified)")
+    parts.append(f"data section CRC {integrity['data_crc']}")
+    parts.append(f"summary CRC {integrity['summary_crc']}")
+    return ", ".join(parts)
 
 
 @_guard_file
@@ -126,7 +137,15 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
     out = args.output or args.file.removesuffix(".mcap") + ".recovered.mcap"
     r = recover(args.file, out)
-    sys.stdout.write(f"recovered {r['messages']} messages into {out}\n")
+    for loss in r.losses:
+        sys.stderr.write(f"lost: {loss.describe()}\n")
+    if r.orphans:
+        sys.stderr.write(f"lost: {r.orphans} messages of channels defined only in a lost chunk\n")
+    if r.cut_off_at is not None:
+        sys.stderr.write(f"the file ends at byte {r.cut_off_at} (cut off: never finished)\n")
+    about = "~" if any(x.estimated for x in r.losses) else ""
+    lost = f", lost {about}{r.lost_messages} messages" if r.lost_messages else ""
+    sys.stdout.write(f"recovered {r.messages} messages ({r.chunks} chunks) into {out}{lost}\n")
     return 0
 
 
@@ -189,7 +208,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--csv", required=True, metavar="DIR")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("recover", help="rescue a recording cut off by power loss")
+    p = sub.add_parser(
+        "recover",
+        help="rescue a recording cut off by power loss or damaged: copies what is intact into "
+        "a new file and says what was lost",
+    )
     p.add_argument("file")
     p.add_argument("-o", "--output")
     p.set_defaults(func=cmd_recover)
