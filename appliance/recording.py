@@ -30,6 +30,8 @@ from functools import cache
 from pathlib import Path
 from typing import IO, Any
 
+from exolink import roles
+
 TRIGGER_SUFFIX = "/trigger"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 
@@ -570,7 +572,7 @@ def verify(path: str | Path) -> Check:
 @dataclass
 class Info:
     path: str
-    topics: dict[str, dict[str, Any]] = field(default_factory=dict)  # topic -> type, count
+    topics: dict[str, dict[str, Any]] = field(default_factory=dict)  # topic -> type, count, command
     start_ns: int = 0
     end_ns: int = 0
     messages: int = 0
@@ -673,6 +675,7 @@ def info(path: str | Path) -> Info:
         out.topics[ch.topic] = {
             "type": schema.name if schema else "?",
             "count": st.channel_message_counts.get(cid, 0),
+            "command": is_command(ch.topic, ch.metadata),
         }
     trig = [t for t in out.topics if t.endswith(TRIGGER_SUFFIX)]
     if trig:
@@ -894,6 +897,44 @@ def _recovered_metadata(path: str | Path, r: Recovered) -> dict[str, str]:
     }
 
 
+# --- commands: never replayed -------------------------------------------------------------------
+
+# The recorder writes it into every channel's metadata ("true" or "false"); ``play`` holds back
+# a channel marked "true" as well as any topic the rule below names: a file can add commands to
+# the rule, never take one away (a file is not trusted to say a command topic is safe).
+COMMAND_MARK = "exolink.command"
+JOINT_COMMANDS_TOPIC = "joint_commands"  # the H2 sender's record of the joint commands it sent
+COMMAND_PATH = "cmd"  # anything on a ``cmd`` path (``cmd/joint``, ``arm/cmd``)
+
+
+@cache
+def _command_names() -> tuple[tuple[str, ...], ...]:
+    from exolink import messaging
+
+    names = (*roles.ROS2_TOPICS_IN, messaging.COMMANDS_TOPIC, JOINT_COMMANDS_TOPIC)
+    return tuple(tuple(n.strip("/").split("/")) for n in names)
+
+
+def command_topic(topic: str) -> bool:
+    """The one rule of what a command topic is, whatever its namespace (matched on the end):
+    the ROS 2 command topics the appliance takes (roles.ROS2_TOPICS_IN), the command log
+    (messaging.COMMANDS_TOPIC), ``joint_commands``, and any topic on a ``cmd`` path."""
+    parts = tuple(topic.strip("/").split("/"))
+    if COMMAND_PATH in parts:
+        return True
+    return any(len(parts) >= len(n) and parts[-len(n) :] == n for n in _command_names())
+
+
+def command_metadata(topic: str) -> dict[str, str]:
+    """A channel's metadata as the recorder writes it: the mark, either way."""
+    return {COMMAND_MARK: "true" if command_topic(topic) else "false"}
+
+
+def is_command(topic: str, metadata: dict[str, str] | None = None) -> bool:
+    """A recorded channel is a command if the rule says so or its file marks it so."""
+    return command_topic(topic) or (metadata or {}).get(COMMAND_MARK) == "true"
+
+
 REPLAY_PREFIX = "replay"
 # Never republished onto the live keys: what the supervisor and the motion nodes take as the
 # appliance's own word. The watchdog's state (motion nodes arm on it), the pattern state (the
@@ -914,12 +955,32 @@ def own_state(topic: str) -> bool:
     return False
 
 
-def replay_topic(topic: str, live: bool, prefix: str = REPLAY_PREFIX) -> str | None:
+COMMANDS = "command"
+OWN_STATE = "the appliance's own state"
+
+
+def held_back(topic: str, live: bool, command: bool = False) -> str | None:
+    """Why ``play`` does not republish a recorded topic (None: it does). A command (``command``:
+    its file marks it so, or the rule says so) never, wherever it would go: replayed onto the
+    live keys it would move the exoskeleton again; the appliance's own state not onto them."""
+    if command or command_topic(topic):
+        return COMMANDS
+    if live and own_state(topic):
+        return OWN_STATE
+    return None
+
+
+def replay_topic(
+    topic: str, live: bool, prefix: str = REPLAY_PREFIX, command: bool = False
+) -> str | None:
     """Where a recorded topic is republished: under ``prefix`` (default), or with ``live`` its
-    own key, except the appliance's own state (None: not republished)."""
+    own key; None for what is held back (``held_back``: commands, and the appliance's own state
+    onto the live keys)."""
     topic = topic.strip("/")
+    if held_back(topic, live, command) is not None:
+        return None
     if live:
-        return None if own_state(topic) else topic
+        return topic
     if not prefix.strip("/"):
         raise RecordingError("a replay prefix is needed (the live keys take --live)")
     return f"{prefix.strip('/')}/{topic}"
@@ -981,11 +1042,11 @@ def play(
 
     By default under ``<prefix>/<recorded topic>`` (``0/replay/h2/joint_states/...``), where
     nothing on an appliance listens; with ``live`` under the original keys, minus the appliance's
-    own state (OWN_STATE_TOPICS). The whole file is checked first (``info``): nothing of a
-    damaged one is sent. Data keys only, never a management key; the replay is a ROS 2
-    node (``exolink_play``) in the graph with a publisher token per topic, as ``ros2 bag play``
-    is: a ROS 2 tool sees what it publishes, and a recorder (which learns topics from the graph)
-    records it.
+    own state (OWN_STATE_TOPICS). Never a command topic (``held_back``), with or without
+    ``live``. The whole file is checked first (``info``): nothing of a damaged one is sent.
+    Data keys only, never a management key; the replay is a ROS 2 node (``exolink_play``) in
+    the graph with a publisher token per topic, as ``ros2 bag play`` is: a ROS 2 tool sees what
+    it publishes, and a recorder (which learns topics from the graph) records it.
     """
     from exolink import messaging, rosgraph
 
@@ -993,7 +1054,9 @@ def play(
         raise RecordingError(f"rate must be > 0, got {rate}")
     recorded = info(path).topics
     wanted = list(recorded) if topics is None else topics
-    targets = {t: replay_topic(t, live, prefix) for t in wanted}
+    targets = {
+        t: replay_topic(t, live, prefix, recorded.get(t, {}).get("command", False)) for t in wanted
+    }
     topics = [t for t, target in targets.items() if target is not None]
     if not topics:
         return 0

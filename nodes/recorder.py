@@ -40,7 +40,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, cdr, messaging, roles, rosgraph
+from exolink import __version__, cdr, messaging, recording, roles, rosgraph
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
@@ -117,6 +117,9 @@ class Stats:
 class McapFile:
     """One open MCAP file with its schemas and channels registered on first use.
 
+    Each channel's metadata marks whether its topic is a command (``exolink.command``: "true" or
+    "false", by exolink.recording.command_topic): ``exolink play`` never republishes a command.
+
     Nothing here may import: the writer loop opens files, and an import on it (mcap and its
     compressors took seconds under emulation) stalls its heartbeat until the supervisor kills it.
     """
@@ -154,7 +157,10 @@ class McapFile:
                 sid = self.schemas[typename] = self.w.register_schema(
                     typename, "ros2msg", text.encode()
                 )
-            cid = self.channels[topic] = self.w.register_channel(f"/{topic}", "cdr", sid)
+            name = f"/{topic}"
+            cid = self.channels[topic] = self.w.register_channel(
+                name, "cdr", sid, recording.command_metadata(name)
+            )
         return cid
 
     def sync(self) -> None:

@@ -108,7 +108,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     )
     sys.stdout.write(f"checked   {_checked(i.integrity)}\n")
     for topic, t in sorted(i.topics.items()):
-        sys.stdout.write(f"  {topic:40} {t['type']:40} {t['count']:>8}\n")
+        mark = "  command (never replayed)" if t["command"] else ""
+        sys.stdout.write(f"  {topic:40} {t['type']:40} {t['count']:>8}{mark}\n")
     return 0
 
 
@@ -152,7 +153,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 @_guard_file
 @_guard
 def cmd_play(args: argparse.Namespace) -> int:
-    from exolink.recording import info, play, replay_topic
+    from exolink.recording import info, play
 
     recorded = info(args.file).topics  # a missing or broken file is said before connecting
     topics = (
@@ -160,11 +161,7 @@ def cmd_play(args: argparse.Namespace) -> int:
         if args.topics
         else list(recorded)
     )
-    held = [t for t in topics if replay_topic(t, args.live, args.prefix) is None]
-    if held:
-        sys.stderr.write(
-            f"not replayed onto the live keys (the appliance's own state): {', '.join(held)}\n"
-        )
+    held = _held_back(recorded, topics, args.live, args.loop)
     where = "the live keys" if args.live else f"/{args.prefix.strip('/')}/..."
     stop = threading.Event()
     with remote(args) as r:
@@ -183,8 +180,37 @@ def cmd_play(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             stop.set()
             return 130
-    sys.stdout.write(f"played {n} messages onto {where}\n")
+    sys.stdout.write(f"played {n} messages onto {where}{held}\n")
     return 0
+
+
+def _held_back(
+    recorded: dict[str, dict[str, Any]], topics: list[str], live: bool, loop: bool
+) -> str:
+    """Says on stderr which topics play holds back and why, with their message counts; returns
+    the totals for the closing line."""
+    from exolink.recording import COMMANDS, held_back
+
+    why: dict[str, list[tuple[str, int]]] = {}
+    for t in topics:
+        entry = recorded.get(t, {})
+        reason = held_back(t, live, entry.get("command", False))
+        if reason is not None:
+            why.setdefault(reason, []).append((t, int(entry.get("count", 0))))
+    totals = []
+    for reason, items in why.items():
+        head = (
+            "held back (commands are never replayed, --live included)"
+            if reason == COMMANDS
+            else f"not replayed onto the live keys ({reason})"
+        )
+        listed = ", ".join(f"{t} ({n} messages)" for t, n in items)
+        sys.stderr.write(f"{head}: {listed}\n")
+        what = "command" if reason == COMMANDS else "own-state"
+        totals.append(f"{sum(n for _t, n in items)} {what} messages ({len(items)} topics)")
+    if not totals:
+        return ""
+    return f"; held back {' and '.join(totals)}" + (" each pass" if loop else "")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -236,6 +262,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "--live",
         action="store_true",
         help="republish onto the recorded (live) topics instead; never the appliance's own "
-        "state (watchdog, pattern_state, trigger, node and supervisor diagnostics)",
+        "state (watchdog, pattern_state, trigger, node and supervisor diagnostics), and never "
+        "a command topic (cmd/..., commands, joint_commands), with or without --live",
     )
     p.set_defaults(func=cmd_play)
