@@ -28,6 +28,7 @@ import contextlib
 import errno
 import fnmatch
 import json
+import math
 import os
 import threading
 import time
@@ -39,7 +40,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, cdr, messaging, roles, rosgraph
+from exolink import __version__, cdr, messaging, recording, roles, rosgraph
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
@@ -52,9 +53,20 @@ INTAKE_PERIOD_S = 0.1
 # one core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
 MAX_KEYS = 4096  # keys whose parse is cached (a flood of made-up keys clears it)
-# Topics subscribed one by one, at most: any login may declare graph tokens, and each
-# subscription costs memory (its inbox) and the router's work; more are counted, not taken.
-MAX_TOPICS = 256
+# Topics subscribed one by one, learnt from graph tokens, which any login may declare (roles:
+# "ros graph"); each costs a subscription (its inbox, the router's work). The appliance's own
+# sessions have a budget of their own, so tokens from elsewhere never crowd out what the
+# appliance publishes; other sessions (by the zid their tokens name) are bounded each and
+# together. What does not fit is refused and counted (``record status``, each file's stats).
+MAX_TOPICS_PER_APPLIANCE_SESSION = 128  # an appliance node publishes < 20
+MAX_TOPICS_PER_FOREIGN_SESSION = 64  # a laptop: `exolink play`, a ROS 2 node or bag
+MAX_FOREIGN_TOPICS = 128
+SESSIONS_QUERY_S = 0.5  # asking which sessions are the appliance's
+# A node that (re)started is asked again this long after its token came: it declares its
+# management queryables (what proves its session) just after the token.
+SESSIONS_RETRY_S = 1.0
+SESSIONS_GAP_S = 0.5  # never asked more often (alive tokens may come in bursts)
+MAX_REFUSED_SESSIONS = 16  # sessions named in the refusal counts; the rest summed as "other"
 TOKEN_RING = 4096  # graph and bundle tokens waiting for the loop
 # A message numbered at most this far below its publisher's last is a duplicate (a topic taken
 # both ways while its subscription moves to its bundles); further below, a new count (a forged
@@ -96,12 +108,17 @@ class Stats:
     dropped: int = 0
     duplicates: int = 0  # the same message by two ways (a topic's own key and its bundle)
     malformed: int = 0  # bundles that did not decode (skipped)
+    refused_topics: int = 0  # graph tokens over a session's or all foreign sessions' budget
+    refused_from: dict[str, int] = field(default_factory=dict)  # session zid -> tokens refused
     files: list[str] = field(default_factory=list)
     bytes: int = 0
 
 
 class McapFile:
     """One open MCAP file with its schemas and channels registered on first use.
+
+    Each channel's metadata marks whether its topic is a command (``exolink.command``: "true" or
+    "false", by exolink.recording.command_topic): ``exolink play`` never republishes a command.
 
     Nothing here may import: the writer loop opens files, and an import on it (mcap and its
     compressors took seconds under emulation) stalls its heartbeat until the supervisor kills it.
@@ -115,7 +132,15 @@ class McapFile:
         }
         self.path = path
         self.f = path.open("xb")  # never overwrite a recording
-        self.w = Writer(self.f, chunk_size=p.chunk_size, compression=comp[p.compression])
+        # CRCs of every chunk, of the data section and of the summary: readers tell a damaged
+        # file from a good one (exolink.recording.check), at one crc32 pass over what is written.
+        self.w = Writer(
+            self.f,
+            chunk_size=p.chunk_size,
+            compression=comp[p.compression],
+            enable_crcs=True,
+            enable_data_crcs=True,
+        )
         self.w.start(profile="ros2", library=f"exolink {__version__}")
         for name, data in metadata.items():
             self.w.add_metadata(name, data)
@@ -132,7 +157,10 @@ class McapFile:
                 sid = self.schemas[typename] = self.w.register_schema(
                     typename, "ros2msg", text.encode()
                 )
-            cid = self.channels[topic] = self.w.register_channel(f"/{topic}", "cdr", sid)
+            name = f"/{topic}"
+            cid = self.channels[topic] = self.w.register_channel(
+                name, "cdr", sid, recording.command_metadata(name)
+            )
         return cid
 
     def sync(self) -> None:
@@ -163,7 +191,19 @@ class Inbox:
     messages before the recorder saw its token are not either (as with ``ros2 bag record``):
     appliance nodes declare theirs at start (the command log's included). A topic some
     publisher bundles is taken from bundles only, while that publisher lives: a second,
-    unbundled publisher of the same topic meanwhile is not recorded."""
+    unbundled publisher of the same topic meanwhile is not recorded.
+
+    Any login may declare graph tokens, so the appliance's own sessions are told apart by what
+    only they can do: answer the appliance's management queries (on a board with logins, only
+    the appliance's login may declare a queryable: exolink.roles). Their zids come from those
+    answers (asked when recording starts and whenever a node's ``alive`` token comes, which
+    again only the appliance may declare), and each gets a graph subscription of its own
+    (``@ros2_lv/<domain>/<zid>/**``, history included): however many tokens others declare,
+    the appliance's reach the recorder and fill a budget no other session shares. Other
+    sessions' topics are bounded per session and together; what is refused is counted. Left
+    open: the zid in a token is only text, so tokens forged with an appliance session's zid
+    count against that session's budget (it takes 128 of them to crowd it out).
+    """
 
     def __init__(
         self,
@@ -179,8 +219,17 @@ class Inbox:
         self.bundled: set[str] = set()  # data keys taken from bundles
         self.subs: dict[str, Any] = {}  # data key -> its own subscription (other processes')
         self.published: set[str] = set()  # kept data keys the graph showed a publisher of
-        self.refused = 0  # topics past MAX_TOPICS
         self.zid = str(session.zid())
+        self.domain_id = domain_id
+        self.appliance: set[str] = {self.zid}  # zids of the appliance's own sessions
+        self.owner: dict[str, str] = {}  # data key taken -> the zid whose token brought it
+        self.per_session: dict[str, int] = {}  # zid -> topics taken for it
+        self.foreign = 0  # topics taken for sessions not the appliance's
+        self.refused = 0  # tokens over a budget
+        self.refused_from: dict[str, int] = {}
+        # When to ask which sessions are the appliance's (monotonic), and once more after that.
+        self._ask_at, self._ask_again, self._asked = 0.0, math.inf, -math.inf
+        self._own_graphs: dict[str, Any] = {}  # appliance zid -> its graph tokens
         own = [
             session.declare_subscriber(
                 sel, zenoh.handlers.RingChannel(ring), allowed_origin=zenoh.Locality.SESSION_LOCAL
@@ -199,10 +248,15 @@ class Inbox:
             zenoh.handlers.RingChannel(TOKEN_RING),
             history=True,
         )
+        self._nodes = lv.declare_subscriber(
+            messaging.mgmt_key(device, "nodes", "*", "alive"), zenoh.handlers.RingChannel(256)
+        )
 
     def discover(self) -> None:
-        """New bundle tokens first (their topics come in bundles from now on: a subscription
-        of the topic's own key is dropped), then new publishers in the graph."""
+        """Which sessions are the appliance's, when due; new bundle tokens (their topics come
+        in bundles from now on: a subscription of the topic's own key is dropped), then new
+        publishers in the graph: the appliance's sessions' first."""
+        self._sessions()
         while (t := self._bundle_tokens.try_recv()) is not None:
             try:
                 key = messaging.bundled_data_key(self.device, str(t.key_expr))
@@ -217,24 +271,82 @@ class Inbox:
             sub = self.subs.pop(key, None)
             if sub is not None:
                 sub.undeclare()
-        while (t := self._graph.try_recv()) is not None:
-            if t.kind != zenoh.SampleKind.PUT:
-                continue
-            try:
-                entity = rosgraph.parse_token(str(t.key_expr))
-                if entity.kind != rosgraph.PUBLISHER or entity.zid == self.zid:
-                    continue
-                key = messaging.data_key_of(entity)
-                if key in self.published or self.kept(key) is None or not self.wanted(key):
-                    continue
-            except Exception:  # anyone may declare a token: a bad one is not a topic
-                continue
-            if len(self.published) >= MAX_TOPICS:
-                self.refused += 1
-                continue
-            self.published.add(key)
-            if key not in self.bundled:
-                self._subscribe(key)
+        for graph in (*self._own_graphs.values(), self._graph):
+            while (t := graph.try_recv()) is not None:
+                if t.kind == zenoh.SampleKind.PUT:
+                    self._token(str(t.key_expr))
+
+    def _token(self, token: str) -> None:
+        """A publisher's graph token: its topic taken if it is wanted and fits its budget."""
+        try:
+            entity = rosgraph.parse_token(token)
+            if entity.kind != rosgraph.PUBLISHER or entity.zid == self.zid:
+                return
+            key = messaging.data_key_of(entity)
+            if key in self.published or self.kept(key) is None or not self.wanted(key):
+                return
+        except Exception:  # anyone may declare a token: a bad one is not a topic
+            return
+        zid = entity.zid
+        taken = self.per_session.get(zid, 0)
+        if zid in self.appliance:
+            full = taken >= MAX_TOPICS_PER_APPLIANCE_SESSION
+        else:
+            full = taken >= MAX_TOPICS_PER_FOREIGN_SESSION or self.foreign >= MAX_FOREIGN_TOPICS
+        if full:
+            self.refused += 1
+            named = zid in self.refused_from or len(self.refused_from) < MAX_REFUSED_SESSIONS
+            name = zid if named else "other"
+            self.refused_from[name] = self.refused_from.get(name, 0) + 1
+            return
+        self.per_session[zid] = taken + 1
+        self.foreign += zid not in self.appliance
+        self.owner[key] = zid
+        self.published.add(key)
+        if key not in self.bundled:
+            self._subscribe(key)
+
+    def _sessions(self) -> None:
+        """Asks which sessions are the appliance's when due: at the start, and when a node's
+        ``alive`` token comes (now, and once more when its queryables are surely up)."""
+        now = time.monotonic()
+        while (t := self._nodes.try_recv()) is not None:
+            if t.kind == zenoh.SampleKind.PUT:
+                self._ask_at, self._ask_again = min(self._ask_at, now), now + SESSIONS_RETRY_S
+        if now < self._ask_at or now - self._asked < SESSIONS_GAP_S:
+            return
+        self._asked, self._ask_at, self._ask_again = now, self._ask_again, math.inf
+        key = messaging.mgmt_key(self.device, "nodes", "**", roles.APPLIANCE_USER)
+        try:
+            replies = self.session.get(
+                key,
+                payload=b"{}",
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=SESSIONS_QUERY_S,
+            )
+            zids = {str(r.replier_id.zid) for r in replies if r.replier_id is not None}
+        except Exception:  # asked again when the next node starts
+            return
+        self._adopt(zids | {self.zid})
+
+    def _adopt(self, zids: set[str]) -> None:
+        """``zids`` answered as the appliance's: each gets a graph subscription of its own (its
+        tokens so far come with it), one that no longer answers loses its (a node restarted:
+        its old session is gone); budgets recounted. A zid once proven stays the appliance's."""
+        for zid in set(self._own_graphs) - zids:
+            self._own_graphs.pop(zid).undeclare()
+        for zid in zids - set(self._own_graphs) - {self.zid}:
+            self._own_graphs[zid] = self.session.liveliness().declare_subscriber(
+                f"{rosgraph.ADMIN_SPACE}/{self.domain_id}/{zid}/**",
+                zenoh.handlers.RingChannel(TOKEN_RING),
+                history=True,
+            )
+        self.appliance |= zids
+        self.per_session = {}
+        for zid in self.owner.values():
+            self.per_session[zid] = self.per_session.get(zid, 0) + 1
+        self.foreign = sum(n for z, n in self.per_session.items() if z not in self.appliance)
 
     def wanted(self, key: str) -> bool:
         """Whether the data key is one of the recorder's ``topics``."""
@@ -257,9 +369,17 @@ class Inbox:
                 yield sample
 
     def close(self) -> None:
-        for sub in (self._graph, self._bundle_tokens, self.bundles, *self.own, *self.subs.values()):
+        for sub in (
+            self._graph,
+            self._nodes,
+            *self._own_graphs.values(),
+            self._bundle_tokens,
+            self.bundles,
+            *self.own,
+            *self.subs.values(),
+        ):
             sub.undeclare()
-        self.subs = {}
+        self.subs, self._own_graphs = {}, {}
 
 
 class Recorder(Node):
@@ -308,6 +428,10 @@ class Recorder(Node):
         if inbox is not None:
             if discover:
                 inbox.discover()
+                if inbox.refused != self.stats.refused_topics:
+                    with self.lock:
+                        self.stats.refused_topics = inbox.refused
+                        self.stats.refused_from = dict(inbox.refused_from)
             yield from inbox.samples()
 
     def _take(self, until: float) -> list[Item]:
@@ -441,6 +565,7 @@ class Recorder(Node):
         with self.lock:
             s = vars(self.stats).copy()
             s["files"] = list(self.stats.files)
+            s["refused_from"] = dict(self.stats.refused_from)
         f = self.file
         return {
             "state": self.state,
@@ -493,7 +618,11 @@ class Recorder(Node):
         if self.file is None:
             return
         with self.lock:
-            stats = {k: str(v) for k, v in vars(self.stats).items() if k != "files"}
+            stats = {
+                k: json.dumps(v) if isinstance(v, dict) else str(v)
+                for k, v in vars(self.stats).items()
+                if k != "files"
+            }
         f, self.file = self.file, None
         f.close(stats, self._receive_metadata(self._receive_counters()))
 
@@ -610,7 +739,17 @@ class Recorder(Node):
         level = "error" if self.state == "error" else "warn" if s["dropped"] else "ok"
         now = time.time_ns()
         values = {
-            k: s[k] for k in ("state", "file", "size", "received", "written", "dropped", "queue")
+            k: s[k]
+            for k in (
+                "state",
+                "file",
+                "size",
+                "received",
+                "written",
+                "dropped",
+                "queue",
+                "refused_topics",
+            )
         }
         payload = cdr.diagnostics(
             now,

@@ -14,8 +14,9 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import EXOLINK, Appliance, wait_for
+from conftest import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging, rosgraph
+from exolink.protocol import h2
 from exolink.recording import RecordingError, export_csv, info
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -336,7 +337,7 @@ def test_bad_files_and_commands(tmp_path, write_config, spawn) -> None:  # type:
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file")
     r = subprocess.run([*EXOLINK, "info", str(junk)], capture_output=True, text=True)
-    assert r.returncode == 3 and "not a complete MCAP file" in r.stderr
+    assert r.returncode == 3 and "not an MCAP file" in r.stderr
     r = subprocess.run(
         [*EXOLINK, "info", str(tmp_path / "missing.mcap")], capture_output=True, text=True
     )
@@ -426,3 +427,198 @@ def test_a_bundled_topic_reaches_the_recorder_once(write_config, spawn, tmp_path
             m.sequence for _s, c, m in make_reader(f).iter_messages() if "joint_states" in c.topic
         ]
     assert len(seqs) > 150 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+
+# --- play never replays a command ----------------------------------------------------------------
+
+CONTROL_NODES = [
+    {"name": "simulator", "plugin": "simulator"},
+    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+    {
+        "name": "controller_manager",
+        "plugin": "controller_manager",
+        "critical": True,
+        "heartbeat_deadline_ms": 300,  # above a loaded test machine's stalls: not under test
+        "params": {"max_step_deg": 5, "h2_timeout_ms": 300},
+    },
+    {
+        "name": "h2_sender",
+        "plugin": "h2_sender",
+        "critical": True,
+        "params": {"motion_via_manager": True},
+    },
+]
+JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
+
+
+def publish_joint_commands(at: str, setpoints: list[int]) -> None:
+    """A ROS 2 node on a laptop publishing r_knee position commands on /h2/cmd/joint, as
+    rmw_zenoh does (a graph token, then CDR samples with attachments)."""
+    s = messaging.open_client_session(at)
+    key = messaging.topic_key(0, "h2", "cmd/joint", JOINT_COMMAND)
+    graph = rosgraph.RosNode(s, 0, "", "teleop")
+    token = graph.declare(rosgraph.PUBLISHER, "/h2/cmd/joint", JOINT_COMMAND, key.split("/")[-1])
+    pub = messaging.Publisher(s, key, JOINT_COMMAND, False, token, graph)
+    cls = messaging.msg_class(JOINT_COMMAND)
+    try:
+        time.sleep(1.0)  # the recorder learns the topic from the graph
+        for sp in setpoints:
+            ns = time.time_ns()
+            cmd = cls(messaging.header(ns), "r_knee", 1, sp, 0, "teleop")
+            pub.publish(cmd, ns)
+            time.sleep(0.2)
+        time.sleep(0.5)
+    finally:
+        pub.close()
+        graph.close()
+        s.close()
+
+
+def test_play_live_never_replays_commands_onto_an_armed_appliance(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path, mbus
+) -> None:
+    """A recording holding ROS 2 joint commands (and the command log), replayed with --live
+    onto an armed appliance: the exoskeleton must not move. The CLI says what it held back;
+    the appliance logs no command and no position frame goes on the bus."""
+    src_dir = tmp_path / "src"
+    rec = {"name": "recorder", "plugin": "recorder", "params": {"directory": str(src_dir)}}
+    app = Appliance(write_config(nodes=[rec]), spawn)  # its supervisor takes /h2/cmd/joint
+    assert app.cli("record", "start").returncode == 0
+    publish_joint_commands(app.at, [10, 13, 16, 19, 22, 25])
+    assert app.cli("record", "stop").returncode == 0
+    wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+    app.proc.stop()
+    [src] = recordings(src_dir)
+    i = info(src)
+    assert i.topics["/h2/cmd/joint"]["count"] == 6 and i.topics["/h2/cmd/joint"]["command"]
+    assert i.topics["/h2/commands"]["command"] and not i.topics["/h2/watchdog"]["command"]
+    with src.open("rb") as f:  # the recorder's mark, read by the plain mcap reader
+        marks = {c.topic: c.metadata for c in make_reader(f).get_summary().channels.values()}
+    assert marks["/h2/cmd/joint"] == {"exolink.command": "true"}
+    assert marks["/h2/commands"] == {"exolink.command": "true"}
+    assert marks["/h2/watchdog"] == {"exolink.command": "false"}
+
+    live = Appliance(write_config(nodes=CONTROL_NODES), spawn)
+    live.arm()
+    s = messaging.open_client_session(live.at)
+    logged: list[dict] = []
+    log = s.declare_subscriber(
+        messaging.topic_selector(0, "h2", "commands"),
+        lambda x: logged.append(json.loads(x.payload.to_bytes()[8:-1])),
+    )
+    try:
+        while mbus.recv(timeout=0) is not None:  # what the bus carried before: not ours
+            pass
+        r = subprocess.run(
+            [*EXOLINK, "play", str(src), "--live", "--rate", "2", "--at", live.at],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        frames = collect(mbus, 1.0, {70})
+    finally:
+        log.undeclare()
+        s.close()
+    assert r.returncode == 0, r.stderr
+    assert "held back (commands are never replayed, --live included)" in r.stderr
+    assert "/h2/cmd/joint (6 messages)" in r.stderr and "/h2/commands (" in r.stderr
+    assert "held back " in r.stdout and " command messages (2 topics)" in r.stdout
+    knee = h2.motor_id("r_knee")
+    moved = [
+        f
+        for f in (h2.decode(m) for m in frames)
+        if isinstance(f, h2.JointControl) and f.motor == knee and f.mode == h2.MODES["position"]
+    ]
+    assert moved == []
+    assert [e for e in logged if e.get("by") == "ros2"] == []
+    assert live.status()["watchdog"]["state"] == "armed"
+
+
+def test_a_file_marks_commands_the_rule_does_not_know(tmp_path: Path) -> None:
+    """A file (another tool's, or one from a later version) may mark more topics as commands:
+    play holds those back too. A file without marks (an older recording) gets the built-in
+    rule; no mark takes a command topic off it."""
+    from exolink.recording import held_back, replay_topic
+    from mcap.writer import Writer
+
+    path = tmp_path / "marked.mcap"
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2")
+        sid = w.register_schema("std_msgs/msg/String", "ros2msg", b"string data\n")
+        for topic, meta in (
+            ("/h2/setpoints", {"exolink.command": "true"}),
+            ("/h2/cmd/joint", {"exolink.command": "false"}),  # a file cannot unmark one
+            ("/h2/commands", {}),  # unmarked (an older recording): the rule
+            ("/h2/status_text", {}),
+        ):
+            cid = w.register_channel(topic, "cdr", sid, meta)
+            w.add_message(cid, 1, b"\0\1\0\0\1\0\0\0\0", 1)
+        w.finish()
+    topics = info(path).topics
+    commands = {t for t, v in topics.items() if v["command"]}
+    assert commands == {"/h2/setpoints", "/h2/cmd/joint", "/h2/commands"}
+    for t in commands:
+        assert held_back(t, live=True, command=True) == "command"
+        assert replay_topic(t, live=False, command=topics[t]["command"]) is None
+    assert replay_topic("/h2/status_text", live=True) == "h2/status_text"
+    for t in ("/h2/cmd/joint", "/x/cmd/vel/y", "/h2/joint_commands", "/replay/h2/commands"):
+        assert replay_topic(t, live=False) is None and replay_topic(t, live=True) is None, t
+
+
+# --- graph tokens from elsewhere never crowd out the appliance's topics --------------------------
+
+
+def fake_publishers(session, n: int, tag: str) -> rosgraph.RosNode:  # type: ignore[no-untyped-def]
+    """A ROS node with ``n`` publisher tokens on this session, for topics nobody publishes
+    (``/h2/<tag><i>``): what any login may declare (roles: "ros graph"). Its tokens live as
+    long as it does."""
+    node = rosgraph.RosNode(session, 0, "h2", "fake")
+    for i in range(n):
+        topic = f"/h2/{tag}{i}"
+        node.declare(rosgraph.PUBLISHER, topic, "std_msgs/msg/String", "RIHS01_" + "0" * 64)
+    return node
+
+
+def test_fake_graph_tokens_do_not_crowd_out_the_appliance(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Two laptop sessions declare 300 and 100 fake publisher tokens; after a recorder restart
+    the next recording still holds every topic of the appliance, each laptop session got at
+    most 64 topics and both together 128, and the refusals are counted in `record status`
+    (and --json) and in the file. (400 in all: from ~500 tokens on, this Zenoh's router no
+    longer keeps up: declaring 800 took ~25 s on this machine, with the old recorder too.)"""
+    rec_dir = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec_dir)), spawn)
+    a, b = messaging.open_client_session(app.at), messaging.open_client_session(app.at)
+    try:
+        fakes = [fake_publishers(a, 300, "a"), fake_publishers(b, 100, "b")]
+        time.sleep(0.5)
+        assert app.cli("restart", "recorder").returncode == 0
+        wait_for(lambda: app.node("recorder")["heartbeat_age_s"] is not None, timeout=20)
+        assert app.cli("record", "start").returncode == 0
+        time.sleep(3)
+        assert app.cli("record", "stop").returncode == 0
+        wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
+        status = json.loads(app.cli("record", "status", "--json").stdout)
+        text = app.cli("record", "status").stdout
+    finally:
+        for node in fakes:
+            node.close()
+        a.close()
+        b.close()
+    za, zb = str(a.zid()), str(b.zid())
+    assert status["refused_topics"] == 300 + 100 - 128
+    assert status["refused_from"] == {za: 300 - 64, zb: 100 - 64}
+    assert f"refused {400 - 128} topics" in text and za in text
+    [path] = recordings(rec_dir)
+    i = info(path)
+    for topic in (
+        "/h2/joint_states",
+        "/h2/foot_switches",
+        "/h2/watchdog",
+        "/h2/supervisor/diagnostics",
+        "/h2/nodes/h2_reader/diagnostics",
+    ):
+        assert i.topics.get(topic, {}).get("count", 0) > 0, topic
+    st = i.metadata["exolink.stats"]
+    assert st["refused_topics"] == str(400 - 128)
+    assert json.loads(st["refused_from"]) == {za: 236, zb: 36}

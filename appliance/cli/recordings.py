@@ -49,7 +49,18 @@ def cmd_record(args: argparse.Namespace) -> int:
             f"{s['state']}{err}  file {s['file'] or '-'}  size {s['size'] / 2**20:.2f} MiB  "
             f"messages {s['written']}/{s['received']}  dropped {s['dropped']}  files {len(s['files'])}\n"
         )
+        if s.get("refused_topics"):
+            sys.stdout.write(f"{_refused(s['refused_topics'], s.get('refused_from', {}))}\n")
     return 0
+
+
+def _refused(n: int, by: dict[str, int]) -> str:
+    """The recorder's refused topics, one line: how many, and from which sessions (zids)."""
+    who = ", ".join(f"{zid} {k}" for zid, k in sorted(by.items(), key=lambda kv: -kv[1]))
+    return (
+        f"refused {n} topics (graph tokens over the recorder's per-session or foreign limits; "
+        f"the appliance's own topics have their own): {who}"
+    )
 
 
 def _guard_file(func):  # type: ignore[no-untyped-def]
@@ -95,9 +106,21 @@ def cmd_info(args: argparse.Namespace) -> int:
     sys.stdout.write(
         f"triggers  {len(i.triggers)}" + "".join(f"\n  {_iso(t)}" for t in i.triggers) + "\n"
     )
+    sys.stdout.write(f"checked   {_checked(i.integrity)}\n")
     for topic, t in sorted(i.topics.items()):
-        sys.stdout.write(f"  {topic:40} {t['type']:40} {t['count']:>8}\n")
+        mark = "  command (never replayed)" if t["command"] else ""
+        sys.stdout.write(f"  {topic:40} {t['type']:40} {t['count']:>8}{mark}\n")
     return 0
+
+
+def _checked(integrity: dict[str, Any]) -> str:
+    """What `info` verified, one line: chunks and CRCs."""
+    parts = [f"{integrity['chunks']} chunks CRC ok"]
+    if integrity["chunks_without_crc"]:
+        parts.append(f"{integrity['chunks_without_crc']} chunks without a CRC (unverified)")
+    parts.append(f"data section CRC {integrity['data_crc']}")
+    parts.append(f"summary CRC {integrity['summary_crc']}")
+    return ", ".join(parts)
 
 
 @_guard_file
@@ -115,14 +138,22 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
     out = args.output or args.file.removesuffix(".mcap") + ".recovered.mcap"
     r = recover(args.file, out)
-    sys.stdout.write(f"recovered {r['messages']} messages into {out}\n")
+    for loss in r.losses:
+        sys.stderr.write(f"lost: {loss.describe()}\n")
+    if r.orphans:
+        sys.stderr.write(f"lost: {r.orphans} messages of channels defined only in a lost chunk\n")
+    if r.cut_off_at is not None:
+        sys.stderr.write(f"the file ends at byte {r.cut_off_at} (cut off: never finished)\n")
+    about = "~" if any(x.estimated for x in r.losses) else ""
+    lost = f", lost {about}{r.lost_messages} messages" if r.lost_messages else ""
+    sys.stdout.write(f"recovered {r.messages} messages ({r.chunks} chunks) into {out}{lost}\n")
     return 0
 
 
 @_guard_file
 @_guard
 def cmd_play(args: argparse.Namespace) -> int:
-    from exolink.recording import info, play, replay_topic
+    from exolink.recording import info, play
 
     recorded = info(args.file).topics  # a missing or broken file is said before connecting
     topics = (
@@ -130,11 +161,7 @@ def cmd_play(args: argparse.Namespace) -> int:
         if args.topics
         else list(recorded)
     )
-    held = [t for t in topics if replay_topic(t, args.live, args.prefix) is None]
-    if held:
-        sys.stderr.write(
-            f"not replayed onto the live keys (the appliance's own state): {', '.join(held)}\n"
-        )
+    held = _held_back(recorded, topics, args.live, args.loop)
     where = "the live keys" if args.live else f"/{args.prefix.strip('/')}/..."
     stop = threading.Event()
     with remote(args) as r:
@@ -153,8 +180,37 @@ def cmd_play(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             stop.set()
             return 130
-    sys.stdout.write(f"played {n} messages onto {where}\n")
+    sys.stdout.write(f"played {n} messages onto {where}{held}\n")
     return 0
+
+
+def _held_back(
+    recorded: dict[str, dict[str, Any]], topics: list[str], live: bool, loop: bool
+) -> str:
+    """Says on stderr which topics play holds back and why, with their message counts; returns
+    the totals for the closing line."""
+    from exolink.recording import COMMANDS, held_back
+
+    why: dict[str, list[tuple[str, int]]] = {}
+    for t in topics:
+        entry = recorded.get(t, {})
+        reason = held_back(t, live, entry.get("command", False))
+        if reason is not None:
+            why.setdefault(reason, []).append((t, int(entry.get("count", 0))))
+    totals = []
+    for reason, items in why.items():
+        head = (
+            "held back (commands are never replayed, --live included)"
+            if reason == COMMANDS
+            else f"not replayed onto the live keys ({reason})"
+        )
+        listed = ", ".join(f"{t} ({n} messages)" for t, n in items)
+        sys.stderr.write(f"{head}: {listed}\n")
+        what = "command" if reason == COMMANDS else "own-state"
+        totals.append(f"{sum(n for _t, n in items)} {what} messages ({len(items)} topics)")
+    if not totals:
+        return ""
+    return f"; held back {' and '.join(totals)}" + (" each pass" if loop else "")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -178,7 +234,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--csv", required=True, metavar="DIR")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("recover", help="rescue a recording cut off by power loss")
+    p = sub.add_parser(
+        "recover",
+        help="rescue a recording cut off by power loss or damaged: copies what is intact into "
+        "a new file and says what was lost",
+    )
     p.add_argument("file")
     p.add_argument("-o", "--output")
     p.set_defaults(func=cmd_recover)
@@ -202,6 +262,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "--live",
         action="store_true",
         help="republish onto the recorded (live) topics instead; never the appliance's own "
-        "state (watchdog, pattern_state, trigger, node and supervisor diagnostics)",
+        "state (watchdog, pattern_state, trigger, node and supervisor diagnostics), and never "
+        "a command topic (cmd/..., commands, joint_commands), with or without --live",
     )
     p.set_defaults(func=cmd_play)
