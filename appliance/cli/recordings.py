@@ -62,6 +62,8 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
             return int(func(args))
         except RecordingError as exc:
             return fail(str(exc), EXIT_CONFIG)
+        except BrokenPipeError:  # stdout's reader left (`| head`): main() ends quietly
+            raise
         except OSError as exc:
             where = exc.filename if exc.filename is not None else getattr(args, "file", "")
             return fail(f"{where}: {exc.strerror or exc}", EXIT_CONFIG)
