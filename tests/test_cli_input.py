@@ -11,7 +11,10 @@ from pathlib import Path
 
 import yaml
 from conftest import EXOLINK, Appliance
+from exolink.cli.main import parse
 from exolink.config import bundled
+
+FULL_WIDTH_12 = "\uff11\uff12"  # full-width 12: Python's int() and float() read it as 12
 
 
 def _nodes(tmp_path: Path) -> list[dict]:  # type: ignore[type-arg]
@@ -62,3 +65,31 @@ def test_a_closed_stdout_ends_every_command_quietly(tmp_path, write_config, spaw
     # The reader still there: the output is whole, as before.
     r = subprocess.run([*EXOLINK, "status", *at], capture_output=True, text=True, timeout=30)
     assert r.returncode == 0 and "h2_reader" in r.stdout, r.stderr
+
+
+def test_numbers_only_in_ascii_digits() -> None:
+    """Full-width digits were read as numbers: `send position r_knee` with full-width 12 moved the knee."""
+    for argv in (
+        ["send", "position", "r_knee", FULL_WIDTH_12],
+        ["send", "limits", "--min", f"-10,0,-20,-10,0,{FULL_WIDTH_12}"],
+        ["maccepa", FULL_WIDTH_12, "duty", "10"],
+        ["maccepa", "0", "setpoint", FULL_WIDTH_12],
+        ["logs", "h2_reader", "-n", FULL_WIDTH_12],
+        ["status", "--timeout", FULL_WIDTH_12],
+        ["timing", FULL_WIDTH_12],
+        ["pattern", "speed", FULL_WIDTH_12],
+        ["dashboard", "--port", FULL_WIDTH_12],
+        ["controllers", "command", "x", f"r_knee={FULL_WIDTH_12}"],
+    ):
+        nowhere = ["--at", "tcp/127.0.0.1:9"]  # had it parsed, nothing would be reached
+        r = subprocess.run([*EXOLINK, *argv, *nowhere], capture_output=True, text=True, timeout=30)
+        assert r.returncode == 2, (argv, r.stdout, r.stderr)
+        assert f"'{FULL_WIDTH_12}'" in r.stderr and "ASCII" in r.stderr, (argv, r.stderr)
+        assert "Traceback" not in r.stderr
+    # ASCII numbers as before: signs, points, exponents, hex CAN ids.
+    assert parse(["send", "position", "r_knee", "-1.5"]).value == -1.5
+    assert parse(["send", "position", "r_knee", "12"]).value == 12
+    assert parse(["send", "limits", "--min", "-10,0,-20,-10,0,-2e1"]).min[-1] == -20
+    assert parse(["timing", "0x46"]).id == 70 and parse(["timing", "70"]).id == 70
+    assert parse(["logs", "h2_reader", "-n", "12"]).lines == 12
+    assert parse(["status", "--timeout", ".5"]).timeout == 0.5

@@ -615,3 +615,7 @@ def test_a_page_elsewhere_cannot_drive_the_dashboard(tmp_path, write_config, spa
     assert app.status()["watchdog"]["state"] == "armed"
     status, said = _http(base + "api/command", **own, token=first, body={"argv": ["disarm"]})
     assert status == 200 and json.loads(said)["ok"], said
+    # A number from the network in ASCII digits only (int() read full-width 12, and 'x' was a 500).
+    for lines in ("%EF%BC%91%EF%BC%92", "x"):
+        status, said = _http(base + f"api/logs?node=h2_reader&lines={lines}")
+        assert status == 200 and "not a number" in json.loads(said)["error"], said

@@ -86,13 +86,13 @@ def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser
 
     p = sub.add_parser("sim", help="run the hardware simulator on a bus (no Zenoh)")
     _add_bus(p)
-    p.add_argument("--maccepa", type=int, action="append", default=[], metavar="BOARD")
+    p.add_argument("--maccepa", type=remote._integer, action="append", default=[], metavar="BOARD")
     p.set_defaults(func=bus_tools.cmd_sim)
 
     p = sub.add_parser("candump", help="live decoded view of a CAN bus (H2 + MACCEPA DBC)")
     _add_bus(p)
     p.add_argument("--raw", action="store_true", help="also print the raw bytes")
-    p.add_argument("--count", type=int, default=0, help="stop after N frames")
+    p.add_argument("--count", type=remote._integer, default=0, help="stop after N frames")
     p.set_defaults(func=bus_tools.cmd_candump)
 
     remote.register(sub)

@@ -292,7 +292,10 @@ async def estop(request: web.Request) -> web.StreamResponse:
 
 async def logs(request: web.Request) -> web.StreamResponse:
     node = request.query.get("node", "")
-    lines = int(request.query.get("lines", "100") or 100)
+    text = request.query.get("lines", "100")
+    if not re.fullmatch(r"[0-9]{1,6}", text):  # ASCII: int() takes full-width digits too
+        return web.json_response({"ok": False, "error": f"lines {text[:20]!r}: not a number"})
+    lines = int(text)
     return web.json_response(
         await request.app[HUB].query(("logs",), {"node": node, "lines": lines})
     )
