@@ -9,10 +9,12 @@ import os
 import subprocess
 from pathlib import Path
 
+import pytest
 import yaml
 from conftest import EXOLINK, Appliance
 from exolink.cli.main import parse
 from exolink.config import bundled
+from exolink.protocol import ProtocolError, h2
 
 FULL_WIDTH_12 = "\uff11\uff12"  # full-width 12: Python's int() and float() read it as 12
 
@@ -93,3 +95,16 @@ def test_numbers_only_in_ascii_digits() -> None:
     assert parse(["timing", "0x46"]).id == 70 and parse(["timing", "70"]).id == 70
     assert parse(["logs", "h2_reader", "-n", "12"]).lines == 12
     assert parse(["status", "--timeout", ".5"]).timeout == 0.5
+
+
+def test_whole_number_errors_name_the_fields_unit() -> None:
+    """`send torque r_knee 1.5` said '(the protocol carries 1 deg)': torque is in counts."""
+    cases = [
+        (lambda: h2.encode_joint_control(2, "torque", 1.5), "whole torque counts"),
+        (lambda: h2.encode_joint_control(2, "position", 10.5), "whole degrees"),
+        (lambda: h2.encode_joint_control(2, "stiffness", 10, 1.5), "whole percent"),
+        (lambda: h2.encode_accepted_angles("min", [0, 0, 0, 0, 0, 0.5]), "whole degrees"),
+    ]
+    for encode, unit in cases:
+        with pytest.raises(ProtocolError, match=f"is not a whole number .*{unit}"):
+            encode()
