@@ -14,8 +14,11 @@ import yaml
 from conftest import EXOLINK, Appliance
 from exolink.cli.main import parse
 from exolink.config import bundled
+from exolink.nodes.pattern_player import load_pattern, parse_pattern
 from exolink.protocol import ProtocolError, h2
 
+HEADER = "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle"
+LIMITS = [h2.RANGES[j][0] for j in h2.JOINTS], [h2.RANGES[j][1] for j in h2.JOINTS]
 FULL_WIDTH_12 = "\uff11\uff12"  # full-width 12: Python's int() and float() read it as 12
 
 
@@ -108,3 +111,34 @@ def test_whole_number_errors_name_the_fields_unit() -> None:
     for encode, unit in cases:
         with pytest.raises(ProtocolError, match=f"is not a whole number .*{unit}"):
             encode()
+
+
+def test_pattern_csv_with_a_bom_and_full_width_digits(tmp_path: Path) -> None:
+    """A spreadsheet's 'CSV UTF-8' starts with a BOM: it was refused as a bad header."""
+    rows = f"{HEADER}\n1,2,3,4,5,6\n2,3,4,5,6,7\n"
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    assert load_pattern(str(bom), *LIMITS).points == [[1, 2, 3, 4, 5, 6], [2, 3, 4, 5, 6, 7]]
+    wide = f"{HEADER}\n1,2,3,4,5,6\n2,{FULL_WIDTH_12},4,5,6,7\n"
+    with pytest.raises(ProtocolError) as e:
+        parse_pattern(wide, "wide.csv", *LIMITS)
+    assert "wide.csv:3: values must be whole degrees in ASCII digits" in str(e.value)
+    assert f"r_knee '{FULL_WIDTH_12}'" in str(e.value)
+
+
+def test_the_appliance_sees_what_the_cli_says(tmp_path, write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """The same three through `exolink` on a sim appliance: a BOM pattern loads, a full-width
+    value in an uploaded pattern is refused by name, and the torque refusal says counts."""
+    app = Appliance(write_config(nodes=_nodes(tmp_path)), spawn)
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + f"{HEADER}\n1,2,3,4,5,6\n2,3,4,5,6,7\n".encode())
+    r = app.cli("pattern", "load", str(bom))
+    assert r.returncode == 0 and "point 0/2" in r.stdout, r.stderr
+    wide = tmp_path / "wide.csv"
+    wide.write_text(f"{HEADER}\n1,2,3,4,5,6\n2,{FULL_WIDTH_12},4,5,6,7\n", encoding="utf-8")
+    r = app.cli("pattern", "load", str(wide))
+    assert r.returncode == 5, r.stdout
+    assert "wide.csv:3: values must be whole degrees in ASCII digits" in r.stderr, r.stderr
+    r = app.cli("send", "torque", "r_knee", "1.5")
+    assert r.returncode == 5, r.stdout
+    assert "1.5 is not a whole number (the protocol carries whole torque counts)" in r.stderr
