@@ -20,6 +20,7 @@ pattern (it does not resume by itself).
 from __future__ import annotations
 
 import csv
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ DEFAULT_PATTERN = Path(__file__).with_name("patterns") / "normal_walking.csv"
 STATE_TYPE = "exolink_msgs/msg/PatternState"
 MAX_POINTS = 10_000
 MAX_UPLOAD = 1 << 20
+WHOLE = re.compile(r"[+-]?[0-9]+")  # ASCII: int() also takes other scripts' digits
 GAIT = "pattern"  # the controller the manager runs the gait as
 MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
 # Starting the gait: the manager loads it and waits for a cycle to activate it at. On the board
@@ -109,9 +111,11 @@ def pattern_in(directory: str, name: str) -> str:
 def parse_pattern(text: str, source: str, limits: Limits) -> Pattern:
     """CSV with a header of joint names (all six), one row per set-point, whole degrees inside
     the configured limits (the manager checks the limits in force again at start). Errors name
-    the line and what is wrong, never the content (it may not be a pattern)."""
+    the line and what is wrong; a file that may not be a pattern (no six-joint header) never has
+    its content shown, a pattern's bad value is (its first 16 characters)."""
     path = source
-    rows = list(csv.reader(text.splitlines()))
+    # A byte-order mark (a spreadsheet's "CSV UTF-8") is not part of the first joint's name.
+    rows = list(csv.reader(text.removeprefix("\ufeff").splitlines()))
     if not rows:
         raise ProtocolError(f"{path}: empty pattern file")
     header = [c.strip() for c in rows[0]]
@@ -125,10 +129,15 @@ def parse_pattern(text: str, source: str, limits: Limits) -> Pattern:
     for n, row in enumerate(body, start=2):
         if len(row) != 6:
             raise ProtocolError(f"{path}:{n}: expected 6 values, got {len(row)}")
-        try:
-            vals = [int(row[i].strip()) for i in order]
-        except ValueError:
-            raise ProtocolError(f"{path}:{n}: values must be whole degrees") from None
+        cells = [row[i].strip() for i in order]
+        for j, cell in enumerate(cells):
+            if not WHOLE.fullmatch(cell):
+                ascii_only = "" if cell.isascii() else " in ASCII digits"
+                raise ProtocolError(
+                    f"{path}:{n}: values must be whole degrees{ascii_only} "
+                    f"({h2.JOINTS[j]} {cell[:16]!r})"
+                )
+        vals = [int(c) for c in cells]
         for j, v in enumerate(vals):
             lo, hi = limits.min_angles[j], limits.max_angles[j]
             if not lo <= v <= hi:

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,6 +23,7 @@ from exolink.protocol import h2
 from test_roles import board_logins
 
 SHOTS = REPO / "build" / "screenshots"
+TOKEN = "X-Exolink-Token"  # the header the page sends its token in
 PAGES = ["live", "commands", "pattern", "nodes", "recording"]
 
 
@@ -57,6 +60,36 @@ def test_commands_are_parsed_by_the_cli_parser() -> None:
     for argv, why in bad:
         with pytest.raises(commands.CommandError, match=why):
             commands.parse(argv)
+
+
+def test_host_names_a_dashboard_answers_to() -> None:
+    """The board node's default list: its device name, host name (plain and .local) and the
+    address a request came in on; loopback always; every name on its own port unless given."""
+    import socket
+
+    from exolink.dashboard import server
+    from exolink.dashboard.node import DashboardParams
+
+    hosts = server.Hosts(
+        8080, DashboardParams().allow_hosts, placeholders={server.DEVICE: "exo-01"}
+    )
+    me = socket.gethostname()
+    for header in ("exo-01:8080", "EXO-01.local:8080", f"{me}:8080", f"{me}.local:8080",
+                   "localhost:8080", "127.0.0.1:8080", "[::1]:8080", "[0:0::1]:8080"):  # fmt: skip
+        assert hosts.allows(header, "192.168.7.2"), header
+    assert hosts.allows("192.168.7.2:8080", "192.168.7.2")  # the address it came in on
+    assert hosts.allows("192.168.7.2:8080", "::ffff:192.168.7.2")
+    for header in ("192.168.7.2:8080", "evil.example:8080", "exo-01.local:9090", "exo-01.local",
+                   "localhost:8080@evil.example", "evil@localhost:8080", "localhost:8080 x",
+                   "localhost.:8080", "::1", "", "\uff4cocalhost:8080"):  # fmt: skip
+        assert not hosts.allows(header, "10.0.0.1"), header
+    assert server.Hosts(80, ["exo.test"]).allows("exo.test", None)  # no port: 80
+    assert server.Hosts(8080, ["fe80::1", "tunnel.test:9000"]).allows("[fe80::1]:8080", None)
+    assert server.Hosts(8080, ["tunnel.test:9000"]).allows("tunnel.test:9000", None)
+    with pytest.raises(ValueError, match="'<devic>' is not a host name"):
+        server.Hosts(8080, ["<devic>"])
+    with pytest.raises(ValueError, match="'http://x' is not a host name"):
+        server.Hosts(8080, ["http://x"])
 
 
 # --- a sim appliance, a dashboard and a browser ----------------------------------------------
@@ -289,8 +322,16 @@ def test_refused_command_sends_nothing_and_estop_disables_on_the_bus(dash: Dash,
     wait_for(disabled, timeout=10)
     dash.shot("estop")
 
-    # The keyboard shortcut does the same.
+    # A token the server no longer knows (a restarted dashboard): the page renews its own,
+    # so Arm (and E-STOP) still work; the refused first try did nothing.
+    assert dash.errors == []
+    page.evaluate("token = 'stale.0'")
     dash.arm()
+    assert page.evaluate("token") != "stale.0"
+    refused = [e for e in dash.errors if "403" in e]  # chromium logs the refused first try
+    assert refused and refused == dash.errors, dash.errors
+    dash.errors.clear()
+    # The keyboard shortcut does the same.
     page.keyboard.press("Escape")
     dash.banner("tripped")
     assert dash.errors == []
@@ -314,17 +355,17 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
         arg=[row, pid],
     )
     # A stopped critical node blocks arming: the refusal lists it; started again, Arm works.
-    sender = "#nodes tr[data-node=h2_sender]"
+    sender = "#nodes tr[data-node=pattern_player]"
     page.click(f"{sender} button[data-action=stop]")
-    wait_for(lambda: app.node("h2_sender")["state"] == "stopped", timeout=20)
+    wait_for(lambda: app.node("pattern_player")["state"] == "stopped", timeout=20)
     page.click("#arm")
     page.wait_for_function(
-        "document.querySelector('#notice').textContent.includes('critical node h2_sender is stopped')"
+        "document.querySelector('#notice').textContent.includes('critical node pattern_player is stopped')"
     )
     assert "Arm refused. Blockers:" in dash.text("#notice")
     dash.shot("arm-refused")
     page.click(f"{sender} button[data-action=start]")
-    wait_for(lambda: app.node("h2_sender")["state"] == "running", timeout=20)
+    wait_for(lambda: app.node("pattern_player")["state"] == "running", timeout=20)
     wait_for(lambda: app.cli("arm").returncode == 0, timeout=20)
 
     page.select_option("#log-node", "timing_monitor")
@@ -332,13 +373,13 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
     assert "refused" not in dash.text("#logs")
     # Follow: a line the node writes after the box is ticked arrives by itself.
-    page.select_option("#log-node", "h2_sender")
+    page.select_option("#log-node", "controller_manager")
     page.check("#log-follow")
     page.wait_for_function("document.querySelector('#logs').textContent.length > 5")
-    assert "command_sent" not in dash.text("#logs")
-    app.cli("send", "stream", "on")  # h2_sender logs each command it sends
+    assert "h2/command" not in dash.text("#logs")
+    app.cli("send", "stream", "on")  # the manager logs each command it takes, with who
     page.wait_for_function(
-        "document.querySelector('#logs').textContent.includes('command_sent')", timeout=20_000
+        "document.querySelector('#logs').textContent.includes('h2/command')", timeout=20_000
     )
     page.uncheck("#log-follow")
     page.select_option("#log-node", "timing_monitor")
@@ -383,7 +424,9 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     assert (
         page.request.get(dash.url + "ws", headers={"Origin": "http://evil.example"}).status == 403
     )
-    assert page.request.post(dash.url + "api/estop", data="{}").status == 415  # not JSON typed
+    token = page.get_attribute("meta[name=exolink-token]", "content")
+    not_json = page.request.post(dash.url + "api/estop", data="{}", headers={TOKEN: token or ""})
+    assert not_json.status == 415  # the page's token, but not JSON typed
     # A file the recorder did not list is never served.
     assert page.request.get(dash.url + "api/recordings/download?file=/etc/passwd").status == 404
     assert dash.errors == []
@@ -443,13 +486,17 @@ def test_live_data_is_subscribed_only_while_a_page_is_open(tmp_path, write_confi
     """No page, no subscription: the router forwards the dashboard none of the 100 Hz topics
     (a dashboard without a browser took 17.5 % of the board proxy's CPU 0). Seen from outside,
     as Zenoh's matching status of a publisher on joint_states's key (no recorder here, nothing
-    else subscribes to it); the page is a plain WebSocket client, no browser needed."""
+    else subscribes to it); the page is a plain WebSocket client, no browser needed.
+
+    The board's node answers to the board's own names by default: served on 127.0.0.2 (not a
+    loopback name it knows), the address a request came in on; `<device>.local` (sim.local)."""
     from exolink import messaging
     from websockets.sync.client import connect
 
     port = free_port()
+    base = f"http://127.0.0.2:{port}/"
     nodes = [n for n in _nodes(tmp_path) if n["name"] in ("simulator", "h2_reader")]
-    params = {"host": "127.0.0.1", "port": port}
+    params = {"host": "127.0.0.2", "port": port}
     nodes.append({"name": "dashboard", "plugin": "dashboard", "params": params})
     app = Appliance(write_config(nodes=nodes), spawn)
     session = messaging.open_client_session(app.at)
@@ -457,17 +504,16 @@ def test_live_data_is_subscribed_only_while_a_page_is_open(tmp_path, write_confi
         key = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
         pub = session.declare_publisher(key)
 
-        def page_served() -> bool:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=1) as r:
-                    return r.status == 200
-            except OSError:
-                return False
-
-        wait_for(page_served, timeout=30, step=0.2)
+        wait_for(lambda: _http(base)[0] == 200, timeout=30, step=0.2)
+        assert _http(base, host=f"sim.local:{port}")[0] == 200
+        status, said = _http(base + "api/logs?node=h2_reader", host=f"evil.example:{port}")
+        assert status == 403 and "evil.example" in said and "allow_hosts" in said, said
         assert not pub.matching_status.matching
+        with pytest.raises(Exception, match="403"):  # the socket, without a page's token
+            connect(f"ws://127.0.0.2:{port}/ws", open_timeout=5)
         for _round in range(2):
-            ws = connect(f"ws://127.0.0.1:{port}/ws", open_timeout=5)
+            token = _page_token(base)
+            ws = connect(f"ws://127.0.0.2:{port}/ws?token={token}", open_timeout=5)
             wait_for(lambda: pub.matching_status.matching, timeout=10)
             wait_for(lambda ws=ws: json.loads(ws.recv(timeout=5)).get("t") == "live", timeout=10)
             ws.close()
@@ -475,3 +521,101 @@ def test_live_data_is_subscribed_only_while_a_page_is_open(tmp_path, write_confi
     finally:
         session.close()
         app.proc.stop()
+
+
+# --- a web page from elsewhere (DNS rebinding, another site in the browser) ----------------
+
+
+def _http(
+    url: str,
+    *,
+    host: str | None = None,
+    origin: str | None = None,
+    token: str | None = None,
+    body: dict[str, Any] | None = None,
+) -> tuple[int, str]:
+    """A request as a browser would send it (its Host, Origin, the page's token): status, text."""
+    headers = {"Host": host} if host else {}
+    if origin:
+        headers["Origin"] = origin
+    if token:
+        headers[TOKEN] = token
+    data = None if body is None else json.dumps(body).encode()
+    if data is not None:
+        headers["Content-Type"] = "application/json"
+    req = urllib.request.Request(url, data=data, headers=headers)
+    try:
+        with urllib.request.urlopen(req, timeout=15) as r:
+            return r.status, r.read().decode()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode()
+    except OSError as e:  # not serving yet
+        return 0, str(e)
+
+
+def _page_token(base: str, host: str | None = None) -> str:
+    status, page = _http(base, host=host)
+    assert status == 200, page
+    m = re.search(r'<meta name="exolink-token" content="([^"]+)">', page)
+    assert m, page[:300]
+    return m[1]
+
+
+def test_a_page_elsewhere_cannot_drive_the_dashboard(tmp_path, write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """DNS rebinding: a page at evil.example:PORT whose name now points at 127.0.0.1 sends its
+    own name as Host and as Origin (they match), and the laptop's login went with it: it armed
+    the appliance. Now a foreign Host is refused on every request, and commands need the token
+    of a page this dashboard served."""
+    app = Appliance(write_config(nodes=_nodes(tmp_path)), spawn)
+    port = free_port()
+    base = f"http://127.0.0.1:{port}/"
+    spawn(
+        "dashboard",
+        "--at",
+        app.at,
+        "--port",
+        str(port),
+        "--no-browser",
+        "--allow-host",
+        "exo-laptop.test",
+        name="dash",
+    )
+    wait_for(lambda: _http(base)[0] == 200, timeout=30, step=0.2)
+    evil = f"evil.example:{port}"
+    attack = {"host": evil, "origin": f"http://{evil}"}
+    for argv in (["arm"], ["send", "position", "r_knee", "40"], ["stop", "timing_monitor"]):
+        status, said = _http(base + "api/command", **attack, body={"argv": argv, "confirmed": True})
+        assert status == 403, (argv, said)
+        assert "'evil.example:" in said and "--allow-host evil.example" in said, said
+    for path in ("", "api/logs?node=h2_reader", "api/params?node=h2_reader", "ws"):
+        assert _http(base + path, host=evil)[0] == 403, path
+    s = app.status()
+    assert s["watchdog"]["state"] != "armed", s["watchdog"]
+    assert app.node("timing_monitor")["state"] == "running"
+
+    # Our own names, on our own port only; a name given with --allow-host too.
+    for name in ("localhost", "127.0.0.1", "[::1]", "exo-laptop.test", "EXO-LAPTOP.test"):
+        assert _http(base, host=f"{name}:{port}")[0] == 200, name
+    assert _http(base, host=f"localhost:{port + 1}")[0] == 403
+    assert _http(base, host="localhost")[0] == 403  # port 80
+
+    # A POST under our own name and Origin, but without the page's token (or a made-up one).
+    own = {"host": f"127.0.0.1:{port}", "origin": f"http://127.0.0.1:{port}"}
+    arm = {"argv": ["arm"], "confirmed": True}
+    for token in (None, "made.up", "x" * 500):
+        status, said = _http(base + "api/command", **own, token=token, body=arm)
+        assert status == 403 and "page token" in said, said
+    assert app.status()["watchdog"]["state"] != "armed"
+
+    # Each page load gets a token of its own; a page's token works for that page's commands.
+    first, second = _page_token(base), _page_token(base)
+    assert first != second
+    status, said = _http(base + "api/command", **own, token=second, body=arm)
+    assert status == 200 and json.loads(said)["ok"], said
+    assert app.status()["watchdog"]["state"] == "armed"
+    status, said = _http(base + "api/command", **own, token=first, body={"argv": ["disarm"]})
+    assert status == 200 and json.loads(said)["ok"], said
+    # A number from the network in ASCII digits only (int() read full-width 12, and 'x' was a 500).
+    for lines in ("%EF%BC%91%EF%BC%92", "x"):
+        status, said = _http(base + f"api/logs?node=h2_reader&lines={lines}")
+        assert status == 200 and "not a number" in json.loads(said)["error"], said

@@ -8,7 +8,7 @@ import json
 import sys
 from typing import Any
 
-from exolink.cli.remote import _guard, _Leaves, common, remote
+from exolink.cli.remote import _decimal, _guard, _Leaves, common, remote
 
 
 def _limits(lim: dict[str, Any]) -> list[str]:
@@ -87,9 +87,9 @@ def _value(text: str) -> tuple[str, float]:
     if not sep:
         raise argparse.ArgumentTypeError(f"{text!r}: give JOINT=VALUE, e.g. r_knee=30")
     try:
-        return joint, float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a number") from None
+        return joint, _decimal(value)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
 
 
 def _params(text: str) -> dict[str, Any]:
@@ -149,7 +149,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q.add_argument("name")
     q.add_argument("type")
     q.add_argument("--params", type=_params, default={})
-    q.add_argument("--budget-ms", type=float, help="CPU per update before it is deactivated")
+    q.add_argument("--budget-ms", type=_decimal, help="CPU per update before it is deactivated")
     q.add_argument("--replace", action="store_true", help="unload a controller of that name first")
     q.add_argument("--activate", action="store_true", help="and activate it at the next cycle")
     q = s.add_parser("unload", help="unload NAME (inactive only)")

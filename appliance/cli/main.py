@@ -86,13 +86,13 @@ def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser
 
     p = sub.add_parser("sim", help="run the hardware simulator on a bus (no Zenoh)")
     _add_bus(p)
-    p.add_argument("--maccepa", type=int, action="append", default=[], metavar="BOARD")
+    p.add_argument("--maccepa", type=remote._integer, action="append", default=[], metavar="BOARD")
     p.set_defaults(func=bus_tools.cmd_sim)
 
     p = sub.add_parser("candump", help="live decoded view of a CAN bus (H2 + MACCEPA DBC)")
     _add_bus(p)
     p.add_argument("--raw", action="store_true", help="also print the raw bytes")
-    p.add_argument("--count", type=int, default=0, help="stop after N frames")
+    p.add_argument("--count", type=remote._integer, default=0, help="stop after N frames")
     p.set_defaults(func=bus_tools.cmd_candump)
 
     remote.register(sub)
@@ -115,10 +115,29 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = parse(argv)
-    from exolink.cli.errors import run_guarded
+    """Run one command. A reader that closes stdout early ends it quietly with 0, whichever
+    thread was writing (exolink.cli.errors.Stdout: for the laptop's commands, whose Zenoh
+    callbacks print; board-side ones print from the main thread only)."""
+    from exolink.cli.errors import Stdout, run_guarded
 
-    return run_guarded(args.func, args)
+    out = Stdout(sys.stdout)
+    try:
+        try:
+            args = parse(argv)
+            if getattr(args, "talks_to_appliance", False):
+                sys.stdout = out
+            code = run_guarded(args.func, args)
+        finally:
+            sys.stdout = out.inner
+            out.finish()
+    except BrokenPipeError:
+        out.quiet()
+        return 0
+    except KeyboardInterrupt:
+        if not out.gone:
+            raise
+        return 0
+    return 0 if out.gone else code
 
 
 if __name__ == "__main__":

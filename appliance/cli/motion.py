@@ -12,7 +12,17 @@ from typing import Any
 
 from exolink import messaging
 from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
-from exolink.cli.remote import _guard, _Leaves, _number, common, hold, remote
+from exolink.cli.remote import (
+    _decimal,
+    _frame_id,
+    _guard,
+    _integer,
+    _Leaves,
+    _number,
+    common,
+    hold,
+    remote,
+)
 from exolink.holder import Holder, HoldRefused, describe
 
 # --- pattern ----------------------------------------------------------------------------------
@@ -270,7 +280,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     for name in ("stop", "pause", "restart", "status"):
         s.add_parser(name)
     q = s.add_parser("speed", help="speed LEVEL (1..10; 10 = a set-point every 20 ms)")
-    q.add_argument("level", type=int)
+    q.add_argument("level", type=_integer)
     for name in ("select", "disable"):
         q = s.add_parser(name, help=f"{name} JOINT...")
         q.add_argument("joints", nargs="+")
@@ -290,7 +300,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=cmd_hold)
 
     p = sub.add_parser("maccepa", help="MACCEPA actuator boards")
-    p.add_argument("board", type=int)
+    p.add_argument("board", type=_integer)
     s = _Leaves(p.add_subparsers(dest="kind", required=True), parent)
     q = s.add_parser("gains", help="gains --kp X --ki Y --kd Z [--controller position|velocity]")
     for g in ("--kp", "--ki", "--kd"):
@@ -303,23 +313,23 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q.add_argument("value", type=_number)
     s.add_parser("stop", help="stop control")
     q = s.add_parser("watch", help="live link-2 vs lever-arm plot (the tuning view)")
-    q.add_argument("--rate", type=float, default=10.0, help="lines per second")
-    q.add_argument("--seconds", type=float, default=0, help="stop after N seconds")
+    q.add_argument("--rate", type=_decimal, default=10.0, help="lines per second")
+    q.add_argument("--seconds", type=_decimal, default=0, help="stop after N seconds")
     p.set_defaults(func=cmd_maccepa)
 
     p = sub.add_parser(
         "timing", parents=[parent], help="period deviation of a CAN id (timing monitor)"
     )
-    p.add_argument("id", type=lambda x: int(x, 0))
+    p.add_argument("id", type=_frame_id)
     p.add_argument(
-        "--motor", type=int, help="only frames whose first byte is this (id 70: motor id)"
+        "--motor", type=_integer, help="only frames whose first byte is this (id 70: motor id)"
     )
-    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--seconds", type=_decimal, default=10.0)
     p.add_argument(
         "--dlc",
-        type=int,
+        type=_integer,
         help="only frames of this length (id 70 is also MACCEPA board 0's, 8 bytes)",
     )
-    p.add_argument("--expected-ms", type=float)
+    p.add_argument("--expected-ms", type=_decimal)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_timing)

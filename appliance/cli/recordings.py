@@ -10,7 +10,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
-from exolink.cli.remote import _guard, _Leaves, common, remote
+from exolink.cli.remote import _decimal, _guard, _Leaves, common, remote
 from exolink.recording import REPLAY_PREFIX
 
 
@@ -73,6 +73,8 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
             return int(func(args))
         except RecordingError as exc:
             return fail(str(exc), EXIT_CONFIG)
+        except BrokenPipeError:  # stdout's reader left (`| head`): main() ends quietly
+            raise
         except OSError as exc:
             where = exc.filename if exc.filename is not None else getattr(args, "file", "")
             return fail(f"{where}: {exc.strerror or exc}", EXIT_CONFIG)
@@ -249,7 +251,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help=f"republish a recording onto Zenoh with its timing (under /{REPLAY_PREFIX}/ unless --live)",
     )
     p.add_argument("file")
-    p.add_argument("--rate", type=float, default=1.0)
+    p.add_argument("--rate", type=_decimal, default=1.0)
     p.add_argument("--loop", action="store_true")
     p.add_argument("--topics", nargs="+")
     p.add_argument(

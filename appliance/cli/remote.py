@@ -7,6 +7,7 @@ import itertools
 import json
 import math
 import os
+import re
 import statistics
 import sys
 import threading
@@ -264,13 +265,45 @@ def cmd_hz(args: argparse.Namespace) -> int:
 # --- commands to the H2 (the controller manager) ---------------------------------------------
 
 
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+# Numbers as a person types them on a keyboard, in ASCII: Python's float() and int() also take
+# other scripts' digits (full-width, Arabic-Indic), underscores, padding: a command line must not.
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+_FRAME_ID = re.compile(r"0[xX][0-9a-fA-F]+|[0-9]+")
+
+
+def _not_a_number(text: str, what: str) -> argparse.ArgumentTypeError:
+    why = " (only ASCII digits 0-9 count)" if not text.isascii() else ""
+    return argparse.ArgumentTypeError(f"{text!r} is not {what}{why}")
+
+
+def _decimal(text: str) -> float:
+    """A finite decimal number in ASCII (30, -1.5, 2e-3)."""
+    if not _DECIMAL.fullmatch(text):
+        raise _not_a_number(text, "a number")
+    v = float(text)
     if not math.isfinite(v):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
+def _integer(text: str) -> int:
+    """A whole number in ASCII digits (a count, a port, a board)."""
+    if not _INTEGER.fullmatch(text):
+        raise _not_a_number(text, "a whole number")
+    return int(text)
+
+
+def _frame_id(text: str) -> int:
+    """A CAN id, decimal or 0x hex (70, 0x46)."""
+    if not _FRAME_ID.fullmatch(text):
+        raise _not_a_number(text, "a CAN id (decimal or 0x hex)")
+    return int(text, 0) if text[:2] in ("0x", "0X") else int(text)
+
+
+def _number(text: str) -> float:
+    """A protocol value: whole numbers stay int (the protocol checks they are whole)."""
+    v = _decimal(text)
     return int(v) if v == int(v) else v
 
 
@@ -358,13 +391,13 @@ def _appliance_options() -> list[tuple[str, dict[str, Any]]]:
         (
             "--timeout",
             {
-                "type": float,
+                "type": _decimal,
                 "default": DEFAULT_TIMEOUT_S,
                 "help": "seconds to wait for an answer (default 3); a longer one also waits "
                 "that long for the connection",
             },
         ),
-        ("--domain", {"type": int, "default": 0, "help": "ROS domain id of data topics (0)"}),
+        ("--domain", {"type": _integer, "default": 0, "help": "ROS domain id of data topics (0)"}),
         ("--ns", {"default": "h2", "help": "namespace of data topics (h2)"}),
     ]
 
@@ -435,19 +468,19 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
 
     p = sub.add_parser("topics", parents=[parent], help="list data topics with type and rate")
-    p.add_argument("--listen", type=float, default=2.0, help="seconds to listen")
+    p.add_argument("--listen", type=_decimal, default=2.0, help="seconds to listen")
     p.set_defaults(func=cmd_topics)
 
     p = sub.add_parser("echo", parents=[parent], help="print messages of a topic")
     p.add_argument("topic")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
-    p.add_argument("--count", "-n", type=int, default=0, help="stop after N messages")
+    p.add_argument("--count", "-n", type=_integer, default=0, help="stop after N messages")
     p.set_defaults(func=cmd_echo)
 
     p = sub.add_parser("hz", parents=[parent], help="measure a topic's publishing rate")
     p.add_argument("topic")
-    p.add_argument("--window", type=float, default=1.0)
-    p.add_argument("--count", "-n", type=int, default=0, help="stop after N reports")
+    p.add_argument("--window", type=_decimal, default=1.0)
+    p.add_argument("--count", "-n", type=_integer, default=0, help="stop after N reports")
     p.set_defaults(func=cmd_hz)
 
     p = sub.add_parser("send", help="send a validated command to the H2")
@@ -685,7 +718,7 @@ def register_management(sub: argparse._SubParsersAction) -> None:  # type: ignor
         p.set_defaults(func=cmd_control)
     p = sub.add_parser("logs", parents=[parent], help="a node's recent output")
     p.add_argument("node")
-    p.add_argument("--lines", "-n", type=int, default=50)
+    p.add_argument("--lines", "-n", type=_integer, default=50)
     p.add_argument("--follow", "-f", action="store_true")
     p.set_defaults(func=cmd_logs)
     for name, text in (

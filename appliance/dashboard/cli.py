@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from exolink.cli.errors import EXIT_USAGE, fail
-from exolink.cli.remote import _guard, common
+from exolink.cli.remote import _decimal, _guard, _integer, common
 
 
 @_guard
@@ -21,6 +21,10 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     from exolink.dashboard import server
     from exolink.dashboard.hub import Hub
 
+    try:
+        hosts = server.Hosts(args.port, args.allow_host)
+    except ValueError as exc:
+        return fail(f"--allow-host: {exc}", EXIT_USAGE)
     with remote(args) as r:
         hub = Hub(r, rate_hz=args.rate)
 
@@ -35,10 +39,12 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
             loop = asyncio.get_running_loop()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
-            await server.serve(hub, args.host, args.port, stop, ready)
+            await server.serve(hub, args.host, args.port, stop, ready, hosts)
 
         try:
             asyncio.run(main())
+        except BrokenPipeError:  # stdout closed (`exolink dashboard | head -1`): not the port
+            raise
         except OSError as exc:  # the port is taken, the address is not this machine's
             return fail(
                 f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}", EXIT_USAGE
@@ -53,7 +59,17 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="the web dashboard on this laptop (http://127.0.0.1:8080)",
     )
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (127.0.0.1)")
-    p.add_argument("--port", type=int, default=8080, help="port to serve on (8080)")
+    p.add_argument("--port", type=_integer, default=8080, help="port to serve on (8080)")
+    p.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="also answer to this Host name (NAME or NAME:PORT; <hostname>: this machine's, "
+        "<address>: the address a request came in on); loopback names always work",
+    )
     p.add_argument("--no-browser", action="store_true", help="do not open a browser")
-    p.add_argument("--rate", type=float, default=25.0, help="frames per second to each page (25)")
+    p.add_argument(
+        "--rate", type=_decimal, default=25.0, help="frames per second to each page (25)"
+    )
     p.set_defaults(func=cmd_dashboard)

@@ -463,7 +463,7 @@ class Hub:
         path = base / Path(name).name
         if not name or path.suffix != ".csv" or not path.is_file():
             return None
-        rows = list(csv.reader(path.read_text(encoding="utf-8").splitlines()))
+        rows = list(csv.reader(path.read_text(encoding="utf-8-sig").splitlines()))
         header = [c.strip() for c in rows[0]]
         if sorted(header) != sorted(h2.JOINTS):
             return None

@@ -27,6 +27,18 @@ class DashboardParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Frames per second to each page: the board's CPU follows this, not the 100 Hz data.
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=60)] = 10.0
     role: Literal["observer", "operator", "admin"] = "observer"
+    # The Host names it answers to besides loopback (a web page elsewhere must not reach it
+    # under a name of its own): <device> and <hostname> are replaced, <address> is the board's
+    # address a request came in on (any interface's, as the tablet reached it).
+    allow_hosts: list[str] = msgspec.field(
+        default_factory=lambda: [
+            server.DEVICE,
+            f"{server.DEVICE}.local",
+            server.HOSTNAME,
+            f"{server.HOSTNAME}.local",
+            server.ADDRESS,
+        ]
+    )
 
 
 class _NodeRemote(Remote):
@@ -51,12 +63,19 @@ class DashboardNode(Node):
     def configure(self) -> None:
         p = self.params
         assert p.role in roles.ROLES
+        self.hosts = server.Hosts(
+            p.port,
+            p.allow_hosts,
+            how_to_allow="add it to the dashboard node's allow_hosts param (the board's config)",
+            placeholders={server.DEVICE: self.ctx.config.device},
+        )
         self.hub = Hub(_NodeRemote(self, p.role), rate_hz=p.rate_hz)
         self._failed: BaseException | None = None
 
     def _serve(self, stop: threading.Event) -> None:
         try:
-            asyncio.run(server.serve(self.hub, self.params.host, self.params.port, stop))
+            p = self.params
+            asyncio.run(server.serve(self.hub, p.host, p.port, stop, hosts=self.hosts))
         except Exception as exc:  # e.g. the port is taken: run() fails, the node is restarted
             self._failed = exc
 

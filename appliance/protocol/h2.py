@@ -187,11 +187,14 @@ def mode_id(mode: int | str) -> int:
     return mode
 
 
-def _whole(value: float, what: str) -> int:
+def _whole(value: float, what: str, unit: str) -> int:
+    """A field the frame carries in whole ``unit`` (degrees, torque counts, percent)."""
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise ProtocolError(f"{what}: {value!r} is not a finite number")
     if value != int(value):
-        raise ProtocolError(f"{what}: {value} is not a whole number (the protocol carries 1 deg)")
+        raise ProtocolError(
+            f"{what}: {value} is not a whole number (the protocol carries whole {unit})"
+        )
     return int(value)
 
 
@@ -209,8 +212,8 @@ def joint_control(
     without making the frame: a command checked here is encoded once, where it is sent."""
     m = motor_id(motor)
     md = mode_id(mode)
-    sp = _whole(setpoint, "setpoint")
-    st = _whole(stiffness, "stiffness")
+    sp = _whole(setpoint, "setpoint", "torque counts" if md == MODES["torque"] else "degrees")
+    st = _whole(stiffness, "stiffness", "percent")
     joint = JOINTS[m - 1]
     if md in (MODES["position"], MODES["stiffness"]):
         lo, hi = RANGES[joint]
@@ -239,7 +242,7 @@ def encode_accepted_angles(kind: str, angles: dict[str, float] | list[float]) ->
         values = list(angles)
     if len(values) != 6:
         raise ProtocolError(f"{kind} angles need 6 values (one per joint), got {len(values)}")
-    ints = [_whole(v, f"{kind} angle {j}") for v, j in zip(values, JOINTS, strict=True)]
+    ints = [_whole(v, f"{kind} angle {j}", "degrees") for v, j in zip(values, JOINTS, strict=True)]
     if kind == "min":
         return _message(MinAngles(*ints))
     if kind == "max":

@@ -36,10 +36,31 @@ function showWatchdog(wd) {
   $("#wd-why").textContent = why ? "(" + why + ")" : "";
 }
 
+// This page's token (the server puts a fresh one in each page it serves): every command and
+// the live socket carry it, so a page from elsewhere, which cannot read it, cannot drive them.
+let token = $("meta[name=exolink-token]").content;
+
+// A token the server no longer knows (it was restarted): this page's own fresh copy gives a new
+// one. Another site's page cannot do this: the server answers only to its own host names.
+async function renewToken() {
+  const r = await fetch("/", { cache: "no-store" });
+  const html = new DOMParser().parseFromString(await r.text(), "text/html");
+  token = html.querySelector("meta[name=exolink-token]").content;
+}
+
 async function post(url, body) {
-  const r = await fetch(url, {
-    method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
+  const send = () => fetch(url, {
+    method: "POST",
+    headers: { "Content-Type": "application/json", "X-Exolink-Token": token },
+    body: JSON.stringify(body),
   });
+  let r = await send();
+  if (r.status === 403) {
+    const refusal = await r.json();
+    if (!refusal.stale_token) return refusal;
+    await renewToken();  // refused, so nothing was done: once more with the new token
+    r = await send();
+  }
   return r.json();
 }
 
@@ -583,8 +604,12 @@ function onHello(m) {
   route();
 }
 
-function connect() {
-  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+async function connect() {
+  if (S.ws) {  // a reconnect: the server may have been restarted, with tokens of its own
+    try { await renewToken(); } catch (e) { setTimeout(connect, 1000); return; }
+  }
+  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host +
+    "/ws?token=" + encodeURIComponent(token));
   S.ws = ws;
   ws.onmessage = (ev) => {
     const m = JSON.parse(ev.data);
