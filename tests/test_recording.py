@@ -439,13 +439,7 @@ CONTROL_NODES = [
         "plugin": "controller_manager",
         "critical": True,
         "heartbeat_deadline_ms": 300,  # above a loaded test machine's stalls: not under test
-        "params": {"max_step_deg": 5, "h2_timeout_ms": 300},
-    },
-    {
-        "name": "h2_sender",
-        "plugin": "h2_sender",
-        "critical": True,
-        "params": {"motion_via_manager": True},
+        "params": {"h2_timeout_ms": 300},
     },
 ]
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
@@ -499,7 +493,7 @@ def test_play_live_never_replays_commands_onto_an_armed_appliance(  # type: igno
     assert marks["/h2/watchdog"] == {"exolink.command": "false"}
 
     live = Appliance(write_config(nodes=CONTROL_NODES), spawn)
-    live.arm()
+    live.arm_and_hold()  # armed and held: a replayed command would move the knee
     s = messaging.open_client_session(live.at)
     logged: list[dict] = []
     log = s.declare_subscriber(
