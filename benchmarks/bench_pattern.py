@@ -1,9 +1,7 @@
-"""Pattern player timing at speed 10 (one set-point every 20 ms), as the timing monitor measures
-it on the bus, with the other core idle and loaded, for each timing mode.
-
-``manager`` (issue 20): the pattern as the controller manager's ``gait_pattern`` controller, one
-set-point per H2 joint-angle frame (10 ms), so its deviations are the H2 cycle's as seen on the
-bus, plus the manager's reaction.
+"""Pattern timing at speed 10 (a row every 20 ms), as the timing monitor measures it on the bus,
+with the other core idle and loaded: the pattern as the controller manager's ``gait_pattern``
+controller, one set-point per H2 joint-angle frame (10 ms), so its deviations are the H2
+cycle's as seen on the bus, plus the manager's reaction.
 
 Goal (issue 5): p99 deviation < 0.05 ms, max < 0.2 ms; the thesis' worst case was 0.4 ms.
 Here the "bus" is udp_multicast, so the figures include the UDP path's own jitter; the
@@ -26,22 +24,24 @@ def _burn(stop: Any) -> None:
         pass
 
 
-def measure(timing: str, loaded: bool, seconds: float) -> dict[str, Any]:
+def measure(loaded: bool, seconds: float) -> dict[str, Any]:
     nodes = [
         # The H2 sends on a hardware timer: its stand-in runs above ordinary load (below the nodes
-        # measured, on this 2-core host); in manager mode its angle frames pace every set-point.
+        # measured, on this 2-core host); its angle frames pace every set-point.
         {"name": "simulator", "plugin": "simulator", "priority": {"fifo": 45}},
         {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        {
+            "name": "controller_manager",  # the one writer: the pattern as its gait controller
+            "plugin": "controller_manager",
+            "critical": True,
+            "heartbeat_deadline_ms": 50,
+            "priority": {"fifo": 50},
+        },
         {
             "name": "pattern_player",
             "plugin": "pattern_player",
             "critical": True,
-            "priority": {"fifo": 50},
-            "params": {
-                "speed": 10,
-                "selected": ["r_hip", "r_knee", "l_hip", "l_knee"],
-                "timing": timing,
-            },
+            "params": {"speed": 10, "selected": ["r_hip", "r_knee", "l_hip", "l_knee"]},
         },
         {
             "name": "timing_monitor",
@@ -50,17 +50,6 @@ def measure(timing: str, loaded: bool, seconds: float) -> dict[str, Any]:
             "params": {"ids": [70, 110]},
         },
     ]
-    if timing == "manager":  # the pattern as the manager's gait_pattern controller
-        nodes.insert(
-            2,
-            {
-                "name": "controller_manager",
-                "plugin": "controller_manager",
-                "critical": True,
-                "heartbeat_deadline_ms": 50,
-                "priority": {"fifo": 50},
-            },
-        )
     app = Appliance(nodes=nodes)
     stop = multiprocessing.Event()
     burners = [
@@ -72,12 +61,11 @@ def measure(timing: str, loaded: bool, seconds: float) -> dict[str, Any]:
         app.arm()
         app.call("pattern", {"action": "start"})
         time.sleep(0.5)
-        # thread/periodic: a set-point per row (20 ms); manager: one per H2 cycle (10 ms)
-        s = messaging_request(app, seconds, 10 if timing == "manager" else 20)
-        if timing == "manager":  # what paces it: the (simulated) H2's own angle frames
-            h = messaging_request(app, seconds, 10, ident=110)
-            s["h2_angle_frames_p99_dev_ms"] = h.get("p99_dev_ms")
-            s["h2_angle_frames_max_dev_ms"] = h.get("max_dev_ms")
+        # one set-point per H2 cycle (10 ms), where the pattern is then
+        s = messaging_request(app, seconds, 10)
+        h = messaging_request(app, seconds, 10, ident=110)  # what paces it: the H2's frames
+        s["h2_angle_frames_p99_dev_ms"] = h.get("p99_dev_ms")
+        s["h2_angle_frames_max_dev_ms"] = h.get("max_dev_ms")
         s["trip_to_last_position_frame_ms"] = pct(trip_trials(app, 3 if seconds < 30 else 10), 1e3)
     finally:
         stop.set()
@@ -159,9 +147,9 @@ def run(quick: bool) -> dict[str, Any]:
     seconds = 10 if quick else 60
     out: dict[str, Any] = {"seconds": seconds, "speed": 10, "period_ms": 20}
     out["timing_monitor_memory"] = timing_monitor_memory(10 if quick else 60)
-    for timing in ("thread", "periodic", "manager"):
+    for timing in ("manager",):  # the one motion path: the controller manager writes
         for loaded in (False, True):
-            s = measure(timing, loaded, seconds)
+            s = measure(loaded, seconds)
             out[f"{timing}_{'loaded' if loaded else 'idle'}"] = {
                 k: s.get(k)
                 for k in (

@@ -25,16 +25,16 @@ NODES = [
         "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
     },
     {
-        "name": "h2_sender",
-        "plugin": "h2_sender",
-        "critical": True,
-        "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
-    },  # killed per SIGSTOP trial
-    {
         "name": "pattern_player",
         "plugin": "pattern_player",
         "critical": True,
-        "heartbeat_deadline_ms": 50,  # a motion node, as in the shipped configs
+        "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
+    },  # killed per SIGSTOP trial: the default deadline
+    {
+        "name": "controller_manager",
+        "plugin": "controller_manager",
+        "critical": True,
+        "heartbeat_deadline_ms": 50,  # the motion node, as in the shipped configs
         "restart": {"max_restarts": 1000, "backoff_initial_ms": 50, "backoff_max_ms": 50},
     },
 ]
@@ -87,8 +87,8 @@ def run(quick: bool) -> dict[str, Any]:
                     break
                 time.sleep(0.005)
             time.sleep(0.3)
-        stop_to_trip = _sigstop_trials(app, bus, "h2_sender", 5 if quick else 10)
-        motion_stop_to_trip = _sigstop_trials(app, bus, "pattern_player", 10 if quick else 30)
+        stop_to_trip = _sigstop_trials(app, bus, "pattern_player", 5 if quick else 10)
+        motion_stop_to_trip = _sigstop_trials(app, bus, "controller_manager", 10 if quick else 30)
         silence_to_trip = []
         for _ in range(5 if quick else 10):
             time.sleep(1.5)  # the simulator streams again

@@ -22,6 +22,7 @@ import yaml
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import CanConfig, bundled
+from exolink.holder import Holder
 
 EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
 
@@ -147,6 +148,7 @@ class Appliance:
             env=env,
         )
         self.session: Any = None
+        self.holder: Holder | None = None
         try:
             self.session = messaging.open_client_session(self.at) if self._wait_up() else None
         except BaseException:  # never leave an appliance running behind a failed benchmark
@@ -184,14 +186,23 @@ class Appliance:
         return next(n for n in self.call("status")["nodes"] if n["name"] == name)
 
     def arm(self, timeout: float = 10) -> None:
+        """Armed, and motion held from here (nothing moves a joint without a holder)."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if self.call("watchdog", {"action": "arm"}).get("ok"):
+                self.hold()
                 return
             time.sleep(0.1)
         raise RuntimeError("could not arm: " + json.dumps(self.call("watchdog", {"action": "arm"})))
 
+    def hold(self) -> None:
+        if self.holder is None or not self.holder.holding:
+            self.holder = Holder(lambda b: self.call("controllers", b), "benchmark")
+            self.holder.acquire()
+
     def close(self) -> None:
+        if self.holder is not None:
+            self.holder.release()
         if self.session is not None:
             self.session.close()
         self.proc.terminate()

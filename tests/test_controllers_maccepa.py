@@ -30,8 +30,8 @@ LIMITS = {"board": 0, "setpoint_min": -60, "setpoint_max": 60, "max_step": 3, "g
 
 
 def manager(**board: Any) -> Manager:
-    limits = Limits.of(default_min(), default_max(), [127] * 6, [100] * 6, "test")
-    return Manager(limits, 60, 50.0, [BoardLimits(**{**LIMITS, **board})])
+    limits = Limits.of(default_min(), default_max(), [127] * 6, [100] * 6, "test", None, 60)
+    return Manager(limits, 50.0, [BoardLimits(**{**LIMITS, **board})])
 
 
 def switch(m: Manager, activate: list[str], state: State = STATE) -> Switch:
@@ -157,7 +157,7 @@ CONTROLLERS = [
 ]
 
 
-def nodes(bridge_via_manager: bool) -> list[dict[str, Any]]:
+def nodes() -> list[dict[str, Any]]:
     return [
         {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
         {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
@@ -176,7 +176,7 @@ def nodes(bridge_via_manager: bool) -> list[dict[str, Any]]:
             "name": "maccepa_bridge",
             "plugin": "maccepa_bridge",
             "critical": True,
-            "params": {"boards": [0], "motion_via_manager": bridge_via_manager},
+            "params": {"boards": [0]},  # it reads; `exolink maccepa` is the manager's
         },
     ]
 
@@ -197,21 +197,19 @@ def lab_board_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     )
 
 
-def appliance(write_config, spawn, via_manager: bool) -> Appliance:  # type: ignore[no-untyped-def]
-    cfg = write_config(
-        nodes=nodes(via_manager), watchdog={"h2_silence_ms": 500, "maccepa_boards": [0]}
-    )
+def appliance(write_config, spawn) -> Appliance:  # type: ignore[no-untyped-def]
+    cfg = write_config(nodes=nodes(), watchdog={"h2_silence_ms": 500, "maccepa_boards": [0]})
     return Appliance(cfg, spawn)
 
 
 @pytest.fixture
 def app(write_config, spawn, lab_board_plugin):  # type: ignore[no-untyped-def]
-    return appliance(write_config, spawn, via_manager=False)
+    return appliance(write_config, spawn)
 
 
 @pytest.fixture
 def routed(write_config, spawn):  # type: ignore[no-untyped-def]
-    return appliance(write_config, spawn, via_manager=True)
+    return appliance(write_config, spawn)
 
 
 def ctl(app: Appliance, *args: str) -> Any:
@@ -250,7 +248,7 @@ def test_setpoint_controller_drives_the_board_conflicts_and_range_refused(app, m
     assert r.returncode == 0 and "maccepa_setpoint" in r.stdout, r.stderr
     r = ctl(app, "activate", "m0")
     assert r.returncode == 5 and "motors not armed" in r.stderr, r.stderr
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "m0").returncode == 0
     r = ctl(app, "command", "m0", "maccepa0=40")
     assert r.returncode == 0, r.stderr
@@ -286,7 +284,7 @@ def test_setpoint_controller_drives_the_board_conflicts_and_range_refused(app, m
 
 
 def test_raising_controller_deactivated_and_its_board_stopped(app, mbus) -> None:  # type: ignore[no-untyped-def]
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "m0").returncode == 0  # gains kp=2, so the board moves
     assert ctl(app, "command", "m0", "maccepa0=30").returncode == 0
     wait_for(lambda: any(abs(v - 30) <= 1 for v in lever(mbus)), timeout=10)
@@ -308,7 +306,7 @@ def test_raising_controller_deactivated_and_its_board_stopped(app, mbus) -> None
 
 
 def test_estop_leaves_the_board_stopped_and_the_controller_inactive(app, mbus) -> None:  # type: ignore[no-untyped-def]
-    app.arm()
+    app.arm_and_hold()
     assert ctl(app, "activate", "m0").returncode == 0
     assert ctl(app, "command", "m0", "maccepa0=-20").returncode == 0
     wait_for(lambda: setpoints(collect(mbus, 0.1, {40}))[-1:] == [-20.0])
@@ -326,22 +324,26 @@ def test_estop_leaves_the_board_stopped_and_the_controller_inactive(app, mbus) -
     assert setpoints(collect(mbus, 0.4, {40})) == []
 
 
-def test_bridge_forwards_through_the_manager(routed, mbus) -> None:  # type: ignore[no-untyped-def]
+def test_maccepa_commands_are_the_managers(routed, mbus) -> None:  # type: ignore[no-untyped-def]
     app = routed
-    app.arm()
+    app.arm_and_hold()
     r = app.cli("maccepa", "0", "gains", "--kp", "2")
     assert r.returncode == 0 and "held by controller operator.maccepa0.gains" in r.stdout, r
     r = app.cli("maccepa", "0", "setpoint", "25")
     assert r.returncode == 0 and "held by controller operator.maccepa0.setpoint" in r.stdout, r
     wait_for(lambda: setpoints(collect(mbus, 0.1, {40}))[-1:] == [25.0])
     wait_for(lambda: any(abs(v - 25) <= 1 for v in lever(mbus)), timeout=10)
-    # the manager's limits apply to the bridge's commands too, refused verbatim
+    # the board's limits apply to `exolink maccepa` too, refused verbatim
     r = app.cli("maccepa", "0", "setpoint", "70")
     assert r.returncode == 5 and "outside the board's range -60..60" in r.stderr, r.stderr
-    # a board another controller drives: refused with the owner named
-    r = ctl(app, "activate", "m0b")
-    assert r.returncode == 5 and "owned by operator.maccepa0.setpoint" in r.stderr, r.stderr
-    # stop stays with the bridge (straight to the bus) and releases the operator's hold
+    # a controller activated on the board takes it over from the operator's one-off hold
+    assert ctl(app, "activate", "m0b").returncode == 0
+    held = listing(app)["owners"]
+    assert held["maccepa0/setpoint"] == "m0b", held
+    assert ctl(app, "deactivate", "m0b").returncode == 0
+    r = app.cli("maccepa", "0", "setpoint", "25")
+    assert r.returncode == 0 and "held by controller operator.maccepa0.setpoint" in r.stdout, r
+    # stop goes straight to the bus and releases the operator's hold
     assert app.cli("maccepa", "0", "stop").returncode == 0
     wait_for(lambda: "operator.maccepa0.setpoint" not in listing(app)["owners"].values())
     collect(mbus, 0.2)

@@ -105,11 +105,14 @@ def test_roles_decide_who_may_do_what(guarded) -> None:  # type: ignore[no-untyp
             assert "role; this login is observer" in r.stderr, (cmd, r.stderr)
         r = app.cli("record", "start", login=obs)
         assert r.returncode == 5 and "needs the operator role" in r.stderr
+        r = app.cli("hold", login=obs)  # holding motion is the operator's
+        assert r.returncode == 5 and "needs the operator role" in r.stderr, r.stderr
         assert app.cli("nodes", login=obs).returncode == 0
         assert app.node("recorder")["state"] == "running"
 
-        # operator: arms, commands, records; cannot stop nodes.
+        # operator: arms, holds motion, commands, records; cannot stop nodes.
         app.arm_as(op)
+        app.hold(login=op)
         r = app.cli("send", "position", "l_knee", "20", login=op)
         assert r.returncode == 0, r.stderr
         r = app.cli("stop", "recorder", login=op)
@@ -183,6 +186,8 @@ def test_commands_are_written_into_the_recording(guarded) -> None:  # type: igno
     app, _board_file, logins = guarded
     op = logins["operator"]
     assert app.cli("record", "start", "--label", "subject=S01", login=op).returncode == 0
+
+    app.hold(login=op)
 
     def armed_and_sent() -> bool:  # a loaded machine can trip the watchdog in between: again
         app.arm_as(op)

@@ -138,6 +138,10 @@ def test_a_ros2_laptop_sees_echoes_calls_and_publishes(appliance) -> None:  # ty
     r = call("/h2/joint_command", "exolink_msgs/srv/SendJointCommand", jc, joint="r_knee",
              mode="position", setpoint=300, stiffness=0)  # fmt: skip
     assert not r.success and "outside" in r.message  # the CLI's validation, verbatim
+    r = call("/h2/joint_command", "exolink_msgs/srv/SendJointCommand", jc, joint="r_knee",
+             mode="position", setpoint=30, stiffness=0)  # fmt: skip
+    assert not r.success and "nobody holds motion" in r.message  # presence binds ROS 2 too
+    app.hold()  # the operator's laptop holds motion (`exolink hold`)
 
     # A message a ROS 2 node publishes reaches the appliance: a joint command on /h2/cmd/joint,
     # validated and sent as the CLI's is, and logged with the publisher's GID.
