@@ -452,7 +452,7 @@ def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -
     assert status["device"] == "exo-01"
     assert status["bus"]["interface"] == "udp_multicast"
     names = {n["name"] for n in status["nodes"]}
-    assert {"simulator", "h2_reader", "h2_sender", "pattern_player", "recorder"} <= names
+    assert {"simulator", "h2_reader", "controller_manager", "pattern_player", "recorder"} <= names
     assert all(_beating(n) for n in status["nodes"]), [
         {k: n[k] for k in ("name", "enabled", "state", "restarts", "heartbeat_age_s")}
         for n in status["nodes"]

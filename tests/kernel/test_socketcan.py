@@ -220,16 +220,17 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
     nodes = [
         {"name": "simulator", "plugin": "simulator"},
         {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-        {"name": "h2_sender", "plugin": "h2_sender", "critical": True},
+        {
+            "name": "controller_manager",  # the one writer: set-points every 20 ms, as on the board
+            "plugin": "controller_manager",
+            "critical": True,
+            "params": {"cycles_per_update": 2, "h2_timeout_ms": 300},
+        },
         {
             "name": "pattern_player",
             "plugin": "pattern_player",
             "critical": True,
-            "params": {
-                "speed": 10,
-                "timing": "periodic",
-                "selected": ["r_hip", "r_knee", "l_hip", "l_knee"],
-            },
+            "params": {"speed": 10, "selected": ["r_hip", "r_knee", "l_hip", "l_knee"]},
         },
         {"name": "timing_monitor", "plugin": "timing_monitor", "params": {"ids": [70]}},
     ]
@@ -247,17 +248,20 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
             time.sleep(0.3)
         assert armed.returncode == 0, armed.stderr
         phases.mark("armed")
-        # the broadcast manager plays the pattern; the timing monitor measures kernel timestamps
+        # the operator holds motion (as `exolink hold` in a terminal), the manager plays the
+        # pattern; the timing monitor measures kernel timestamps
+        holder = subprocess.Popen([*EXOLINK, "hold"], stdout=subprocess.PIPE, text=True)
+        assert holder.stdout is not None and "holding motion" in holder.stdout.readline()
         started = cli("pattern", "start", "--detach")
         assert started.returncode == 0, started.stderr
         r = cli("timing", "70", "--motor", "1", "--dlc", "6", "--seconds", "10", "--json")
         stats = json.loads(r.stdout)
         phases.mark("pattern timed")
-        print("BCM timing in the UML guest:", json.dumps(stats))
+        print("pattern timing in the UML guest:", json.dumps(stats))
         (Path(os.environ.get("EXOLINK_KERNEL_RESULTS", tmp_path)) / "bcm-timing.json").write_text(
             json.dumps(stats)
         )
-        # behaviour, not a performance bound: the kernel plays the pattern at the speed-10 rate
+        # behaviour, not a performance bound: the pattern goes out at the speed-10 rate
         assert stats["n"] > 300 and 18 < stats["mean_period_ms"] < 22
         assert stats["socket_dropped"] == 0
         # kill -9 of the reader: the watchdog's disable frames, seen by an independent socket
@@ -281,7 +285,7 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
         frames = [h2.decode(m) for m in drain(bus, 3.0, {70})]
         disabled = {f for f in frames if isinstance(f, h2.JointControl) and f.mode == 4}
         assert disabled == {h2.JointControl(m, 4, 0, 0) for m in range(1, 7)}
-        # and the pattern's kernel task stopped with the trip: no more position frames
+        # and the pattern stopped with the trip: no more position frames
         time.sleep(0.3)
         drain(bus, 0.1)
         late = [
@@ -293,6 +297,8 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
         phases.mark("disabled")
     finally:
         print("appliance test phases in the UML guest (s):", phases)
+        if "holder" in locals():
+            holder.kill()
         bus.shutdown()
         up.terminate()
         up.wait(30)
