@@ -6,11 +6,11 @@ import argparse
 import json
 import sys
 import threading
-from datetime import UTC, datetime
 from typing import Any
 
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.remote import _decimal, _guard, _Leaves, common, remote
+from exolink.mcapcheck import iso
 from exolink.recording import REPLAY_PREFIX
 
 
@@ -82,10 +82,6 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
     return wrapped
 
 
-def _iso(ns: int) -> str:
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
-
-
 @_guard_file
 def cmd_info(args: argparse.Namespace) -> int:
     from exolink.recording import info
@@ -95,7 +91,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         sys.stdout.write(json.dumps({**vars(i), "duration_s": i.duration_s}, indent=2) + "\n")
         return 0
     sys.stdout.write(
-        f"file      {i.path}\nstart     {_iso(i.start_ns)}\nduration  {i.duration_s:.3f} s\n"
+        f"file      {i.path}\nstart     {iso(i.start_ns)}\nduration  {i.duration_s:.3f} s\n"
         f"messages  {i.messages}\n"
     )
     for k, v in i.metadata.get("exolink.labels", {}).items():
@@ -106,7 +102,7 @@ def cmd_info(args: argparse.Namespace) -> int:
             f"recorder  received {stats.get('received')} written {stats.get('written')} dropped {stats.get('dropped')}\n"
         )
     sys.stdout.write(
-        f"triggers  {len(i.triggers)}" + "".join(f"\n  {_iso(t)}" for t in i.triggers) + "\n"
+        f"triggers  {len(i.triggers)}" + "".join(f"\n  {iso(t)}" for t in i.triggers) + "\n"
     )
     sys.stdout.write(f"checked   {_checked(i.integrity)}\n")
     for topic, t in sorted(i.topics.items()):
