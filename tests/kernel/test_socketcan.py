@@ -172,7 +172,13 @@ def write_config(tmp_path: Path, channel: str, nodes: list[dict]) -> Path:
     # set them for a slow machine; silence detection itself is tested on the host (test_watchdog).
     # 1 s was not enough once in five full runs: the watchdog saw no angle frame for 1.6 s while
     # a CLI process started in the guest (its imports take seconds of the one UML CPU).
-    data["watchdog"].update(h2_silence_ms=3000, heartbeat_deadline_ms=2000, start_grace_ms=60_000)
+    # The holder's keep-alive too: a CLI process starting takes the one CPU for seconds.
+    data["watchdog"].update(
+        h2_silence_ms=3000,
+        heartbeat_deadline_ms=2000,
+        start_grace_ms=60_000,
+        operator_lost_ms=15_000,
+    )
     path = tmp_path / "appliance.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -255,6 +261,7 @@ def test_appliance_on_vcan_kill9_disables_and_bcm_timing(vcan0: str, tmp_path: P
         started = cli("pattern", "start", "--detach")
         assert started.returncode == 0, started.stderr
         r = cli("timing", "70", "--motor", "1", "--dlc", "6", "--seconds", "10", "--json")
+        assert r.returncode == 0, (r.stderr, cli("status").stdout)
         stats = json.loads(r.stdout)
         phases.mark("pattern timed")
         print("pattern timing in the UML guest:", json.dumps(stats))
