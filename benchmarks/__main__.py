@@ -20,6 +20,7 @@ SUITES = [
     "pattern",
     "recorder",
     "controllers",
+    "presence",
     "ros2",
     "dashboard",
 ]
