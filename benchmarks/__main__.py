@@ -20,6 +20,7 @@ SUITES = [
     "pattern",
     "recorder",
     "controllers",
+    "command",
     "presence",
     "ros2",
     "dashboard",

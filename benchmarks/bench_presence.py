@@ -18,25 +18,15 @@ from typing import Any
 
 from exolink.protocol import h2
 
-from benchmarks.harness import EXOLINK, Appliance, Drained, pct
+from benchmarks.harness import EXOLINK, Appliance, Drained, motion_nodes, pct
 
 LOST_MS = 2000  # watchdog.operator_lost_ms, as shipped
-NODES = [
-    {"name": "simulator", "plugin": "simulator"},
-    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-    {
-        "name": "controller_manager",
-        "plugin": "controller_manager",
-        "critical": True,
-        "heartbeat_deadline_ms": 50,
-    },
-    {
-        "name": "pattern_player",
-        "plugin": "pattern_player",
-        "critical": True,
-        "params": {"speed": 10, "selected": ["r_hip", "r_knee", "l_hip", "l_knee"]},
-    },
-]
+PLAYER = {
+    "name": "pattern_player",
+    "plugin": "pattern_player",
+    "critical": True,
+    "params": {"speed": 10, "selected": ["r_hip", "r_knee", "l_hip", "l_knee"]},
+}
 
 
 def _trial(app: Appliance, bus: Drained, sig: int) -> tuple[float, int] | None:
@@ -82,7 +72,7 @@ def _position(m: Any) -> bool:
 
 def run(quick: bool) -> dict[str, Any]:
     trials = 3 if quick else 8
-    app = Appliance(nodes=NODES)
+    app = Appliance(nodes=motion_nodes(PLAYER))
     bus = Drained(app.group)
     out: dict[str, Any] = {"operator_lost_ms": LOST_MS, "trials": trials}
     try:

@@ -123,6 +123,22 @@ class Drained:
         self.bus.shutdown()
 
 
+def motion_nodes(*extra: dict[str, Any]) -> list[dict[str, Any]]:
+    """The simulated H2, its reader and the controller manager (the motion node, on the shipped
+    50 ms deadline), and ``extra`` nodes."""
+    return [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        {
+            "name": "controller_manager",
+            "plugin": "controller_manager",
+            "critical": True,
+            "heartbeat_deadline_ms": 50,
+        },
+        *extra,
+    ]
+
+
 class Appliance:
     """``exolink up`` on its own multicast group and port, with overrides of the sim config."""
 

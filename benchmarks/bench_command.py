@@ -1,0 +1,56 @@
+"""Operator command latency: a joint command from a laptop's session (what `exolink send
+position` and the dashboard send) to its frame on the bus, seen by an independent listener.
+
+The request goes laptop -> router -> the controller manager, which checks it once (limits in
+force, armed, a holder, the owner) and holds it in the joint's operator controller: the frame
+leaves at the manager's next cycle, so the figure is one Zenoh round trip, the checks and up to
+one H2 period (10 ms) of waiting. Set-points alternate by 2 deg, inside one step, so the first
+frame after the request carries it.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from exolink.protocol import h2
+
+from benchmarks.harness import Appliance, Drained, motion_nodes, pct
+
+
+def run(quick: bool) -> dict[str, Any]:
+    n = 50 if quick else 300
+    app = Appliance(nodes=motion_nodes())
+    bus = Drained(app.group)
+    request_ms, frame_ms = [], []
+    try:
+        app.arm()
+        for i in range(n):
+            sp = 30 + 2 * (i % 2)
+            bus.clear()
+            t0 = time.time()
+            body = {"kind": "joint", "joint": "r_knee", "mode": "position", "setpoint": sp}
+            reply = app.call("h2/command", body)
+            t1 = time.time()
+            if not reply.get("ok"):
+                continue
+            m = bus.wait_for(lambda m, sp=sp: _is(m, sp), 1.0)
+            if i == 0 or m is None:  # the first one makes and activates the joint's controller
+                continue
+            request_ms.append(t1 - t0)
+            frame_ms.append(m.timestamp - t0)
+            time.sleep(0.02)
+    finally:
+        bus.close()
+        app.close()
+    return {
+        "trials": len(frame_ms),
+        "hops": "laptop -> router -> controller_manager (one)",
+        "request_round_trip_ms": pct(request_ms, 1e3),
+        "to_frame_on_bus_ms": pct(frame_ms, 1e3),
+    }
+
+
+def _is(m: Any, sp: int) -> bool:
+    f = h2.decode(m)
+    return isinstance(f, h2.JointControl) and f.motor == 2 and f.mode == 1 and f.setpoint == sp
