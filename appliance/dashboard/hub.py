@@ -277,7 +277,10 @@ class Hub:
                 self.remote.session, key, body, self.remote.timeout, self.remote.user
             )
 
-        holder = Holder(call, describe("exolink dashboard"))
+        def ended(why: str) -> None:  # taken over by another holder: the pages are told
+            self._emit({"t": "notice", "text": f"this dashboard no longer holds motion: {why}"})
+
+        holder = Holder(call, describe("exolink dashboard"), ended)
         try:
             holder.acquire()
         except (HoldRefused, messaging.Unreachable) as exc:

@@ -622,6 +622,7 @@ async function connect() {
       case "pattern": onPattern(m); break;
       case "record": onRecord(m); break;
       case "log": onLog(m); break;
+      case "notice": notice(m.text); break;
     }
   };
   ws.onopen = () => { $("#conn").textContent = "online"; if ($("#log-follow").checked) follow(); };
