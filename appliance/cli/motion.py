@@ -32,7 +32,7 @@ def _show(s: dict[str, Any]) -> str:
     why = f" ({s['reason']})" if s.get("reason") else ""
     return (
         f"{s['state']}{why}  point {s['index']}/{s['length']}  speed {s['speed']} ({s['period_ms']} ms)  "
-        f"joints {','.join(s['selected']) or '-'}  timing {s['timing']}  sent {s['sent']}"
+        f"joints {','.join(s['selected']) or '-'}  sent {s['sent']}"
     )
 
 
