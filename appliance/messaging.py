@@ -10,12 +10,13 @@ Management uses JSON queries under ``exolink/<device>/...``; every reply says ok
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import struct
 import threading
 import time
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -353,6 +354,27 @@ def stamp_ns(t: Any) -> int:
 
 # --- sessions --------------------------------------------------------------------------------
 
+# What the router does to every message it receives: a put, delete or query may wait for room
+# in a transmit queue at most Zenoh's wait_before_drop (1 ms; 50 ms for the rest of a fragmented
+# one), never wait_before_close (5 s). A query's replies travel with its QoS (Zenoh 1.10: "to
+# avoid priority inversion"; a reply's own cannot be overwritten), so a client that asks with
+# congestion control Block and then stops reading made every reply to it block the router, and
+# with it every e-stop and the watchdog's word to the nodes, until Zenoh closed that client 5 s
+# later. Dropped instead, a reply nobody reads costs nothing; one a client wanted and lost to a
+# full queue ends its query without an answer (its own timeout says so).
+ROUTER_QOS = [
+    {
+        "id": "nothing_blocks_the_router",
+        "messages": ["put", "delete", "query"],
+        "flows": ["ingress"],
+        "overwrite": {"congestion_control": "drop"},
+    }
+]
+# The most the router takes in one message (transport/link/rx/max_message_size): the largest
+# request any login may send (roles.MAX_REQUEST_BYTES) and room for its framing. Zenoh's own
+# default, 1 GiB, let any client make the router hold that much while it reassembled it.
+MAX_MESSAGE_BYTES = max(roles.MAX_REQUEST_BYTES.values()) + (64 << 10)
+
 
 def session_config(
     zcfg: ZenohConfig,
@@ -386,6 +408,9 @@ def session_config(
             "connect/timeout_ms",
             json.dumps({"router": -1, "peer": -1, "client": CLIENT_CONNECT_TIMEOUT_MS}),
         )
+    if mode == "router":
+        cfg.insert_json5("qos/network", json.dumps(ROUTER_QOS))
+        cfg.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
     if mode == "router" and roles.enforced(json.loads(cfg.get_json("transport/auth/usrpwd"))):
         acl = roles.access_control(zcfg.domain_id, zcfg.namespace)
         cfg.insert_json5("access_control", json.dumps(acl))
@@ -393,6 +418,14 @@ def session_config(
 
 
 ZENOH_RUNTIME = "ZENOH_RUNTIME"  # read by Zenoh once, when a process first opens a session
+
+
+def _runtime_setting(threads: int, own_tx: bool = False) -> str:
+    """Every Zenoh runtime handed to ``threads`` app workers; ``own_tx``: but transmission."""
+    names = ("rx", "acc", "net") if own_tx else ("rx", "tx", "acc", "net")
+    handover = ", ".join(f"{n}: (handover: app)" for n in names)
+    tx = ", tx: (worker_threads: 1)" if own_tx else ""
+    return f"({handover}, app: (worker_threads: {threads}){tx})"
 
 
 def zenoh_runtime(zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ) -> str | None:
@@ -404,12 +437,37 @@ def zenoh_runtime(zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ)
     several of them in each process. On one core each hand-over is a thread wake-up, and on the
     board proxy a wake-up costs ~1 ms of CPU (benchmarks/board/units.py). Handlers that query
     another node from inside a queryable (the sender handing a position to the manager) still
-    answer with one thread (tests/test_zenoh_runtime.py)."""
+    answer with one thread (tests/test_zenoh_runtime.py). The router is the exception
+    (``router_runtime``)."""
     if zcfg.threads is not None and ZENOH_RUNTIME not in env:
-        names = ("rx", "tx", "acc", "net")
-        handover = ", ".join(f"{n}: (handover: app)" for n in names)
-        env[ZENOH_RUNTIME] = f"({handover}, app: (worker_threads: {zcfg.threads}))"
+        env[ZENOH_RUNTIME] = _runtime_setting(zcfg.threads)
     return env.get(ZENOH_RUNTIME)
+
+
+@contextlib.contextmanager
+def router_runtime(
+    zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ
+) -> Iterator[str | None]:
+    """While the router's session opens (its process's first), the runtimes of ``zenoh.threads``
+    with transmission on a thread of its own; afterwards the environment is the nodes' again.
+
+    Why: a router forwards a message on the thread that received it, and pushing it into the
+    next link's transmit queue blocks until that queue has room; with transmission handed to
+    the same single thread, nothing empties the queue. A message larger than the queue (2
+    batches of 64 KB per priority) then stalled every client for 5 s (Zenoh's
+    ``wait_before_close``) and Zenoh closed the next hop's link: a 100 KB query to a node was
+    lost, an e-stop behind it 5 s late. Two app workers do not help (the blocked worker's
+    transmit task stays queued on it). Nodes keep one thread: their large pushes (replies,
+    commands) come from Python threads, never from Zenoh's own."""
+    setting = env.get(ZENOH_RUNTIME)
+    ours = zcfg.threads is not None and setting == _runtime_setting(zcfg.threads)
+    if ours:
+        env[ZENOH_RUNTIME] = _runtime_setting(zcfg.threads or 1, own_tx=True)
+    try:
+        yield env.get(ZENOH_RUNTIME)
+    finally:
+        if ours and setting is not None:
+            env[ZENOH_RUNTIME] = setting
 
 
 def login(cfg: zenoh.Config) -> str:
@@ -445,7 +503,8 @@ def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
     zcfg = session_config(
         cfg.zenoh, listen=cfg.zenoh.listen, connect=cfg.zenoh.connect, mode="router"
     )
-    return open_session(zcfg, f"listening on {', '.join(cfg.zenoh.listen)}")
+    with router_runtime(cfg.zenoh):
+        return open_session(zcfg, f"listening on {', '.join(cfg.zenoh.listen)}")
 
 
 def open_client_session(
