@@ -22,7 +22,6 @@ import contextlib
 import csv
 import json
 import math
-import os
 import time
 import uuid
 from collections.abc import Callable
@@ -419,8 +418,6 @@ class Hub:
         body = dict(cmd.body)
         if cmd.path == ("pattern",) and body.get("action") == "start":
             body["operator"] = self.operator
-        if cmd.path == ("watchdog",) and body.get("action") == "estop":
-            body["by"] = f"dashboard ({os.environ.get('USER', self.role)})"
         timeout = cmd.timeout_s or self.remote.timeout
         try:
             reply = await asyncio.to_thread(self._call, cmd.path, body, timeout)
