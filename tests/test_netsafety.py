@@ -24,8 +24,9 @@ import structlog
 import yaml
 from conftest import Appliance, wait_for
 from exolink import messaging, roles
-from exolink.config import bundled
+from exolink.config import NodeConfig, bundled
 from exolink.protocol import h2
+from exolink.supervisor import processes
 from test_roles import board_logins
 
 NODES = [
@@ -253,6 +254,29 @@ def test_junk_is_refused_cleanly_and_the_log_stays_small(app) -> None:  # type: 
     finally:
         s.close()
     assert "Traceback" not in app.proc.output()
+
+
+def test_a_nodes_output_is_kept_in_bounded_lines_at_a_bounded_rate() -> None:
+    """A node's 1 MB line and a burst of 5000 lines: what the supervisor keeps and relays is
+    cut (LOG_LINE_BYTES) and rate-limited, with the dropped lines counted."""
+    relayed: list[str] = []
+    node = processes.NodeProcess(
+        NodeConfig(name="noisy", plugin="h2_sender"),
+        "",
+        lambda _e: None,
+        lambda _n, line: relayed.append(line),
+    )
+    code = "print('x' * 1_000_000, flush=True)\nfor i in range(5000): print(i)\nprint('last')"
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    t0 = time.monotonic()
+    node._read(proc)  # type: ignore[arg-type]
+    took = time.monotonic() - t0
+    proc.wait()
+    assert max(len(line) for line in relayed) < 5000  # 4 KiB and the note that it was cut
+    assert relayed[0].endswith("(line cut at 4096 bytes)")
+    assert len(relayed) < 500 + 100 * took + 10  # the burst, then 100 a second (5002 before)
+    assert any(line.endswith("dropped (over 100 a second)") for line in relayed)
+    assert list(node.logs) == relayed[-processes.LOG_LINES :]
 
 
 def test_unreadable_samples_are_counted_in_bounded_kinds() -> None:
