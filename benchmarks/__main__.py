@@ -22,6 +22,7 @@ SUITES = [
     "controllers",
     "ros2",
     "dashboard",
+    "netsafety",
 ]
 
 
