@@ -312,6 +312,11 @@ class _Reader:
         return int(n)
 
 
+def string_of(payload: bytes) -> str:
+    """The text of a std_msgs/String; ValueError when the payload is not one."""
+    return _Reader(payload, "String").string()
+
+
 def watchdog_event(payload: bytes) -> tuple[str, str, str, int]:
     """(state, reason, detail, frames_sent) of an exolink_msgs/WatchdogEvent; ValueError when
     the payload is not one (it comes over the network: checked, never trusted)."""

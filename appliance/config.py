@@ -77,7 +77,10 @@ class ZenohConfig(_Strict):
     config_file: str | None = None
     # Zenoh's worker threads per appliance process (messaging.zenoh_runtime): 1 hands all of
     # Zenoh's runtimes (rx, tx, accept, net) to one thread, so a sample is not passed between
-    # threads on a single core; unset keeps Zenoh's own (about five). ZENOH_RUNTIME wins.
+    # threads on a single core; unset keeps Zenoh's own (about five). ZENOH_RUNTIME wins. The
+    # supervisor's router transmits on one thread more (messaging.router_runtime): with one,
+    # a message larger than a link's transmit queue (~128 KB) stalled it 5 s and was lost, and
+    # with two app threads too.
     threads: Annotated[int, msgspec.Meta(ge=1, le=4)] | None = None
 
 

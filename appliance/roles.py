@@ -61,6 +61,25 @@ ALL_MESSAGES = [
 ]
 
 
+# The largest request each login may send, refused before it is parsed (exolink.messaging.serve)
+# and never quoted back. An observer asks for status and may e-stop: a few hundred bytes. An
+# operator uploads a gait pattern (pattern_player: CSV text up to 1 MiB, JSON-escaped: ~1 byte
+# more per row) and an admin sets params: 2 MiB. The appliance's own processes hand whole
+# trajectories to the controller manager (10,000 rows of JSON numbers, ~1 MB): 4 MiB. The
+# router takes no message above the largest (messaging.MAX_MESSAGE_BYTES).
+MAX_REQUEST_BYTES: dict[str, int] = {
+    OBSERVER: 4 << 10,
+    OPERATOR: 2 << 20,
+    ADMIN: 2 << 20,
+    APPLIANCE_USER: 4 << 20,
+}
+
+
+def known(user: str) -> bool:
+    """A login this appliance has (a key may end in anything)."""
+    return user in _RANK
+
+
 class Forbidden(Exception):
     """A caller's role does not allow the request; the text names both."""
 

@@ -19,6 +19,7 @@ the board); ``service_fielddefs`` is what both the table and the CDR use.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -27,7 +28,7 @@ from typing import Any
 
 import structlog
 import zenoh
-from exolink import roles, rosgraph
+from exolink import logs, roles, rosgraph
 
 _log = structlog.get_logger("exolink.ros2")
 
@@ -107,9 +108,16 @@ def service_hashes(store: Any, names: list[str]) -> dict[str, str]:
 Handler = Callable[[Any], dict[str, Any]]
 
 
+MAX_PENDING = 32  # calls of one service waiting for the workers; more are refused ("busy")
+
+
 class ServiceServer:
     """One ROS 2 service: queryable, SS token, and the calls handed to a worker thread (a
-    handler may query a node; Zenoh's callback threads are not for blocking)."""
+    handler may query a node; Zenoh's callback threads are not for blocking), at most
+    MAX_PENDING waiting (an unbounded queue held every call a flood sent). ``urgent`` (the
+    e-stop): the handler runs at once on the callback thread, before the request is decoded
+    (it needs none: the first call would otherwise load the typestore first, seconds on the
+    board), never behind another service's calls."""
 
     def __init__(
         self,
@@ -118,15 +126,19 @@ class ServiceServer:
         srv_type: str,
         handler: Handler,
         workers: ThreadPoolExecutor,
+        urgent: bool = False,
     ) -> None:
         from exolink import messaging
 
         self._messaging = messaging
         self.msg, self.name, self.srv_type, self.handler = msg, name, srv_type, handler
+        self.urgent = urgent
+        self.pending = self.refused = 0
         self.key = msg.key(name, srv_type)
         self.request_type, self.response_type = f"{srv_type}_Request", f"{srv_type}_Response"
         self._store: Any = None  # the typestore, at the first call (see _codec)
         self._workers = workers
+        self._lock = threading.Lock()
         self._q = msg.session.declare_queryable(self.key, self._on_query, complete=True)
         self._token = msg.graph.declare(
             rosgraph.SERVICE,
@@ -137,7 +149,27 @@ class ServiceServer:
         )
 
     def _on_query(self, query: zenoh.Query) -> None:
-        self._workers.submit(self._answer, query)
+        if self.urgent:
+            self._answer(query)
+            return
+        with self._lock:
+            full = self.pending >= MAX_PENDING
+            self.pending += not full
+            self.refused += full
+            refused = self.refused
+        if full:
+            if logs.rarely(refused):
+                _log.warning("ros2_service_busy", service=self.name, refused=refused)
+            query.reply_err(f"{self.name}: busy ({MAX_PENDING} calls wait)".encode())
+            return
+        self._workers.submit(self._pending_answer, query)
+
+    def _pending_answer(self, query: zenoh.Query) -> None:
+        try:
+            self._answer(query)
+        finally:
+            with self._lock:
+                self.pending -= 1
 
     def _answer(self, query: zenoh.Query) -> None:
         try:
@@ -146,13 +178,15 @@ class ServiceServer:
                 raise ValueError("no rmw_zenoh attachment (sequence number, client GID)")
             seq, _, gid = rosgraph.decode_attachment(att.to_bytes())
             payload = query.payload.to_bytes() if query.payload is not None else b""
+            fields = self.handler(None) if self.urgent else None  # acted on before decoding
             store = self._codec()
             request = store.deserialize_cdr(payload, self.request_type)
         except (ValueError, KeyError, IndexError) as exc:  # not a ROS 2 call: say so, no reply
-            query.reply_err(f"{self.key}: not a ROS 2 request: {exc}".encode())
+            query.reply_err(f"{self.key}: not a ROS 2 request: {exc}".encode()[:300])
             return
         try:
-            fields = self.handler(request)
+            if fields is None:
+                fields = self.handler(request)
             response = store.types[self.response_type](**fields)
             body = bytes(store.serialize_cdr(response, self.response_type))
         except Exception as exc:  # a caller never waits out its timeout on a bug of ours

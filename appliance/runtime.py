@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import signal
 import sys
@@ -63,6 +64,10 @@ class NodeRunner:
 
     def _heartbeat(self) -> None:
         pub = self.msg.publisher(f"nodes/{self.name}/{HEARTBEAT_TOPIC}", HEARTBEAT_TYPE, raw=True)
+        api = self.msg.publisher(
+            messaging.API_TOPIC.format(node=self.name), messaging.API_TYPE, raw=True
+        )
+        refused: dict[str, int] = {}  # as last put: nothing is put while nothing is refused
         beat = cdr.HeartbeatCdr(self.name, os.getpid())
         period = beat_period_s(self.cfg.deadline_s(self.cfg.node(self.name)))
         next_t = next_telemetry = time.monotonic()
@@ -100,9 +105,13 @@ class NodeRunner:
                     next_telemetry += TELEMETRY_PERIOD_S
                     now = time.time_ns()
                     pub.put(beat.encode(now, self._count), now)
+                    if (now_refused := self.msg.admission.refused()) != refused:
+                        refused = now_refused
+                        api.put(cdr.string_msg(json.dumps(refused)), now)
             next_t += period
             self.stop.wait(max(0.0, next_t - time.monotonic()))
         pub.close()
+        api.close()
 
     def _params(self, req: dict[str, Any]) -> dict[str, Any]:
         if "set" in req:

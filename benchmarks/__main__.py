@@ -24,6 +24,7 @@ SUITES = [
     "presence",
     "ros2",
     "dashboard",
+    "netsafety",
 ]
 
 

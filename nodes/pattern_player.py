@@ -61,8 +61,6 @@ GONE = ("is not active", "no controller")  # a deactivation that finds the gait 
 # manager's) and keeps the default liveness deadline.
 BEAT_S = 0.25
 STATE_EVERY = 4  # beats: the state goes out once a second, and at every change
-# Commands that ask the manager (they wait for it): on a thread of their own, never on Zenoh's.
-ASKS_MANAGER = ("start", "stop", "pause", "restart", "speed", "disable")
 Joint = Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]
 
 
@@ -175,12 +173,7 @@ class PatternPlayer(Node):
             )
         )
         self.own(
-            self.ctx.messaging.serve(
-                "pattern",
-                self.on_command,
-                roles.status_or(roles.OPERATOR),
-                slow=lambda req: req.get("action") in ASKS_MANAGER,
-            )
+            self.ctx.messaging.serve("pattern", self.on_command, roles.status_or(roles.OPERATOR))
         )
 
     # --- commands -------------------------------------------------------------------------

@@ -73,7 +73,10 @@ class Remote:
         """The reply as it came, refusals included (``ok``, ``error``); Unreachable when
         nothing answers."""
         key = messaging.mgmt_key(self.device, *path)
-        return messaging.request(self.session, key, body or {}, self.timeout, self.user)
+        try:
+            return messaging.request(self.session, key, body or {}, self.timeout, self.user)
+        except messaging.RequestTooLarge as exc:
+            raise Refused(str(exc)) from None
 
     def selector(self, topic: str) -> str:
         if topic.startswith("/"):
@@ -576,6 +579,26 @@ def _node_table(nodes: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n(* critical)\n"
 
 
+def _api_lines(s: dict[str, Any]) -> str:
+    """What the management API did with requests: the supervisor's counts, then each node's
+    refusals (too large, over its login's rate, queue full, ...), and unreadable samples."""
+    api = s.get("api")
+    if api is None:  # an older supervisor
+        return ""
+    refused = {k: v for k, v in api.items() if not k.startswith(("handled", "urgent")) and v}
+    text = f"api      handled {api.get('handled', 0)}  urgent {api.get('urgent', 0)}"
+    if api.get("urgent_unlogged"):
+        text += f" ({api['urgent_unlogged']} not in the command log)"
+    text += "  refused " + (", ".join(f"{k} {v}" for k, v in refused.items()) or "0") + "\n"
+    for n in s["nodes"]:
+        if n.get("api_refused"):
+            counts = ", ".join(f"{k} {v}" for k, v in n["api_refused"].items())
+            text += f"         {n['name']} refused {counts}\n"
+    if bad := s.get("bad_samples"):
+        text += f"samples  unreadable {sum(bad.values())} ({len(bad)} kinds)\n"
+    return text
+
+
 @_guard
 def cmd_status(args: argparse.Namespace) -> int:
     with remote(args) as r:
@@ -600,7 +623,9 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"  socket drops {'n/a' if wd.get('socket_dropped') is None else wd['socket_dropped']}\n"
         f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
         f"h2 silent {bus.get('h2_silent_s')} s\n"
-        f"trigger  {trig['source']} count={trig['count']}\n" + _node_table(s["nodes"])
+        f"trigger  {trig['source']} count={trig['count']}\n"
+        + _api_lines(s)
+        + _node_table(s["nodes"])
     )
     if ctrl is not None:
         from exolink.cli.controllers import show
@@ -659,9 +684,7 @@ def cmd_logs(args: argparse.Namespace) -> int:
 
 @_guard
 def cmd_watchdog(args: argparse.Namespace) -> int:
-    body = {"action": args.command}
-    if args.command == "estop":
-        body["by"] = os.environ.get("USER", "operator")
+    body = {"action": args.command}  # the e-stop's detail names this session's login
     with remote(args) as r:
         s = r.call("watchdog", body=body)
     detail = f": {s['detail']}" if s.get("detail") else ""

@@ -22,7 +22,6 @@ import contextlib
 import csv
 import json
 import math
-import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -434,8 +433,6 @@ class Hub:
         body = dict(cmd.body)
         if cmd.motion or (cmd.path == ("maccepa",) and body.get("kind") == "gains"):
             await asyncio.to_thread(self._hold)
-        if cmd.path == ("watchdog",) and body.get("action") == "estop":
-            body["by"] = f"dashboard ({os.environ.get('USER', self.role)})"
         timeout = cmd.timeout_s or self.remote.timeout
         try:
             reply = await asyncio.to_thread(self._call, cmd.path, body, timeout)

@@ -26,6 +26,14 @@ from exolink import liveness
 from exolink.config import NodeConfig
 
 LOG_LINES = 500
+# What the supervisor keeps and relays of a node's output (journal, ``log/<node>`` on Zenoh, the
+# last LOG_LINES for `exolink logs`): lines cut at LOG_LINE_BYTES (a line without a newline
+# was read whole before, however long), and at most LOG_RATE_PER_S a second after a burst of
+# LOG_BURST; the lines dropped are counted in a line of their own. An admin flood of commands
+# with 100 KB node names wrote 1.1 GB of journal in 5 minutes.
+LOG_LINE_BYTES = 4096
+LOG_RATE_PER_S = 100.0
+LOG_BURST = 500
 REAP_WAIT_S = 5.0  # after SIGKILL: a stop never holds the management API longer
 
 
@@ -164,11 +172,31 @@ class NodeProcess:
             self.on_exit(exit_)
 
     def _read(self, proc: subprocess.Popen[bytes] | Forked) -> None:
+        """Each line of the node's output, bounded (LOG_LINE_BYTES, LOG_RATE_PER_S)."""
         assert proc.stdout is not None
-        for raw in proc.stdout:
+        rate = LineRate(LOG_RATE_PER_S, LOG_BURST)
+        cut = False  # the rest of a line that was cut is skipped up to its newline
+        while raw := proc.stdout.readline(LOG_LINE_BYTES):
+            whole = raw.endswith(b"\n")
+            if cut:
+                cut = not whole
+                continue
             line = raw.decode(errors="replace").rstrip("\n")
-            self.logs.append(line)
-            self.on_line(self.name, line)
+            if not whole and len(raw) == LOG_LINE_BYTES:
+                cut, line = True, f"{line}... (line cut at {LOG_LINE_BYTES} bytes)"
+            dropped = rate.take()
+            if dropped is None:
+                continue
+            if dropped:
+                self._keep(
+                    f"exolink: {dropped} lines of {self.name} dropped (over "
+                    f"{LOG_RATE_PER_S:g} a second)"
+                )
+            self._keep(line)
+
+    def _keep(self, line: str) -> None:
+        self.logs.append(line)
+        self.on_line(self.name, line)
 
     def stop(self, timeout: float = 3.0) -> None:
         """SIGTERM, then SIGKILL after ``timeout``: a node never outlives a stop request. The
@@ -264,6 +292,26 @@ class NodeProcess:
         if pid:
             info.update(proc_usage(pid))
         return info
+
+
+class LineRate:
+    """A token bucket for one node's output lines: ``take`` is None for a line to drop, else
+    how many were dropped since the last one kept (0 mostly)."""
+
+    def __init__(self, rate: float, burst: int) -> None:
+        self.rate, self.burst = rate, burst
+        self._tokens, self._at, self._dropped = float(burst), time.monotonic(), 0
+
+    def take(self) -> int | None:
+        now = time.monotonic()
+        self._tokens = min(float(self.burst), self._tokens + (now - self._at) * self.rate)
+        self._at = now
+        if self._tokens < 1.0:
+            self._dropped += 1
+            return None
+        self._tokens -= 1.0
+        dropped, self._dropped = self._dropped, 0
+        return dropped
 
 
 class Forked:

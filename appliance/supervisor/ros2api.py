@@ -27,12 +27,14 @@ The routing lives here, in one process that already holds rosbags; nodes stay li
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from typing import Any
 
 import structlog
-from exolink import roles, rosservices
+from exolink import logs, messaging, roles, rosservices
 from exolink.protocol import h2
 
 TRIGGER, SET_BOOL = "std_srvs/srv/Trigger", "std_srvs/srv/SetBool"
@@ -51,9 +53,11 @@ class Ros2Api:
     def __init__(self, sup: Any) -> None:
         self.sup, self.msg = sup, sup.msg
         self.workers = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ros2")
+        self._joints_lock = threading.Lock()
+        self.joints_pending = self.joints_dropped = 0
         wd = sup.api_watchdog
         routes: dict[str, tuple[str, Callable[[Any], dict[str, Any]]]] = {
-            "estop": (TRIGGER, self._local(wd, lambda _r: {"action": "estop", "by": "ros2"})),
+            "estop": (TRIGGER, self._local(wd, lambda _r: {"action": "estop"})),
             "arm": (TRIGGER, self._local(wd, lambda _r: {"action": "arm"})),
             "disarm": (TRIGGER, self._local(wd, lambda _r: {"action": "disarm"})),
             "record": (
@@ -72,7 +76,9 @@ class Ros2Api:
             ),
         }
         self.services = [
-            rosservices.ServiceServer(self.msg, name, srv, handler, self.workers)
+            rosservices.ServiceServer(
+                self.msg, name, srv, handler, self.workers, urgent=name == "estop"
+            )
             for name, (srv, handler) in routes.items()
         ]
         self.sub = self.msg.subscribe(JOINT_TOPIC, JOINT_TYPE, self._on_joint)
@@ -83,9 +89,12 @@ class Ros2Api:
     def _local(
         self, handler: Callable[[dict[str, Any]], Any], to_json: Callable[[Any], dict[str, Any]]
     ) -> Callable[[Any], dict[str, Any]]:
+        caller = messaging.Caller(rosservices.ROS2_USER)  # the router's ACL chose who may call
+        local = partial(handler, caller=caller) if messaging.takes_caller(handler) else handler
+
         def call(request: Any) -> dict[str, Any]:
             body = to_json(request)
-            reply = rosservices.run_json(handler, body)
+            reply = rosservices.run_json(local, body)
             self._logged(self.msg.mgmt("ros2"), body, reply)
             return rosservices.outcome(reply, _summary)
 
@@ -106,14 +115,29 @@ class Ros2Api:
         return call
 
     def _on_joint(self, msg: Any, meta: Any) -> None:
+        """At most rosservices.MAX_PENDING commands wait; a flood's excess is dropped, counted
+        and logged rarely (a topic has no reply to refuse with)."""
+        with self._joints_lock:
+            full = self.joints_pending >= rosservices.MAX_PENDING
+            self.joints_pending += not full
+            self.joints_dropped += full
+            dropped = self.joints_dropped
+        if full:
+            if logs.rarely(dropped):
+                _log.warning("ros2_joint_commands_dropped", count=dropped)
+            return
         request = _joint_request(msg, numeric_mode=True)
         self.workers.submit(self._joint_from_topic, request, meta.gid.hex())
 
     def _joint_from_topic(self, body: dict[str, Any], gid: str) -> None:
-        reply = rosservices.run_json(lambda b: self.msg.request("h2", "command", body=b), body)
-        self._logged(self.msg.key(JOINT_TOPIC, JOINT_TYPE), {**body, "publisher": gid}, reply)
-        if not reply.get("ok"):
-            _log.warning("ros2_joint_command_refused", error=reply.get("error"), publisher=gid)
+        try:
+            reply = rosservices.run_json(lambda b: self.msg.request("h2", "command", body=b), body)
+            self._logged(self.msg.key(JOINT_TOPIC, JOINT_TYPE), {**body, "publisher": gid}, reply)
+            if not reply.get("ok"):
+                _log.warning("ros2_joint_command_refused", error=reply.get("error"), publisher=gid)
+        finally:
+            with self._joints_lock:
+                self.joints_pending -= 1
 
     def close(self) -> None:
         for s in self.services:

@@ -123,6 +123,7 @@ class Watchdog:
         ]
         self._s = WatchdogState("disarmed", "startup", "", time.time_ns(), 0, 0, 0)
         self._repeats: list[float] = []
+        self._repeats_by_reason: dict[str, int] = {}  # trips while tripped (reasons: ours)
         self.last_h2: float | None = None  # monotonic arrival of the last H2 angle frame
         self._last_arrival = 0.0  # arrivals never go backwards (FIFO socket, clock steps clamped)
         self._armed_at: float | None = None  # monotonic; None while not armed
@@ -182,8 +183,13 @@ class Watchdog:
         if first:
             self.log.error("watchdog_tripped", reason=reason, detail=detail)
             self.publish(self.snapshot())
-        else:
-            self.log.warning("watchdog_trip_while_tripped", reason=reason, detail=detail)
+        else:  # each reason logged at its first and every 1000th repeat: anyone may e-stop
+            with self.lock:
+                n = self._repeats_by_reason[reason] = self._repeats_by_reason.get(reason, 0) + 1
+            if logs.rarely(n):
+                self.log.warning(
+                    "watchdog_trip_while_tripped", reason=reason, detail=detail, count=n
+                )
 
     def arm(self, blockers: list[str]) -> None:
         if blockers:

@@ -7,9 +7,10 @@ one hop from the router and is checked here once, by the one set of rules: the l
 (``intent``), the watchdog armed, a holder present, the joint not driven by someone else. The
 frames are encoded once, where they are sent (the node's cycle).
 
-Requests that switch controllers wait for a cycle boundary: they run in order on one thread of
-their own (``messaging.SlowLane``), never on Zenoh's callback thread, which also carries the
-watchdog's word and the presence keep-alives (answered at once).
+Requests run in order on a thread of their key (``messaging.Served``): one that switches
+controllers waits there for a cycle boundary, never on Zenoh's callback thread, which also
+carries the watchdog's word; the presence keep-alive is answered at once (``urgent``), never
+behind a switch.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import can
 from exolink import cdr, roles
 from exolink.maccepalimits import GAINS, KINDS, target
-from exolink.messaging import Caller, CommandRefused, SlowLane, Unlogged
+from exolink.messaging import Caller, CommandRefused, Unlogged
 from exolink.nodes.controller_manager.intent import IntentRefused
 from exolink.nodes.controller_manager.manager import GC_CLOCK, ManagerRefused, Switch
 from exolink.plugins import controller_types
@@ -35,21 +36,17 @@ OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send`
 OPERATOR_MODES = ("position", "stiffness", "torque")
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
-# controllers actions answered on Zenoh's thread: reads and the presence keep-alive
-FAST = ("list", "types", "state", "hold", "release")
+READS = ("list", "types", "state")  # what an observer may ask of the controllers
+PRESENCE = ("hold", "release")  # answered at once, never behind a switch
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 
 def _controllers_needs(request: dict[str, Any]) -> str:
-    return roles.OBSERVER if request.get("action", "list") in FAST[:3] else roles.OPERATOR
+    return roles.OBSERVER if request.get("action", "list") in READS else roles.OPERATOR
 
 
-def _slow_controllers(request: dict[str, Any]) -> bool:
-    return request.get("action", "list") not in FAST
-
-
-def _in_order(_request: dict[str, Any]) -> bool:
-    return True
+def _presence(request: dict[str, Any]) -> bool:
+    return request.get("action") in PRESENCE
 
 
 def _deadline(req: dict[str, Any]) -> float | None:
@@ -73,19 +70,10 @@ class ManagerApi:
 
     def serve_api(self: ControllerManagerNode) -> None:
         m = self.ctx.messaging
-        lane = self.own(SlowLane("controller_manager"))  # released after the queryables
         self.pub_commands = self.own(m.publisher("joint_commands", JOINT_COMMAND, raw=True))
-        self.own(
-            m.serve(
-                "controllers",
-                self.on_controllers,
-                _controllers_needs,
-                slow=_slow_controllers,
-                lane=lane,
-            )
-        )
-        self.own(m.serve(("h2", "command"), self.on_h2, roles.OPERATOR, _in_order, lane))
-        self.own(m.serve("maccepa", self.on_maccepa, roles.OPERATOR, _in_order, lane))
+        self.own(m.serve("controllers", self.on_controllers, _controllers_needs, _presence))
+        self.own(m.serve(("h2", "command"), self.on_h2, roles.OPERATOR))
+        self.own(m.serve("maccepa", self.on_maccepa, roles.OPERATOR))
 
     # --- checks -------------------------------------------------------------------------------
 
