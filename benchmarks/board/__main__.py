@@ -327,6 +327,13 @@ def main() -> int:
         help="the laptop takes joint_states one message per sample, as a ROS 2 tool does, "
         "not as the bundles exolink's client takes (the board then puts each message for it)",
     )
+    p.add_argument(
+        "--cpu-quota",
+        type=int,
+        metavar="PCT",
+        help="cap the appliance's service on the guest at PCT %% of one CPU (systemd CPUQuota, "
+        "a 10 ms CPUQuotaPeriodSec): the board budget as a hard limit (e.g. 50)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -343,6 +350,7 @@ def main() -> int:
         "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "seconds": args.seconds,
         "timings": args.timings,
+        "cpu_quota_pct": args.cpu_quota,
         "laptop_joint_states": "one by one" if args.laptop_one_by_one else "bundles if bundled",
         "checkout": cardlib.checkout_info(REPO),
         "host": {
@@ -370,6 +378,7 @@ def main() -> int:
             tuple(args.guest_env),
             without,
             tuple(filter(None, args.cprofile.split(","))),
+            args.cpu_quota,
         )
     if args.only != "guest":
         result["native"] = _guarded(

@@ -185,10 +185,12 @@ def run_guest(
     env: tuple[str, ...] = (),
     without: tuple[str, ...] = (),
     cprofile: tuple[str, ...] = (),
+    cpu_quota: int | None = None,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
-    nodes' loops under cProfile (exolink.runtime.profiled), fetched when the service stops."""
+    nodes' loops under cProfile (exolink.runtime.profiled), fetched when the service stops;
+    ``cpu_quota``: the service capped at this % of a CPU (cardlib.prepare)."""
     if cprofile:
         env = (
             *env,
@@ -214,8 +216,10 @@ def run_guest(
         (py_spy,) if py_spy else (),
         env,
         without,
+        cpu_quota,
     )
     result["config"] = cfg
+    result["cpu_quota_pct"] = cpu_quota
     laptop_cfg = work / "exolink-operator.json5"
     admin = ladder is not None
     user, pw = ("admin", cardlib.admin_password(password)) if admin else ("operator", password)
@@ -256,6 +260,8 @@ def run_guest(
         if result["wheel"]["sha256"] not in result["installed"]:
             result["notes"].append("the checkout's wheel is NOT what the guest installed")
         log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
+        if cpu_quota:
+            result["simulator_cgroup"] = _simulator_out_of_the_quota(guest)
         time.sleep(SETTLE_S)
 
         guest.upload(PROBE, GUEST_PROBE)
@@ -288,6 +294,11 @@ def run_guest(
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
         result["supervisor_restarts_by_systemd_at_end"] = _nrestarts(guest)
+        if cpu_quota:  # how often and how long the quota held the service back
+            stat = guest.ssh("cat /sys/fs/cgroup/system.slice/exolink.service/cpu.stat")
+            result["cpu_stat_at_end"] = dict(
+                line.split(" ", 1) for line in stat.stdout.splitlines() if " " in line
+            )
         result["supervisor_threads_at_end"] = _supervisor_threads(guest)
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
@@ -305,6 +316,18 @@ def run_guest(
             laptop.close()
         guest.stop()
         result["console_log"] = str(work / "console.log")
+
+
+def _simulator_out_of_the_quota(guest: Guest) -> str:
+    """The simulator (the hardware's stand-in on CPU 1, a node of the service) moved to a
+    cgroup of its own, so the service's quota measures the appliance alone."""
+    r = guest.ssh(
+        "mkdir -p /sys/fs/cgroup/exolink-sim && "
+        "for p in $(pgrep -x exo-simulator); do echo $p > /sys/fs/cgroup/exolink-sim/cgroup.procs; "
+        "done; cat /sys/fs/cgroup/exolink-sim/cgroup.procs; "
+        "cat /sys/fs/cgroup/system.slice/exolink.service/cpu.max"
+    )
+    return (r.stdout or r.stderr).strip()
 
 
 def _units(stdout: str, stderr: str) -> dict[str, Any]:
