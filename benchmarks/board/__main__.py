@@ -25,6 +25,10 @@ from benchmarks.board import ladder, runs, scenario
 REPO = Path(__file__).resolve().parents[2]
 
 
+def _ms(usec: Any) -> str | None:
+    return None if usec is None else f"{int(usec) / 1000:.1f}"
+
+
 def _cell(v: Any, fmt: str = "{}") -> str:
     return "n/a" if v is None else fmt.format(v)
 
@@ -165,6 +169,26 @@ def table(result: dict[str, Any]) -> str:
         "n/a",
     )
     row("laptop session", _laptop(g), _laptop(n))
+    if g.get("cpu_quota_pct"):
+        stat = g.get("cpu_stat_at_end") or {}
+        row("service CPU quota (10 ms period)", f"{g['cpu_quota_pct']}%", "n/a")
+        row(
+            "  periods throttled / total",
+            f"{stat.get('nr_throttled')}/{stat.get('nr_periods')}",
+            "",
+        )
+        row("  throttled ms", _ms(stat.get("throttled_usec")), "")
+    for case, r in (g.get("estop") or {}).items():
+        if isinstance(r, dict) and "estop_to_first_disable_frame_ms" in r:
+            e = r["estop_to_first_disable_frame_ms"]
+            lost = r.get("no_frame_within_s", {}).get("trials")
+            row(
+                f"e-stop -> disable ms p50/p99 {case}",
+                f"{e.get('p50')}/{e.get('p99')} ({lost} lost)",
+                "",
+            )
+        elif isinstance(r, dict):
+            row(f"e-stop {case}", r.get("error", "?")[-40:], "")
     for run in (g, n):
         if not run:
             continue
@@ -334,6 +358,12 @@ def main() -> int:
         help="cap the appliance's service on the guest at PCT %% of one CPU (systemd CPUQuota, "
         "a 10 ms CPUQuotaPeriodSec): the board budget as a hard limit (e.g. 50)",
     )
+    p.add_argument(
+        "--estop",
+        action="store_true",
+        help="after the window: e-stop -> first disable frame in the guest, idle and beside "
+        "hostile clients on this host (benchmarks/estop.py's cases)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -379,6 +409,7 @@ def main() -> int:
             without,
             tuple(filter(None, args.cprofile.split(","))),
             args.cpu_quota,
+            args.estop,
         )
     if args.only != "guest":
         result["native"] = _guarded(

@@ -9,6 +9,7 @@ import json
 import os
 import re
 import secrets
+import signal
 import subprocess
 import sys
 import tempfile
@@ -32,6 +33,9 @@ log = structlog.get_logger("bench-board")
 PROBE = Path(__file__).with_name("probe.py")
 GUEST_PROBE = "/run/exolink-probe.py"
 UNITS = Path(__file__).with_name("units.py")
+ESTOP = Path(__file__).parents[1] / "estop.py"
+GUEST_ESTOP, GUEST_LOGIN = "/run/exolink-estop.py", "/run/exolink-estop-login.json5"
+ESTOP_TRIALS = 20
 UNITS_SECONDS = 10.0
 DEVICE = "exo-01"
 SETTLE_S = 10.0
@@ -186,11 +190,13 @@ def run_guest(
     without: tuple[str, ...] = (),
     cprofile: tuple[str, ...] = (),
     cpu_quota: int | None = None,
+    estop: bool = False,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
     nodes' loops under cProfile (exolink.runtime.profiled), fetched when the service stops;
-    ``cpu_quota``: the service capped at this % of a CPU (cardlib.prepare)."""
+    ``cpu_quota``: the service capped at this % of a CPU (cardlib.prepare); ``estop``: after the
+    window, e-stop -> first disable frame in the guest, beside hostile clients on this host."""
     if cprofile:
         env = (
             *env,
@@ -293,6 +299,8 @@ def run_guest(
             result |= _run_load(laptop, probe_cmd, seconds, profiler, guest.jit)
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
+        if estop and laptop is not None:
+            result["estop"] = _estop_cases(guest, laptop_cfg, cfg["device"])
         result["supervisor_restarts_by_systemd_at_end"] = _nrestarts(guest)
         if cpu_quota:  # how often and how long the quota held the service back
             stat = guest.ssh("cat /sys/fs/cgroup/system.slice/exolink.service/cpu.stat")
@@ -316,6 +324,66 @@ def run_guest(
             laptop.close()
         guest.stop()
         result["console_log"] = str(work / "console.log")
+
+
+def _estop_cases(guest: Guest, login: Path, device: str) -> dict[str, Any]:
+    """benchmarks/estop.py's four cases on the proxy: the e-stop sent and its disable frame read
+    in the guest (one clock; on CPU 1 with the simulator, as a laptop's work is not the board's),
+    the hostile clients on this host through the forwarded port, as laptops would be: stalled
+    (3 that queued 3000 status queries each, then SIGSTOPped for the whole case) and flood (3
+    that keep 1000 queries in flight)."""
+    guest.upload(ESTOP, GUEST_ESTOP)
+    guest.upload(login, GUEST_LOGIN)
+    out: dict[str, Any] = {"trials": ESTOP_TRIALS}
+    for case in ("idle", "big_query", "stalled", "flood"):
+        hostile = _hostile_clients(case, guest.at, str(login), device)
+        try:
+            r = guest.ssh(
+                f"taskset -c 1 /opt/exolink/bin/python {GUEST_ESTOP} measure "
+                f"--at tcp/127.0.0.1:7447 --device {device} --zenoh-config {GUEST_LOGIN} "
+                f"--bus socketcan:vcan0 --case {'big_query' if case == 'big_query' else 'idle'} "
+                f"--trials {ESTOP_TRIALS}",
+                timeout=900,
+            )
+            last = r.stdout.strip().splitlines()[-1:] or [""]
+            try:
+                out[case] = json.loads(last[0])
+            except ValueError:
+                out[case] = {"error": (r.stderr or r.stdout)[-400:]}
+        finally:
+            for p in hostile:
+                p.send_signal(signal.SIGCONT)
+                p.kill()
+                p.wait()
+    return out
+
+
+def _hostile_clients(case: str, at: str, login: str, device: str) -> list[subprocess.Popen[str]]:
+    if case not in ("stalled", "flood"):
+        return []
+    mode = "stall" if case == "stalled" else "flood"
+    cmd = [
+        sys.executable,
+        str(ESTOP),
+        mode,
+        "--at",
+        at,
+        "--device",
+        device,
+        "--zenoh-config",
+        login,
+    ]
+    procs = [
+        subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+        for _ in range(3)
+    ]
+    for p in procs:  # "sent" / "flooding": its queries are on their way
+        assert p.stdout is not None
+        p.stdout.readline()
+        if mode == "stall":
+            p.send_signal(signal.SIGSTOP)
+    time.sleep(1.0)
+    return procs
 
 
 def _simulator_out_of_the_quota(guest: Guest) -> str:
