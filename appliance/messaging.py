@@ -446,6 +446,9 @@ def zenoh_runtime(zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ)
     return env.get(ZENOH_RUNTIME)
 
 
+ROUTER_TX_ENV = "EXOLINK_ROUTER_TX"  # "app": no transmit thread of its own (experiments only)
+
+
 @contextlib.contextmanager
 def router_runtime(
     zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ
@@ -463,6 +466,8 @@ def router_runtime(
     commands) come from Python threads, never from Zenoh's own."""
     setting = env.get(ZENOH_RUNTIME)
     ours = zcfg.threads is not None and setting == _runtime_setting(zcfg.threads)
+    if env.get(ROUTER_TX_ENV) == "app":  # measuring the thread's cost (bench-board --guest-env)
+        ours = False
     if ours:
         env[ZENOH_RUNTIME] = _runtime_setting(zcfg.threads or 1, own_tx=True)
     try:
