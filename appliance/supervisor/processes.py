@@ -187,12 +187,15 @@ class NodeProcess:
             dropped = rate.take()
             if dropped is None:
                 continue
-            if dropped:
-                self._keep(
-                    f"exolink: {dropped} lines of {self.name} dropped (over "
-                    f"{LOG_RATE_PER_S:g} a second)"
-                )
+            self._tell_dropped(dropped)
             self._keep(line)
+        self._tell_dropped(rate.flush())
+
+    def _tell_dropped(self, dropped: int) -> None:
+        if dropped:
+            self._keep(
+                f"exolink: {dropped} lines of {self.name} dropped (over {LOG_RATE_PER_S:g} a second)"
+            )
 
     def _keep(self, line: str) -> None:
         self.logs.append(line)
@@ -310,6 +313,12 @@ class LineRate:
             self._dropped += 1
             return None
         self._tokens -= 1.0
+        dropped, self._dropped = self._dropped, 0
+        return dropped
+
+    def flush(self) -> int:
+        """Lines dropped since the last one kept: told at the end of the output, or the
+        count of a burst that ended the node's output would be lost."""
         dropped, self._dropped = self._dropped, 0
         return dropped
 
