@@ -88,14 +88,20 @@ class Store:
     recorder has open (or is opening), which is listed but never read nor deleted."""
 
     def __init__(
-        self, directory: Path, writing: Callable[[], Path | None], reserve_bytes: int = 0
+        self,
+        directory: Path,
+        writing: Callable[[], Path | None],
+        reserve_bytes: int = 0,
+        bytes_per_s: float = 0.0,
     ) -> None:
         self.dir = directory
         self.writing = writing
         self.reserve_bytes = reserve_bytes
+        self.pace = Pace(bytes_per_s)
         self._lock = threading.Lock()
         self._sums: dict[str, tuple[int, int, int, str]] = {}  # name -> (ino, size, mtime, sum)
         self._hashing: set[str] = set()
+        self._one_hash = threading.Lock()  # one file hashed at a time: the card is shared
 
     # --- what is there ---------------------------------------------------------------------
 
@@ -174,6 +180,7 @@ class Store:
                 os.posix_fadvise(fd, offset, len(data), os.POSIX_FADV_DONTNEED)
         finally:
             os.close(fd)
+        self.pace.wait(len(data))
         return {
             "name": path.name,
             "offset": offset,
@@ -203,7 +210,7 @@ class Store:
         path = self.dir / name
         try:
             fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-            with os.fdopen(fd, "rb") as f:
+            with os.fdopen(fd, "rb") as f, self._one_hash:
                 before = os.fstat(f.fileno())
                 digest = file_sha256(f)
                 after = os.fstat(f.fileno())
@@ -223,6 +230,27 @@ class Store:
         """The card's size and what a non-root writer may still use, in bytes."""
         u = shutil.disk_usage(self.dir)
         return {"total": u.total, "free": u.free, "reserve": self.reserve_bytes}
+
+
+class Pace:
+    """At most ``bytes_per_s`` handed out on average (0: no limit): a fetch at the link's full
+    speed would take the board's one core from the nodes that record and move (reading,
+    base64 and JSON of each chunk in the recorder, its transmission in the router). Chunks are
+    served one at a time (messaging.Served: one worker per key), so a sleep before a reply
+    paces them all; the sleep holds no lock and no GIL, and other keys are answered meanwhile."""
+
+    def __init__(self, bytes_per_s: float) -> None:
+        self.bytes_per_s = bytes_per_s
+        self._free_at = 0.0
+
+    def wait(self, n: int) -> None:
+        if self.bytes_per_s <= 0:
+            return
+        now = time.monotonic()
+        start = max(now, self._free_at)
+        self._free_at = start + n / self.bytes_per_s
+        if start > now:
+            time.sleep(start - now)
 
 
 def file_sha256(f: Any) -> str:
@@ -266,6 +294,48 @@ def hours_left(free: int, reserve: int, rate_bps: float) -> float | None:
 # --- the laptop's side ---------------------------------------------------------------------------
 
 Ask = Callable[[dict[str, Any]], dict[str, Any]]  # one request to the board's store, its reply
+# Tries of one request: the board's admission refuses a fast fetch now and then ("too many
+# requests", "busy"), and the router drops a reply it cannot send at once rather than block
+# (messaging.ROUTER_QOS): a large chunk's reply is sometimes lost and its query times out.
+# Each chunk is asked for by offset, so asking again is all a retry is.
+TRIES = 8
+RETRY_S = 0.2
+
+
+class Refused(Exception):
+    """The board refused a request (its reply's error, verbatim)."""
+
+
+@dataclass
+class Patient:
+    """``send`` (one request, the reply as it came, ``messaging.Unreachable`` on a timeout)
+    made patient: refusals for the board's load and lost replies are tried again, counted;
+    any other refusal raises ``Refused``."""
+
+    send: Callable[[dict[str, Any]], dict[str, Any]]
+    tries: int = TRIES
+    retried_rate: int = 0
+    retried_lost: int = 0
+
+    def __call__(self, body: dict[str, Any]) -> dict[str, Any]:
+        from exolink.messaging import Unreachable
+
+        why = "no try"
+        for _ in range(self.tries):
+            try:
+                reply = self.send(body)
+            except Unreachable as exc:
+                self.retried_lost += 1
+                why = str(exc)
+                continue
+            if reply.get("ok"):
+                return reply
+            why = str(reply.get("error", "refused"))
+            if not why.startswith(("too many requests", "busy")):
+                raise Refused(why)
+            self.retried_rate += 1
+            time.sleep(RETRY_S)
+        raise Refused(f"{self.tries} tries, the last: {why}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -108,6 +108,10 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Free space the recorder leaves on the card: under it a recording stops (closed, indexed)
     # and none starts. The rest of the board (journal, logs, updates) writes to the same card.
     reserve_mb: Annotated[float, msgspec.Meta(ge=0)] = 256.0
+    # What fetches of recordings may take (MB/s, all laptops together; 0 = no limit). On the
+    # board each MB served costs the recorder's reading and encoding and the router's sending:
+    # benchmarks/bench_fetch.py measures it.
+    fetch_mb_s: Annotated[float, msgspec.Meta(ge=0)] = 4.0
 
 
 @dataclass
@@ -430,7 +434,9 @@ class Recorder(Node):
         self.writing: Path | None = None  # the file open (or being opened) for writing
         self._bytes = 0  # written in this recording by files already closed
         self.rate = recstore.Rate()
-        self.store = recstore.Store(self.dir, lambda: self.writing, self._reserve_bytes())
+        self.store = recstore.Store(
+            self.dir, lambda: self.writing, self._reserve_bytes(), self.params.fetch_mb_s * 1e6
+        )
         self.card = self.store.card()
         self.own(m.serve("recordings", self.on_recordings, roles.by_action(roles.RECORDINGS)))
         self.own(m.serve("record", self.on_command, roles.status_or(roles.OPERATOR)))
