@@ -4,6 +4,7 @@ lists, operator fetches, admin deletes); the card filled on purpose on a real sm
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
@@ -14,6 +15,8 @@ from pathlib import Path
 import pytest
 from conftest import Appliance, wait_for
 from exolink import messaging, recstore, roles
+from exolink.cli.remote import Remote
+from exolink.dashboard.hub import Hub
 from exolink.recording import info
 from test_recording import nodes
 from test_roles import _guarded
@@ -35,6 +38,14 @@ def record(app: Appliance, login: Path, seconds: float) -> None:
     time.sleep(seconds)
     r = app.cli("record", "stop", login=login)
     assert r.returncode == 0 and "idle" in r.stdout, (r.stdout, r.stderr)
+
+
+def dashboard_hub(app: Appliance, login: Path) -> Hub:
+    """A laptop dashboard's hub (`exolink dashboard`) with a role's login."""
+    args = argparse.Namespace(
+        at=app.at, timeout=10.0, domain=0, ns="h2", zenoh_config=str(login), device="sim"
+    )
+    return Hub(Remote(args))
 
 
 def ask(app: Appliance, login_file: Path, role: str, body: dict) -> dict:
@@ -133,6 +144,22 @@ def test_a_laptop_lists_fetches_checks_and_deletes_by_role(tmp_path, write_confi
         assert sha256(laptop / f["name"]) == sha256(rec / f["name"])
     r = app.cli("record", "sync", str(laptop), login=op)
     assert r.returncode == 0 and "synced 0 files" in r.stdout, r.stdout
+
+    # The dashboard's Recording page on a laptop: the file comes from the board, by role.
+    cache = tmp_path / "cache"
+    os.environ["XDG_CACHE_HOME"] = str(cache)
+    observer_hub, operator_hub = dashboard_hub(app, obs), dashboard_hub(app, op)
+    try:
+        with pytest.raises(recstore.Refused, match="needs the operator role"):
+            observer_hub.recording(str(rec / name))
+        elsewhere = str(tmp_path / "on-the-board" / name)  # not a file on this machine
+        got_path = operator_hub.recording(elsewhere)
+        assert got_path == cache / "exolink" / "recordings" / "sim" / name
+        assert sha256(got_path) == board_sum
+    finally:
+        del os.environ["XDG_CACHE_HOME"]
+        observer_hub.remote.close()
+        operator_hub.remote.close()
 
     # delete: the admin's alone.
     r = app.cli("record", "delete", name, login=op)
