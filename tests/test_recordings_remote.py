@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import Appliance, wait_for
+from conftest import EXOLINK, Appliance, wait_for
 from exolink import messaging, recstore, roles
 from exolink.cli.remote import Remote
 from exolink.dashboard.hub import Hub
@@ -205,7 +205,12 @@ def test_a_full_card_stops_the_recorder_cleanly_and_status_says_so(  # type: ign
 ) -> None:
     reserve_mb = 4
     fill(small_card, (reserve_mb << 20) + (400 << 10))
-    params = {"compression": "none", "reserve_mb": reserve_mb, "fsync_interval_s": 0.2}
+    params = {
+        "compression": "none",
+        "reserve_mb": reserve_mb,
+        "fsync_interval_s": 0.2,
+        "fetch_mb_s": 0.2,
+    }
     app = Appliance(write_config(nodes=nodes(small_card, **params)), spawn)
     assert app.cli("record", "start").returncode == 0
     wait_for(lambda: "card full" in app.cli("record", "status").stdout, timeout=90)
@@ -226,9 +231,23 @@ def test_a_full_card_stops_the_recorder_cleanly_and_status_says_so(  # type: ign
     assert r.returncode == 5 and "card full" in r.stderr and "record sync" in r.stderr, r.stderr
     r = app.cli("record", "list")
     assert r.returncode == 0 and path.name in r.stdout and "closed" in r.stdout
+    # A fetch cut off (the laptop killed; the board serves 0.2 MB/s here), then the end of
+    # the day's sync: it resumes from the .part and checks the whole.
     laptop = small_card.parent / "laptop"
+    part = laptop / (path.name + ".part")
+    at = ["--at", app.at, "--timeout", "10"]
+    cut = subprocess.Popen(
+        [*EXOLINK, "record", "fetch", path.name, "-o", str(laptop), "--chunk", "65536", *at]
+    )
+    try:
+        wait_for(lambda: part.is_file() and part.stat().st_size >= 128 << 10, timeout=20)
+    finally:
+        cut.kill()
+        cut.wait()
+    assert 0 < part.stat().st_size < path.stat().st_size
     r = app.cli("record", "sync", str(laptop))
-    assert r.returncode == 0 and sha256(laptop / path.name) == sha256(path), r.stderr
+    assert r.returncode == 0 and "resumed at" in r.stdout, (r.stdout, r.stderr)
+    assert sha256(laptop / path.name) == sha256(path) and not part.exists()
     r = app.cli("record", "delete", path.name)
     assert r.returncode == 0, r.stderr
     (small_card / "ballast.bin").unlink()
