@@ -643,7 +643,10 @@ class Recorder(Node):
 
     def _card_text(self) -> str:
         c = self.card
-        return f"{c['free'] / 2**20:.1f} MiB free, the recorder keeps {c['reserve'] / 2**20:g} MiB"
+        return (
+            f"{c['free'] / 2**20:.2f} MiB free, under the {c['reserve'] / 2**20:g} MiB "
+            "the recorder leaves on the card"
+        )
 
     def _check_card(self) -> None:
         """Once a second: the card's space and the write rate; under the reserve, the

@@ -224,7 +224,7 @@ def test_a_full_card_stops_the_recorder_cleanly_and_status_says_so(  # type: ign
     # exolink status: the recorder's health and the card; the rest of the appliance runs on.
     wait_for(lambda: app.node("recorder")["health"].startswith("error: card full"), timeout=5)
     out = app.cli("status").stdout
-    assert "error: card full" in out and "card     0.0" in out, out
+    assert "error: card full" in out and "MiB free of" in out and " 0.0 h of recording" in out, out
     assert all(n["state"] == "running" for n in app.status()["nodes"])
     # No new recording on a full card, said plainly; listing and fetching still work.
     r = app.cli("record", "start")

@@ -599,6 +599,11 @@ def _api_lines(s: dict[str, Any]) -> str:
     return text
 
 
+def _bytes(n: float) -> str:
+    """A size as people read a card's: GiB from 1 GiB up, else MiB."""
+    return f"{n / 2**30:.2f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
+
+
 def _card_line(nodes: list[dict[str, Any]]) -> str:
     """The recordings card, as the recorder last reported it: free space and the hours of
     recording that leaves at the current rate (above the reserve the recorder keeps)."""
@@ -613,7 +618,7 @@ def _card_line(nodes: list[dict[str, Any]]) -> str:
     free, total, reserve = num("free"), num("total"), num("reserve")
     if free is None or total is None:
         return ""
-    text = f"card     {free / 2**30:.2f} GiB free of {total / 2**30:.2f} GiB"
+    text = f"card     {_bytes(free)} free of {_bytes(total)}"
     hours, rate = num("hours_left"), num("rate_bps")
     if hours is not None and rate:
         text += f"  {hours:.1f} h of recording left at {rate / 1e3:.1f} kB/s"
