@@ -277,3 +277,30 @@ def test_names_from_the_network_stay_in_the_directory(tmp_path: Path) -> None:
     with pytest.raises(recstore.StoreError, match="still being recorded"):
         writing.delete("a.mcap")
     assert recstore.missing([{"name": "../x.mcap", "state": "closed", "size": 1}], d) == []
+
+
+def test_the_write_rate_and_hours_left() -> None:
+    rate = recstore.Rate(window_s=10)
+    assert rate.note(0, now=0.0) == 0.0  # one point: no rate yet
+    assert rate.note(50_000, now=0.5) == 0.0  # under a second: none either
+    assert rate.note(100_000, now=2.0) == 50_000
+    for t in range(3, 30):  # the window moves on: a slower rate replaces the first
+        rate.note(100_000 + (t - 2) * 10_000, now=float(t))
+    assert rate.last == pytest.approx(10_000)
+    gib = 2**30
+    assert recstore.hours_left(gib + 256 * 2**20, 256 * 2**20, 10_000) == pytest.approx(
+        gib / 10_000 / 3600
+    )
+    assert recstore.hours_left(100, 256 * 2**20, 10_000) == 0
+    assert recstore.hours_left(gib, 0, 0.0) is None
+
+
+def test_pace_keeps_a_fetch_to_its_rate() -> None:
+    pace = recstore.Pace(bytes_per_s=4e6)
+    t = time.monotonic()
+    for _ in range(5):
+        pace.wait(200_000)  # 5 x 0.2 MB at 4 MB/s: the last four wait 50 ms each
+    assert 0.18 <= time.monotonic() - t < 0.5
+    t = time.monotonic()
+    recstore.Pace(0).wait(10**9)  # 0: no limit
+    assert time.monotonic() - t < 0.05
