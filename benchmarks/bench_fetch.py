@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from exolink import messaging, recstore
+from exolink.nodes.recorder import RecorderParams
 
 from benchmarks.bench_recorder import joint_states, write
 from benchmarks.harness import Appliance, cpu_s
@@ -104,7 +105,8 @@ def fetch_cost(file_mb: int, chunk: int, fetch_mb_s: float) -> dict[str, Any]:
 def run(quick: bool) -> dict[str, Any]:
     mb = 16 if quick else 128
     return {
-        "paced_default": fetch_cost(mb, 1 << 20, 4.0),  # the recorder's default fetch_mb_s
+        "paced_default": fetch_cost(mb, 1 << 20, RecorderParams().fetch_mb_s),
+        "paced_4mb_s": fetch_cost(mb, 1 << 20, 4.0),
         "unpaced_1mib": fetch_cost(mb, 1 << 20, 0),
         "unpaced_256kib": fetch_cost(mb, 256 << 10, 0),
     }

@@ -108,10 +108,12 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Free space the recorder leaves on the card: under it a recording stops (closed, indexed)
     # and none starts. The rest of the board (journal, logs, updates) writes to the same card.
     reserve_mb: Annotated[float, msgspec.Meta(ge=0)] = 256.0
-    # What fetches of recordings may take (MB/s, all laptops together; 0 = no limit). On the
-    # board each MB served costs the recorder's reading and encoding and the router's sending:
-    # benchmarks/bench_fetch.py measures it.
-    fetch_mb_s: Annotated[float, msgspec.Meta(ge=0)] = 4.0
+    # What fetches of recordings may take (MB/s, all laptops together; 0 = no limit). Each MB
+    # served cost ~8.5 ms of the recorder's CPU and ~1.8 ms of the supervisor's (its router) on
+    # x86 (benchmarks/bench_fetch.py; 5 ms of it base64 and JSON): on the board's one core,
+    # roughly ten times that, so 1 MB/s keeps a fetch to about a tenth of it while the
+    # appliance runs (a 1 GB day syncs in ~17 min; raise it when nothing moves).
+    fetch_mb_s: Annotated[float, msgspec.Meta(ge=0)] = 1.0
 
 
 @dataclass

@@ -56,8 +56,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-# A request of a fetch waits this long for its answer (1 MiB takes ~0.2 s over 100 Mbit/s): a
-# reply the router dropped is asked for again sooner than the CLI's default would.
+# A request of a fetch waits this long for its answer: 1 MiB takes ~0.2 s over 100 Mbit/s and
+# the board paces what it serves (the recorder's fetch_mb_s, 1 MB/s: ~1 s a chunk, more while
+# another laptop fetches too); a reply the router dropped is asked for again after this.
 FETCH_TIMEOUT_S = 5.0
 
 
