@@ -442,7 +442,11 @@ class Recorder(Node):
         self.card = self.store.card()
         self.own(m.serve("recordings", self.on_recordings, roles.by_action(roles.RECORDINGS)))
         self.own(m.serve("record", self.on_command, roles.status_or(roles.OPERATOR)))
-        if self.params.autostart:
+        if self.params.autostart and self.card["free"] < self.card["reserve"]:
+            # booted onto a full card: said at once, rather than a file opened to be closed
+            self.state, self.error = "error", f"card full: {self._card_text()}; not recording"
+            self.log.error("recording_not_started_card_full", **self.card)
+        elif self.params.autostart:
             self.start_recording(dict(self.params.labels))
 
     # --- intake (the node's loop, in batches) ---------------------------------------------

@@ -258,6 +258,18 @@ def test_a_full_card_stops_the_recorder_cleanly_and_status_says_so(  # type: ign
     assert " h of recording left at " in out, out
 
 
+def test_booted_onto_a_full_card_the_recorder_says_so_and_opens_nothing(  # type: ignore[no-untyped-def]
+    write_config, spawn, small_card
+) -> None:
+    fill(small_card, 1 << 20)
+    params = {"autostart": True, "reserve_mb": 4}
+    app = Appliance(write_config(nodes=nodes(small_card, **params)), spawn)
+    st = json.loads(app.cli("record", "status", "--json").stdout)
+    assert st["state"] == "error" and "card full" in st["error"] and "not recording" in st["error"]
+    wait_for(lambda: app.node("recorder")["health"].startswith("error: card full"), timeout=5)
+    assert list(small_card.glob("*.mcap")) == []
+
+
 def test_names_from_the_network_stay_in_the_directory(tmp_path: Path) -> None:
     """The store on its own: every odd name is refused before any path is made of it."""
     d = tmp_path / "rec"
