@@ -37,6 +37,7 @@ MAX_CHUNK = 1 << 20  # bytes per chunk at most (the reply: base64 in JSON, ~1.4 
 DEFAULT_CHUNK = 1 << 20
 MAX_NAME = 255
 HASH_BLOCK = 1 << 20
+HASH_PACE = 4  # the board hashes this many times faster than it serves a fetch
 RECORDING, CLOSED = "recording", "closed"
 _log = structlog.get_logger("exolink.recstore")
 
@@ -100,8 +101,12 @@ class Store:
         self.pace = Pace(bytes_per_s)
         self._lock = threading.Lock()
         self._sums: dict[str, tuple[int, int, int, str]] = {}  # name -> (ino, size, mtime, sum)
-        self._hashing: set[str] = set()
+        self._hashing: dict[str, int] = {}  # name -> bytes hashed so far
         self._one_hash = threading.Lock()  # one file hashed at a time: the card is shared
+        # Hashing is paced too (HASH_PACE times the fetches' pace): a 1 GB file at full speed
+        # took the board's core for most of a minute, and under the service's CPU quota that
+        # throttles every node, motion included.
+        self.hash_pace = Pace(bytes_per_s * HASH_PACE)
 
     # --- what is there ---------------------------------------------------------------------
 
@@ -161,7 +166,10 @@ class Store:
         digest = self._cached(path.name, st)
         if digest is None:
             self._hash_later(path.name)
-        return Entry(path.name, st.st_size, st.st_mtime_ns, CLOSED, digest).as_dict()
+        out = Entry(path.name, st.st_size, st.st_mtime_ns, CLOSED, digest).as_dict()
+        with self._lock:
+            out["hashed"] = st.st_size if digest is not None else self._hashing.get(path.name, 0)
+        return out
 
     def chunk(self, name: object, offset: object, length: object) -> dict[str, Any]:
         """Up to ``length`` bytes at ``offset`` of a closed file (base64)."""
@@ -203,7 +211,7 @@ class Store:
         with self._lock:
             if name in self._hashing:
                 return
-            self._hashing.add(name)
+            self._hashing[name] = 0
         threading.Thread(target=self._hash, args=(name,), daemon=True, name="rec-sha256").start()
 
     def _hash(self, name: str) -> None:
@@ -212,7 +220,7 @@ class Store:
             fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
             with os.fdopen(fd, "rb") as f, self._one_hash:
                 before = os.fstat(f.fileno())
-                digest = file_sha256(f)
+                digest = file_sha256(f, lambda n: self._hashed(name, n))
                 after = os.fstat(f.fileno())
             key = (before.st_ino, before.st_size, before.st_mtime_ns)
             if key == (after.st_ino, after.st_size, after.st_mtime_ns):
@@ -222,7 +230,13 @@ class Store:
             _log.warning("recording_hash_failed", name=name, error=str(exc))
         finally:
             with self._lock:
-                self._hashing.discard(name)
+                self._hashing.pop(name, None)
+
+    def _hashed(self, name: str, n: int) -> None:
+        """``n`` more bytes of ``name`` hashed: its progress for ``stat``, and the pace."""
+        with self._lock:
+            self._hashing[name] = self._hashing.get(name, 0) + n
+        self.hash_pace.wait(n)
 
     # --- the card --------------------------------------------------------------------------
 
@@ -253,10 +267,12 @@ class Pace:
             time.sleep(start - now)
 
 
-def file_sha256(f: Any) -> str:
+def file_sha256(f: Any, progress: Callable[[int], None] | None = None) -> str:
     h = hashlib.sha256()
     while block := f.read(HASH_BLOCK):
         h.update(block)
+        if progress is not None:
+            progress(len(block))
     return h.hexdigest()
 
 
@@ -354,7 +370,7 @@ def fetch(
     name: str,
     dest: Path,
     chunk: int = DEFAULT_CHUNK,
-    hash_wait_s: float = 600.0,
+    hash_wait_s: float = 60.0,
     progress: Callable[[int, int], None] | None = None,
 ) -> Fetched:
     """Copy one closed recording into ``dest``: chunks appended to ``<name>.part`` (resumed
@@ -405,12 +421,16 @@ def fetch(
 
 
 def _wait_sum(ask: Ask, name: str, st: dict[str, Any], wait_s: float) -> str:
-    """The board's sha256 of the file (it computes it once, on first ``stat``)."""
-    deadline = time.monotonic() + wait_s
+    """The board's sha256 of the file (it computes it once, on first ``stat``, paced): waited
+    for while its hashing moves on, given up after ``wait_s`` without progress."""
+    deadline, hashed = time.monotonic() + wait_s, -1
     while st.get("sha256") is None:
-        if time.monotonic() > deadline:
-            raise StoreError(f"{name}: the board gave no sha256 within {wait_s:g} s")
-        time.sleep(0.2)
+        now = time.monotonic()
+        if st.get("hashed") != hashed:
+            deadline, hashed = now + wait_s, st.get("hashed")
+        if now > deadline:
+            raise StoreError(f"{name}: the board's sha256 made no progress in {wait_s:g} s")
+        time.sleep(0.5)
         st = ask({"action": "stat", "name": name})
     digest = str(st["sha256"])
     if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
