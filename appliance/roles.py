@@ -8,7 +8,7 @@ Zenoh has already proven it. What a role may do is then decided here (``allows``
 
 - ``observer``: data, status, e-stop.
 - ``operator``: also arm and disarm, hold motion (presence), joint commands, patterns,
-  recording, trigger.
+  recording, trigger, setting the board's clock from the laptop's (exolink.clock).
 - ``admin``: also node start/stop/restart, params, logs, simulator faults.
 - ``exolink``: the appliance's own processes (the login in /etc/exolink/zenoh.json5, readable by
   the service only); they declare queryables and publish data, which no laptop login may.

@@ -391,6 +391,18 @@ def vcan0() -> Iterator[str]:
             ip.link("del", index=idx[0])
 
 
+@pytest.fixture
+def own_clock() -> Iterator[None]:
+    """A kernel whose wall clock a test may step: only a throwaway guest's (`make test-kernel`
+    sets EXOLINK_REQUIRE_KERNEL=clock in the UML guest); the host's clock is never stepped. The
+    clock is put back (to within the test's run time) afterwards."""
+    if "clock" not in REQUIRED:
+        pytest.skip("stepping the wall clock needs a throwaway kernel; run `make test-kernel`")
+    wall, mono = time.time(), time.monotonic()
+    yield
+    time.clock_settime(time.CLOCK_REALTIME, wall + time.monotonic() - mono)
+
+
 class SimChip:
     """A gpio-sim chip made through configfs; lines are driven through their `pull` attribute."""
 

@@ -607,7 +607,12 @@ def cmd_status(args: argparse.Namespace) -> int:
             n.get("plugin") == "controller_manager" and n["state"] == "running" for n in s["nodes"]
         )
         ctrl = r.call("controllers") if manager else None
+        from exolink.cli import clock
+
+        off = clock.offset(r) if "clock" in s else None  # (an older supervisor has none)
     if args.json:
+        if off is not None:  # the board's clock minus this laptop's
+            s["clock"].update(offset_ms=off.offset_s * 1e3, offset_error_ms=off.error_s * 1e3)
         _print_json(s if ctrl is None else {**s, "controllers": ctrl})
         return 0
     wd, bus, trig = s["watchdog"], s["bus"], s["trigger"]
@@ -624,6 +629,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n"
+        + (clock.describe(s["clock"], off) if off is not None else "")
         + _api_lines(s)
         + _node_table(s["nodes"])
     )
