@@ -56,6 +56,25 @@ def group() -> str:
     return f"239.74.{random.randint(1, 254)}.{random.randint(1, 254)}"
 
 
+def motion_nodes(deadline_ms: int = 300, h2_timeout_ms: int | None = 300) -> list[dict]:
+    """The simulated H2, its reader and the controller manager (the one writer of motion).
+    ``deadline_ms``: the manager's heartbeat deadline (300: above a loaded test machine's
+    stalls, where the deadline is not under test; 50 as shipped)."""
+    manager: dict = {
+        "name": "controller_manager",
+        "plugin": "controller_manager",
+        "critical": True,
+        "heartbeat_deadline_ms": deadline_ms,
+    }
+    if h2_timeout_ms is not None:
+        manager["params"] = {"h2_timeout_ms": h2_timeout_ms}
+    return [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        manager,
+    ]
+
+
 @pytest.fixture
 def write_config(tmp_path: Path, group: str) -> Callable[..., Path]:
     """Write the bundled sim config with overrides onto this test's own group and port."""

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import EXOLINK, Appliance, collect, wait_for
+from conftest import EXOLINK, Appliance, collect, motion_nodes, wait_for
 from exolink import clock, messaging, rosgraph
 from exolink.protocol import h2
 from exolink.recording import RecordingError, export_csv, info
@@ -435,17 +435,7 @@ def test_a_bundled_topic_reaches_the_recorder_once(write_config, spawn, tmp_path
 
 # --- play never replays a command ----------------------------------------------------------------
 
-CONTROL_NODES = [
-    {"name": "simulator", "plugin": "simulator"},
-    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-    {
-        "name": "controller_manager",
-        "plugin": "controller_manager",
-        "critical": True,
-        "heartbeat_deadline_ms": 300,  # above a loaded test machine's stalls: not under test
-        "params": {"h2_timeout_ms": 300},
-    },
-]
+CONTROL_NODES = motion_nodes()
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 

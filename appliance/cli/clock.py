@@ -12,7 +12,7 @@ import time
 from typing import Any
 
 from exolink import clock
-from exolink.cli.remote import Remote, _guard, common, remote
+from exolink.cli.remote import Refused, Remote, _guard, common, remote
 
 
 def offset(r: Remote) -> clock.Offset:
@@ -48,6 +48,28 @@ def describe(status: dict[str, Any], off: clock.Offset | None) -> str:
             f"(over {clock.WARN_OFFSET_S * 1e3:g} ms): recordings will not line up"
         )
     return text + "".join(f"         WARNING: {w}\n" for w in warn)
+
+
+def sync_at_arm(r: Remote) -> str:
+    """The laptop's time, taken by a board that has no other (before the arm: steps are refused
+    once armed). A line to show when it stepped or could not; "" when nothing was needed."""
+    try:
+        st = r.call("clock")
+    except Refused:  # an older supervisor: it has no clock to set
+        return ""
+    if st.get("synchronised") or not st.get("from_laptop"):
+        return ""
+    off = offset(r)
+    if st.get("source") == "laptop" and not off.off():
+        return ""
+    try:
+        r.call("clock", body={"action": "step", "offset_s": off.offset_s, "error_s": off.error_s})
+    except Refused as exc:
+        return f"clock    not set from this laptop: {exc}\n"
+    return (
+        f"clock    set from this laptop's (it was {off.offset_s * 1e3:+.0f} ms off; "
+        "no time server)\n"
+    )
 
 
 @_guard

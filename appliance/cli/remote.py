@@ -692,6 +692,10 @@ def cmd_logs(args: argparse.Namespace) -> int:
 def cmd_watchdog(args: argparse.Namespace) -> int:
     body = {"action": args.command}  # the e-stop's detail names this session's login
     with remote(args) as r:
+        if args.command == "arm":  # a board with no time server takes this laptop's first
+            from exolink.cli import clock
+
+            sys.stdout.write(clock.sync_at_arm(r))
         s = r.call("watchdog", body=body)
     detail = f": {s['detail']}" if s.get("detail") else ""
     sys.stdout.write(f"watchdog {s['state']} ({s['reason']}{detail})\n")
