@@ -343,6 +343,17 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     dash.go("nodes")
     row = "#nodes tr[data-node=timing_monitor]"
     page.wait_for_selector(row)
+    # The board's clock against this laptop's (the sim's is the host's: ~0 ms off), with the
+    # warning the kernel's own word gives (this host runs no time server it would know of)
+    page.wait_for_function(
+        "[...document.querySelectorAll('#bus dt')].some(dt => dt.textContent === 'clock')"
+    )
+    shown = page.evaluate(
+        "[...document.querySelectorAll('#bus dt')].find(dt => dt.textContent === 'clock')"
+        ".nextElementSibling.textContent"
+    )
+    synced = app.status()["clock"]["synchronised"]
+    assert " ms (+- " in shown and ("WARNING: not synchronised" in shown) == (not synced), shown
     pid = app.node("timing_monitor")["pid"]
     page.click(f"{row} button[data-action=restart]")
     page.wait_for_function(
