@@ -548,18 +548,7 @@ def write_c3d(trial: Trial, out: str | Path) -> Path:
     c.add_parameter("SUBJECTS", "IS_STATIC", 0)
     c.add_parameter("MANUFACTURER", "COMPANY", "exolink")
     c.add_parameter("MANUFACTURER", "SOFTWARE", "exolink export")
-    for e in trial.events:
-        t = trial.time_s(e.time_ns)
-        minutes = math.floor(t / 60)
-        c.add_event(
-            [minutes, t - 60 * minutes],
-            e.context,
-            e.label,
-            e.description,
-            subject,
-            ICONS.get(e.label, 0),
-            0,
-        )
+    _events(c, trial, subject)
     c.add_parameter("EVENT_CONTEXT", "USED", 3)
     c.add_parameter("EVENT_CONTEXT", "LABELS", ["General", "Left", "Right"])
     c.add_parameter("EVENT_CONTEXT", "ICON_IDS", [0, 1, 2])
@@ -583,6 +572,23 @@ def write_c3d(trial: Trial, out: str | Path) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return out
+
+
+def _events(c: Any, trial: Trial, subject: str) -> None:
+    """The EVENT group in one go (ezc3d's add_event rewrites the whole group per event: hours
+    of gait are thousands of events). TIMES is 2 x n: minutes, then seconds from frame 1."""
+    import numpy as np
+
+    times = np.array([trial.time_s(e.time_ns) for e in trial.events], dtype=np.float64)
+    minutes = np.floor(times / 60)
+    c.add_parameter("EVENT", "USED", len(trial.events))
+    c.add_parameter("EVENT", "TIMES", np.vstack([minutes, times - 60 * minutes]).reshape(2, -1))
+    c.add_parameter("EVENT", "CONTEXTS", [e.context for e in trial.events] or [""])
+    c.add_parameter("EVENT", "LABELS", [e.label for e in trial.events] or [""])
+    c.add_parameter("EVENT", "DESCRIPTIONS", [e.description for e in trial.events] or [""])
+    c.add_parameter("EVENT", "SUBJECTS", [subject] * len(trial.events) or [""])
+    c.add_parameter("EVENT", "ICON_IDS", [ICONS.get(e.label, 0) for e in trial.events] or [0])
+    c.add_parameter("EVENT", "GENERIC_FLAGS", [0] * len(trial.events) or [0])
 
 
 def write_events_csv(trial: Trial, out: str | Path) -> Path:
