@@ -504,7 +504,8 @@ def samples_per_frame(frames: int, rate_hz: float) -> int:
     )
 
 
-def _ezc3d() -> Any:
+def require_ezc3d() -> Any:
+    """ezc3d, or MissingExtra naming the extra that brings it (imported only for --c3d)."""
     try:
         import ezc3d
     except ImportError:
@@ -520,7 +521,7 @@ def write_c3d(trial: Trial, out: str | Path) -> Path:
     and losses in the EXOLINK group, the subject in SUBJECTS."""
     import numpy as np
 
-    ezc3d = _ezc3d()
+    ezc3d = require_ezc3d()
     out = Path(out)
     if out.suffix.lower() != ".c3d":
         raise RecordingError(f"{out}: a C3D file's name ends in .c3d")
@@ -592,7 +593,8 @@ def _events(c: Any, trial: Trial, subject: str) -> None:
 
 
 def write_events_csv(trial: Trial, out: str | Path) -> Path:
-    """The events, one a row: time from zero (s), frame, label, context, description."""
+    """The events, one a row: time from zero (s), C3D frame number (1 at zero), label,
+    context, description, subject."""
     out = Path(out)
     _parent(out)
     tmp = _partial(out)
@@ -605,7 +607,7 @@ def write_events_csv(trial: Trial, out: str | Path) -> Path:
                 w.writerow(
                     [
                         f"{t:.6f}",
-                        round(t * trial.rate_hz),
+                        round(t * trial.rate_hz) + 1,  # C3D's frame number: 1 at zero
                         e.label,
                         e.context,
                         e.description,

@@ -145,7 +145,7 @@ def _export_gaitlab(args: argparse.Namespace) -> None:
 
     logs.setup("export")  # the library's log lines on stderr, never mixed into this output
     if args.c3d:
-        gaitlab._ezc3d()  # a missing extra is said before the file is read
+        gaitlab.require_ezc3d()  # a missing extra is said before the file is read
     trial = gaitlab.build_trial(args.file, args.zero, args.debounce_ms / 1000)
     written = []
     if args.c3d:
