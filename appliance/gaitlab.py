@@ -547,12 +547,15 @@ def write_c3d(trial: Trial, out: str | Path) -> Path:
     c.add_parameter("SUBJECTS", "USED", 1 if subject else 0)
     c.add_parameter("SUBJECTS", "NAMES", [subject])
     c.add_parameter("SUBJECTS", "IS_STATIC", 0)
+    _ints(c, "TRIAL", "ACTUAL_START_FIELD", _words(1))
+    _ints(c, "TRIAL", "ACTUAL_END_FIELD", _words(frames))
+    c.add_parameter("TRIAL", "CAMERA_RATE", trial.rate_hz / k)
     c.add_parameter("MANUFACTURER", "COMPANY", "exolink")
     c.add_parameter("MANUFACTURER", "SOFTWARE", "exolink export")
     _events(c, trial, subject)
     c.add_parameter("EVENT_CONTEXT", "USED", 3)
     c.add_parameter("EVENT_CONTEXT", "LABELS", ["General", "Left", "Right"])
-    c.add_parameter("EVENT_CONTEXT", "ICON_IDS", [0, 1, 2])
+    _ints(c, "EVENT_CONTEXT", "ICON_IDS", [0, 1, 2])
     c.add_parameter("EVENT_CONTEXT", "DESCRIPTIONS", ["General", "Left side", "Right side"])
     keys = list(trial.labels) or [""]
     c.add_parameter("EXOLINK", "SOURCE", Path(trial.source).name)
@@ -588,8 +591,25 @@ def _events(c: Any, trial: Trial, subject: str) -> None:
     c.add_parameter("EVENT", "LABELS", [e.label for e in trial.events] or [""])
     c.add_parameter("EVENT", "DESCRIPTIONS", [e.description for e in trial.events] or [""])
     c.add_parameter("EVENT", "SUBJECTS", [subject] * len(trial.events) or [""])
-    c.add_parameter("EVENT", "ICON_IDS", [ICONS.get(e.label, 0) for e in trial.events] or [0])
-    c.add_parameter("EVENT", "GENERIC_FLAGS", [0] * len(trial.events) or [0])
+    _ints(c, "EVENT", "ICON_IDS", [ICONS.get(e.label, 0) for e in trial.events] or [0])
+    _ints(c, "EVENT", "GENERIC_FLAGS", [0] * len(trial.events) or [0])
+
+
+def _ints(c: Any, group: str, name: str, values: list[int]) -> None:
+    """An integer (int16) array parameter: ezc3d's add_parameter stores every list as floats,
+    where C3D readers expect integers (ICON_IDS, TRIAL's fields). Through ezc3d's own
+    Parameter type (its documented SWIG API) into the file's parameters (ezc3d 1.x)."""
+    from ezc3d import ezc3d as swig
+
+    param = swig.Parameter(name, "")
+    param.set(swig.VecInt([int(v) for v in values]))
+    c._storage["parameters"].add_parameter(group, param)
+
+
+def _words(n: int) -> list[int]:
+    """A 32-bit frame number as C3D's TRIAL group stores it: two 16-bit words, low first
+    (each written as the int16 with the same bits)."""
+    return [w - 65536 if w > 32767 else w for w in (n & 0xFFFF, (n >> 16) & 0xFFFF)]
 
 
 def write_events_csv(trial: Trial, out: str | Path) -> Path:

@@ -67,6 +67,10 @@ def read_c3d(path: Path) -> dict:
             "loss_names": [s.strip() for s in ex.get("LOSS_NAMES").string_array],
             "loss_counts": [int(x) for x in ex.get("LOSS_COUNTS").float_array],
             "zero": ex.get("ZERO").string_value.strip(),
+            "trial_end": tuple(
+                int(x) & 0xFFFF for x in r.get("TRIAL").get("ACTUAL_END_FIELD").int16_array
+            ),
+            "icon_ids": r.get("EVENT").get("ICON_IDS").int16_array.tolist(),
             "events": [],
         }
         used = int(ev.get("USED").int16_value) if ev.get("USED").bytes_per_element == 2 else 0
@@ -200,6 +204,9 @@ def test_simulator_walking_exported_to_c3d_and_opensim(write_config, spawn, tmp_
     c = read_c3d(out / "walk.c3d")
     assert c["zero"] == "first-trigger"
     assert c["events"][0][1:] == ("Trigger", "General") and c["events"][0][0] == 0.0
+    assert c["icon_ids"] == [
+        {"Trigger": 0, "Foot Strike": 1, "Foot Off": 2}[e[1]] for e in c["events"]
+    ]
     lost = dict(zip(c["loss_names"], c["loss_counts"], strict=True))
     for side, ctx in (("r", "Right"), ("l", "Left")):
         changes = {ns: on for ns, on in contact_changes(feet, side)}
@@ -302,6 +309,8 @@ def test_a_long_trial_fits_c3d_frames_and_reads_back_whole(tmp_path: Path) -> No
     gaitlab.write_c3d(trial, tmp_path / "long.c3d")
     c = read_c3d(tmp_path / "long.c3d")
     assert c["rate"] == 100.0 and c["point_rate"] == 50.0
+    frames = -(-trial.frames // 2)
+    assert c["trial_end"] == (frames & 0xFFFF, frames >> 16)
     a = c["analogs"][:, : trial.frames]
     for k, ch in enumerate(trial.channels):
         np.testing.assert_array_equal(np.isnan(a[k]), np.isnan(ch.values), err_msg=ch.label)
