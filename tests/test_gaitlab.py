@@ -357,6 +357,7 @@ def opensim_table(path: Path) -> tuple[list[str], np.ndarray, np.ndarray, dict[s
     """OpenSim's own reader (TimeSeriesTable, what its 4.x tools read): column labels, time,
     values, header metadata."""
     osim = pytest.importorskip("opensim")
+    osim.Logger.removeFileSink()  # else OpenSim writes opensim.log into the working directory
     t = osim.TimeSeriesTable(str(path))
     meta = {k: t.getTableMetaDataAsString(k) for k in t.getTableMetaDataKeys()}
     times = np.array([t.getIndependentColumn()[i] for i in range(t.getNumRows())])
