@@ -537,7 +537,12 @@ function onRecord(r) {
     const b = document.createElement("button");
     b.textContent = "plot"; b.className = "small plot-file";
     b.addEventListener("click", () => plotRecording(f));
-    li.append(a, " ", b);
+    // C3D for the gait lab (exolink export --c3d): served where the gaitlab extra is installed
+    const c = document.createElement("a");
+    c.href = "/api/recordings/c3d?file=" + encodeURIComponent(f);
+    c.textContent = "C3D"; c.className = "c3d-file";
+    c.title = "joints, foot switches, battery, MACCEPA as analogs; gait and trigger events";
+    li.append(a, " ", b, " ", c);
     return li;
   }));
 }
