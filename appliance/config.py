@@ -111,6 +111,13 @@ class RestartPolicy(_Strict):
     window_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 60.0
 
 
+class ClockConfig(_Strict):
+    # Take the wall clock from an operator's laptop when no time server disciplines it (a
+    # BeagleBone has no battery-backed clock: exolink.clock). False on a simulator, whose clock is
+    # its host's.
+    from_laptop: bool = False
+
+
 class NodeConfig(_Strict, kw_only=True):
     name: NodeName
     plugin: Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]*$")]
@@ -132,6 +139,7 @@ class ApplianceConfig(_Strict, kw_only=True):
     watchdog: WatchdogConfig = WatchdogConfig()
     # The lab's joint limits: every motion obeys them, whoever asks (exolink.jointlimits).
     limits: LimitsConfig = LimitsConfig()
+    clock: ClockConfig = ClockConfig()
     # Where the appliance keeps what an operator set at run time (stricter joint limits), so it
     # survives a node's restart and a reboot; unset: the supervisor's own working directory
     # (kept while it runs: `make sim`).

@@ -25,6 +25,7 @@ SUITES = [
     "ros2",
     "dashboard",
     "netsafety",
+    "gaitlab",
     "fetch",
 ]
 

@@ -174,7 +174,9 @@ def _ask(session: zenoh.Session, key: str, payload: bytes) -> list[float]:
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """``args.trials`` e-stops in case ``args.case``; latencies and how many got no frame."""
     session, login = _session(args.at, args.zenoh_config)
-    other = messaging.open_client_session(args.hostile_at or args.at, args.hostile_config)
+    other = messaging.open_client_session(
+        args.hostile_at or args.at, args.hostile_config, handshake_s=TRIAL_TIMEOUT_S
+    )
     listener = Listener(args.bus)
     key = f"{messaging.mgmt_key(args.device, 'watchdog')}/{login}"
     big_login = messaging.client_login(args.hostile_config)
@@ -259,11 +261,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="sim")
     p.add_argument("--zenoh-config", help="the e-stop client's login file")
     p.add_argument("--hostile-at", help="where the hostile clients connect (default --at)")
-    p.add_argument("--hostile-config", help="the hostile clients' login file")
+    p.add_argument(
+        "--hostile-config", help="the hostile clients' login file (default: --zenoh-config's)"
+    )
     p.add_argument("--bus", default="udp_multicast:239.74.163.2", help="interface:channel")
     p.add_argument("--case", choices=CASES, default="idle")
     p.add_argument("--trials", type=int, default=20)
     args = p.parse_args(argv)
+    args.hostile_config = args.hostile_config or args.zenoh_config  # a board has logins
     if args.mode == "measure":
         json.dump(measure(args), sys.stdout)
         sys.stdout.write("\n")

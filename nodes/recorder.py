@@ -45,7 +45,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, cdr, messaging, recording, recstore, roles, rosgraph
+from exolink import __version__, cdr, clock, messaging, recording, recstore, roles, rosgraph
 from exolink.messaging import CommandRefused, Unlogged
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
@@ -697,6 +697,8 @@ class Recorder(Node):
                 "file_index": str(self.index),
             },
             "exolink.labels": dict(self.labels),
+            # which clock stamped this file (a board with no time server: exolink.clock)
+            "exolink.clock": clock.recorded(self.ctx.config.state_dir),
             "exolink.config": {"yaml": self.config_yaml},
         }
 

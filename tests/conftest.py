@@ -56,6 +56,25 @@ def group() -> str:
     return f"239.74.{random.randint(1, 254)}.{random.randint(1, 254)}"
 
 
+def motion_nodes(deadline_ms: int = 300, h2_timeout_ms: int | None = 300) -> list[dict]:
+    """The simulated H2, its reader and the controller manager (the one writer of motion).
+    ``deadline_ms``: the manager's heartbeat deadline (300: above a loaded test machine's
+    stalls, where the deadline is not under test; 50 as shipped)."""
+    manager: dict = {
+        "name": "controller_manager",
+        "plugin": "controller_manager",
+        "critical": True,
+        "heartbeat_deadline_ms": deadline_ms,
+    }
+    if h2_timeout_ms is not None:
+        manager["params"] = {"h2_timeout_ms": h2_timeout_ms}
+    return [
+        {"name": "simulator", "plugin": "simulator"},
+        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
+        manager,
+    ]
+
+
 @pytest.fixture
 def write_config(tmp_path: Path, group: str) -> Callable[..., Path]:
     """Write the bundled sim config with overrides onto this test's own group and port."""
@@ -389,6 +408,18 @@ def vcan0() -> Iterator[str]:
         idx = ip.link_lookup(ifname="vcan0")
         if idx:
             ip.link("del", index=idx[0])
+
+
+@pytest.fixture
+def own_clock() -> Iterator[None]:
+    """A kernel whose wall clock a test may step: only a throwaway guest's (`make test-kernel`
+    sets EXOLINK_REQUIRE_KERNEL=clock in the UML guest); the host's clock is never stepped. The
+    clock is put back (to within the test's run time) afterwards."""
+    if "clock" not in REQUIRED:
+        pytest.skip("stepping the wall clock needs a throwaway kernel; run `make test-kernel`")
+    wall, mono = time.time(), time.monotonic()
+    yield
+    time.clock_settime(time.CLOCK_REALTIME, wall + time.monotonic() - mono)
 
 
 class SimChip:

@@ -4,16 +4,19 @@ an independent listener on the test's bus; screenshots of every page go to build
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import re
 import shutil
 import urllib.error
 import urllib.request
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import c3d
 import pytest
 import yaml
 from conftest import REPO, Appliance, collect, free_port, wait_for
@@ -343,6 +346,17 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     dash.go("nodes")
     row = "#nodes tr[data-node=timing_monitor]"
     page.wait_for_selector(row)
+    # The board's clock against this laptop's (the sim's is the host's: ~0 ms off), with the
+    # warning the kernel's own word gives (this host runs no time server it would know of)
+    page.wait_for_function(
+        "[...document.querySelectorAll('#bus dt')].some(dt => dt.textContent === 'clock')"
+    )
+    shown = page.evaluate(
+        "[...document.querySelectorAll('#bus dt')].find(dt => dt.textContent === 'clock')"
+        ".nextElementSibling.textContent"
+    )
+    synced = app.status()["clock"]["synchronised"]
+    assert " ms (+- " in shown and ("WARNING: not synchronised" in shown) == (not synced), shown
     pid = app.node("timing_monitor")["pid"]
     page.click(f"{row} button[data-action=restart]")
     page.wait_for_function(
@@ -411,6 +425,15 @@ def test_nodes_page_restarts_a_node_and_recording_lists_the_file(dash: Dash) -> 
     assert href
     body = page.request.get(dash.url.rstrip("/") + href).body()
     assert body[:8] == b"\x89MCAP0\r\n"
+    # the same file as C3D for the gait lab (the gaitlab extra is in dev), read back by py-c3d
+    c3d_href = page.get_attribute("#rec-files a.c3d-file", "href")
+    r = page.request.get(dash.url.rstrip("/") + (c3d_href or ""))
+    assert r.status == 200, r.text()
+    assert r.body()[1] == 0x50  # C3D: the parameter section's key byte
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # no markers in it
+        labels = [x.strip() for x in c3d.Reader(io.BytesIO(r.body())).analog_labels]
+    assert labels[:2] == ["r_hip_angle", "r_hip_torque"]
     page.click("#rec-files button.plot-file")
     page.wait_for_function(
         "document.querySelector('#rec-plot-file').textContent.includes('points')"

@@ -15,20 +15,12 @@ import time
 from typing import Any
 
 import pytest
-from conftest import EXOLINK, Appliance, collect, wait_for
+from conftest import EXOLINK, Appliance, collect, motion_nodes, wait_for
 from exolink.protocol import h2
 
 LOST_MS = 2000  # watchdog.operator_lost_ms, as shipped
 NODES = [
-    {"name": "simulator", "plugin": "simulator"},
-    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-    {
-        "name": "controller_manager",
-        "plugin": "controller_manager",
-        "critical": True,
-        "heartbeat_deadline_ms": 300,  # above a loaded test machine's stalls: not under test
-        "params": {"h2_timeout_ms": 300},
-    },
+    *motion_nodes(),
     {
         "name": "pattern_player",
         "plugin": "pattern_player",

@@ -14,8 +14,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import EXOLINK, Appliance, collect, wait_for
-from exolink import messaging, rosgraph
+from conftest import EXOLINK, Appliance, collect, motion_nodes, wait_for
+from exolink import clock, messaging, rosgraph
 from exolink.protocol import h2
 from exolink.recording import RecordingError, export_csv, info
 from mcap.reader import make_reader
@@ -101,6 +101,10 @@ def test_walking_session_recorded_exactly(write_config, spawn, tmp_path) -> None
     assert i.topics["/h2/joint_states"]["count"] == len(rows)
     assert len(i.triggers) == 1 and stamps[0] <= i.triggers[0] <= stamps[-1]
     assert i.metadata["exolink.labels"] == {"subject": "S01", "session": "walk"}
+    # which clock stamped it, as the kernel says (this host: no laptop ever steps its clock)
+    synced = clock.kernel().synchronised
+    assert i.metadata["exolink.clock"]["synchronised"] == str(synced).lower()
+    assert i.metadata["exolink.clock"]["source"] == ("time server" if synced else "unsynchronised")
     assert (
         i.metadata["exolink"]["device"] == "sim"
         and "device: sim" in i.metadata["exolink.config"]["yaml"]
@@ -432,17 +436,7 @@ def test_a_bundled_topic_reaches_the_recorder_once(write_config, spawn, tmp_path
 
 # --- play never replays a command ----------------------------------------------------------------
 
-CONTROL_NODES = [
-    {"name": "simulator", "plugin": "simulator"},
-    {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-    {
-        "name": "controller_manager",
-        "plugin": "controller_manager",
-        "critical": True,
-        "heartbeat_deadline_ms": 300,  # above a loaded test machine's stalls: not under test
-        "params": {"h2_timeout_ms": 300},
-    },
-]
+CONTROL_NODES = motion_nodes()
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 

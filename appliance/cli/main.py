@@ -99,6 +99,7 @@ def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser
     remote.register_management(sub)
     motion.register(sub)
     recordings.register(sub)
+    __import__("exolink.cli.clock").cli.clock.register(sub)
     __import__("exolink.cli.controllers").cli.controllers.register(sub)
     __import__("exolink.dashboard.cli").dashboard.cli.register(sub)
     return parser

@@ -245,11 +245,69 @@ def _checked(integrity: dict[str, Any]) -> str:
 
 @_guard_file
 def cmd_export(args: argparse.Namespace) -> int:
-    from exolink.recording import export_csv
+    if not (args.csv or args.c3d or args.opensim or args.events):
+        return fail(
+            "export needs --csv DIR, --c3d FILE, --opensim DIR or --events FILE", EXIT_USAGE
+        )
+    if args.csv:
+        from exolink.recording import export_csv
 
-    for topic, n in sorted(export_csv(args.file, args.csv).items()):
-        sys.stdout.write(f"{topic:40} {n:>8} rows\n")
+        for topic, n in sorted(export_csv(args.file, args.csv).items()):
+            sys.stdout.write(f"{topic:40} {n:>8} rows\n")
+    if args.c3d or args.opensim or args.events:
+        _export_gaitlab(args)
     return 0
+
+
+def _export_gaitlab(args: argparse.Namespace) -> None:
+    """C3D, OpenSim and the events CSV (exolink.gaitlab); what was lost is said, never hidden."""
+    from pathlib import Path
+
+    from exolink import gaitlab, logs
+
+    logs.setup("export")  # the library's log lines on stderr, never mixed into this output
+    if args.c3d:
+        gaitlab.require_ezc3d()  # a missing extra is said before the file is read
+    trial = gaitlab.build_trial(args.file, args.zero, args.debounce_ms / 1000)
+    written = []
+    if args.c3d:
+        written.append(gaitlab.write_c3d(trial, args.c3d))
+    if args.opensim:
+        written += gaitlab.write_opensim(trial, args.opensim, args.opensim_model)
+    events = args.events
+    if events is None and args.c3d:
+        events = str(Path(args.c3d).with_suffix("")) + "_events.csv"
+    elif events is None:
+        events = str(
+            Path(args.opensim) / (Path(args.file).name.removesuffix(".mcap") + "_events.csv")
+        )
+    written.append(gaitlab.write_events_csv(trial, events))
+    zero = "first trigger edge" if trial.zero == "first-trigger" else "first joint sample"
+    if args.zero == "first-trigger" and trial.zero == "start":
+        sys.stderr.write("no trigger edge in the recording: time zero is its first joint sample\n")
+    kinds: dict[str, int] = {}
+    for e in trial.events:
+        kinds[f"{e.label} {e.context}"] = kinds.get(f"{e.label} {e.context}", 0) + 1
+    sys.stdout.write(
+        f"{trial.frames} frames at {trial.rate_hz:g} Hz, {len(trial.channels)} channels, "
+        f"time zero at the {zero} ({iso(trial.zero_ns)})\n"
+        f"resampling: {gaitlab.RESAMPLING}\n"
+        f"events: " + (", ".join(f"{k} {n}" for k, n in sorted(kinds.items())) or "none") + "\n"
+    )
+    invalid = {c.label: c.invalid for c in trial.channels if c.invalid}
+    lost = {k: v for k, v in trial.losses.items() if v}
+    if invalid or lost:
+        sys.stdout.write(
+            "not measured (NaN in the export): "
+            + (", ".join(f"{k} {v}" for k, v in invalid.items()) or "no samples")
+            + "\nlosses: "
+            + (", ".join(f"{k} {v}" for k, v in lost.items()) or "none")
+            + "\n"
+        )
+    else:
+        sys.stdout.write("nothing lost: every exported sample was measured\n")
+    for path in written:
+        sys.stdout.write(f"wrote {path}\n")
 
 
 @_guard_file
@@ -370,9 +428,46 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("export", help="export an MCAP file to one CSV per topic")
+    p = sub.add_parser(
+        "export",
+        help="export an MCAP file: one CSV per topic (--csv), or for the gait lab a C3D file "
+        "(--c3d), OpenSim .mot/.sto (--opensim) and the gait events as CSV (--events)",
+    )
     p.add_argument("file")
-    p.add_argument("--csv", required=True, metavar="DIR")
+    p.add_argument("--csv", metavar="DIR", help="one CSV per topic into DIR")
+    p.add_argument(
+        "--c3d",
+        metavar="FILE",
+        help="joints, foot switches, battery and MACCEPA sensors as analog channels, gait and "
+        "trigger events (needs the gaitlab extra: pip install 'exolink[gaitlab]')",
+    )
+    p.add_argument(
+        "--opensim", metavar="DIR", help="<name>.mot of joint angles, <name>_torques.sto"
+    )
+    p.add_argument(
+        "--events",
+        metavar="FILE",
+        help="the events as CSV (default: beside the C3D file, else in the OpenSim DIR)",
+    )
+    p.add_argument(
+        "--zero",
+        choices=["first-trigger", "start"],
+        default="first-trigger",
+        help="time zero: the first trigger edge (what came before is not exported; the "
+        "start when there is none) or the first joint sample (default first-trigger)",
+    )
+    p.add_argument(
+        "--debounce-ms",
+        type=_decimal,
+        default=30.0,
+        help="a foot contact change counts once it held this long (default 30)",
+    )
+    p.add_argument(
+        "--opensim-model",
+        choices=["rajagopal", "gait2392"],
+        default="rajagopal",
+        help="knee sign: flexion positive (rajagopal, as the H2) or negative (gait2392)",
+    )
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser(

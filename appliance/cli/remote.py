@@ -637,7 +637,12 @@ def cmd_status(args: argparse.Namespace) -> int:
             n.get("plugin") == "controller_manager" and n["state"] == "running" for n in s["nodes"]
         )
         ctrl = r.call("controllers") if manager else None
+        from exolink.cli import clock
+
+        off = clock.offset(r) if "clock" in s else None  # (an older supervisor has none)
     if args.json:
+        if off is not None:  # the board's clock minus this laptop's
+            s["clock"].update(offset_ms=off.offset_s * 1e3, offset_error_ms=off.error_s * 1e3)
         _print_json(s if ctrl is None else {**s, "controllers": ctrl})
         return 0
     wd, bus, trig = s["watchdog"], s["bus"], s["trigger"]
@@ -654,6 +659,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n"
+        + (clock.describe(s["clock"], off) if off is not None else "")
         + _card_line(s["nodes"])
         + _api_lines(s)
         + _node_table(s["nodes"])
@@ -717,6 +723,10 @@ def cmd_logs(args: argparse.Namespace) -> int:
 def cmd_watchdog(args: argparse.Namespace) -> int:
     body = {"action": args.command}  # the e-stop's detail names this session's login
     with remote(args) as r:
+        if args.command == "arm":  # a board with no time server takes this laptop's first
+            from exolink.cli import clock
+
+            sys.stdout.write(clock.sync_at_arm(r))
         s = r.call("watchdog", body=body)
     detail = f": {s['detail']}" if s.get("detail") else ""
     sys.stdout.write(f"watchdog {s['state']} ({s['reason']}{detail})\n")

@@ -31,7 +31,7 @@ from typing import Any
 
 import structlog
 import zenoh
-from exolink import cdr, messaging, recstore, roles
+from exolink import cdr, clock, messaging, recstore, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.cli.remote import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
@@ -394,8 +394,9 @@ class Hub:
         while True:
             await self._watched.wait()  # polled for open pages only (a status costs the supervisor)
             try:
-                self.status = await asyncio.to_thread(self.remote.call, "status")
-                self.status_error = None
+                t0 = time.time()
+                status = await asyncio.to_thread(self.remote.call, "status")
+                self.status, self.status_error = _with_clock_offset(status, t0, time.time()), None
             except (Refused, messaging.Unreachable) as exc:
                 self.status_error = str(exc)
             self._broadcast({"t": "status", "status": self.status, "error": self.status_error})
@@ -571,3 +572,20 @@ def _plain(msg: Any) -> dict[str, Any]:
         v = getattr(msg, k)
         out[k] = v.tolist() if hasattr(v, "tolist") else v
     return out
+
+
+def _with_clock_offset(status: dict[str, Any], t0: float, t1: float) -> dict[str, Any]:
+    """The board's clock minus this laptop's, from the status round trip (exolink.clock: the
+    page warns when the board's time cannot be trusted for a trial's recordings)."""
+    c = status.get("clock")
+    if isinstance(c, dict) and isinstance(c.get("now"), int | float):
+        off = clock.Offset(c["now"] - (t0 + t1) / 2, (t1 - t0) / 2)
+        c.update(offset_ms=round(off.offset_s * 1e3, 1), error_ms=round(off.error_s * 1e3, 1))
+        c["warning"] = (
+            "not synchronised"
+            if not c.get("synchronised") and c.get("source") != "laptop"
+            else f"{off.offset_s * 1e3:+.0f} ms off this laptop"
+            if off.off()
+            else ""
+        )
+    return status

@@ -341,6 +341,39 @@ async def download(request: web.Request) -> web.StreamResponse:
     )
 
 
+def _c3d(path: Path, out_dir: str) -> Path:
+    from exolink import gaitlab
+
+    trial = gaitlab.build_trial(path)
+    return gaitlab.write_c3d(trial, Path(out_dir) / (path.name.removesuffix(".mcap") + ".c3d"))
+
+
+async def recording_c3d(request: web.Request) -> web.StreamResponse:
+    """The recording as C3D for the gait lab (exolink.gaitlab, as `exolink export --c3d`), where
+    the dashboard runs with the gaitlab extra (a laptop): on the board, 501 naming the extra."""
+    import tempfile
+
+    from exolink import gaitlab
+    from exolink.recording import RecordingError
+
+    path = await _recording(request)
+    try:
+        gaitlab.require_ezc3d()
+    except gaitlab.MissingExtra as exc:
+        raise web.HTTPNotImplemented(text=str(exc)) from None
+    with tempfile.TemporaryDirectory(prefix="exolink-c3d-") as d:
+        try:
+            out = await asyncio.to_thread(_c3d, path, d)
+        except RecordingError as exc:
+            raise web.HTTPUnprocessableEntity(text=str(exc)) from None
+        body = out.read_bytes()
+    return web.Response(
+        body=body,
+        content_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{out.name}"'},
+    )
+
+
 async def recording_plot(request: web.Request) -> web.StreamResponse:
     from exolink.recording import RecordingError
 
@@ -377,6 +410,7 @@ def make_app(hub: Hub, hosts: Hosts) -> web.Application:
     app.router.add_get("/api/pattern/points", pattern_points)
     app.router.add_get("/api/recordings/download", download)
     app.router.add_get("/api/recordings/plot", recording_plot)
+    app.router.add_get("/api/recordings/c3d", recording_c3d)
     app.router.add_static("/static/", STATIC, append_version=False)
 
     async def on_startup(_app: web.Application) -> None:

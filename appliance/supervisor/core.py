@@ -27,6 +27,7 @@ import yaml
 from exolink import cdr, liveness, logs, messaging, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
+from exolink.clock import BoardClock, ClockRefused
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
 from exolink.messaging import CommandRefused
 from exolink.protocol import h2
@@ -119,6 +120,7 @@ class Supervisor:
         self._arming = threading.Lock()  # an arm's last check and the e-stops' count
         self._estops = 0
         self.node_api: dict[str, dict[str, int]] = {}  # each node's Admission counters
+        self.clock = BoardClock(Path(state_dir(cfg, self._workdir)), cfg.clock.from_laptop)
 
     # --- start-up ---------------------------------------------------------------------------
 
@@ -653,6 +655,7 @@ class Supervisor:
             "logs": (self.api_logs, roles.ADMIN),
             "watchdog": (self.api_watchdog, _watchdog_needs),
             "trigger": (self.api_trigger, roles.status_or(roles.OPERATOR)),
+            "clock": (self.api_clock, roles.status_or(roles.OPERATOR)),
         }
         for path, (handler, needs) in routes.items():
             urgent = _is_estop if path == "watchdog" else None
@@ -688,6 +691,7 @@ class Supervisor:
                 **(vars(self.health) if self.health else {"state": "n/a"}),
                 "h2_silent_s": None if silent is None else round(silent, 3),
             },
+            "clock": self.clock.status(),
             "trigger": {
                 "source": self.cfg.trigger.source,
                 "count": self.trigger_count,
@@ -778,6 +782,21 @@ class Supervisor:
             raise CommandRefused(f"unknown trigger action {_shown(action)} (fire)")
         return {"count": self.trigger_count, "last_ns": self.last_trigger_ns}
 
+    def api_clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+        """The board's clock (any role: a laptop measures its offset from ``now``), or a step
+        to an operator laptop's time (exolink.clock: refused while armed or synchronised)."""
+        action = req.get("action")
+        if action == "step":
+            armed = self.watchdog.snapshot().state == "armed"
+            try:
+                step = self.clock.step(req.get("offset_s"), req.get("error_s"), caller.login, armed)
+            except ClockRefused as exc:
+                raise CommandRefused(str(exc)) from None
+            self.log.warning("clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"})
+        elif action not in (None, "status"):
+            raise CommandRefused(f"unknown clock action {_shown(action)} (status or step)")
+        return self.clock.status()
+
 
 class MemoryTrim:
     """Gives back to the kernel what glibc keeps after a burst (``malloc_trim``).
@@ -835,13 +854,17 @@ def _watchdog_needs(req: dict[str, Any]) -> str:
     return roles.OPERATOR if action in ("arm", "disarm") else roles.OBSERVER
 
 
+def state_dir(cfg: ApplianceConfig, workdir: Path) -> str:
+    """The config's state directory, else one in the supervisor's working directory."""
+    return cfg.state_dir or str(workdir / "state")
+
+
 def _config_data(cfg: ApplianceConfig, workdir: Path) -> dict[str, Any]:
     """The config the nodes read: the file's, with a state directory (the operator's limits)
     in the supervisor's working directory when the file names none."""
     data: dict[str, Any] = msgspec.to_builtins(cfg)
     data.pop("source", None)
-    if data.get("state_dir") is None:
-        data["state_dir"] = str(workdir / "state")
+    data["state_dir"] = state_dir(cfg, workdir)
     return data
 
 

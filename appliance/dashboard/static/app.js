@@ -325,6 +325,12 @@ function onStatus(m) {
     if (n.receive) kv(bus, n.name + " rx", `dropped ${n.receive.dropped ?? "n/a"} late ${n.receive.late} lag max ${n.receive.lag_max_ms} ms`);
   }
   kv(bus, "trigger", `${s.trigger.source} count ${s.trigger.count}`);
+  if (s.clock) {  // the board's time against this laptop's (exolink clock sync sets it)
+    const c = s.clock;
+    kv(bus, "clock", `${c.source}, ${c.offset_ms >= 0 ? "+" : ""}${c.offset_ms} ms (+- ${c.error_ms})` +
+      (c.warning ? ` WARNING: ${c.warning}` : ""));
+    bus.lastChild.classList.toggle("warn", !!c.warning);
+  }
   if (s.trigger.last_ns && S.lastTrigger == null) { S.lastTrigger = s.trigger.last_ns; }
   $("#trigger-count").textContent = s.trigger.count;
   renderNodes(s.nodes);
@@ -535,7 +541,12 @@ function onRecord(r) {
     const b = document.createElement("button");
     b.textContent = "plot"; b.className = "small plot-file";
     b.addEventListener("click", () => plotRecording(f));
-    li.append(a, " ", b);
+    // C3D for the gait lab (exolink export --c3d): served where the gaitlab extra is installed
+    const c = document.createElement("a");
+    c.href = "/api/recordings/c3d?file=" + encodeURIComponent(f);
+    c.textContent = "C3D"; c.className = "c3d-file";
+    c.title = "joints, foot switches, battery, MACCEPA as analogs; gait and trigger events";
+    li.append(a, " ", b, " ", c);
     return li;
   }));
 }
