@@ -6,10 +6,11 @@ ends with the caller's login (``exolink/<device>/<path>/<login>``) and the ACL l
 query only keys ending in its own name, so a handler reads a caller's identity from the key and
 Zenoh has already proven it. What a role may do is then decided here (``allows``), per request.
 
-- ``observer``: data, status, e-stop.
+- ``observer``: data, status, e-stop, the list of recordings on the card.
 - ``operator``: also arm and disarm, hold motion (presence), joint commands, patterns,
-  recording, trigger, setting the board's clock from the laptop's (exolink.clock).
-- ``admin``: also node start/stop/restart, params, logs, simulator faults.
+  recording and fetching recordings, trigger, setting the board's clock from the laptop's
+  (exolink.clock).
+- ``admin``: also node start/stop/restart, params, logs, simulator faults, deleting recordings.
 - ``exolink``: the appliance's own processes (the login in /etc/exolink/zenoh.json5, readable by
   the service only); they declare queryables and publish data, which no laptop login may.
 
@@ -97,6 +98,27 @@ def status_or(role: str) -> Callable[[dict[str, Any]], str]:
 
     def needs(request: dict[str, Any]) -> str:
         return OBSERVER if request.get("action", "status") in ("status", None) else role
+
+    return needs
+
+
+# What each request to the recorder's ``recordings`` key needs: an observer sees what is on the
+# card, an operator copies it to a laptop (the data of a subject: more than status), only an
+# admin deletes. An action not listed needs admin (the handler then says it is unknown).
+RECORDINGS: dict[str, str] = {
+    "list": OBSERVER,
+    "stat": OPERATOR,
+    "fetch": OPERATOR,
+    "delete": ADMIN,
+}
+
+
+def by_action(table: dict[str, str], default: str = ADMIN) -> Callable[[dict[str, Any]], str]:
+    """Needs of a key whose actions each need their own role (``table``; ``list`` the default
+    action)."""
+
+    def needs(request: dict[str, Any]) -> str:
+        return table.get(str(request.get("action", "list")), default)
 
     return needs
 

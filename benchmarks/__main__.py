@@ -26,6 +26,7 @@ SUITES = [
     "dashboard",
     "netsafety",
     "gaitlab",
+    "fetch",
 ]
 
 

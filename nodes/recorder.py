@@ -18,8 +18,13 @@ at all, rather than taking each one to drop it.
 What the bus readers lost before anything reached Zenoh goes into ``exolink.receive``: each
 reader's receive counters (its ``nodes/<name>/stats``) when the file was opened and closed.
 Every ``fsync_interval_s`` the chunk in progress is closed and the file fsynced: power loss costs
-at most that much. A full disk stops the recording cleanly with an ERROR diagnostic; earlier files
-are never reopened.
+at most that much. The card is checked every second: under ``reserve_mb`` free, the recording
+stops cleanly (the file closed and indexed) with an ERROR diagnostic ("card full"), and no new
+one starts, so the card never fills and nothing else on the board (logs, the journal) fails for
+it. A disk full all the same (a smaller reserve than one second of data, another writer) stops
+it too; earlier files are never reopened.
+The recorder also serves its directory to laptops (``recordings``: exolink.recstore): it alone
+knows which file it is writing, and that one is never handed out nor deleted.
 """
 
 from __future__ import annotations
@@ -40,8 +45,8 @@ from typing import Annotated, Any, Literal
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, cdr, clock, messaging, recording, roles, rosgraph
-from exolink.messaging import CommandRefused
+from exolink import __version__, cdr, clock, messaging, recording, recstore, roles, rosgraph
+from exolink.messaging import CommandRefused, Unlogged
 from exolink.node import Node
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
@@ -79,6 +84,7 @@ Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publis
 STOP_REPLY_S = 2.0
 RECEIVE_QUERY_S = 0.5  # the readers' receive counters, asked when a file opens and closes
 RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the file alone
+CARD_CHECK_S = 1.0  # how often the card's free space is read (one statvfs)
 
 
 class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -99,6 +105,15 @@ class RecorderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # measured 1.5 KB per sample put in fours, 5.4 KB one by one (x86), so 20,000 is <= ~40 MB
     # in practice. What does not fit is counted as dropped.
     inbox: Annotated[int, msgspec.Meta(ge=16, le=1_000_000)] = 20_000
+    # Free space the recorder leaves on the card: under it a recording stops (closed, indexed)
+    # and none starts. The rest of the board (journal, logs, updates) writes to the same card.
+    reserve_mb: Annotated[float, msgspec.Meta(ge=0)] = 256.0
+    # What fetches of recordings may take (MB/s, all laptops together; 0 = no limit). Each MB
+    # served cost ~8.5 ms of the recorder's CPU and ~1.8 ms of the supervisor's (its router) on
+    # x86 (benchmarks/bench_fetch.py; 5 ms of it base64 and JSON): on the board's one core,
+    # roughly ten times that, so 1 MB/s keeps a fetch to about a tenth of it while the
+    # appliance runs (a 1 GB day syncs in ~17 min; raise it when nothing moves).
+    fetch_mb_s: Annotated[float, msgspec.Meta(ge=0)] = 1.0
 
 
 @dataclass
@@ -177,6 +192,9 @@ class McapFile:
         self.f.flush()
         os.fsync(self.f.fileno())
         self.f.close()
+
+    def size_closed(self) -> int:
+        return os.stat(self.path).st_size
 
 
 class Inbox:
@@ -415,8 +433,20 @@ class Recorder(Node):
         self.pub_diag = self.own(
             m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         )
+        self.writing: Path | None = None  # the file open (or being opened) for writing
+        self._bytes = 0  # written in this recording by files already closed
+        self.rate = recstore.Rate()
+        self.store = recstore.Store(
+            self.dir, lambda: self.writing, self._reserve_bytes(), self.params.fetch_mb_s * 1e6
+        )
+        self.card = self.store.card()
+        self.own(m.serve("recordings", self.on_recordings, roles.by_action(roles.RECORDINGS)))
         self.own(m.serve("record", self.on_command, roles.status_or(roles.OPERATOR)))
-        if self.params.autostart:
+        if self.params.autostart and self.card["free"] < self.card["reserve"]:
+            # booted onto a full card: said at once, rather than a file opened to be closed
+            self.state, self.error = "error", f"card full: {self._card_text()}; not recording"
+            self.log.error("recording_not_started_card_full", **self.card)
+        elif self.params.autostart:
             self.start_recording(dict(self.params.labels))
 
     # --- intake (the node's loop, in batches) ---------------------------------------------
@@ -548,6 +578,12 @@ class Recorder(Node):
                 raise CommandRefused("labels must be a mapping of strings (--label subject=S01)")
             if self.state == "recording":
                 raise CommandRefused(f"already recording to {self.file.path if self.file else '?'}")
+            self.card = self.store.card()
+            if self.card["free"] < self.card["reserve"]:
+                raise CommandRefused(
+                    f"card full: {self._card_text()}; not recording (fetch the recordings: "
+                    "exolink record sync DIR, then exolink record delete NAME)"
+                )
             self.start_recording({**self.params.labels, **labels})
         elif action == "stop":
             if self.state != "recording":
@@ -567,6 +603,7 @@ class Recorder(Node):
             s["files"] = list(self.stats.files)
             s["refused_from"] = dict(self.stats.refused_from)
         f = self.file
+        card = dict(self.card)
         return {
             "state": self.state,
             "error": self.error,
@@ -575,7 +612,65 @@ class Recorder(Node):
             "labels": self.labels,
             "queue": self._pending,
             **s,
+            "card": card,
+            "rate_bps": round(self.rate.last, 1),
+            "hours_left": recstore.hours_left(card["free"], card["reserve"], self.rate.last),
         }
+
+    def on_recordings(self, req: dict[str, Any]) -> dict[str, Any]:
+        """A laptop's request about the files (roles.RECORDINGS says who may ask what)."""
+        action = req.get("action", "list")
+        try:
+            if action == "list":
+                files = [e.as_dict() for e in self.store.entries()]
+                return {"files": files, "card": dict(self.card), "state": self.state}
+            if action == "stat":
+                return self.store.stat(req.get("name"))
+            if action == "fetch":
+                # A chunk is a read, not a command: the command log (recorded) keeps the
+                # ``stat`` that began the fetch, not one entry per MiB.
+                return Unlogged(
+                    self.store.chunk(req.get("name"), req.get("offset"), req.get("length"))
+                )
+            if action == "delete":
+                out = self.store.delete(req.get("name"))
+                self.card = self.store.card()
+                return out
+        except recstore.StoreError as exc:
+            raise CommandRefused(str(exc)) from None
+        except OSError as exc:
+            raise CommandRefused(f"{req.get('name')!s:.80}: {exc.strerror or exc}") from None
+        raise CommandRefused(
+            f"unknown recordings action {str(action)[:40]!r} (list, stat, fetch, delete)"
+        )
+
+    def _reserve_bytes(self) -> int:
+        return int(self.params.reserve_mb * 2**20)
+
+    def _card_text(self) -> str:
+        c = self.card
+        return (
+            f"{c['free'] / 2**20:.2f} MiB free, under the {c['reserve'] / 2**20:g} MiB "
+            "the recorder leaves on the card"
+        )
+
+    def _check_card(self) -> None:
+        """Once a second: the card's space and the write rate; under the reserve, the
+        recording stops cleanly (the writer loop: it owns the file)."""
+        self.card = self.store.card()
+        if self.state != "recording":
+            return
+        f = self.file
+        self.rate.note(self._bytes + (f.size() if f is not None else 0))
+        if self.card["free"] >= self.card["reserve"]:
+            return
+        self._write_all(self._take(float("inf")))
+        path = str(f.path) if f is not None else None
+        self._close()
+        self.error = f"card full: {self._card_text()}; recording stopped, {path} closed"
+        self.state = "error"
+        self._unsubscribe_if_idle()
+        self.log.error("recording_stopped_card_full", file=path, **self.card)
 
     def start_recording(self, labels: dict[str, str]) -> None:
         with self.lock:
@@ -584,6 +679,8 @@ class Recorder(Node):
         self._subscribe()
         self.labels = labels
         self.index = 0
+        self._bytes = 0
+        self.rate.reset()
         self.session_stamp = time.strftime("%Y%m%d-%H%M%S")
         self.error = ""
         self.state = "recording"  # the writer thread opens the first file
@@ -611,7 +708,13 @@ class Recorder(Node):
             x for x in (self.ctx.config.device, self.session_stamp, label, f"{self.index:03d}") if x
         )
         self._receive_at_open = self._receive_counters()
-        self.file = McapFile(self.dir / f"{name}.mcap", self.params, self._metadata())
+        path = self.dir / f"{name}.mcap"
+        self.writing = path  # listed as being recorded from before it exists
+        try:
+            self.file = McapFile(path, self.params, self._metadata())
+        except BaseException:
+            self.writing = None
+            raise
         with self.lock:
             self.stats.files.append(str(self.file.path))
         self.log.info("recording_file", path=str(self.file.path))
@@ -626,7 +729,11 @@ class Recorder(Node):
                 if k != "files"
             }
         f, self.file = self.file, None
-        f.close(stats, self._receive_metadata(self._receive_counters()))
+        try:
+            f.close(stats, self._receive_metadata(self._receive_counters()))
+            self._bytes += f.size_closed()
+        finally:
+            self.writing = None
 
     def _receive_counters(self) -> dict[str, dict[str, Any]]:
         """Every bus reader's receive counters now (node -> FrameReader.counters())."""
@@ -691,13 +798,14 @@ class Recorder(Node):
             with contextlib.suppress(Exception):
                 self.file.f.close()
             self.file = None
+        self.writing = None
         with self.lock:  # what can no longer be written is counted, not hidden
             self.stats.dropped += self._pending
         self._pending = 0
         self._diagnostics()
 
     def run(self, stop: threading.Event) -> None:
-        next_sync = next_diag = time.monotonic()
+        next_sync = next_diag = next_card = time.monotonic()
         while not stop.is_set():
             self.beat()
             stopping = self.state == "stopping"  # seen before the take: it holds all until now
@@ -713,6 +821,9 @@ class Recorder(Node):
                 if self._need_split():
                     self._close()
                     self.index += 1
+                if now >= next_card:
+                    next_card = now + CARD_CHECK_S
+                    self._check_card()
                 if stopping:
                     self._write_all(self._take(float("inf")))
                     self._close()
@@ -753,6 +864,10 @@ class Recorder(Node):
                 "refused_topics",
             )
         }
+        # The card, for `exolink status` (the supervisor keeps card_* values: see its nodes)
+        values.update({f"card_{k}": v for k, v in s["card"].items()})
+        values["card_rate_bps"] = s["rate_bps"]
+        values["card_hours_left"] = None if s["hours_left"] is None else round(s["hours_left"], 2)
         payload = cdr.diagnostics(
             now,
             f"{self.name}/recording",

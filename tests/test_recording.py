@@ -276,6 +276,7 @@ def test_disk_full_stops_cleanly_and_keeps_earlier_files(write_config, spawn, ti
         "compression": "none",
         "split_size_mb": 0.15,
         "fsync_interval_s": 0.2,
+        "reserve_mb": 0,  # the last resort: no reserve, the card really fills (ENOSPC)
     }
     app = Appliance(write_config(nodes=nodes(tiny_disk, **params)), spawn)
     wait_for(lambda: "disk full" in app.cli("record", "status").stdout, timeout=60)

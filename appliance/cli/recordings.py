@@ -6,10 +6,12 @@ import argparse
 import json
 import sys
 import threading
+import time
+from pathlib import Path
 from typing import Any
 
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
-from exolink.cli.remote import _decimal, _guard, _Leaves, common, remote
+from exolink.cli.remote import Refused, Remote, _decimal, _guard, _integer, _Leaves, common, remote
 from exolink.mcapcheck import iso
 from exolink.recording import REPLAY_PREFIX
 
@@ -51,6 +53,126 @@ def cmd_record(args: argparse.Namespace) -> int:
         )
         if s.get("refused_topics"):
             sys.stdout.write(f"{_refused(s['refused_topics'], s.get('refused_from', {}))}\n")
+    return 0
+
+
+# A request of a fetch waits this long for its answer: 1 MiB takes ~0.2 s over 100 Mbit/s and
+# the board paces what it serves (the recorder's fetch_mb_s, 1 MB/s: ~1 s a chunk, more while
+# another laptop fetches too); a reply the router dropped is asked for again after this.
+FETCH_TIMEOUT_S = 5.0
+
+
+def _asker(r: Remote) -> Any:
+    """Requests to the board's ``recordings`` (the recorder's), patient with the board's rate
+    limit and lost replies (recstore.Patient); a refusal is the CLI's usual one."""
+    from exolink import recstore
+
+    r.timeout = max(r.timeout, FETCH_TIMEOUT_S)
+    patient = recstore.Patient(lambda body: r.ask("recordings", body=body))
+
+    def ask(body: dict[str, Any]) -> dict[str, Any]:
+        try:
+            return patient(body)
+        except recstore.Refused as exc:
+            raise Refused(str(exc)) from None
+
+    return ask
+
+
+def _mib(n: float) -> str:
+    return f"{n / 2**20:.2f} MiB"
+
+
+@_guard
+def cmd_record_list(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        s = _asker(r)({"action": "list"})
+    if args.json:
+        sys.stdout.write(json.dumps({"files": s["files"], "card": s["card"]}) + "\n")
+        return 0
+    for f in s["files"]:
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(f["mtime"]))
+        sys.stdout.write(f"{f['name']}  {_mib(f['size']):>12}  {when}  {f['state']}\n")
+    c = s["card"]
+    sys.stdout.write(
+        f"{len(s['files'])} files; card {_mib(c['free'])} free of {_mib(c['total'])} "
+        f"(the recorder keeps {_mib(c['reserve'])})\n"
+    )
+    return 0
+
+
+def _fetch_one(ask: Any, name: str, dest: Path, chunk: int) -> None:
+    from exolink import recstore
+
+    f = recstore.fetch(ask, name, dest, chunk)
+    if f.skipped:
+        sys.stdout.write(f"{name}: already here, sha256 {f.sha256}\n")
+        return
+    resumed = f" (resumed at {_mib(f.resumed_at)})" if f.resumed_at else ""
+    rate = (f.size - f.resumed_at) / 2**20 / f.seconds if f.seconds > 0 else 0.0
+    sys.stdout.write(
+        f"{name}: {_mib(f.size)} in {f.seconds:.1f} s ({rate:.1f} MiB/s){resumed}, "
+        f"sha256 {f.sha256} checked\n"
+    )
+
+
+def _guard_store(func):  # type: ignore[no-untyped-def]
+    """What the laptop found wrong with a fetch (a checksum, a name) is a refusal, one line."""
+
+    def wrapped(args: argparse.Namespace) -> int:
+        from exolink.recstore import StoreError
+
+        try:
+            return int(func(args))
+        except StoreError as exc:
+            return fail(str(exc), EXIT_CONFIG)
+        except OSError as exc:
+            return fail(f"{exc.filename or args.dir}: {exc.strerror or exc}", EXIT_CONFIG)
+
+    return wrapped
+
+
+@_guard_store
+@_guard
+def cmd_record_fetch(args: argparse.Namespace) -> int:
+    dest = Path(args.dir)
+    dest.mkdir(parents=True, exist_ok=True)
+    with remote(args) as r:
+        ask = _asker(r)
+        for name in args.names:
+            _fetch_one(ask, name, dest, args.chunk)
+    return 0
+
+
+@_guard_store
+@_guard
+def cmd_record_sync(args: argparse.Namespace) -> int:
+    from exolink import recstore
+
+    dest = Path(args.dir)
+    dest.mkdir(parents=True, exist_ok=True)
+    with remote(args) as r:
+        ask = _asker(r)
+        listing = ask({"action": "list"})["files"]
+        lacking = recstore.missing(listing, dest)
+        for name in lacking:
+            _fetch_one(ask, name, dest, args.chunk)
+    writing = [f["name"] for f in listing if f.get("state") == recstore.RECORDING]
+    note = f"; {writing[0]} is still being recorded (sync again once it stops)" if writing else ""
+    sys.stdout.write(
+        f"synced {len(lacking)} files into {dest}; {len(listing) - len(writing) - len(lacking)} "
+        f"were already here{note}\n"
+    )
+    return 0
+
+
+@_guard
+def cmd_record_delete(args: argparse.Namespace) -> int:
+    with remote(args) as r:
+        ask = _asker(r)
+        for name in args.names:
+            d = ask({"action": "delete", "name": name})
+            sys.stdout.write(f"deleted {d['name']} ({_mib(d['size'])}) from the board\n")
     return 0
 
 
@@ -278,6 +400,27 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     s.add_parser("stop")
     q = s.add_parser("status")
     q.add_argument("--json", action="store_true")
+    q = s.add_parser("list", help="the recordings on the board's card (observer)")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_record_list)
+    q = s.add_parser(
+        "fetch",
+        help="copy recordings to this laptop (operator): chunked, resumed from NAME.part, "
+        "checked against the board's sha256",
+    )
+    q.add_argument("names", nargs="+", metavar="NAME")
+    q.add_argument("-o", "--dir", default=".", help="where to put them (default: here)")
+    q.add_argument("--chunk", type=_integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
+    q.set_defaults(func=cmd_record_fetch)
+    q = s.add_parser(
+        "sync", help="fetch every finished recording DIR lacks (operator; the end of the day)"
+    )
+    q.add_argument("dir", metavar="DIR")
+    q.add_argument("--chunk", type=_integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
+    q.set_defaults(func=cmd_record_sync)
+    q = s.add_parser("delete", help="delete recordings from the board's card (admin)")
+    q.add_argument("names", nargs="+", metavar="NAME")
+    q.set_defaults(func=cmd_record_delete)
     p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("info", help="topics, counts, duration and triggers of an MCAP file")

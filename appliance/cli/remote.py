@@ -599,6 +599,36 @@ def _api_lines(s: dict[str, Any]) -> str:
     return text
 
 
+def _bytes(n: float) -> str:
+    """A size as people read a card's: GiB from 1 GiB up, else MiB."""
+    return f"{n / 2**30:.2f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
+
+
+def _card_line(nodes: list[dict[str, Any]]) -> str:
+    """The recordings card, as the recorder last reported it: free space and the hours of
+    recording that leaves at the current rate (above the reserve the recorder keeps)."""
+    card = next((n["card"] for n in nodes if isinstance(n.get("card"), dict)), None)
+    if not card:
+        return ""
+
+    def num(key: str) -> float | None:
+        v = card.get(key)
+        return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
+
+    free, total, reserve = num("free"), num("total"), num("reserve")
+    if free is None or total is None:
+        return ""
+    text = f"card     {_bytes(free)} free of {_bytes(total)}"
+    hours, rate = num("hours_left"), num("rate_bps")
+    if hours is not None and rate:
+        text += f"  {hours:.1f} h of recording left at {rate / 1e3:.1f} kB/s"
+    else:
+        text += "  hours left: n/a (no recording rate measured yet)"
+    if reserve is not None:
+        text += f" (the recorder stops {reserve / 2**20:g} MiB before full)"
+    return text + "\n"
+
+
 @_guard
 def cmd_status(args: argparse.Namespace) -> int:
     with remote(args) as r:
@@ -630,6 +660,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n"
         + (clock.describe(s["clock"], off) if off is not None else "")
+        + _card_line(s["nodes"])
         + _api_lines(s)
         + _node_table(s["nodes"])
     )

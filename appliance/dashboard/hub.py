@@ -22,6 +22,8 @@ import contextlib
 import csv
 import json
 import math
+import os
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -29,7 +31,7 @@ from typing import Any
 
 import structlog
 import zenoh
-from exolink import cdr, clock, messaging, roles
+from exolink import cdr, clock, messaging, recstore, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.cli.remote import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
@@ -45,6 +47,12 @@ PATTERN_STATE = "exolink_msgs/msg/PatternState"
 # Samples a data subscriber keeps between ticks (the newest win): one per topic it matches,
 # with room for MACCEPA boards' three topics each.
 RING = 64
+
+
+def _cache_dir() -> Path:
+    """Where a laptop's dashboard keeps the recordings it fetched for download and plots."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "exolink" / "recordings"
 
 
 def _patterns_dir() -> Path:
@@ -73,6 +81,7 @@ class Hub:
         self.status: dict[str, Any] | None = None
         self.status_error: str | None = None
         self.record: dict[str, Any] | None = None
+        self._fetching = threading.Lock()  # recordings fetched for pages, one at a time
         self.pattern: dict[str, Any] | None = None
         self.watchdog: dict[str, Any] | None = None
         self.trigger: dict[str, Any] | None = None
@@ -456,6 +465,28 @@ class Hub:
         except (Refused, messaging.Unreachable) as exc:
             return {"ok": False, "error": str(exc)}
         return reply
+
+    def recording(self, board_path: str) -> Path:
+        """A recording the recorder names, as a file here to serve or plot: asked for through
+        the recorder's ``recordings`` (this dashboard's login must be allowed to fetch, and the
+        file must be closed: roles.RECORDINGS, exolink.recstore), then the file itself when it
+        is on this machine (the board's own dashboard; the sim), else fetched into a cache
+        (chunked, resumed, checked as `exolink record fetch`). recstore.Refused and
+        StoreError say why not."""
+        name = recstore.plain_name(Path(board_path).name)
+        ask = recstore.Patient(self._recordings_request)
+        st = ask({"action": "stat", "name": name})
+        local = Path(board_path)
+        if local.is_file() and local.stat().st_size == st["size"]:
+            return local
+        with self._fetching:  # two pages asking for one file must not share its .part
+            cache = _cache_dir() / self.remote.device
+            cache.mkdir(parents=True, exist_ok=True)
+            return recstore.fetch(ask, name, cache).path
+
+    def _recordings_request(self, body: dict[str, Any]) -> dict[str, Any]:
+        key = messaging.mgmt_key(self.remote.device, "recordings")
+        return messaging.request(self.remote.session, key, body, 5.0, self.remote.user)
 
     def pattern_points(self, name: str) -> list[list[int]] | None:
         """The set-points of a pattern the player names, when it is one of the bundled files

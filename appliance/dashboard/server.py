@@ -313,25 +313,29 @@ async def pattern_points(request: web.Request) -> web.StreamResponse:
     return web.json_response({"ok": points is not None, "points": points})
 
 
-def _recording(request: web.Request) -> Path:
-    """A recording the recorder lists, when its file is on this machine (the board node, or
-    a laptop running the sim); a name the recorder did not list is never opened."""
+async def _recording(request: web.Request) -> Path:
+    """A recording the recorder lists, as a file here: the recorder decides (this dashboard's
+    role, the file closed) and a laptop fetches it from the board (Hub.recording); a name the
+    recorder did not list is never opened."""
+    from exolink import recstore
+
     hub = request.app[HUB]
     name = request.query.get("file", "")
     files = (hub.record or {}).get("files") or []
     if name not in files:
         raise web.HTTPNotFound(text=f"{name!r} is not one of the recorder's files")
-    path = Path(name)
-    if not path.is_file():
-        raise web.HTTPNotFound(
-            text=f"{name} is on the board, not here: copy it with "
-            f"scp exo@<board>:{name} . (the board's own dashboard serves it)"
-        )
-    return path
+    try:
+        return await asyncio.to_thread(hub.recording, name)
+    except (recstore.Refused, recstore.StoreError) as exc:
+        raise web.HTTPForbidden(text=f"{Path(name).name}: {exc}") from None
+    except OSError as exc:
+        raise web.HTTPInternalServerError(
+            text=f"{Path(name).name}: {exc.strerror or exc}"
+        ) from None
 
 
 async def download(request: web.Request) -> web.StreamResponse:
-    path = _recording(request)
+    path = await _recording(request)
     return web.FileResponse(
         path, headers={"Content-Disposition": f'attachment; filename="{path.name}"'}
     )
@@ -352,7 +356,7 @@ async def recording_c3d(request: web.Request) -> web.StreamResponse:
     from exolink import gaitlab
     from exolink.recording import RecordingError
 
-    path = _recording(request)
+    path = await _recording(request)
     try:
         gaitlab.require_ezc3d()
     except gaitlab.MissingExtra as exc:
@@ -373,7 +377,10 @@ async def recording_c3d(request: web.Request) -> web.StreamResponse:
 async def recording_plot(request: web.Request) -> web.StreamResponse:
     from exolink.recording import RecordingError
 
-    path = _recording(request)
+    try:
+        path = await _recording(request)
+    except web.HTTPException as exc:
+        return web.json_response({"ok": False, "error": exc.text})
     try:
         data = await asyncio.to_thread(hub_module.recording_plot, str(path))
     except RecordingError as exc:

@@ -75,6 +75,9 @@ class NodeProcess:
     # A bus reader's receive losses and backlog: its diagnostics values named rx_* (dropped,
     # late, lag_max_ms, ...), as of its last report.
     receive: dict[str, Any] = field(default_factory=dict)
+    # The recordings card (the recorder's card_* values: free, total, reserve, rate_bps,
+    # hours_left), for `exolink status`.
+    card: dict[str, Any] = field(default_factory=dict)
     restart_times: collections.deque[float] = field(default_factory=collections.deque)
     logs: collections.deque[str] = field(
         default_factory=lambda: collections.deque(maxlen=LOG_LINES)
@@ -89,15 +92,20 @@ class NodeProcess:
         return self.cfg.name
 
     def note_diagnostics(self, statuses: Any) -> None:
-        """Keep the rx_* values of the node's diagnostics (diagnostic_msgs/DiagnosticStatus)."""
-        rx = {
-            kv.key[3:]: _number(kv.value)
-            for st in statuses
-            for kv in st.values
-            if kv.key.startswith("rx_")
-        }
+        """Keep the rx_* and card_* values of the node's diagnostics
+        (diagnostic_msgs/DiagnosticStatus); at most a few dozen short values are kept (anyone
+        may put on the key)."""
+        rx: dict[str, Any] = {}
+        card: dict[str, Any] = {}
+        for st in statuses:
+            for kv in st.values:
+                for prefix, into in (("rx_", rx), ("card_", card)):
+                    if kv.key.startswith(prefix) and len(into) < 32:
+                        into[kv.key[len(prefix) : 40]] = _number(kv.value[:40])
         if rx:
             self.receive = rx
+        if card:
+            self.card = card
 
     @property
     def pid(self) -> int | None:
@@ -286,6 +294,7 @@ class NodeProcess:
             "last_exit": self.last_exit,
             "health": self.health,
             **({"receive": self.receive} if self.receive else {}),
+            **({"card": self.card} if self.card else {}),
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,

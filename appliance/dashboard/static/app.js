@@ -526,6 +526,10 @@ function onRecord(r) {
   kv(dl, "file", r.file || "-");
   kv(dl, "size", ((r.size || 0) / 1048576).toFixed(2) + " MiB");
   kv(dl, "messages", `${r.written}/${r.received} dropped ${r.dropped}`);
+  if (r.card) {  // the recorder stops reserve MiB before the card is full
+    const left = r.hours_left == null ? "hours left: n/a" : `${r.hours_left.toFixed(1)} h left at this rate`;
+    kv(dl, "card", `${(r.card.free / 1048576).toFixed(0)} MiB free of ${(r.card.total / 1048576).toFixed(0)} MiB, ${left}`);
+  }
   const ul = $("#rec-files");
   const files = r.files || [];
   if (ul.dataset.files === JSON.stringify(files)) return;
