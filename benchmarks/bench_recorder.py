@@ -82,7 +82,7 @@ def long_run(seconds: float, cycles_per_read: int = 1) -> dict[str, Any]:
         {
             "name": "maccepa_bridge",
             "plugin": "maccepa_bridge",
-            "params": {"boards": [0], "require_armed": False, **every},
+            "params": {"boards": [0], **every},
         },
         {"name": "recorder", "plugin": "recorder", "params": {"directory": d}},
     ]

@@ -126,7 +126,6 @@ class Stats:
     refused_topics: int = 0  # graph tokens over a session's or all foreign sessions' budget
     refused_from: dict[str, int] = field(default_factory=dict)  # session zid -> tokens refused
     files: list[str] = field(default_factory=list)
-    bytes: int = 0
 
 
 class McapFile:
@@ -612,6 +611,7 @@ class Recorder(Node):
             "labels": self.labels,
             "queue": self._pending,
             **s,
+            "bytes": self._bytes + (f.size() if f else 0),  # this recording's files, all
             "card": card,
             "rate_bps": round(self.rate.last, 1),
             "hours_left": recstore.hours_left(card["free"], card["reserve"], self.rate.last),

@@ -88,6 +88,8 @@ def test_walking_session_recorded_exactly(write_config, spawn, tmp_path) -> None
         sub.undeclare()
         s.close()
     [path] = recordings(rec_dir)
+    status = json.loads(app.cli("record", "status", "--json").stdout)
+    assert status["bytes"] == path.stat().st_size  # what this recording wrote, its one file
     rows = rosbags_decode(path, "/h2/joint_states")
     assert len(rows) > 250
     stamps = []
