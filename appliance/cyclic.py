@@ -27,6 +27,7 @@ CAN frame that follows.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import struct
 import time
@@ -131,3 +132,115 @@ class CyclicWatch:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class CyclicLease:
+    """A broadcast-manager send op on ``can_id``: frames the kernel sends one per ``period_s``
+    on its own timer, for at most ``lease`` frames after the last ``start`` or ``renew``.
+
+    Set-points known ahead (a gait pattern) leave on the kernel's timer, not on a Python
+    process's wake-up, and the owner's silence bounds them: an owner stopped, hung or starved
+    stops renewing, and the kernel sends what the lease still allows, then nothing (``count``
+    frames at ``ival1``, no ``ival2``: the op's timer ends). Closing the socket (the process
+    killed) deletes the op at once; ``stop`` (TX_DELETE) does the same on purpose.
+
+    Content is planned by slot: slot n is the n-th frame the op sends since ``start``. A renewal
+    reads how many were sent (TX_READ: the op's remaining ``count``), puts slots n, n+1, ... at
+    the front of the op's frames and resets its index (TX_RESET_MULTI_IDX), and sets a new
+    ``count`` without restarting its timer (SETTIMER without STARTTIMER keeps the phase). A
+    frame the kernel sends between that read and the renewal is sent again as the renewal's
+    first: one repeated set-point and the plan a period later from then on, never a skipped
+    one (a skip would double a step the plan's step limit was checked against)."""
+
+    def __init__(self, channel: str, can_id: int, period_s: float, ring: int = 16) -> None:
+        if not 0 < period_s < 60:
+            raise ValueError(f"broadcast-manager period must be in (0, 60) s, got {period_s}")
+        if not 2 <= ring <= 256:
+            raise ValueError(f"broadcast-manager frames per op must be 2..256, got {ring}")
+        self.can_id, self.period_s, self.ring = can_id, period_s, ring
+        self._frames = [bytes(8)] * ring
+        self._base = 0  # slot of the op's first frame since the last start or renew
+        self._lease = 0  # the count that start or renew set
+        try:
+            self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
+        except OSError as exc:
+            raise CanOpenError(f"cannot open a CAN broadcast-manager socket: {exc}") from exc
+        try:
+            self._sock.connect((channel,))
+        except OSError as exc:
+            self._sock.close()
+            raise CanOpenError(f"cannot reach {channel} for the broadcast manager: {exc}") from exc
+        self._sock.settimeout(1.0)  # a TX_READ's answer is immediate; never wait forever
+
+    def _setup(self, flags: int, lease: int) -> None:
+        sec, usec = int(self.period_s), round((self.period_s % 1) * 1e6)
+        head = _HEAD.pack(
+            socket.CAN_BCM_TX_SETUP, flags, lease, sec, usec, 0, 0, self.can_id, self.ring
+        )
+        body = b"".join(
+            CAN_FRAME.pack(self.can_id, len(f), f.ljust(8, b"\0")) for f in self._frames
+        )
+        self._sock.send(head + body)
+        self._lease = lease
+
+    def _place(self, first: int, frames: list[bytes]) -> None:
+        for i, f in enumerate(frames[: self.ring]):
+            if len(f) > 8:
+                raise ValueError(f"slot {first + i}: a CAN frame carries 8 bytes, got {len(f)}")
+            self._frames[i] = bytes(f)
+
+    def _check_lease(self, lease: int, planned: int) -> None:
+        if not 1 <= lease <= min(planned, self.ring):
+            raise ValueError(
+                f"lease of {lease} frames: must be 1..{min(planned, self.ring)} "
+                f"(the frames planned, at most the op's {self.ring})"
+            )
+
+    def start(self, frames: list[bytes], lease: int) -> None:
+        """Slot 0 (``frames[0]``) now, then one frame per period: a new phase."""
+        self._check_lease(lease, len(frames))
+        self._place(0, frames)
+        self._setup(
+            socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
+            lease,
+        )
+        self._base = 0
+
+    def remaining(self) -> int:
+        """Frames the op may still send (0: the lease ran out, or no op)."""
+        head = _HEAD.pack(socket.CAN_BCM_TX_READ, 0, 0, 0, 0, 0, 0, self.can_id, 0)
+        try:
+            self._sock.send(head)
+            reply = self._sock.recv(_HEAD.size + self.ring * CAN_FRAME.size)
+        except OSError:  # EINVAL: no op on this id (never started, or deleted)
+            return 0
+        return int(_HEAD.unpack_from(reply)[2])
+
+    def sent(self) -> int:
+        """The slot the op sends next: how many it sent since ``start``."""
+        return self._base + self._lease - self.remaining()
+
+    def renew(self, frames_from: dict[int, bytes], lease: int) -> int:
+        """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
+        slot, as the kernel counts) and ``lease`` frames from now. A lease that already ran
+        out is not restarted (``start`` is a new phase, on purpose)."""
+        n = self.sent()
+        plan = []
+        while n + len(plan) in frames_from and len(plan) < self.ring:
+            plan.append(frames_from[n + len(plan)])
+        self._check_lease(lease, len(plan))
+        self._place(n, plan)
+        self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX, lease)
+        self._base = n
+        return n
+
+    def stop(self) -> None:
+        """TX_DELETE: nothing more from this op, now."""
+        head = _HEAD.pack(socket.CAN_BCM_TX_DELETE, 0, 0, 0, 0, 0, 0, self.can_id, 0)
+        with contextlib.suppress(OSError):  # no op: nothing to delete
+            self._sock.send(head)
+        self._lease = 0
+
+    def close(self) -> None:
+        """Closing the socket deletes its op in the kernel."""
+        self._sock.close()

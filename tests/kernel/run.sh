@@ -22,7 +22,7 @@ echo "== SocketCAN tests and FAT card writes in User-Mode Linux"
 card="$work/fat-card.img"; rm -f "$card"; truncate -s 64M "$card"   # /dev/ubdb in the guest
 VM_UML_DISK=$card bash "$vm" uml "$repo" "export EXOLINK_REQUIRE_KERNEL=can,fat,clock EXOLINK_FAT_CARD=$card; \
 $pytest tests/kernel/test_socketcan.py tests/kernel/test_fat_writes.py \
-tests/kernel/test_wall_clock.py" || rc=$?
+tests/kernel/test_wall_clock.py tests/kernel/test_lease.py" || rc=$?
 t2=$(date +%s)
 echo "== gpio-sim tests in qemu (software emulation)"
 bash "$vm" qemu "$repo" "export EXOLINK_REQUIRE_KERNEL=gpio; $pytest tests/kernel/test_gpio.py" || rc=$((rc ? rc : $?))
