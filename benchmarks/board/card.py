@@ -8,7 +8,8 @@ tests/image/test_built_image.py). The copy gets, and a flashed card never has:
   ``exolink-setup.service`` drop-in runs before the card's settings are applied (``pip install
   --no-deps --force-reinstall`` into /opt/exolink's venv); ``prep.sh``, which
   ``exolink-bench.service`` runs before the supervisor: vcan0 (modprobe vcan can-bcm);
-- an ``exolink.service`` drop-in: requires that unit and sets ``CPUAffinity=0``;
+- the checkout's ``exolink.service`` (its rights and system-call filter go with its code) and a
+  drop-in: requires that unit and sets ``CPUAffinity=0``;
 - ``/etc/exolink/appliance.yaml``: the bench config (scenario.bench_config);
 - root's authorized_keys for the bench's throwaway ssh key, and a known Zenoh password.
 """
@@ -367,7 +368,10 @@ def prepare(
     (work / "ssh-bench.conf").write_text(SSH_DROP_IN)
     (work / "authorized_keys").write_text(ssh_pubkey + "\n")
     gid = card.group_id("exolink")
+    unit = Path(__file__).parents[2] / "services/etc/systemd/system/exolink.service"
     cmds = [
+        # the checkout's unit with its wheel: the rights and system calls the code needs
+        *_write_file(card, unit, "/etc/systemd/system/exolink.service", 0o644, 0, 0),
         *_write_file(card, work / "appliance.yaml", "/etc/exolink/appliance.yaml", 0o640, 0, gid),
         *_write_file(
             card,

@@ -72,3 +72,17 @@ def test_unit_retries_missing_hardware_but_not_a_bad_config() -> None:
     prevented = {int(c) for c in line.split("=", 1)[1].split()}
     assert EXIT_CONFIG in prevented and EXIT_HARDWARE not in prevented
     assert "ExecStartPre" not in unit  # its exit status would not count as the main process's
+
+
+def test_unit_lets_the_supervisor_read_and_set_the_clock() -> None:
+    """exolink.clock reads adjtimex on every status and steps the clock for a laptop: both are
+    in systemd's @clock set, which @system-service leaves out and ProtectClock forbids. A
+    supervisor without them was killed by the kernel (SIGSYS) at its first status on the proxy."""
+    unit = (REPO / "services/etc/systemd/system/exolink.service").read_text()
+    keys = [line.split("=", 1) for line in unit.splitlines() if "=" in line and line[0] != "#"]
+    filters = {v for k, v in keys if k == "SystemCallFilter"}
+    assert "@clock" in filters
+    assert not any(k == "ProtectClock" and v == "yes" for k, v in keys)
+    for key in ("AmbientCapabilities", "CapabilityBoundingSet"):
+        [value] = [v for k, v in keys if k == key]
+        assert "CAP_SYS_TIME" in value.split()
