@@ -138,6 +138,16 @@ def measure(ask: Callable[[], float], samples: int = SAMPLES) -> Offset:
     return Offset(best[0], best[1] / 2)
 
 
+def source(k: Kernel, step: dict[str, Any] | None) -> str:
+    """What set the clock: a time server, a laptop's step in this boot, or nothing."""
+    return "time server" if k.synchronised else ("laptop" if step else "unsynchronised")
+
+
+def unset(status: dict[str, Any]) -> bool:
+    """A board's clock (its ``status()``) that neither a time server nor a laptop has set."""
+    return status.get("source") == "unsynchronised"
+
+
 class BoardClock:
     """The supervisor's side: reports the clock and takes a laptop's step when allowed."""
 
@@ -157,12 +167,11 @@ class BoardClock:
 
     def status(self) -> dict[str, Any]:
         k, step = kernel(), self.last_step()
-        source = "time server" if k.synchronised else ("laptop" if step else "unsynchronised")
         return {
             "now": time.time(),
             "synchronised": k.synchronised,
             "max_error_ms": k.max_error_ms,
-            "source": source,
+            "source": source(k, step),
             "from_laptop": self.from_laptop,
             "last_step": step,
         }
@@ -208,7 +217,7 @@ def recorded(state_dir: str | None) -> dict[str, str]:
     step = BoardClock(Path(state_dir) if state_dir else None, False).last_step()
     info = {
         "synchronised": str(k.synchronised).lower(),
-        "source": "time server" if k.synchronised else ("laptop" if step else "unsynchronised"),
+        "source": source(k, step),
     }
     if k.max_error_ms is not None:
         info["max_error_ms"] = f"{k.max_error_ms:g}"

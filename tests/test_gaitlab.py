@@ -23,6 +23,7 @@ import yaml
 from conftest import EXOLINK, Appliance
 from exolink import gaitlab
 from exolink.config import bundled
+from exolink.protocol.h2 import JOINTS
 from exolink.recording import RecordingError, info
 from test_recording import recordings, rosbags_decode
 
@@ -30,7 +31,6 @@ from benchmarks.bench_gaitlab import synthetic
 
 C3D = pytest.importorskip("c3d")  # the independent reader (dev extra)
 
-JOINTS = ("r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle")
 MACCEPA = (
     "current_ma",
     "temperature_c",

@@ -33,7 +33,7 @@ def describe(status: dict[str, Any], off: clock.Offset | None) -> str:
         )
     text += "\n"
     warn = []
-    if not status.get("synchronised") and status.get("source") != "laptop":
+    if clock.unset(status):
         warn.append(
             "the board's clock is not synchronised: "
             + (

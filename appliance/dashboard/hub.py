@@ -583,7 +583,7 @@ def _with_clock_offset(status: dict[str, Any], t0: float, t1: float) -> dict[str
         c.update(offset_ms=round(off.offset_s * 1e3, 1), error_ms=round(off.error_s * 1e3, 1))
         c["warning"] = (
             "not synchronised"
-            if not c.get("synchronised") and c.get("source") != "laptop"
+            if clock.unset(c)
             else f"{off.offset_s * 1e3:+.0f} ms off this laptop"
             if off.off()
             else ""

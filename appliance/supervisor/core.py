@@ -787,9 +787,10 @@ class Supervisor:
         to an operator laptop's time (exolink.clock: refused while armed or synchronised)."""
         action = req.get("action")
         if action == "step":
-            armed = self.watchdog.snapshot().state == "armed"
             try:
-                step = self.clock.step(req.get("offset_s"), req.get("error_s"), caller.login, armed)
+                step = self.clock.step(
+                    req.get("offset_s"), req.get("error_s"), caller.login, self.watchdog.armed
+                )
             except ClockRefused as exc:
                 raise CommandRefused(str(exc)) from None
             self.log.warning("clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"})

@@ -322,8 +322,7 @@ class LineRate:
             self._dropped += 1
             return None
         self._tokens -= 1.0
-        dropped, self._dropped = self._dropped, 0
-        return dropped
+        return self.flush()
 
     def flush(self) -> int:
         """Lines dropped since the last one kept: told at the end of the output, or the
