@@ -117,6 +117,11 @@ class Controller:
     # the four it decoded per cycle for the gait, which reads neither); a controller that does
     # not say gets both.
     reads: ClassVar[frozenset[str]] = frozenset({"torque", "feet"})
+    # True: after ``activate``, ``update`` is a function of ``time`` alone (a gait pattern, a
+    # trajectory), so the manager may call it ahead, once per set-point slot in increasing time,
+    # and hand the results to the kernel's timer (nodes/controller_manager/timed.py). It reads
+    # nothing of ``state`` there (it gets the activation's) and claims joint positions only.
+    planned: ClassVar[bool] = False
 
     def __init__(self, name: str, params: Any) -> None:
         self.name = name

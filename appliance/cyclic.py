@@ -30,10 +30,14 @@ from __future__ import annotations
 import contextlib
 import socket
 import struct
+import threading
 import time
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 from exolink.canbus import CAN_FRAME, SO_TIMESTAMPNS, CanOpenError, Frame
+
+if TYPE_CHECKING:
+    import can
 
 _HEAD_FMT = "@3I4l2I"
 _HEAD = struct.Struct(_HEAD_FMT + "x" * (-struct.calcsize(_HEAD_FMT) % 8))
@@ -244,3 +248,144 @@ class CyclicLease:
     def close(self) -> None:
         """Closing the socket deletes its op in the kernel."""
         self._sock.close()
+
+
+class Lease(Protocol):
+    """What the controller manager asks of a lease (``CyclicLease``, ``ThreadLease``)."""
+
+    can_id: int
+    period_s: float
+    ring: int
+
+    def start(self, frames: list[bytes], lease: int) -> None: ...
+    def sent(self) -> int: ...
+    def renew(self, frames_from: dict[int, bytes], lease: int) -> int: ...
+    def stop(self) -> None: ...
+    def close(self) -> None: ...
+
+
+# A sleep wakes up to the timer slack late (50 us by default): ThreadLease sleeps to this much
+# before a slot and spins the rest, as a simulated bus is timed on a development machine.
+SPIN_S = 0.0003
+
+
+class ThreadLease:
+    """``CyclicLease``'s contract on a bus without a broadcast manager (the simulated bus, the
+    virtual one): a thread of the owner's process sends the slots through ``bus``, one per
+    ``period_s`` from ``start``, at most ``lease`` after the last ``start`` or ``renew``, with
+    the same slot arithmetic (a renewal keeps the phase; a lapsed lease is not restarted).
+
+    Only the owner's failure modes differ, to the safe side: stopped or killed with its owner,
+    where the kernel's op sends out its lease (stopped) or ends at once (killed)."""
+
+    def __init__(self, bus: can.BusABC, can_id: int, period_s: float, ring: int = 16) -> None:
+        if not 0 < period_s < 60:
+            raise ValueError(f"lease period must be in (0, 60) s, got {period_s}")
+        if not 2 <= ring <= 256:
+            raise ValueError(f"frames per lease must be 2..256, got {ring}")
+        self.can_id, self.period_s, self.ring = can_id, period_s, ring
+        self._bus = bus
+        self._cond = threading.Condition()
+        self._frames = [bytes(8)] * ring
+        self._index = 0  # the op's next frame
+        self._count = 0  # frames the lease still allows
+        self._base = 0
+        self._lease = 0
+        self._running = False
+        self._next_at = 0.0  # monotonic time of the next frame
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"lease-{can_id}", daemon=True)
+        self._thread.start()
+
+    def _check(self, lease: int, planned: int) -> None:
+        if not 1 <= lease <= min(planned, self.ring):
+            raise ValueError(
+                f"lease of {lease} frames: must be 1..{min(planned, self.ring)} "
+                f"(the frames planned, at most the op's {self.ring})"
+            )
+
+    def _place(self, frames: list[bytes]) -> None:
+        for i, f in enumerate(frames[: self.ring]):
+            if len(f) > 8:
+                raise ValueError(f"a CAN frame carries 8 bytes, got {len(f)}")
+            self._frames[i] = bytes(f)
+
+    def start(self, frames: list[bytes], lease: int) -> None:
+        self._check(lease, len(frames))
+        with self._cond:
+            self._place(frames)
+            self._index, self._count, self._base, self._lease = 0, lease, 0, lease
+            self._running, self._next_at = True, time.monotonic()
+            self._cond.notify()
+
+    def remaining(self) -> int:
+        with self._cond:
+            return self._count if self._running else 0
+
+    def sent(self) -> int:
+        with self._cond:
+            return self._base + self._lease - (self._count if self._running else 0)
+
+    def renew(self, frames_from: dict[int, bytes], lease: int) -> int:
+        with self._cond:
+            n = self._base + self._lease - (self._count if self._running else 0)
+            plan: list[bytes] = []
+            while n + len(plan) in frames_from and len(plan) < self.ring:
+                plan.append(frames_from[n + len(plan)])
+            self._check(lease, len(plan))
+            self._place(plan)
+            self._index, self._base, self._lease = 0, n, lease
+            self._count = lease if self._running else 0
+            return n
+
+    def stop(self) -> None:
+        with self._cond:
+            self._running, self._count, self._lease = False, 0, 0
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed, self._running, self._count = True, False, 0
+            self._cond.notify()
+        if self._thread is not threading.current_thread():
+            self._thread.join(1.0)
+
+    def _due(self) -> can.Message | None:
+        """Under the lock at the slot's time: the frame to send, or None (stopped meanwhile)."""
+        import can
+
+        if not self._running or self._count <= 0:
+            return None
+        data = self._frames[self._index]
+        self._index = (self._index + 1) % self.ring
+        self._count -= 1
+        self._next_at += self.period_s
+        if self._count == 0:
+            self._running = False  # the lease ran out: the timer ends, as the kernel's
+        return can.Message(arbitration_id=self.can_id, data=data, is_extended_id=False)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._closed and not self._running:
+                    self._cond.wait()
+                if self._closed:
+                    return
+                at = self._next_at
+            while (delay := at - time.monotonic()) > SPIN_S:
+                time.sleep(delay - SPIN_S)
+            while time.monotonic() < at:
+                pass
+            with self._cond:
+                msg = self._due() if at == self._next_at else None
+            if msg is not None:
+                with contextlib.suppress(Exception):  # a full queue: that slot is lost
+                    self._bus.send(msg)
+
+
+def open_lease(
+    interface: str, channel: str, bus: can.BusABC, can_id: int, period_s: float, ring: int
+) -> Lease:
+    """The kernel's broadcast manager on SocketCAN, a thread of this process elsewhere."""
+    if interface == "socketcan":
+        return CyclicLease(channel, can_id, period_s, ring)
+    return ThreadLease(bus, can_id, period_s, ring)

@@ -25,6 +25,7 @@ import signal
 import socket
 import struct
 import sys
+import traceback
 from typing import Any, NoReturn
 
 import exolink.canbus
@@ -114,6 +115,9 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
             code = exolink.runtime.main(args)
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
+        except BaseException:  # what the interpreter would print: os._exit below would not
+            traceback.print_exc()
+            code = 1
     finally:
         with contextlib.suppress(Exception):
             atexit._run_exitfuncs()

@@ -851,6 +851,35 @@ def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:
     assert listing(app)["gait"]["state"] == "active"
 
 
+@pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])
+def test_a_hung_or_killed_manager_ends_the_gaits_timer(gait, mbus, sig) -> None:  # type: ignore[no-untyped-def]
+    """The gait's set-points leave on a timer the manager leases (timed.py). Its owner stopped
+    or killed: no set-point after the watchdog's disable frames, and none but the one in flight
+    after the signal (on this bus the timer is a thread of the stopped process; the kernel's
+    broadcast manager, which outlives a stopped owner by its lease, is tested in the UML guest:
+    tests/kernel/test_socketcan.py)."""
+    app = gait
+    app.arm_and_hold()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: json.loads(ctl(app, "list", "--json").stdout)["timer"]["sending"])
+    pid = app.node("controller_manager")["pid"]
+    mbus.q.queue.clear()
+    at = time.time()
+    os.kill(pid, sig)
+    try:
+        frames = [(m.timestamp, h2.decode(m)) for m in collect(mbus, 1.0, {70})]
+        disabled = [t for t, f in frames if isinstance(f, h2.JointControl) and f.mode == 4]
+        moving = [t for t, f in frames if isinstance(f, h2.JointControl) and f.mode == 1]
+        assert disabled, "the watchdog did not disable the joints"
+        assert [t for t in moving if t > disabled[0]] == []
+        assert len([t for t in moving if t > at + 0.002]) <= 1, moving  # one in flight
+        assert app.status()["watchdog"]["state"] == "tripped"
+    finally:
+        if sig == signal.SIGSTOP:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+
+
 @pytest.fixture
 def gait(write_config, spawn):  # type: ignore[no-untyped-def]
     """The pattern player: one writer, the manager."""
@@ -879,15 +908,16 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     frames = collect(mbus, 1.0, {70, 110})
     hips = [f.setpoint for f in joint_frames(frames, 1)]
     angles = sum(m.arbitration_id == 110 for m in frames)
-    # one set-point per H2 cycle, where the pattern is then: at speed 10 (20 ms a row) each row
-    # and the way to the next (interpolated), in the pattern's order (the step limit may
-    # shorten the first swing)
+    # planned ahead and on a timer (timed.py): one set-point per 20 ms slot, half the H2's
+    # angle frames, where the pattern is then: at speed 10 (20 ms a row) a row each, in the
+    # pattern's order (the step limit may shorten the first swing)
     points = load_pattern(str(DEFAULT_PATTERN), ANY_ANGLE).points
     rows = [p[0] for p in points]
-    halfway = [v for a, b in zip(rows, rows[1:] + rows[:1], strict=True) for v in (a, (a + b) / 2)]
-    assert abs(len(hips) - angles) <= 2, (len(hips), angles)
+    assert abs(2 * len(hips) - angles) <= 6, (len(hips), angles)
+    timer = json.loads(ctl(app, "list", "--json").stdout)["timer"]
+    assert timer["sending"] and timer["runs"] >= 1 and timer["lapses"] == 0, timer
     runs = dedup(hips[20:])  # values repeat: compare runs of equal values
-    cycle = dedup([round(v) for v in halfway] * 4)
+    cycle = dedup([round(v) for v in rows] * 4)
     # in the pattern's order: each run the next row's value, or one a row or two further on (a
     # cycle that comes late on a loaded machine skips the rows already past, never replays one)
     at = next(i for i in range(len(rows)) if cycle[i : i + 3] == runs[:3])

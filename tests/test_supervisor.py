@@ -377,3 +377,16 @@ def test_a_dead_zygote_costs_speed_not_restarts(app) -> None:  # type: ignore[no
     with open(f"/proc/{new}/cmdline", "rb") as f:
         assert b"exolink.runtime" in f.read()
     assert_in_supervisor_session(new, app.proc.p.pid)
+
+
+def test_a_node_that_refuses_to_start_says_why_in_its_logs(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """A node whose configure raises exits 1; what it raised reaches `exolink logs` and the
+    supervisor's log, however it was started (the zygote's fork printed nothing: "exit 1")."""
+    bad = [*NODES[:2], {**NODES[2], "params": {"maccepa": [{"board": 5}]}}]
+    app = Appliance(write_config(nodes=bad), spawn, wait_nodes=False)
+    wait_for(lambda: app.node("controller_manager")["last_exit"] == "exit 1", timeout=20)
+    r = app.cli("logs", "controller_manager")
+    assert "maccepa boards [5] are not in watchdog.maccepa_boards" in r.stdout + r.stderr, r
+    # and the status still answers while the manager is down or starting again
+    s = app.cli("status")
+    assert s.returncode == 0 and "controller_manager" in s.stdout, s

@@ -636,7 +636,12 @@ def cmd_status(args: argparse.Namespace) -> int:
         manager = any(
             n.get("plugin") == "controller_manager" and n["state"] == "running" for n in s["nodes"]
         )
-        ctrl = r.call("controllers") if manager else None
+        ctrl: dict[str, Any] | None = None
+        if manager:  # a manager starting (or failing to) must not take the whole status away
+            try:
+                ctrl = r.call("controllers")
+            except (messaging.Unreachable, Refused) as exc:
+                ctrl = {"error": f"controller manager: {exc}"}
         from exolink.cli import clock
 
         off = clock.offset(r) if "clock" in s else None  # (an older supervisor has none)
@@ -664,7 +669,9 @@ def cmd_status(args: argparse.Namespace) -> int:
         + _api_lines(s)
         + _node_table(s["nodes"])
     )
-    if ctrl is not None:
+    if ctrl is not None and "error" in ctrl:
+        sys.stdout.write(f"controllers  unavailable: {ctrl['error']}\n")
+    elif ctrl is not None:
         from exolink.cli.controllers import show
 
         sys.stdout.write("controllers  " + show(ctrl) + "\n")

@@ -137,6 +137,13 @@ class ManagerApi:
             "safe": self.safe_sent,
             "late_cycles": self.late_cycles,
             "cycles_per_update": self.params.cycles_per_update,
+            "timer": {  # planned set-points on the kernel's timer (timed.py)
+                "sending": self.timed is not None,
+                "runs": self.timed_runs,
+                "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
+                "lapses": self.timed_lapses,
+                "refused": self.timed_refused,
+            },
             "maccepa_written": self.mc_written,
             "maccepa_safe": self.mc_safe_sent,
             "malformed": dict(self.malformed),

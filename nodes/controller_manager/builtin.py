@@ -191,6 +191,7 @@ class GaitPattern(Controller):
 
     Params = GaitParams
     reads = NO_EXTRA_READS
+    planned = True
 
     def configure(self) -> None:
         from exolink.nodes.pattern_player import period_s
@@ -369,6 +370,7 @@ class JointTrajectory(Controller):
 
     Params = TrajectoryParams
     reads = NO_EXTRA_READS
+    planned = True
 
     def configure(self) -> None:
         p = self.params
@@ -410,6 +412,10 @@ class JointTrajectory(Controller):
             self.index = 0
         while self.index < len(pts) and pts[self.index].time_s <= t:
             self.index += 1
+        # Planned ahead and then run by the cycle loop (the manager left the kernel's timer):
+        # a time before the way-point already passed goes back to its segment.
+        while self.index and pts[self.index - 1].time_s > t:
+            self.index -= 1
         if self.index >= len(pts):
             target = pts[-1].positions
         else:

@@ -220,7 +220,9 @@ class Manager:
         # Rate limits are per 10 ms H2 cycle: an update every n cycles may move n steps (the
         # same speed limit); a held MACCEPA set-point is re-sent every ~100 ms either way.
         self.cycles_per_update = cycles_per_update
+        self._steps = cycles_per_update  # of the update being composed (``cycle``)
         self.update_period_s = cycles_per_update * PERIOD_S
+        self._period_s = self.update_period_s
         self.refresh_cycles = max(1, round(MACCEPA_REFRESH_CYCLES / cycles_per_update))
         self.default_budget_s = budget_ms / 1e3
         self.lock = threading.Lock()
@@ -639,21 +641,61 @@ class Manager:
                     self._release(slot, why)
                     log.warning("controller_stopped", controller=slot.name, reason=why)
 
-    def cycle(self, state: State, t: float, period: float, not_armed: str | None) -> Cycle:
-        """One H2 cycle: apply switches, update active controllers, saturate, compose frames.
+    def plannable(self) -> bool:
+        """Every active controller is ``planned`` and claims joint positions only, and no switch
+        waits: the set-points can be planned ahead and left to the kernel's timer."""
+        with self.lock:
+            active = [s for s in self.slots.values() if s.state == "active"]
+            return (
+                bool(active)
+                and not self.pending
+                and all(
+                    type(s.ctrl).planned and all(c.endswith("/position") for c in s.claims)
+                    for s in active
+                )
+            )
+
+    def position_joints(self) -> tuple[int, ...]:
+        """The joints whose position an active controller owns (indices, in order)."""
+        with self.lock:
+            return tuple(j for j, (key, _t, _s) in enumerate(_JOINT_KEYS) if key in self.owners)
+
+    def written_back(self, positions: dict[int, int]) -> None:
+        """Slots planned ahead were never sent (the plan was stopped): the step limit goes on
+        from the last position that was (joint index -> degrees)."""
+        with self.lock:
+            for j, v in positions.items():
+                if self.last_pos[j] is not None:
+                    self.last_pos[j] = v
+
+    def cycle(
+        self,
+        state: State,
+        t: float,
+        period: float,
+        not_armed: str | None,
+        steps: int | None = None,
+        switches: bool = True,
+    ) -> Cycle:
+        """One H2 cycle (or one planned slot): apply switches, update active controllers,
+        saturate, compose frames. ``steps``: the 10 ms step limits this update may move
+        (default ``cycles_per_update``; a 20 ms slot: 2). ``switches`` False: a slot planned
+        ahead is no boundary (an activation needs where the joints are now).
 
         Not armed: every active controller stops, and its MACCEPA boards get "stop control"
         from here too (the watchdog stops only the boards in ``watchdog.maccepa_boards``)."""
         out = Cycle()
         with self.lock:
             self.cycles += 1
+            self._steps = steps or self.cycles_per_update
+            self._period_s = self._steps * PERIOD_S  # an update longer than this is late
             if not_armed:
                 for slot in self.slots.values():
                     if slot.state == "active":
                         out.safe_boards |= slot.boards()
                         self._release(slot, not_armed)
                         log.warning("controller_stopped", controller=slot.name, reason=not_armed)
-            if self.pending:
+            if self.pending and switches:
                 self._apply(state, not_armed)
             if not_armed:
                 return out
@@ -699,10 +741,10 @@ class Manager:
         have put a walking patient's joints in the safe action for nothing)."""
         budget = f"{slot.budget_s * 1e3:g} ms"
         last, slot.overran_last = slot.overran_last, cpu
-        if cpu > self.update_period_s:
+        if cpu > self._period_s:
             return (
                 f"overran its budget: {cpu * 1e3:.3f} ms CPU > {budget}, longer than the "
-                f"update period ({self.update_period_s * 1e3:g} ms)"
+                f"update period ({self._period_s * 1e3:g} ms)"
             )
         if last:
             return (
@@ -770,7 +812,7 @@ class Manager:
             else:
                 continue
             last = self.last_pos[j] if mode != TORQUE else self.last_torque[j]
-            sp2, st2 = limits.saturate(j, mode, sp, st, last, self.cycles_per_update)
+            sp2, st2 = limits.saturate(j, mode, sp, st, last, self._steps)
             if sp2 != sp or st2 != st:
                 self.slots[owner].limited += 1
             if limits.violation(j, mode, sp2, st2) is not None:  # cannot happen: belt

@@ -46,14 +46,17 @@ import can
 import msgspec
 from exolink import cdr, logs
 from exolink.arming import ArmingState
-from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
+from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
 from exolink.canfilter import Drop
+from exolink.config import ConfigError
 from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
+from exolink.cyclic import open_lease
 from exolink.maccepalimits import BoardLimits, target
 from exolink.node import Node
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused
+from exolink.nodes.controller_manager.timed import Timed
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
 
@@ -63,6 +66,9 @@ BEAT_S = 0.02
 # also judges the holder's keep-alive this often.
 IDLE_BEAT_S = 0.2
 WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
+# A planned set-point may reach the bus at most this long after the watchdog's first disable
+# frame (hung detection's own budget): lease_ms <= heartbeat deadline + this.
+LEASE_PAST_TRIP_MS = 60
 SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 # Always read: the angle frame starts a cycle; anyone's joint control (a disable or stop from
 # anyone stops that joint's controllers). The others only while a loaded controller reads them.
@@ -94,6 +100,12 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # set-points every 20 ms, the thesis' own rate (its fastest pattern sent a row per joint
     # every 20 ms), at half the CPU of waking each cycle on one A8 core.
     cycles_per_update: Annotated[int, msgspec.Meta(ge=1, le=5)] = 1
+    # Planned controllers (the gait, trajectories) put a set-point per joint on the bus every
+    # slot_ms on the kernel's timer (timed.py); leased for lease_ms after the manager's last
+    # renewal, so a manager that stops renewing stops moving within that (it must not exceed
+    # the manager's heartbeat deadline + 60 ms: checked at start).
+    slot_ms: Annotated[int, msgspec.Meta(ge=10, le=100, multiple_of=10)] = 20
+    lease_ms: Annotated[int, msgspec.Meta(ge=20, le=500)] = 100
     safe_action: Literal["disable", "stop"] = "disable"
     require_armed: bool = True
     # MACCEPA boards this manager drives (maccepa<N>/setpoint|duty|gains) and their limits.
@@ -106,6 +118,11 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
             raise ValueError(
                 f"h2_timeout_ms {self.h2_timeout_ms} must exceed {gap_ms:g} ms with "
                 f"cycles_per_update {self.cycles_per_update}"
+            )
+        if self.lease_ms < 2 * self.slot_ms:
+            raise ValueError(
+                f"lease_ms {self.lease_ms} must hold two slots (slot_ms {self.slot_ms}): "
+                "the lease is renewed every second slot"
             )
 
 
@@ -182,6 +199,23 @@ class ControllerManagerNode(ManagerApi, Node):
             cycles_per_update=p.cycles_per_update,
         )
         self.update_every_s = p.cycles_per_update * h2.PERIOD_S
+        try:
+            deadline = round(cfg.deadline_s(cfg.node(self.name)) * 1000)
+        except ConfigError:  # run outside a config's node list (tests)
+            deadline = cfg.watchdog.heartbeat_deadline_ms
+        if p.lease_ms > deadline + LEASE_PAST_TRIP_MS:
+            raise ValueError(
+                f"{self.name} params: lease_ms {p.lease_ms} exceeds its heartbeat deadline "
+                f"{deadline} ms + {LEASE_PAST_TRIP_MS}: a hung manager's set-points would "
+                f"outlast the watchdog's disable by more than {LEASE_PAST_TRIP_MS} ms"
+            )
+        self.timed: Timed | None = None  # planned set-points on a timer (timed.py)
+        self.timed_runs = 0
+        self.timed_version = -1
+        self.timed_refused = ""
+        self.timed_lapses = 0
+        self.timed_renewals = 0
+        self.last_state: State | None = None  # the last cycle's: a plan's activation state
         for n, spec in enumerate(p.controllers):
             try:
                 self.manager.load(spec.name, spec.type, spec.params, spec.budget_ms)
@@ -266,6 +300,7 @@ class ControllerManagerNode(ManagerApi, Node):
         later cycle writes them, then the frames, after the cycle in flight."""
         frames = [_frame(j + 1, mode, 0, 0) for j in sorted(joints)]
         with self.io_lock:
+            self._abort_timed()
             self.manager.joints_disabled(joints, why)
             self._send(frames)
         self._maybe_tell()
@@ -275,6 +310,7 @@ class ControllerManagerNode(ManagerApi, Node):
         """MACCEPA boards' "stop control" at a request, as ``stop_joints``."""
         frames = [maccepa.encode_stop(b) for b in sorted(boards)]
         with self.io_lock:
+            self._abort_timed()
             self.manager.boards_stopped(boards, why)
             self._send(frames)
         self._maybe_tell()
@@ -283,6 +319,7 @@ class ControllerManagerNode(ManagerApi, Node):
     def stop_all(self, why: str) -> None:
         """Every controller stopped, its joints and boards in the safe action."""
         with self.io_lock:
+            self._abort_timed()
             self._safe(self.manager.stop_all(why))
         self._maybe_tell()
 
@@ -294,6 +331,9 @@ class ControllerManagerNode(ManagerApi, Node):
         clock = self.clock
         while not stop.is_set():
             clock.start()
+            if self.timed is not None:
+                self._timed_wake()
+                continue
             busy = self.reader is not None or self.manager.busy()
             # Idle (held to the appliance's default deadline) until a controller drives: the
             # reader's opening and an activation (hundreds of ms on the board proxy: its stock
@@ -321,12 +361,123 @@ class ControllerManagerNode(ManagerApi, Node):
             clock.mark("read")
             self._on_frames(frames)
             clock.mark("frames")
+            if self.last_state is not None and self.manager.plannable():
+                self._time()
             if time.monotonic() - self.last_angle_mono > timeout:
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
                 self.manager.idle(self._not_armed())
             if not self.manager.busy():
                 self._close_reader()
             clock.mark("rest")
+
+    # --- planned set-points on a timer (timed.py) ------------------------------------------------
+
+    def _time(self) -> None:
+        """Every active controller is planned: from now their set-points go out on a timer,
+        planned a few slots ahead, and this loop wakes only to renew the lease."""
+        state, not_armed = self.last_state, self._not_armed()
+        if state is None or not_armed:
+            return
+        p, can_cfg = self.params, self.ctx.config.can
+        with self.io_lock:
+            joints = self.manager.position_joints()
+            if not joints or self.timed is not None:
+                return
+            ival_us = round(p.slot_ms * 1e3 / len(joints))  # the joints of a slot spread over it
+            lease_slots = p.lease_ms // p.slot_ms
+            ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
+            try:
+                lease = open_lease(
+                    can_cfg.interface,
+                    can_cfg.channel,
+                    self.bus,
+                    h2.JOINT_CONTROL,
+                    ival_us / 1e6,
+                    ring,
+                )
+            except (CanOpenError, ValueError) as exc:  # the cycle loop goes on writing them
+                self.timed_refused = str(exc)
+                if logs.rarely(self.timed_runs + 1):
+                    self.log.error("timer_unavailable", error=str(exc))
+                return
+            slot_s = ival_us * len(joints) / 1e6
+            timed = Timed(lease, joints, slot_s, lease_slots, time.time(), time.monotonic())
+            broke = timed.begin(self.manager, state, not_armed)
+            if broke is not None:
+                timed.abort()
+                self._send(self._safe_frames(broke))
+                return
+            self.timed, self.timed_version = timed, self.manager.version
+            self.timed_runs += 1
+            if self.reader is not None and self._one_socket():  # no angle frame wakes it now
+                self.reader.set_ids([i for i in self.read_ids if i != h2.JOINT_ANGLES])
+        self.log.info("timer_started", joints=[h2.JOINTS[j] for j in joints], slot_ms=p.slot_ms)
+
+    def _timed_wake(self) -> None:
+        """One wake of the loop while the timer sends: anyone's disable read at once, the lease
+        renewed when due, then the heartbeat (after the renewal: the lease never outlives the
+        last beat by more than itself), the holder, arming. Anything else that changed (a switch
+        waiting, a controller stopped, the limits) hands the joints back to the cycle loop."""
+        reader, timed = self.reader, self.timed
+        assert reader is not None and timed is not None
+        try:
+            frames = reader.read(BEAT_S)
+        except (can.CanError, OSError) as exc:
+            self.log.error("bus_read_error", error=str(exc))
+            self._untime(orderly=False)
+            return
+        if frames:
+            self._stops(
+                [(f, self._decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
+            )
+        if self.timed is None:
+            return
+        if (
+            self._not_armed()
+            or self.manager.version != self.timed_version
+            or not self.manager.plannable()
+        ):
+            self._untime(orderly=not self._not_armed())
+            return
+        with self.io_lock:
+            if self.timed is None:
+                return
+            broke = timed.keep(self.manager, self.last_state, None, time.monotonic())  # type: ignore[arg-type]
+            if broke is not None:
+                self._abort_timed()
+                self._send(self._safe_frames(broke))
+        if timed.lapsed:
+            self.timed_lapses += 1
+            self.log.warning("timer_lease_lapsed", renewals=timed.renewals)
+            self._untime(orderly=True)
+        self.beat(False)
+        self.check_presence()
+        self._maybe_tell()
+
+    def _abort_timed(self) -> None:
+        """Under ``io_lock``: the timer's op ends now (every stop and trip path)."""
+        if self.timed is not None:
+            self.timed.abort()
+            self._end_timed()
+
+    def _untime(self, orderly: bool) -> None:
+        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent."""
+        with self.io_lock:
+            if self.timed is None:
+                return
+            if orderly:
+                self.manager.written_back(self.timed.leave())
+            else:
+                self.timed.abort()
+            self._end_timed()
+
+    def _end_timed(self) -> None:
+        self.timed_renewals += self.timed.renewals if self.timed is not None else 0
+        self.timed = None
+        if self.reader is not None and self.reader.ids != frozenset(self.read_ids):
+            self.reader.set_ids(self.read_ids)
+        # the angle frames the loop did not read meanwhile are no silence, and no period
+        self.last_angle_ts, self.last_angle_mono = None, time.monotonic()
 
     def _not_due(self, stamp: float) -> bool:
         """With ``cycles_per_update`` > 1: this angle frame came too soon after the last
@@ -434,10 +585,9 @@ class ControllerManagerNode(ManagerApi, Node):
             self.log.warning("malformed_frame", id=f.arbitration_id, reason=reason, count=n)
         return d
 
-    def _on_frames(self, frames: list[Any]) -> None:
-        decoded = [(f, self._decode(f)) for f in frames]
-        # Safety first: a disable/stop anywhere in the batch stops its joints' controllers
-        # before any set-point of this batch is computed.
+    def _stops(self, decoded: list[tuple[Any, Any]]) -> None:
+        """Safety first: a disable/stop anywhere in the batch stops its joints' controllers
+        before any set-point of this batch is computed (and a timer's, at once)."""
         stopped = {
             d.motor - 1
             for _f, d in decoded
@@ -445,7 +595,9 @@ class ControllerManagerNode(ManagerApi, Node):
         }
         if stopped:
             names = ", ".join(h2.JOINTS[j] for j in sorted(stopped))
-            self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
+            with self.io_lock:
+                self._abort_timed()
+                self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
         if self.board_ids:
             halted = {
                 d.board
@@ -455,6 +607,10 @@ class ControllerManagerNode(ManagerApi, Node):
             if halted:
                 names = ", ".join(target(b) for b in sorted(halted))
                 self.manager.boards_stopped(halted, f"{names} stopped on the bus")
+
+    def _on_frames(self, frames: list[Any]) -> None:
+        decoded = [(f, self._decode(f)) for f in frames]
+        self._stops(decoded)
         newest = max(
             (i for i, (_f, d) in enumerate(decoded) if isinstance(d, h2.JointAngles)), default=-1
         )
@@ -480,7 +636,8 @@ class ControllerManagerNode(ManagerApi, Node):
                 self.skipped = 0
                 if self.mchanged:
                     self.mview, self.mchanged = dict(self.mstate), False
-                self._cycle(f.timestamp, State(tuple(d), self.torque, self.feet, self.mview))
+                self.last_state = State(tuple(d), self.torque, self.feet, self.mview)
+                self._cycle(f.timestamp, self.last_state)
             elif isinstance(d, maccepa.Sensors | maccepa.Positions | maccepa.Controller):
                 self._board_frame(d, f.timestamp)
 

@@ -1,0 +1,161 @@
+"""Planned set-points on a leased timer: ``exolink.cyclic.ThreadLease`` on python-can's real
+virtual bus (the kernel's broadcast manager is tested in the UML guest: tests/kernel/), and the
+controller manager's plan (nodes/controller_manager/timed.py) through the real ``Manager``."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import can
+import pytest
+from exolink.controller import State
+from exolink.cyclic import ThreadLease
+from exolink.jointlimits import Limits, LimitsConfig
+from exolink.nodes.controller_manager.manager import Manager, Switch
+from exolink.nodes.controller_manager.timed import Timed
+from exolink.protocol import h2
+
+ID, PERIOD, LEASE = 0x46, 0.010, 6
+
+
+def slot(n: int) -> bytes:
+    return n.to_bytes(4, "big") + b"\xee\xee"
+
+
+def slots_of(frames: list[can.Message]) -> list[int]:
+    return [int.from_bytes(m.data[:4], "big") for m in frames]
+
+
+@pytest.fixture
+def buses():  # type: ignore[no-untyped-def]
+    channel = f"lease-{time.monotonic_ns()}"
+    tx = can.Bus(interface="virtual", channel=channel)
+    rx = can.Bus(interface="virtual", channel=channel)
+    yield tx, rx
+    tx.shutdown()
+    rx.shutdown()
+
+
+def drain(bus: can.BusABC, seconds: float) -> list[can.Message]:
+    out, end = [], time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        if (m := bus.recv(left)) is not None:
+            out.append(m)
+    return out
+
+
+def test_a_renewed_lease_sends_every_slot_once_in_order(buses) -> None:  # type: ignore[no-untyped-def]
+    tx, rx = buses
+    op = ThreadLease(tx, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], LEASE)
+        for _ in range(40):  # the owner renews every second period, as the manager
+            time.sleep(2 * PERIOD)
+            n = op.sent()
+            op.renew({k: slot(k) for k in range(n, n + 8)}, LEASE)
+        op.stop()
+        got = slots_of(drain(rx, 0.2))
+    finally:
+        op.close()
+    steps = [b - a for a, b in itertools.pairwise(got)]
+    assert got[0] == 0 and set(steps) <= {0, 1}, steps  # never a skip, never backwards
+    assert len(got) >= 60, len(got)  # ~80 in 0.8 s; a loaded machine may lose a few periods
+
+
+def test_an_owner_that_stops_renewing_gets_its_lease_and_no_more(buses) -> None:  # type: ignore[no-untyped-def]
+    tx, rx = buses
+    op = ThreadLease(tx, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], LEASE)
+        got = slots_of(drain(rx, 0.3))
+        assert got == list(range(LEASE)), got  # the lease ran out: the timer ended
+        assert op.sent() == LEASE
+        n = op.renew({k: slot(k) for k in range(LEASE, LEASE + 8)}, LEASE)
+        assert n == LEASE and drain(rx, 0.1) == []  # a lapsed lease is not restarted
+    finally:
+        op.close()
+
+
+def test_stop_is_immediate_and_a_bad_lease_is_refused(buses) -> None:  # type: ignore[no-untyped-def]
+    tx, rx = buses
+    op = ThreadLease(tx, ID, PERIOD)
+    try:
+        with pytest.raises(ValueError, match=r"lease of 9 frames: must be 1\.\.8"):
+            op.start([slot(k) for k in range(8)], 9)
+        assert drain(rx, 0.05) == []  # refused whole: nothing started
+        op.start([slot(k) for k in range(8)], LEASE)
+        time.sleep(0.015)
+        op.stop()
+        after = drain(rx, 0.1)
+        assert len(after) <= 3, slots_of(after)  # what went out before the stop
+        assert drain(rx, 0.1) == []
+    finally:
+        op.close()
+
+
+# --- the manager's plan --------------------------------------------------------------------------
+
+ROWS = [[v, 0, 0, 0, 0, 0] for v in (40, 50, 60, 70, 60, 50)]  # r_hip, 10 deg a row
+STATE = State((0,) * 6, (0,) * 6)  # the joints where they are: r_hip 40 deg below the pattern
+
+
+def gait_manager() -> Manager:
+    m = Manager(Limits.configured(LimitsConfig(max_step_deg=10)), budget_ms=50)
+    params = {"rows": ROWS, "joints": ["r_hip"], "speed": 10, "interpolate": False}
+    m.load("gait", "gait_pattern", params)
+    m.request(Switch(["gait"], []))
+    m.cycle(STATE, 1000.0, h2.PERIOD_S, None)  # the activation's cycle: where it starts
+    return m
+
+
+def test_the_plan_is_the_patterns_rows_one_per_slot_through_the_managers_limits(buses) -> None:  # type: ignore[no-untyped-def]
+    tx, rx = buses
+    m = gait_manager()
+    assert m.plannable()
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
+    # slot 0 a millisecond after the activation's cycle (never before it)
+    timed = Timed(lease, m.position_joints(), 0.02, 3, 1000.001, time.monotonic())
+    try:
+        assert timed.begin(m, STATE, None) is None
+        got = [h2.decode(f) for f in drain(rx, 0.15)]
+    finally:
+        timed.abort()
+    # three slots of the lease, a frame each for r_hip (motor 1), a 20 ms slot moving at most
+    # two 10 ms step limits: from where the activation's cycle wrote (10, one step from 0) to
+    # row 0 (40) saturated to 30, then the rows 50 and 60
+    assert [f.motor for f in got] == [1, 1, 1], got  # type: ignore[union-attr]
+    assert [f.setpoint for f in got] == [30, 50, 60], got  # type: ignore[union-attr]
+
+
+def test_leaving_the_timer_gives_the_step_limit_what_was_sent(buses) -> None:  # type: ignore[no-untyped-def]
+    tx, rx = buses
+    m = gait_manager()
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
+    timed = Timed(lease, m.position_joints(), 0.02, 3, 1000.0, time.monotonic())
+    assert timed.begin(m, STATE, None) is None
+    time.sleep(0.03)  # two slots out (0 and 1), five planned
+    back = timed.leave()
+    sent = [h2.decode(f).setpoint for f in drain(rx, 0.05)]  # type: ignore[union-attr]
+    assert back == {0: sent[-1]}, (back, sent)
+    assert timed.plan.slots > len(sent)  # planned ahead of what went out
+
+
+def test_a_controller_that_fails_in_a_planned_slot_ends_the_plan_with_its_safe_action(
+    buses,
+) -> None:  # type: ignore[no-untyped-def]
+    tx, _rx = buses
+    m = gait_manager()
+    ctrl = m.slots["gait"].ctrl
+
+    def boom(*_a: object) -> dict:
+        raise RuntimeError("planned slot broke")
+
+    ctrl.update = boom  # type: ignore[method-assign]
+    timed = Timed(ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8), (0,), 0.02, 3, 1000.0, 0.0)
+    try:
+        broke = timed.begin(m, STATE, None)
+    finally:
+        timed.abort()
+    assert broke is not None and broke.safe == {0}
+    assert m.slots["gait"].state == "inactive" and "planned slot broke" in m.slots["gait"].error
