@@ -359,6 +359,13 @@ def main() -> int:
         "a 10 ms CPUQuotaPeriodSec): the board budget as a hard limit (e.g. 50)",
     )
     p.add_argument(
+        "--pid",
+        metavar="JOINT",
+        default="",
+        help="a PID controller active on JOINT beside the gait during the window (the "
+        "manager's 100 Hz feedback loop; e.g. l_ankle, which the pattern does not drive)",
+    )
+    p.add_argument(
         "--estop",
         action="store_true",
         help="after the window: e-stop -> first disable frame in the guest, idle and beside "
@@ -371,6 +378,7 @@ def main() -> int:
         return 0
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     scenario.ONE_BY_ONE = args.laptop_one_by_one
+    scenario.PID_JOINT = args.pid
     ladder_nodes = None if args.ladder is None else tuple(filter(None, args.ladder.split(",")))
     without = tuple(filter(None, args.without.split(",")))
     t0 = time.monotonic()
@@ -381,6 +389,7 @@ def main() -> int:
         "seconds": args.seconds,
         "timings": args.timings,
         "cpu_quota_pct": args.cpu_quota,
+        "pid_joint": args.pid or None,
         "laptop_joint_states": "one by one" if args.laptop_one_by_one else "bundles if bundled",
         "checkout": cardlib.checkout_info(REPO),
         "host": {

@@ -31,6 +31,8 @@ SIMULATOR_CPU = 1
 # (--laptop-one-by-one), instead of as bundles, as exolink's own client does: the board then
 # puts every message for it (~100 samples/s more through its router).
 ONE_BY_ONE = False
+# A PID controller on this joint during the window (bench-board --pid JOINT), or none.
+PID_JOINT = ""
 HANDSHAKE_S = 60.0
 PATTERN_JOINTS = ["r_hip", "r_knee", "l_hip", "l_knee"]
 PATTERN_SPEED = 10
@@ -276,6 +278,11 @@ class Laptop:
             text=True,
             start_new_session=True,
         )
+        if PID_JOINT:  # a feedback controller beside the gait: the manager's 100 Hz cycle loop
+            time.sleep(5)  # the pattern's holder first (the PID needs a holder too)
+            params = json.dumps({"joints": [PID_JOINT], "kp": 0.5})
+            r = self.cli("controllers", "load", "benchpid", "pid", "--params", params, "--activate")
+            out["pid"] = (r.stdout + r.stderr).strip()
         return out
 
     def stop_pattern(self) -> str:
