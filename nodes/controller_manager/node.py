@@ -1,5 +1,11 @@
-"""The controller manager's node: read -> update -> write once per H2 cycle, paced by the
-joint-angle frame (id 110); the only writer of motion (its requests: ``api``).
+"""The controller manager's node: the only writer of motion (its requests: ``api``).
+
+Two ways out for set-points. While every active controller is ``planned`` (the gait, a
+trajectory), they are planned a few slots ahead and sent on a timer the loop only renews
+(``timed``: the kernel's broadcast manager on SocketCAN), and the loop wakes every ``BEAT_S``
+for the heartbeat, the lease and anyone's disable. Otherwise (a feedback controller, a switch
+being applied) the cycle loop runs read -> update -> write once per H2 cycle, paced by the
+joint-angle frame (id 110).
 
 The node reads the H2 frames itself (one FrameReader: angles, torques, foot switches, and joint
 control so it sees a disable from anyone), and the status frames of the MACCEPA boards in
@@ -22,7 +28,11 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
   on it fails or stops, and on a trip (the watchdog also stops ``watchdog.maccepa_boards``, which
   must include every board configured here: checked at start);
 - no angle frame for ``h2_timeout_ms`` while controllers are active: their joints get the safe
-  action and every controller stops (the watchdog trips on the same silence a little later);
+  action and every controller stops (the watchdog trips on the same silence a little later;
+  on the timer the loop reads no angle frame, and the watchdog's trip ends it);
+- on the timer, anything that ends it (a stop, a trip, anyone's disable, not armed, the
+  holder lost) deletes the send op before anything else, and a lease bounds what a manager
+  that stops renewing (stopped, hung, starved) leaves on the bus;
 - the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
   (``heartbeat_deadline_ms: 50`` in the configs).
 
@@ -95,10 +105,9 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # CPU one controller's update may take per cycle before it is deactivated.
     update_budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 2.0
     h2_timeout_ms: Annotated[int, msgspec.Meta(ge=15, le=1000)] = 50
-    # Run read -> update -> write once per this many H2 cycles (10 ms each), on the newest
-    # angle frame; the loop sleeps in between instead of waking per frame. 2 on the board:
-    # set-points every 20 ms, the thesis' own rate (its fastest pattern sent a row per joint
-    # every 20 ms), at half the CPU of waking each cycle on one A8 core.
+    # The cycle loop (feedback controllers: PID, impedance, MACCEPA) runs read -> update ->
+    # write once per this many H2 cycles (10 ms each), on the newest angle frame; the loop
+    # sleeps in between instead of waking per frame. Planned controllers use slot_ms instead.
     cycles_per_update: Annotated[int, msgspec.Meta(ge=1, le=5)] = 1
     # Planned controllers (the gait, trajectories) put a set-point per joint on the bus every
     # slot_ms on the kernel's timer (timed.py); leased for lease_ms after the manager's last

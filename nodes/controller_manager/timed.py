@@ -58,6 +58,7 @@ class Timed:
         self.t0 = t0  # controller time (epoch s) of slot 0
         self.started = now  # monotonic time of slot 0
         self.renewed_slot = 0
+        self.base = 0  # the op's frame the last start or renewal put first
         self.renewals = 0
         self.lapsed = False
 
@@ -115,9 +116,9 @@ class Timed:
         ) is not None:
             return broke
         sent = self.lease.renew(self.plan.frames, self.lease_slots * n)
-        if sent >= (self.renewed_slot + self.lease_slots) * n:
+        if sent >= self.base + self.lease_slots * n:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
-        self.renewed_slot = sent // n
+        self.base, self.renewed_slot = sent, sent // n
         self.renewals += 1
         for i in [i for i in self.plan.frames if i < sent - n]:
             del self.plan.frames[i]
