@@ -226,12 +226,14 @@ class CyclicLease:
 
     def renew(self, frames_from: dict[int, bytes], lease: int) -> int:
         """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
-        slot, as the kernel counts) and ``lease`` frames from now. A lease that already ran
-        out is not restarted (``start`` is a new phase, on purpose)."""
+        slot, as the kernel counts) and ``lease`` frames from now, no more than are planned
+        from n (none planned: ValueError). A lease that already ran out is not restarted
+        (``start`` is a new phase, on purpose)."""
         n = self.sent()
         plan = []
         while n + len(plan) in frames_from and len(plan) < self.ring:
             plan.append(frames_from[n + len(plan)])
+        lease = min(lease, len(plan))  # never past the plan: a renewal by an owner behind
         self._check_lease(lease, len(plan))
         self._place(n, plan)
         self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX, lease)
@@ -332,6 +334,7 @@ class ThreadLease:
             plan: list[bytes] = []
             while n + len(plan) in frames_from and len(plan) < self.ring:
                 plan.append(frames_from[n + len(plan)])
+            lease = min(lease, len(plan))
             self._check(lease, len(plan))
             self._place(plan)
             self._index, self._base, self._lease = 0, n, lease

@@ -343,6 +343,9 @@ class PatternPlayer(Node):
             for i in idx:
                 self.selected[i] = False
             running = self.state == "running"
+            # the manager stops the gait for this disable: its word on that is no stop of the
+            # pattern's (the follower ignores what it says until _engage hands it the rest)
+            self._engaged = 0
         for i in idx:
             body = {"kind": "joint", "joint": h2.JOINTS[i], "mode": "disabled"}
             self.ctx.messaging.command("h2", "command", body=body, timeout_s=MANAGER_WAIT_S)

@@ -143,6 +143,12 @@ def _frame(motor: int, mode: int, setpoint: int, stiffness: int) -> can.Message:
 
 
 @lru_cache(maxsize=4096)
+def _payload(motor: int, mode: int, setpoint: int, stiffness: int) -> bytes:
+    """A joint-control frame's bytes, from ``_frame``'s cache (the timer's plan)."""
+    return bytes(_frame(motor, mode, setpoint, stiffness).data)
+
+
+@lru_cache(maxsize=4096)
 def _mframe(board: int, kind: str, value: float, controller: str) -> can.Message:
     """A MACCEPA command through the MACCEPA codec (which checks ranges again), cached like
     ``_frame``: a held set-point costs a look-up per cycle."""
@@ -356,6 +362,10 @@ class ControllerManagerNode(ManagerApi, Node):
                 self.wake.wait(IDLE_BEAT_S)
                 self.wake.clear()
                 continue
+            if self.reader is not None and self.last_state is not None and self.manager.plannable():
+                self._time()  # after this iteration's beat: planning takes CPU
+                if self.timed is not None:
+                    continue
             self._update_reads()
             if self.reader is None:
                 self._open_reader()
@@ -370,8 +380,6 @@ class ControllerManagerNode(ManagerApi, Node):
             clock.mark("read")
             self._on_frames(frames)
             clock.mark("frames")
-            if self.last_state is not None and self.manager.plannable():
-                self._time()
             if time.monotonic() - self.last_angle_mono > timeout:
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
                 self.manager.idle(self._not_armed())
@@ -410,8 +418,12 @@ class ControllerManagerNode(ManagerApi, Node):
                     self.log.error("timer_unavailable", error=str(exc))
                 return
             slot_s = ival_us * len(joints) / 1e6
-            timed = Timed(lease, joints, slot_s, lease_slots, time.time(), time.monotonic())
+            t0 = time.perf_counter()
+            timed = Timed(
+                lease, joints, slot_s, lease_slots, time.time(), time.monotonic(), _payload
+            )
             broke = timed.begin(self.manager, state, not_armed)
+            self.beat(False)  # the plan took CPU after the cycle's beat (tens of ms under TCG)
             if broke is not None:
                 timed.abort()
                 self._send(self._safe_frames(broke))
@@ -420,7 +432,12 @@ class ControllerManagerNode(ManagerApi, Node):
             self.timed_runs += 1
             if self.reader is not None and self._one_socket():  # no angle frame wakes it now
                 self.reader.set_ids([i for i in self.read_ids if i != h2.JOINT_ANGLES])
-        self.log.info("timer_started", joints=[h2.JOINTS[j] for j in joints], slot_ms=p.slot_ms)
+        self.log.info(
+            "timer_started",
+            joints=[h2.JOINTS[j] for j in joints],
+            slot_ms=p.slot_ms,
+            plan_ms=round((time.perf_counter() - t0) * 1e3, 2),
+        )
 
     def _timed_wake(self) -> None:
         """One wake of the loop while the timer sends: anyone's disable read at once, the lease

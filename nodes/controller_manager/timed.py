@@ -17,6 +17,7 @@ first disable frame. Any stop, trip or switch deletes the op first (``abort``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import structlog
@@ -26,6 +27,8 @@ from exolink.nodes.controller_manager.manager import Cycle, Manager
 from exolink.protocol import h2
 
 log = structlog.get_logger()
+# Slots planned at most per wake of the loop (one every 20 ms, renewing every second slot).
+PLAN_PER_WAKE = 3
 
 
 @dataclass
@@ -52,13 +55,18 @@ class Timed:
         lease_slots: int,
         t0: float,
         now: float,
+        encode: Callable[[int, int, int, int], bytes] | None = None,
     ) -> None:
+        """``encode(motor, mode, setpoint, stiffness)``: a joint-control payload (the node's
+        cache of encoded frames; default the H2 codec's)."""
         self.lease, self.slot_s, self.lease_slots = lease, slot_s, lease_slots
+        self.encode = encode or _encode
         self.plan = Plan(joints)
         self.t0 = t0  # controller time (epoch s) of slot 0
         self.started = now  # monotonic time of slot 0
         self.renewed_slot = 0
         self.base = 0  # the op's frame the last start or renewal put first
+        self.lease_frames = 0  # and how many it allowed
         self.renewals = 0
         self.lapsed = False
 
@@ -83,19 +91,24 @@ class Timed:
             if out.safe or out.safe_boards or tuple(w.motor - 1 for w in writes) != plan.joints:
                 return out
             for i, w in enumerate(writes):
-                msg = h2.encode_joint_control(w.motor, w.mode, w.setpoint, w.stiffness)
-                plan.frames[k * self.per_slot + i] = bytes(msg.data)
+                plan.frames[k * self.per_slot + i] = self.encode(
+                    w.motor, w.mode, w.setpoint, w.stiffness
+                )
             plan.positions[k] = tuple(w.setpoint for w in writes)
             plan.slots += 1
         return None
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
-        """Plan the first slots and start the op (slot 0 now)."""
-        if (broke := self._plan_until(manager, state, self.lease_slots + 2, not_armed)) is not None:
+        """Plan the first slots and start the op (slot 0 now). A few only: each is a cycle of
+        the manager's (a lease's worth took tens of ms under TCG, in one wake); the renewals
+        catch up, ``PLAN_PER_WAKE`` at a time."""
+        first = min(PLAN_PER_WAKE, self.lease_slots)
+        if (broke := self._plan_until(manager, state, first, not_armed)) is not None:
             return broke
         n = self.per_slot
         frames = [self.plan.frames[i] for i in range(min(self.lease.ring, self.plan.slots * n))]
-        self.lease.start(frames, self.lease_slots * n)
+        self.lease.start(frames, first * n)
+        self.lease_frames = first * n
         return None
 
     def due(self, now: float) -> bool:
@@ -111,14 +124,15 @@ class Timed:
             return None
         n = self.per_slot
         at = int((now - self.started) / self.slot_s)  # the slot going out about now
-        if (
-            broke := self._plan_until(manager, state, at + self.lease_slots + 3, not_armed)
-        ) is not None:
+        until = min(at + self.lease_slots + 2, self.plan.slots + PLAN_PER_WAKE)
+        if (broke := self._plan_until(manager, state, until, not_armed)) is not None:
             return broke
+        last_lease = self.lease_frames
         sent = self.lease.renew(self.plan.frames, self.lease_slots * n)
-        if sent >= self.base + self.lease_slots * n:
+        if sent >= self.base + last_lease:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
         self.base, self.renewed_slot = sent, sent // n
+        self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent)
         self.renewals += 1
         for i in [i for i in self.plan.frames if i < sent - n]:
             del self.plan.frames[i]
@@ -144,3 +158,7 @@ class Timed:
             if last is not None and last in self.plan.positions:
                 out[j] = self.plan.positions[last][i]
         return out
+
+
+def _encode(motor: int, mode: int, setpoint: int, stiffness: int) -> bytes:
+    return bytes(h2.encode_joint_control(motor, mode, setpoint, stiffness).data)
