@@ -1,20 +1,18 @@
 """The one place that opens a python-can bus from configuration.
 
 A node only wakes for its own ids: SocketCAN gets kernel receive filters, and so does the
-simulated bus (python-can's udp_multicast, kept on the loopback interface: ``SimBus``); the
-in-process virtual bus filters in python-can. ``FrameReader`` is the receive hot path and counts
+simulated bus (python-can's interface ``exolink_sim``: exolink.simbus); the in-process virtual
+bus filters in python-can. ``FrameReader`` is the receive hot path and counts
 what the kernel dropped.
 """
 
 from __future__ import annotations
 
 import bisect
-import contextlib
 import ctypes
 import ctypes.util
 import errno
 import functools
-import ipaddress
 import operator
 import os
 import select
@@ -32,9 +30,6 @@ if TYPE_CHECKING:
     import can
 
 STD_MASK = 0x7FF
-_U32BE = struct.Struct("!I")
-_I32 = struct.Struct("@i")
-_PKTINFO = struct.Struct("@i4s4s")  # struct in_pktinfo
 
 
 class CanOpenError(RuntimeError):
@@ -51,238 +46,36 @@ def open_bus(
     filters: list[dict[str, int | bool]] | None = None,
     receive_own_messages: bool = False,
 ) -> can.BusABC:
-    """Open the configured bus; failures name the interface and the likely fix. ``filters``
-    None: every frame; ``[]``: none (a bus that only sends)."""
+    """Open the configured bus through python-can (the simulated bus is its interface
+    ``exolink_sim``, exolink.simbus); failures name the interface and the likely fix.
+    ``filters`` None: every frame; ``[]``: none (a bus that only sends)."""
     import can
 
+    kwargs: dict[str, object] = {"receive_own_messages": receive_own_messages}
+    if filters is not None:
+        kwargs["can_filters"] = filters
     try:
-        if cfg.interface == "udp_multicast":
-            return sim_bus_class()(
-                cfg.channel, can_filters=filters, receive_own_messages=receive_own_messages
-            )
-        kwargs: dict[str, object] = {
-            "interface": cfg.interface,
-            "channel": cfg.channel,
-            "receive_own_messages": receive_own_messages,
-        }
-        if filters:
-            kwargs["can_filters"] = filters
-        bus = can.Bus(**kwargs)
-        if filters == [] and cfg.interface == "socketcan":
-            # python-can takes [] as "no filter" and receives every frame; a bus that only
-            # sends must receive none (the kernel queued the whole bus for each such socket,
-            # unread). No filter at all is the kernel's "receive nothing".
-            try:
-                bus.socket.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")
-            except OSError:
-                bus.shutdown()
-                raise
-        return bus
+        bus = can.Bus(interface=cfg.bus_interface, channel=cfg.channel, **kwargs)
     except (OSError, can.CanError, ValueError) as exc:
         raise CanOpenError(_explain(cfg, exc)) from exc
-
-
-# --- the simulated bus: python-can's udp_multicast, kept on this machine ------------------------
-#
-# python-can joins its group on whatever interface the route to the group names and sends that
-# way: with a default route the sim bus went out on eth0, and a route change mid-run left the
-# members joined on the old interface while frames left by the new one (silence, no error).
-# Here every socket is bound to the loopback interface: joined on lo, sending through lo with TTL 0
-# (the kernel never lets a TTL-0 multicast leave the host). No route is needed at all.
-#
-# The kernel filter SocketCAN has, without losing count: every frame is sent from a source address
-# that encodes its id (127.111.0.0 + id for standard ids), and a reader of exact standard ids joins
-# the group for those sources only (source-specific membership). Datagrams from other sources are
-# never queued to its socket and never counted there, so the socket's drop counter (sk_drops) is
-# exactly the frames of its ids it lost; a socket filter (classic BPF) counted every datagram it
-# rejected in the same counter. The datagram itself is python-can's, unchanged.
-
-SIM_PORT = 43113  # python-can's default udp_multicast port
-LOOPBACK = "lo"
-_SOURCE_BASE = 0x7F6F0000  # 127.111.0.0: standard id i is sent from 127.111.(i >> 8).(i & 0xFF)
-_SOURCE_OTHER = _SOURCE_BASE | 0xFFFE  # extended ids: never joined by a filtered reader
-IP_PKTINFO, IP_ADD_SOURCE_MEMBERSHIP, IP_MULTICAST_ALL = 8, 39, 49  # linux/in.h
-SO_TIMESTAMPNS = 35
-
-
-def sim_source(arbitration_id: int, extended: bool = False) -> str:
-    """The loopback source address a frame with this id is sent from on the simulated bus."""
-    addr = _SOURCE_OTHER if extended or arbitration_id > STD_MASK else _SOURCE_BASE | arbitration_id
-    return socket.inet_ntoa(_U32BE.pack(addr))
-
-
-def exact_ids(filters: list[dict[str, int | bool]] | None) -> list[int] | None:
-    """The ids of filters that are all exact standard-id matches (what a kernel filter takes)."""
-    if filters is None or any(
-        f.get("extended") or int(f.get("can_mask", 0)) != STD_MASK for f in filters
-    ):
-        return None
-    return sorted({int(f["can_id"]) for f in filters})
-
-
-def _loopback_socket(group: str, port: int, ids: list[int] | None) -> socket.socket:
-    """A UDP socket on ``group`` through the loopback interface only, for sending and receiving.
-
-    ``ids``: join for the sources of these standard ids only (None: every source, []: none,
-    for a bus that only sends). More ids
-    than the kernel takes per membership (net.ipv4.igmp_max_msf, 10 by default) join for every
-    source instead; python-can's and the reader's own filters still apply."""
-    try:
-        if not ipaddress.IPv4Address(group).is_multicast:
-            raise ValueError
-    except ValueError:
-        raise OSError(f"the simulated bus needs an IPv4 multicast group, not {group!r}") from None
-    try:
-        lo = socket.if_nametoindex(LOOPBACK)
-    except OSError:
-        raise OSError(f"no loopback interface {LOOPBACK!r}") from None
-    _check_loopback(group, port, lo)
-    loopback = socket.inet_aton("127.0.0.1")
-    grp = socket.inet_aton(group)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        ip = socket.IPPROTO_IP
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        # Only the groups this socket joined (Linux otherwise delivers every group joined
-        # anywhere on the host to a socket bound to the port: another sim bus would leak in).
-        sock.setsockopt(ip, IP_MULTICAST_ALL, 0)
-        sock.bind((group, port))  # unicast datagrams to the port are not frames
-        sock.setsockopt(ip, socket.IP_MULTICAST_IF, bytes(4) + loopback + _I32.pack(lo))
-        sock.setsockopt(ip, socket.IP_MULTICAST_TTL, 0)
-        sock.setsockopt(ip, socket.IP_MULTICAST_LOOP, 1)
-        if ids is None or (ids and not _join_sources(sock, grp, loopback, ids)):
-            sock.setsockopt(ip, socket.IP_ADD_MEMBERSHIP, grp + loopback + _I32.pack(lo))
-        # ids == []: a bus that only sends joins nothing and is sent nothing
-    except OSError:
-        sock.close()
-        raise
-    return sock
-
-
-def _join_sources(sock: socket.socket, grp: bytes, loopback: bytes, ids: list[int]) -> bool:
-    """Source-specific membership for these ids' sources; False (nothing joined) if refused."""
-    try:
-        for i in ids:
-            src = socket.inet_aton(sim_source(i))
-            sock.setsockopt(socket.IPPROTO_IP, IP_ADD_SOURCE_MEMBERSHIP, grp + loopback + src)
-    except OSError as exc:  # ENOBUFS past net.ipv4.igmp_max_msf
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.IPPROTO_IP, socket.IP_DROP_MEMBERSHIP, grp + loopback)
-        structlog.get_logger().bind(node="canbus").info(
-            "sim_filter_in_python",
-            ids=len(ids),
-            reason=f"{exc.strerror}: more sources than net.ipv4.igmp_max_msf",
-        )
-        return False
-    return True
-
-
-def _check_loopback(group: str, port: int, lo: int) -> None:
-    """What a send needs, asked of the kernel without sending: the loopback interface up, and
-    the loopback network (127.0.0.0/8, where the frame sources live) on it."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+    sock = bus_socket(bus)
+    if filters == [] and sock is not None and sock.family == socket.AF_CAN:
+        # python-can takes [] as "no filter" and receives every frame; a bus that only
+        # sends must receive none (the kernel queued the whole bus for each such socket,
+        # unread). No filter at all is the kernel's "receive nothing".
         try:
-            probe.bind((sim_source(0), 0))
+            sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")
         except OSError as exc:
-            raise OSError(
-                f"loopback has no 127.0.0.0/8 address ({exc.strerror}): "
-                f"`ip addr add 127.0.0.1/8 dev {LOOPBACK}`"
-            ) from None
-        probe.setsockopt(
-            socket.IPPROTO_IP, socket.IP_MULTICAST_IF, bytes(4) + bytes(4) + _I32.pack(lo)
-        )
-        try:
-            probe.connect((group, port))
-        except OSError as exc:
-            raise OSError(
-                f"no way to {group} through the loopback interface ({exc.strerror}): "
-                f"is {LOOPBACK} up? `ip link set {LOOPBACK} up`"
-            ) from None
+            bus.shutdown()
+            raise CanOpenError(_explain(cfg, exc)) from exc
+    return bus
 
 
-_SIM_BUS: type | None = None
-
-
-def sim_bus_class() -> type[can.BusABC]:
-    """``SimBus``, defined on first use: python-can is imported only by processes that open a
-    bus, and this module's import stays light."""
-    global _SIM_BUS
-    if _SIM_BUS is None:
-        _SIM_BUS = _define_sim_bus()
-    return _SIM_BUS
-
-
-def _define_sim_bus() -> type[can.BusABC]:
-    import can
-    from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus, UdpMulticastBus
-    from can.interfaces.udp_multicast.utils import is_msgpack_installed, pack_message
-
-    class LoopbackGroup(GeneralPurposeUdpMulticastBus):  # type: ignore[misc]
-        """python-can's multicast socket holder with our socket (``_create_socket`` is its
-        hook) and a send that sets the frame's source address."""
-
-        def __init__(self, group: str, port: int, ids: list[int] | None) -> None:
-            self._ids = ids
-            super().__init__(group, port, hop_limit=0)
-
-        def _create_socket(self, address_family: socket.AddressFamily) -> socket.socket:
-            try:
-                sock = _loopback_socket(self.group, self.port, self._ids)
-            except OSError as exc:  # python-can turns OSError here into a vaguer message
-                raise can.CanInitializationError(str(exc)) from exc
-            self.timestamp_nanosecond = True
-            return sock
-
-        def send_from(self, data: bytes, source: str, timeout: float | None) -> None:
-            if timeout != self._last_send_timeout:
-                self._last_send_timeout = timeout
-                self._socket.settimeout(timeout)
-            info = _PKTINFO.pack(0, socket.inet_aton(source), bytes(4))
-            try:
-                sent = self._socket.sendmsg(
-                    [data], [(socket.IPPROTO_IP, IP_PKTINFO, info)], 0, self._send_destination
-                )
-            except TimeoutError:
-                raise can.CanTimeoutError() from None
-            except OSError as exc:
-                raise can.CanOperationError(f"failed to send via socket: {exc}") from exc
-            if sent < len(data):
-                raise can.CanTimeoutError()
-
-    class SimBus(UdpMulticastBus):  # type: ignore[misc]
-        """python-can's udp_multicast bus (its datagrams, its API) on the loopback interface.
-
-        Filters of exact standard ids are applied in the kernel (source-specific membership),
-        as SocketCAN applies them; python-can's filter applies as well."""
-
-        def __init__(
-            self,
-            channel: str,
-            port: int = SIM_PORT,
-            receive_own_messages: bool = False,
-            fd: bool = True,
-            can_filters: list[dict[str, int | bool]] | None = None,
-            **kwargs: object,
-        ) -> None:
-            is_msgpack_installed()
-            if receive_own_messages:
-                raise can.CanInterfaceNotImplementedError(
-                    "receiving own messages is not yet implemented"
-                )
-            # The socket first: if it fails, no half-made bus is left to warn when collected.
-            self._multicast = LoopbackGroup(channel, port, exact_ids(can_filters))
-            can.BusABC.__init__(self, channel, can_filters=can_filters, **kwargs)
-            self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
-
-        def send(self, msg: can.Message, timeout: float | None = None) -> None:
-            if self._can_protocol is not can.CanProtocol.CAN_FD and msg.is_fd:
-                raise can.CanOperationError("cannot send FD message over bus with CAN FD disabled")
-            source = sim_source(msg.arbitration_id, msg.is_extended_id)
-            self._multicast.send_from(pack_message(msg), source, timeout)
-
-    return SimBus
+def bus_socket(bus: can.BusABC) -> socket.socket | None:
+    """The socket under a bus that shows it (python-can's SocketCAN bus and the simulated bus
+    both have a public ``socket``); None for a bus without one (the in-process virtual bus)."""
+    sock = getattr(bus, "socket", None)
+    return sock if isinstance(sock, socket.socket) else None
 
 
 def _explain(cfg: CanConfig, exc: Exception) -> str:
@@ -293,8 +86,10 @@ def _explain(cfg: CanConfig, exc: Exception) -> str:
             f"and `ip link set {cfg.channel} up type can bitrate {cfg.bitrate}`; for tests: "
             f"`ip link add dev {cfg.channel} type vcan && ip link set {cfg.channel} up`."
         )
-    if cfg.interface == "udp_multicast":
-        return f"cannot open the simulated CAN bus (udp_multicast {cfg.channel} on loopback): {exc}"
+    if cfg.simulated:
+        return (
+            f"cannot open the simulated CAN bus ({cfg.interface} {cfg.channel} on loopback): {exc}"
+        )
     return base
 
 
@@ -307,7 +102,7 @@ _CAN_EFF_FLAG, _CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _CAN_FLAGS = _CAN_EFF_FLAG | _CAN_RTR_FLAG | CAN_ERR_FLAG
 _TIMESPEC = struct.Struct("@ll")
 _BATCH = 64  # frames read per socket and wake-up at most
-SO_RCVBUFFORCE, SO_MEMINFO = 33, 55  # asm-generic/socket.h; not exported by Python
+SO_RCVBUFFORCE, SO_MEMINFO, SO_TIMESTAMPNS = 33, 55, 35  # asm-generic/socket.h; not in Python
 _MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_alloc .. [8] drops
 # Receive queue asked for per socket: a 100 ms stall at full load loses nothing. The kernel
 # charges each queued frame its whole buffer (x86-64: 768 B per SocketCAN frame, 832 B per sim
@@ -316,7 +111,7 @@ _MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_allo
 # granted. The sim bus has no bit rate: one sender floods it at ~50-70k frames/s on an x86
 # core, 7,000 in 100 ms = 5.8 MB of the 6 MiB granted. Without CAP_NET_ADMIN, net.core.rmem_max
 # caps the grant (often 212992: twice that holds ~510 frames), logged at open.
-RCVBUF_BYTES = {"socketcan": 1 << 20, "udp_multicast": 3 << 20}
+RCVBUF_BYTES = {socket.AF_CAN: 1 << 20, socket.AF_INET: 3 << 20}  # by the bus socket's family
 LATE_S = 0.01  # a frame read later than this after it arrived is counted late (one H2 period)
 
 
@@ -438,26 +233,29 @@ class FrameReader:
         # Read from the sockets but not returned yet: newer than where a socket that stopped
         # at its batch limit ended (see _in_step).
         self._held: list[Frame] = []
-        if cfg.interface == "udp_multicast":  # SocketCAN's frames: _drain_socketcan
+        # the in-process virtual bus has no socket: python-can's own receive path
+        self._sock = bus_socket(bus)
+        self._quiet = bus_socket(quiet) if quiet is not None else None
+        # What the socket carries: SocketCAN's can_frame (_drain_socketcan), else the simulated
+        # bus's datagrams (python-can's udp_multicast msgpack, _parse_udp).
+        family = self._sock.family if self._sock is not None else None
+        in_kernel = family == socket.AF_CAN
+        if family == socket.AF_INET:
             self._parse = self._parse_udp
             import msgpack
 
             self._unpackb = msgpack.unpackb
-        # the in-process virtual bus has no socket: python-can's own receive path
-        self._sock = _bus_socket(bus, cfg)
-        self._quiet = _bus_socket(quiet, cfg) if quiet is not None else None
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)
-        size = CAN_FRAME.size if cfg.interface == "socketcan" else _MSG_SIZE
+        size = CAN_FRAME.size if in_kernel else _MSG_SIZE
         self._rx = {s: BatchReceiver(s, size) for s in (self._sock, self._quiet) if s is not None}
         self._cfg = cfg
         # Content filters (canfilter): the kernel's on SocketCAN, else these rules in Python.
-        in_kernel = cfg.interface == "socketcan"
         if in_kernel and drop:
             for s in self._rx:
                 canfilter.attach(s, drop)
         self._drops = canfilter.Predicate(() if in_kernel else drop)
         if self._sock is not None:
-            want = rcvbuf or RCVBUF_BYTES[cfg.interface]
+            want = rcvbuf or RCVBUF_BYTES[self._sock.family]
             self.rcvbuf = size_receive_buffer(self._sock, want)
             if self._quiet is not None:
                 size_receive_buffer(self._quiet, want)
@@ -648,7 +446,7 @@ class FrameReader:
     def _drain(self, sock: socket.socket) -> tuple[list[Frame], bool]:
         """Every frame queued on ``sock`` now, up to a batch (True: it stopped there, more may
         be queued); never blocks. Kernel receive times (SO_TIMESTAMPNS, set by python-can and
-        SimBus); a frame without one gets the time it was read."""
+        exolink.simbus); a frame without one gets the time it was read."""
         rx = self._rx[sock]
         if rx.msg_size == CAN_FRAME.size:
             return self._drain_socketcan(rx)
@@ -904,7 +702,8 @@ class FrameWriter:
 
     def __init__(self, bus: can.BusABC, cfg: CanConfig) -> None:
         self.bus = bus
-        self.fd = bus.socket.fileno() if cfg.interface == "socketcan" else None  # type: ignore[attr-defined]
+        sock = bus_socket(bus)
+        self.fd = sock.fileno() if sock is not None and sock.family == socket.AF_CAN else None
         self._data, _, self._iov, self._msgs = _mmsg_buffers(CAN_FRAME.size, 0)
         self._addr = ctypes.addressof(self._msgs)
         self._view = memoryview(self._data).cast("B")
@@ -969,15 +768,6 @@ class FrameWriter:
 _arrival = operator.itemgetter(0)  # a Frame's timestamp, in C: sort and bisect keys per frame
 
 
-def _bus_socket(bus: can.BusABC, cfg: CanConfig) -> socket.socket | None:
-    """The socket under a python-can bus of this interface (None: no socket, the virtual bus)."""
-    if cfg.interface == "socketcan":
-        return bus.socket  # type: ignore[attr-defined,no-any-return]
-    if cfg.interface == "udp_multicast":
-        return bus._multicast._socket  # type: ignore[attr-defined,no-any-return]  # python-can internals
-    return None
-
-
 def socket_drops(sock: socket.socket) -> int | None:
     """The socket's kernel drop counter (sk_drops, SO_MEMINFO), None if the kernel won't say."""
     try:
@@ -1017,22 +807,21 @@ def open_reader(
     frames read later than that after arrival (0: never); ``drop``: frames of these ids never
     delivered (canfilter: the kernel's socket filter on SocketCAN)."""
     drop = canfilter.check(drop)
-    if ids is None or wake_on is None or cfg.interface not in RCVBUF_BYTES:
-        bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
-        try:
-            return FrameReader(
-                bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s, drop=drop
-            )
-        except BaseException:
-            bus.shutdown()
-            raise
+    if ids is None or wake_on is None:
+        return _one_bus_reader(cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s, drop=drop)
     waking = sorted(set(wake_on) & set(ids))
     rest = sorted(set(ids) - set(waking))
+    bus = open_bus(cfg, filters=id_filters(waking if waking and rest else ids))
+    if bus_socket(bus) is None:  # nothing to wake on (the virtual bus): one reader of all ids
+        bus.set_filters(id_filters(ids))
+        return _reader_or_shutdown(
+            bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s, drop=drop
+        )
     if not waking or not rest:
+        bus.shutdown()
         raise ValueError(
             f"wake_on {sorted(set(wake_on))} must name some, not all, of {sorted(set(ids))}"
         )
-    bus = open_bus(cfg, filters=id_filters(waking))
     try:
         quiet = open_bus(cfg, filters=id_filters(rest))
     except BaseException:
@@ -1052,5 +841,21 @@ def open_reader(
         )
     except BaseException:
         quiet.shutdown()
+        bus.shutdown()
+        raise
+
+
+def _one_bus_reader(cfg: CanConfig, ids: Iterable[int] | None, **kw: Any) -> FrameReader:
+    bus = open_bus(cfg, filters=id_filters(ids) if ids is not None else None)
+    return _reader_or_shutdown(bus, cfg, ids, **kw)
+
+
+def _reader_or_shutdown(
+    bus: can.BusABC, cfg: CanConfig, ids: Iterable[int] | None, **kw: Any
+) -> FrameReader:
+    """A FrameReader of ``bus``; the bus shut down if the reader cannot be made."""
+    try:
+        return FrameReader(bus, cfg, ids, **kw)
+    except BaseException:
         bus.shutdown()
         raise

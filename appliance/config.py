@@ -23,6 +23,10 @@ PositiveMs = Annotated[int, msgspec.Meta(ge=1, le=600_000)]
 BoardId = Annotated[int, msgspec.Meta(ge=0, le=9)]
 
 SIM_MULTICAST_GROUP = "239.74.163.2"
+# The simulated bus is python-can's interface ``exolink_sim`` (exolink.simbus). Its datagrams are
+# python-can's udp_multicast ones, and configs may name it ``udp_multicast``: the same bus.
+SIM_INTERFACE = "exolink_sim"
+INTERFACE_ALIASES = {"udp_multicast": SIM_INTERFACE}
 # Node params that were joint limits: refused with a pointer to the `limits:` section.
 MOVED_TO_LIMITS = ("min_angles", "max_angles", "torque_cap", "stiffness_cap", "max_step_deg")
 T = TypeVar("T", bound=msgspec.Struct)
@@ -37,7 +41,7 @@ class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=T
 
 
 class CanConfig(_Strict):
-    interface: Literal["socketcan", "virtual", "udp_multicast"] = "socketcan"
+    interface: Literal["socketcan", "virtual", "exolink_sim", "udp_multicast"] = "socketcan"
     channel: str = "can0"
     bitrate: Annotated[int, msgspec.Meta(ge=10_000, le=1_000_000)] = 1_000_000
     restart_ms: Annotated[int, msgspec.Meta(ge=0, le=10_000)] = 100
@@ -45,6 +49,16 @@ class CanConfig(_Strict):
     bring_up: bool = True
     # Check that the DCAN1 device-tree overlay is active before using can0.
     require_overlay: bool = False
+
+    @property
+    def bus_interface(self) -> str:
+        """The python-can interface this opens (``INTERFACE_ALIASES`` resolved)."""
+        return INTERFACE_ALIASES.get(self.interface, self.interface)
+
+    @property
+    def simulated(self) -> bool:
+        """The simulated bus (exolink.simbus), by either of its names."""
+        return self.bus_interface == SIM_INTERFACE
 
 
 class TriggerOutput(_Strict):

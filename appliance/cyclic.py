@@ -19,7 +19,7 @@ While the H2 streams well-formed frames nothing reaches this process at all. Wit
 so a joint-control frame reaches it when the mode (or the length) differs from the last frame's:
 the first motion frame after a disable, never the MACCEPA board 0 traffic that shares the id.
 SocketCAN only:
-the simulated bus (udp_multicast) has no broadcast manager, and there the watchdog reads every
+the simulated bus (exolink_sim) has no broadcast manager, and there the watchdog reads every
 frame as before. ``struct bcm_msg_head`` per linux/can/bcm.h; its timevals are C longs (4 bytes
 on the A8, 8 on x86-64), hence the native struct format, padded to the 8-byte alignment of the
 CAN frame that follows.

@@ -177,7 +177,7 @@ def collect(
 
 def bus_sockets(pid: int) -> int:
     """The sim-bus sockets (bound to its UDP port) a process holds, from /proc."""
-    from exolink.canbus import SIM_PORT
+    from exolink.simbus import SIM_PORT
 
     inodes = set()
     for fd in Path(f"/proc/{pid}/fd").iterdir():

@@ -11,8 +11,9 @@ from pathlib import Path
 import can
 import pytest
 from conftest import read_cycle
-from exolink.canbus import SO_TIMESTAMPNS, BatchReceiver, open_bus, open_reader, sim_source
+from exolink.canbus import SO_TIMESTAMPNS, BatchReceiver, open_bus, open_reader
 from exolink.config import CanConfig
+from exolink.simbus import sim_source
 
 
 def _raw_to_group(group: str, data: bytes, source: str) -> None:
@@ -205,7 +206,7 @@ def test_receive_buffer_is_what_the_kernel_granted(group: str) -> None:
     cfg = CanConfig(interface="udp_multicast", channel=group)
     reader = open_reader(cfg, [110], rcvbuf=1 << 16)
     try:
-        sock = reader.bus._multicast._socket  # type: ignore[attr-defined]
+        sock = reader.bus.socket  # type: ignore[attr-defined]
         assert reader.rcvbuf == sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         assert reader.rcvbuf == 2 * (1 << 16)  # below any rmem_max: granted (doubled) as asked
     finally:
@@ -241,7 +242,7 @@ def test_a_bus_that_only_sends_is_sent_nothing(group: str) -> None:
         for _ in range(5):
             tx.send(can.Message(arbitration_id=110, data=b"\x01", is_extended_id=False))
         time.sleep(0.1)
-        sock = quiet._multicast._socket  # type: ignore[attr-defined]
+        sock = quiet.socket  # type: ignore[attr-defined]
         sock.setblocking(False)
         with pytest.raises(BlockingIOError):
             sock.recv(256)

@@ -119,7 +119,7 @@ def test_sim_bus_datagrams_leave_with_ttl_zero(group: str) -> None:
 
     bus = open_bus(CanConfig(interface="udp_multicast", channel=group))
     try:
-        sock = bus._multicast._socket  # type: ignore[attr-defined]
+        sock = bus.socket  # type: ignore[attr-defined]
         assert sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 0
     finally:
         bus.shutdown()

@@ -7,13 +7,14 @@ import sys
 import threading
 from datetime import UTC, datetime
 
-from exolink.config import SIM_MULTICAST_GROUP, CanConfig
+from exolink.config import INTERFACE_ALIASES, SIM_INTERFACE, SIM_MULTICAST_GROUP, CanConfig
 
 
 def bus_config(args: argparse.Namespace) -> CanConfig:
-    default = {"udp_multicast": SIM_MULTICAST_GROUP, "socketcan": "can0", "virtual": "exolink"}
+    default = {SIM_INTERFACE: SIM_MULTICAST_GROUP, "socketcan": "can0", "virtual": "exolink"}
+    interface = INTERFACE_ALIASES.get(args.interface, args.interface)
     return CanConfig(
-        interface=args.interface, channel=args.channel or default[args.interface], bring_up=False
+        interface=args.interface, channel=args.channel or default[interface], bring_up=False
     )
 
 

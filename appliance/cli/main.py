@@ -26,7 +26,7 @@ def _add_bus(p: argparse.ArgumentParser) -> None:
         "--interface",
         "-i",
         default="udp_multicast",
-        choices=["socketcan", "udp_multicast", "virtual"],
+        choices=["socketcan", "exolink_sim", "udp_multicast", "virtual"],
     )
     p.add_argument("--channel", default=None, help="can0 / vcan0 / multicast group")
 

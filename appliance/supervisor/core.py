@@ -73,7 +73,7 @@ def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
     can = msgspec.structs.replace(
         cfg.can,
         interface="udp_multicast",
-        channel=cfg.can.channel if cfg.can.interface == "udp_multicast" else SIM_MULTICAST_GROUP,
+        channel=cfg.can.channel if cfg.can.simulated else SIM_MULTICAST_GROUP,
         bring_up=False,
         require_overlay=False,
     )
