@@ -474,7 +474,12 @@ class ControllerManagerNode(ManagerApi, Node):
                 self._send(self._safe_frames(broke))
         if timed.lapsed:
             self.timed_lapses += 1
-            self.log.warning("timer_lease_lapsed", renewals=timed.renewals)
+            self.log.warning(
+                "timer_lease_lapsed",
+                renewals=timed.renewals,
+                renewal_gap_ms=round(timed.since_renewal_s * 1e3, 1),
+                lease_ms=self.params.lease_ms,
+            )
             self._untime(orderly=True)
         self.beat(False)
         self.check_presence()

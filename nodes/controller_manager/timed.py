@@ -67,6 +67,8 @@ class Timed:
         self.renewed_slot = 0
         self.base = 0  # the op's frame the last start or renewal put first
         self.lease_frames = 0  # and how many it allowed
+        self.renewed_at = now  # monotonic
+        self.since_renewal_s = 0.0  # between the last two renewals (a lapse: how late)
         self.renewals = 0
         self.lapsed = False
 
@@ -112,8 +114,11 @@ class Timed:
         return None
 
     def due(self, now: float) -> bool:
-        """Two slots went out since the last renewal (by the clock: no system call)."""
-        return (now - self.started) / self.slot_s >= self.renewed_slot + 2
+        """Two slots or fewer are left of a full lease (by the clock: no system call): every
+        second slot once the plan is a lease ahead, at each wake while it is not (a new op's
+        first, short lease)."""
+        left = (self.base + self.lease_frames) / self.per_slot - (now - self.started) / self.slot_s
+        return left <= self.lease_slots - 2
 
     def keep(
         self, manager: Manager, state: State, not_armed: str | None, now: float
@@ -131,6 +136,7 @@ class Timed:
         sent = self.lease.renew(self.plan.frames, self.lease_slots * n)
         if sent >= self.base + last_lease:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
+        self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
         self.base, self.renewed_slot = sent, sent // n
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent)
         self.renewals += 1
