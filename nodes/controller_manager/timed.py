@@ -56,9 +56,13 @@ class Timed:
         t0: float,
         now: float,
         encode: Callable[[int, int, int, int], bytes] | None = None,
+        alive: Callable[[], None] | None = None,
     ) -> None:
         """``encode(motor, mode, setpoint, stiffness)``: a joint-control payload (the node's
-        cache of encoded frames; default the H2 codec's)."""
+        cache of encoded frames; default the H2 codec's); ``alive``: called after each slot
+        planned (the node's heartbeat: on the board proxy the first plan of a process took
+        300 ms for three slots, past the manager's 50 ms deadline)."""
+        self.alive = alive or (lambda: None)
         self.lease, self.slot_s, self.lease_slots = lease, slot_s, lease_slots
         self.encode = encode or _encode
         self.plan = Plan(joints)
@@ -98,6 +102,7 @@ class Timed:
                 )
             plan.positions[k] = tuple(w.setpoint for w in writes)
             plan.slots += 1
+            self.alive()
         return None
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
