@@ -903,6 +903,29 @@ def test_a_hung_or_killed_manager_ends_the_gaits_timer(gait, mbus, sig) -> None:
                 os.kill(pid, signal.SIGCONT)
 
 
+def test_with_the_timer_off_the_gait_runs_in_the_cycle_loop(write_config, spawn, mbus) -> None:  # type: ignore[no-untyped-def]
+    """``timer: false`` (the board's for now): planned controllers are written by the cycle
+    loop like the others, one set-point per H2 cycle, and no send op is made."""
+    n = nodes([], deadline_ms=300)
+    n[2]["params"] |= {"timer": False}
+    player = {
+        "name": "pattern_player",
+        "plugin": "pattern_player",
+        "critical": True,
+        "params": {"speed": 10, "selected": ["r_hip", "r_knee"]},
+    }
+    app = Appliance(write_config(nodes=[*n, player], watchdog={"h2_silence_ms": 500}), spawn)
+    app.arm_and_hold()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 1))
+    frames = collect(mbus, 1.0, {70, 110})
+    hips = joint_frames(frames, 1)
+    angles = sum(m.arbitration_id == 110 for m in frames)
+    assert len(hips) > angles * 3 / 4, (len(hips), angles)  # about one a cycle, not a slot
+    timer = json.loads(ctl(app, "list", "--json").stdout)["timer"]
+    assert not timer["sending"] and timer["runs"] == 0, timer
+
+
 @pytest.fixture
 def gait(write_config, spawn):  # type: ignore[no-untyped-def]
     """The pattern player: one writer, the manager."""

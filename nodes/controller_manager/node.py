@@ -114,6 +114,10 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # renewal, so a manager that stops renewing stops moving within that (it must not exceed
     # the manager's heartbeat deadline + 60 ms: checked at start).
     slot_ms: Annotated[int, msgspec.Meta(ge=10, le=100, multiple_of=10)] = 20
+    # False: planned controllers run in the cycle loop like the others (the board until the
+    # plan is cheap enough there: each slot is a manager cycle, ~11 ms of the board proxy's
+    # CPU, and the timer's start tripped the 50 ms heartbeat deadline; make bench-board).
+    timer: bool = True
     lease_ms: Annotated[int, msgspec.Meta(ge=20, le=500)] = 100
     safe_action: Literal["disable", "stop"] = "disable"
     require_armed: bool = True
@@ -362,7 +366,12 @@ class ControllerManagerNode(ManagerApi, Node):
                 self.wake.wait(IDLE_BEAT_S)
                 self.wake.clear()
                 continue
-            if self.reader is not None and self.last_state is not None and self.manager.plannable():
+            if (
+                self.params.timer
+                and self.reader is not None
+                and self.last_state is not None
+                and self.manager.plannable()
+            ):
                 self._time()  # after this iteration's beat: planning takes CPU
                 if self.timed is not None:
                     continue
