@@ -122,11 +122,13 @@ def wait_outcome(args: argparse.Namespace, before: dict[str, Any], out: Any) -> 
             out.flush()
             last = line
         result = sw.get("result")
+        if sw.get("since") == before.get("since"):
+            continue  # the board's word from before this update (an earlier one's result)
         if result == "refused":
             return fail(f"update refused by the board: {sw.get('detail')}", EXIT_REFUSED)
-        if result == "good" and sw.get("since") != before.get("since"):
+        if result == "good":
             return 0
-        if result == "rolled back" and sw.get("since") != before.get("since"):
+        if result == "rolled back":
             return fail(f"update rolled back: {sw.get('detail')}", 1)
     return fail(f"no outcome within {args.wait:g} s; `exolink status` shows the board's word", 1)
 
