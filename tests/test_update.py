@@ -205,3 +205,30 @@ def test_custom_backend_speaks_raucs_u_boot_conventions(tmp_path: Path) -> None:
     assert r.returncode == 1 and "unknown slot 'C'" in r.stderr
     r = backend(state, "set-state", "A", "fine")
     assert r.returncode == 1 and "expected good or bad" in r.stderr
+
+
+def test_a_running_appliance_refuses_an_update_while_armed_and_arming_while_installing(
+    write_config, spawn, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    """The sim appliance, the real CLI over Zenoh: what the board's safety rests on. No RAUC
+    here: the request stays in the supervisor's folder (exolink.update.local_dir)."""
+    from conftest import Appliance, motion_nodes
+
+    app = Appliance(write_config(nodes=motion_nodes()), spawn)
+    bundle = tmp_path / "next.raucb"
+    bundle.write_bytes(bundle_bytes(3 * update.MAX_CHUNK + 123))  # four chunks
+    app.arm()
+    r = app.cli("update", str(bundle), "--wait", "0")
+    assert r.returncode == 5, r.stdout + r.stderr
+    assert "armed: an update ends in a reboot, never under a walking patient" in r.stderr
+    assert app.cli("disarm").returncode == 0
+    r = app.cli("update", str(bundle), "--wait", "0")
+    assert r.returncode == 0, r.stderr
+    assert "sent in" in r.stdout and "installs it into the other slot" in r.stdout
+    r = app.cli("arm")
+    assert r.returncode == 5 and "an update is being installed" in r.stderr, r.stderr
+    sw = app.status()["software"]
+    assert sw["installing"] and sw["version"]
+    assert "INSTALLING an update" in app.cli("status").stdout
+    r = app.cli("update", str(bundle), "--wait", "0")
+    assert r.returncode == 5 and "already being installed" in r.stderr
