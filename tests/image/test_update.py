@@ -136,6 +136,7 @@ def _rebundle(bundle: Path, d: Path, name: str, version: str, broken: bool) -> P
         _debugfs_write(str(root), dropin, "/etc/systemd/system/exolink.service.d/broken.conf")
     manifest = work / "manifest.raucm"
     text = re.sub(r"(?m)^version=.*$", f"version={version}", manifest.read_text())
+    text = re.sub(r"(?m)^(sha256|size)=.*\n", "", text)  # the image changed: rauc bundle recounts
     manifest.write_text(re.sub(r"(?m)^\[bundle\]\n(?:[a-z-]+=.*\n)*", "[bundle]\nformat=verity\n",
                                text))  # fmt: skip
     for f in work.iterdir():  # rauc extract leaves the verity hash alongside: a new one is made
@@ -152,8 +153,11 @@ def _rebundle(bundle: Path, d: Path, name: str, version: str, broken: bool) -> P
 def _tampered(d: Path) -> Path:
     """A small bundle signed with the development key, then one byte of its signature flipped."""
     work = d / "tiny"
+    (d / "tiny-root").mkdir()
+    (d / "tiny-root/noise").write_bytes(os.urandom(256 << 10))  # squashfs must exceed 4 KiB
     work.mkdir()
-    subprocess.run(["mkfs.ext4", "-q", "-F", str(work / "rootfs.ext4"), "8M"], check=True)
+    subprocess.run(["mkfs.ext4", "-q", "-F", "-d", str(d / "tiny-root"),
+                    str(work / "rootfs.ext4"), "8M"], check=True)  # fmt: skip
     (work / "manifest.raucm").write_text(
         f"[update]\ncompatible={CONF['RAUC_COMPATIBLE']}\nversion=tampered\n\n"
         "[bundle]\nformat=verity\n\n[image.rootfs]\nfilename=rootfs.ext4\n"
@@ -163,8 +167,9 @@ def _tampered(d: Path) -> Path:
                     f"--key={KEYS / 'dev.key.pem'}", str(work), str(out)], check=True,
                    capture_output=True)  # fmt: skip
     data = bytearray(out.read_bytes())
-    sig_size = int.from_bytes(data[-8:], "big")  # [squashfs][CMS signature][its size, 8 bytes]
-    data[-8 - sig_size // 2] ^= 0x01
+    # [squashfs][CMS signature][its size, 8 bytes]: the CMS ends with the RSA signature value.
+    assert int.from_bytes(data[-8:], "big") > 512
+    data[-8 - 20] ^= 0x01
     out.write_bytes(bytes(data))
     r = subprocess.run(["rauc", "info", f"--keyring={KEYS / 'dev.cert.pem'}", str(out)],
                        capture_output=True, text=True)  # fmt: skip
