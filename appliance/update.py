@@ -283,9 +283,15 @@ def _run(*cmd: str, timeout: float = 1800) -> subprocess.CompletedProcess[str]:
 
 
 def _rauc_error(r: subprocess.CompletedProcess[str]) -> str:
+    """RAUC's own error lines (``signature verification failed: ...``) before OpenSSL's stack
+    (``C0BDFBB6:error:...:rsa_sig.c:1060:``), which the board showed alone at first."""
     lines = [ln.strip() for ln in (r.stderr + r.stdout).splitlines() if ln.strip()]
-    errors = [ln for ln in lines if "rror" in ln or "fail" in ln.lower()]
-    return " | ".join((errors or lines)[-3:])[:600] or f"rauc exited {r.returncode}"
+    own = [ln for ln in lines if not re.match(r"^[0-9A-Fa-f]{6,}:error:", ln)]
+    for group in (own, lines):
+        errors = [ln for ln in group if "rror" in ln or "fail" in ln.lower()]
+        if errors:
+            return " | ".join(errors[-3:])[:600]
+    return " | ".join(lines[-3:])[:600] or f"rauc exited {r.returncode}"
 
 
 def _booted_bundle_version() -> str | None:
@@ -329,7 +335,8 @@ def agent_install(directory: Path = UPDATE_DIR, reboot: bool = True) -> int:
                boot_id=boot_id())  # fmt: skip
     info = _run("rauc", "info", "--output-format=json", str(bundle), timeout=600)
     if info.returncode != 0:
-        return _refused(directory, f"bundle refused: {_rauc_error(info)}")
+        return _refused(directory, f"bundle refused by its signature or format check (rauc "
+                        f"info): {_rauc_error(info)}")  # fmt: skip
     try:
         version = json.loads(info.stdout).get("version")
     except ValueError:

@@ -232,3 +232,22 @@ def test_a_running_appliance_refuses_an_update_while_armed_and_arming_while_inst
     assert "INSTALLING an update" in app.cli("status").stdout
     r = app.cli("update", str(bundle), "--wait", "0")
     assert r.returncode == 5 and "already being installed" in r.stderr
+
+
+def test_a_refusal_names_raucs_reason_before_openssls_stack() -> None:
+    """What the board's rauc info said of the tampered bundle under qemu (stderr), reduced."""
+    stderr = (
+        "rauc-Message: 03:50:40.1: Verifying bundle signature... \n"
+        "C0BDFBB6:error:02000072:rsa routines:rsa_ossl_public_decrypt:padding check failed:"
+        "../crypto/rsa/rsa_ossl.c:802:\n"
+        "signature verification failed: error:0200008A:rsa routines::invalid padding\n"
+        "C0BDFBB6:error:1700009E:CMS routines:CMS_SignerInfo_verify:verification failure:"
+        "../crypto/cms/cms_sd.c:1004:\n"
+    )
+    r = subprocess.CompletedProcess([], 1, "", stderr)
+    assert update._rauc_error(r) == (
+        "signature verification failed: error:0200008A:rsa routines::invalid padding"
+    )
+    only_openssl = subprocess.CompletedProcess([], 1, "", stderr.splitlines()[1] + "\n")
+    assert "padding check failed" in update._rauc_error(only_openssl)
+    assert update._rauc_error(subprocess.CompletedProcess([], 7, "", "")) == "rauc exited 7"
