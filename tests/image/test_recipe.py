@@ -138,6 +138,14 @@ def test_update_units_are_enabled_and_run_the_agent_as_root() -> None:
     for unit in ("exolink-update.path", "exolink-mark-good.path"):
         [path] = re.findall(r"PathExists=(\S+)", (system / unit).read_text())
         assert Path(path).parent == update.UPDATE_DIR
+    # A path unit starts before basic.target (paths.target): ordering it after a normal service
+    # is a cycle, which systemd broke at boot by skipping the path unit (seen under qemu: the
+    # new slot was never marked good).
+    for unit in ("exolink-update.path", "exolink-mark-good.path"):
+        text = (system / unit).read_text()
+        assert not re.search(r"(?m)^(After|Requires|Wants)=.*\.service", text), unit
+    check = (system / "exolink-boot-check.service").read_text()
+    assert not re.search(r"(?m)^Before=.*\.path", check)
     fstab = re.search(r"cat > \"\$R/etc/fstab\" <<FSTAB\n(.*?)FSTAB", customize, re.S)
     assert fstab and "/data/exolink             /var/lib/exolink" in fstab.group(1)
 
