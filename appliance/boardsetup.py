@@ -4,7 +4,7 @@ A lab engineer flashes a card on a laptop, edits ``exolink-settings.yaml`` on it
 (the only part every OS can write) and boots. ``exolink-setup.service`` runs this before the
 network and the supervisor on every boot, so editing the file later and rebooting also works. It
 renders files (pure, tested on the host against a scratch root) and then runs the few commands
-that only make sense on the live board (hostname, passwords, SSH host keys, growing the root
+that only make sense on the live board (hostname, passwords, SSH host keys, growing the data
 partition), only when the root is ``/``.
 """
 
@@ -143,7 +143,7 @@ class Plan:
     remove: list[str] = field(default_factory=list)
     boot_files: dict[str, str] = field(default_factory=dict)  # written back to the boot partition
     boot_remove: list[str] = field(default_factory=list)
-    first_boot: bool = False  # also regenerate SSH host keys and grow the root partition
+    first_boot: bool = False  # also regenerate SSH host keys and grow the data partition
     problems: list[str] = field(default_factory=list)  # applied anyway, logged as errors
 
 
@@ -422,23 +422,30 @@ def _own(*paths: str) -> None:
 
 
 def first_boot() -> None:
-    """Once per card: new SSH host keys (no two boards share them), root partition grown to the card."""
+    """Once per card: new SSH host keys (no two boards share them), data partition grown to the
+    card. The mark is on the data partition: an update's new root slot does not run this again
+    (RAUC's post-install handler copies the keys into it)."""
     for key in Path("/etc/ssh").glob("ssh_host_*"):
         key.unlink()
     subprocess.run(["ssh-keygen", "-A"], check=True, capture_output=True)
     log.info("ssh host keys generated")
-    _grow_root()
+    _grow_data()
     _write(Path("/"), FIRST_BOOT_DONE, "", 0o644)
 
 
-def _grow_root() -> None:
-    """The image is small; the card is not. Grow partition 2 and ext4 online (MBR: no repart)."""
+DATA_MOUNT = "/data"
+
+
+def _grow_data() -> None:
+    """The image is small; the card is not. The root slots (A/B) have a fixed size, the data
+    partition after them (recordings, state) is the last: grow it and its ext4 online (MBR: no
+    repart)."""
     src = subprocess.run(
-        ["findmnt", "-no", "SOURCE", "/"], capture_output=True, text=True, check=True
+        ["findmnt", "-no", "SOURCE", DATA_MOUNT], capture_output=True, text=True, check=False
     ).stdout.strip()
     m = re.match(r"^(/dev/(?:mmcblk\d+|[sv]d[a-z]))p?(\d+)$", src)
     if not m:
-        log.warning("root partition not grown", why=f"unrecognised root device {src}")
+        log.warning("data partition not grown", why=f"unrecognised data device {src!r}")
         return
     disk, part = m.groups()
     r = subprocess.run(
@@ -448,13 +455,13 @@ def _grow_root() -> None:
         text=True,
     )
     if r.returncode != 0:
-        log.warning("root partition not grown", why=r.stderr.strip()[-200:])
+        log.warning("data partition not grown", why=r.stderr.strip()[-200:])
         return
     subprocess.run(["partx", "-u", disk], check=False, capture_output=True)
     r = subprocess.run(["resize2fs", src], capture_output=True, text=True)
-    size = subprocess.run(["df", "-h", "--output=size", "/"], capture_output=True, text=True)
+    size = subprocess.run(["df", "-h", "--output=size", DATA_MOUNT], capture_output=True, text=True)
     log.info(
-        "root filesystem grown",
+        "data filesystem grown",
         device=src,
         ok=r.returncode == 0,
         size=size.stdout.split()[-1] if size.stdout else "?",

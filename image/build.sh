@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # `make image`: the flashable SD-card image for the BeagleBone Black, built on an x86_64 host.
+# `make bundle` (build.sh bundle): the same root, as a signed RAUC update bundle instead.
 #   Debian trixie armhf root (mmdebstrap + qemu-user binfmt) with Debian's armmp kernel, the
 #   BeagleBone dtb merged with our overlay, U-Boot (u-boot-omap), exolink in /opt/exolink,
 #   the units from services/. No loop devices: the partitions are made as files and placed with dd.
-# Output: build/image/exolink-bbb-<version>.img.xz (+ .packages / .python manifests, .sha256).
+# Output: build/image/exolink-bbb-<version>.img.xz (+ .packages / .python manifests, .sha256);
+#   bundle: build/image/exolink-bbb-<version>.raucb (and its rootfs, .sha256).
 # Needs root (mmdebstrap --mode=root, binfmt_misc, a tmpfs); CI-able, no kernel CAN/GPIO needed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -13,13 +15,16 @@ VERSION=$(sed -n 's/^version = "\(.*\)"/\1/p' pyproject.toml)
 OUT=${OUT:-$PWD/build/image}
 WORK=$OUT/work
 NAME=exolink-bbb-$VERSION
+WHAT=${1:-image}
+case "$WHAT" in image|bundle) ;; *) echo "build.sh: image or bundle, not '$WHAT'" >&2; exit 2 ;; esac
 T0=$(date +%s)
 step() { printf '\n==> [%4ds] %s\n' $(($(date +%s) - T0)) "$*"; }
 
 step "host tools"
 bash image/need.sh mmdebstrap:mmdebstrap qemu-arm-static:qemu-user-static \
   update-binfmts:binfmt-support arch-test:arch-test fdtoverlay:device-tree-compiler mcopy:mtools \
-  mkfs.vfat:dosfstools sfdisk:fdisk mkfs.ext4:e2fsprogs xz:xz-utils
+  mkfs.vfat:dosfstools sfdisk:fdisk mkfs.ext4:e2fsprogs xz:xz-utils mkimage:u-boot-tools \
+  rauc:rauc mksquashfs:squashfs-tools openssl:openssl
 mountpoint -q /proc/sys/fs/binfmt_misc || mount -t binfmt_misc binfmt_misc /proc/sys/fs/binfmt_misc
 update-binfmts --enable qemu-arm 2>/dev/null || true
 arch-test armhf >/dev/null || { echo "armhf binaries do not run here (qemu-user binfmt)" >&2; exit 1; }
@@ -32,6 +37,31 @@ trap cleanup EXIT
 cleanup
 mount -t tmpfs -o size=${TMPFS_SIZE} tmpfs "$WORK"
 export TMPDIR=$WORK/tmp && mkdir -p "$TMPDIR"
+
+step "bundle signing key"
+# RAUC_KEY / RAUC_CERT: the lab's signing key and certificate; RAUC_KEYRING: the CA the boards
+# trust (the image carries it as /etc/rauc/ca.cert.pem). Without them a development key is made
+# once in build/rauc/ (never committed: build/ is ignored) and its self-signed certificate is the
+# keyring, so bundles from this checkout install on images from this checkout only.
+if [ -z "${RAUC_KEY:-}" ]; then
+  RAUC_KEY=$PWD/build/rauc/dev.key.pem RAUC_CERT=$PWD/build/rauc/dev.cert.pem
+  if [ ! -f "$RAUC_KEY" ]; then
+    mkdir -p build/rauc && chmod 0700 build/rauc
+    openssl req -x509 -newkey rsa:4096 -nodes -days 3650 -keyout "$RAUC_KEY" -out "$RAUC_CERT" \
+      -subj "/O=exolink/CN=exolink development bundle signing $(hostname)" \
+      -addext "basicConstraints=critical,CA:TRUE" 2>/dev/null
+    echo "made a development signing key: $RAUC_KEY (a lab sets RAUC_KEY, RAUC_CERT, RAUC_KEYRING)"
+  fi
+fi
+export RAUC_KEY RAUC_CERT RAUC_KEYRING=${RAUC_KEYRING:-$RAUC_CERT}
+for f in "$RAUC_KEY" "$RAUC_CERT" "$RAUC_KEYRING"; do
+  [ -r "$f" ] || { echo "build.sh: cannot read $f (RAUC_KEY, RAUC_CERT, RAUC_KEYRING)" >&2; exit 1; }
+done
+openssl verify -CAfile "$RAUC_KEYRING" "$RAUC_CERT" >/dev/null || {
+  echo "build.sh: $RAUC_CERT is not signed by the keyring $RAUC_KEYRING: boards would refuse" \
+    "every bundle" >&2
+  exit 1
+}
 
 step "overlay and wheels (host side: the armhf root lacks the host's CA)"
 make -s overlays
@@ -98,8 +128,23 @@ if [ -f image/debian.lock ]; then
   fi
 fi
 
-step "disk image (partition table, U-Boot raw at 128 KiB / 384 KiB, FAT boot, ext4 root)"
-image/assemble.sh "$R" "$OUT/$NAME.img"
+# What survives an update lives on the data partition, not in the root slot: exolink's state
+# (the mount point /var/lib/exolink stays, empty) and RAUC's slot status.
+D=$WORK/data && mkdir -p "$D/rauc"
+if [ -d "$R/var/lib/exolink" ]; then mv "$R/var/lib/exolink" "$D/exolink"; else mkdir "$D/exolink"; fi
+install -d -m 0750 "$R/var/lib/exolink"
+chown "$(chroot "$R" id -u exolink):$(chroot "$R" id -g exolink)" "$D/exolink"
+chmod 0750 "$D/exolink"
+
+if [ "$WHAT" = bundle ]; then
+  step "RAUC bundle (the root slot's content, signed)"
+  image/bundle.sh "$R" "$OUT/$NAME.raucb"
+  step "done: $OUT/$NAME.raucb in $(($(date +%s) - T0)) s"
+  exit 0
+fi
+
+step "disk image (partition table, U-Boot raw at 128 KiB / 384 KiB, FAT boot, A/B root slots, data)"
+image/assemble.sh "$R" "$D" "$OUT/$NAME.img"
 
 step "compress"
 rm -f "$OUT/$NAME.img.xz"

@@ -100,6 +100,7 @@ def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser
     motion.register(sub)
     recordings.register(sub)
     __import__("exolink.cli.clock").cli.clock.register(sub)
+    __import__("exolink.cli.update").cli.update.register(sub)
     __import__("exolink.cli.controllers").cli.controllers.register(sub)
     __import__("exolink.dashboard.cli").dashboard.cli.register(sub)
     return parser

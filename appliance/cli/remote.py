@@ -665,6 +665,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"h2 silent {bus.get('h2_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n"
         + (clock.describe(s["clock"], off) if off is not None else "")
+        + update_line(s.get("software"))
         + _card_line(s["nodes"])
         + _api_lines(s)
         + _node_table(s["nodes"])
@@ -676,6 +677,12 @@ def cmd_status(args: argparse.Namespace) -> int:
 
         sys.stdout.write("controllers  " + show(ctrl) + "\n")
     return 0
+
+
+def update_line(sw: dict[str, Any] | None) -> str:
+    from exolink.cli.update import describe
+
+    return describe(sw)
 
 
 @_guard

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import structlog
 import yaml
-from exolink import cdr, liveness, logs, messaging, roles
+from exolink import cdr, liveness, logs, messaging, roles, update
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
 from exolink.clock import BoardClock, ClockRefused
@@ -121,6 +121,10 @@ class Supervisor:
         self._estops = 0
         self.node_api: dict[str, dict[str, int]] = {}  # each node's Admission counters
         self.clock = BoardClock(Path(state_dir(cfg, self._workdir)), cfg.clock.from_laptop)
+        # Bundles from an admin laptop (exolink.update; on the board /var/lib/exolink/update,
+        # where the root agent picks them up) and this boot's healthy mark, left once.
+        self.update = update.Receiver(update.local_dir(self._workdir))
+        self._healthy_marked = False
 
     # --- start-up ---------------------------------------------------------------------------
 
@@ -489,7 +493,21 @@ class Supervisor:
             )
         if self.health is not None and self.health.bad:
             out.append(f"CAN bus is {self.health.state}")
+        if self.update.installing:
+            out.append("an update is being installed: the board reboots when it is in")
         return out
+
+    def _mark_healthy(self) -> None:
+        """The first armable state of this boot (every critical node beating, the bus seen):
+        the root agent may now mark the booted slot good (exolink.update). Until then a new slot
+        is on trial and U-Boot falls back to the old one when its attempts run out."""
+        if self._healthy_marked or self.arm_blockers():
+            return
+        self._healthy_marked = True
+        try:
+            self.update.mark_healthy()
+        except OSError as exc:
+            self.log.error("update_healthy_mark_failed", error=str(exc))
 
     def run(self) -> int:
         """The periodic checks, each when it is due: the loop sleeps until the nearest deadline
@@ -511,6 +529,7 @@ class Supervisor:
                 self._publish_watchdog(self.watchdog.snapshot())
                 self._publish_diagnostics()
                 self.memory.check(now)
+                self._mark_healthy()
             if ping and now >= next_ping:  # only a loop that runs keeps systemd's watchdog quiet
                 next_ping = now + ping
                 self.notifier.ping()
@@ -656,6 +675,7 @@ class Supervisor:
             "watchdog": (self.api_watchdog, _watchdog_needs),
             "trigger": (self.api_trigger, roles.status_or(roles.OPERATOR)),
             "clock": (self.api_clock, roles.status_or(roles.OPERATOR)),
+            "update": (self.api_update, roles.status_or(roles.ADMIN)),
         }
         for path, (handler, needs) in routes.items():
             urgent = _is_estop if path == "watchdog" else None
@@ -692,6 +712,7 @@ class Supervisor:
                 "h2_silent_s": None if silent is None else round(silent, 3),
             },
             "clock": self.clock.status(),
+            "software": self.update.status(_version()),
             "trigger": {
                 "source": self.cfg.trigger.source,
                 "count": self.trigger_count,
@@ -797,6 +818,45 @@ class Supervisor:
         elif action not in (None, "status"):
             raise CommandRefused(f"unknown clock action {_shown(action)} (status or step)")
         return self.clock.status()
+
+    def api_update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+        """A new root file system from an admin laptop, in chunks (exolink.update): ``begin``
+        (size, sha256, name), ``chunk`` (offset, base64 data), ``commit``, ``abort``; no action
+        is the software status (any role). Refused while armed: installing ends in a reboot,
+        never under a walking patient; once committed, arming is refused until the reboot."""
+        action = req.get("action")
+        try:
+            if action in (None, "status"):
+                return self.update.status(_version())
+            if action == "abort":
+                self.update.abort()
+                return self.update.status(_version())
+            if action in ("begin", "commit") and self.watchdog.armed:
+                raise update.UpdateRefused(
+                    "the exoskeleton is armed: an update ends in a reboot, never under a walking "
+                    "patient. Disarm first (exolink watchdog disarm)"
+                )
+            if action == "begin":
+                return self.update.begin(req, caller.login)
+            if action == "chunk":
+                return self.update.chunk(req)
+            if action == "commit":
+                return self.update.commit(caller.login)
+        except update.UpdateRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(
+            f"unknown update action {_shown(action)} (status, begin, chunk, commit or abort)"
+        )
+
+
+@functools.cache
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("exolink")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 class MemoryTrim:

@@ -201,6 +201,13 @@ class Card:
     def fat_mkdir(self, name: str) -> None:
         subprocess.run(["mmd", "-D", "s", "-i", self.fat, f"::{name}"], capture_output=True)
 
+    def root_dump(self, path: str, local: Path) -> None:
+        """A binary file of the root slot (A) to ``local``."""
+        subprocess.run(["debugfs", "-R", f"dump {path} {local}", self.root], capture_output=True,
+                       check=True)  # fmt: skip
+        if not local.exists() or not local.stat().st_size:
+            raise RuntimeError(f"{path} not found in the card's root")
+
     def root_read(self, path: str) -> str:
         r = subprocess.run(
             ["debugfs", "-R", f"cat {path}", self.root], capture_output=True, text=True, check=True

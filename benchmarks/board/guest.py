@@ -81,9 +81,15 @@ class Guest:
         # short paths: a unix socket's is limited to 107 bytes, and the work dir may be deep
         self._sockets = Path(tempfile.mkdtemp(prefix="exo-bench-"))
         self.monitor = self._sockets / "monitor"
-        for name in ("vmlinuz", "initrd.img"):
-            (work / name).write_bytes(card.fat_read(name))
-        append = f"root=PARTUUID={ROOT_PARTUUID} rootwait console=ttyAMA0 systemd.show_status=1"
+        for name in ("vmlinuz", "initrd.img"):  # slot A's (A/B cards), else the FAT's (older)
+            try:
+                card.root_dump(f"/boot/exolink/{name}", work / name)
+            except (subprocess.CalledProcessError, RuntimeError):
+                (work / name).write_bytes(card.fat_read(name))
+        append = (
+            f"root=PARTUUID={ROOT_PARTUUID} rootwait console=ttyAMA0 systemd.show_status=1 "
+            "rauc.slot=A"
+        )
         fwd = (
             f"hostfwd=tcp:127.0.0.1:{self.zenoh_port}-:7447,"
             f"hostfwd=tcp:127.0.0.1:{self.ssh_port}-:22"

@@ -43,14 +43,21 @@ exec /usr/local/sbin/exolink-boot-update "$1"
 HOOK
 cp services/boot/* "$R/boot/firmware/"
 . image/image.conf
+# The root is whichever slot U-Boot chose (root=PARTUUID=... from image/boot.cmd): /dev/root here.
+# What must survive an update lives on the data partition: exolink's state and recordings
+# (/var/lib/exolink, bound from /data/exolink) and RAUC's slot status (/data/rauc).
+install -d "$R/data"
 cat > "$R/etc/fstab" <<FSTAB
-# <device>                  <mount>        <type> <options>                          <dump> <pass>
-PARTUUID=$ROOT_PARTUUID  /              ext4   defaults,noatime,commit=5          0      1
-PARTUUID=$BOOT_PARTUUID  /boot/firmware vfat   defaults,noatime,fmask=0177,dmask=0077 0   2
+# <device>                  <mount>           <type> <options>                          <dump> <pass>
+/dev/root                 /                 ext4   defaults,noatime,commit=5          0      1
+PARTUUID=$BOOT_PARTUUID  /boot/firmware    vfat   defaults,noatime,fmask=0177,dmask=0077 0   2
+PARTUUID=$DATA_PARTUUID  /data             ext4   defaults,noatime,commit=5          0      2
+/data/exolink             /var/lib/exolink  none   bind,x-systemd.requires-mounts-for=/data 0 0
 FSTAB
 ch exolink config /etc/exolink/appliance.yaml > /dev/null
 ch systemctl enable exolink.service exolink-setup.service systemd-networkd.service \
-  systemd-resolved.service systemd-timesyncd.service ssh.service
+  systemd-resolved.service systemd-timesyncd.service ssh.service \
+  exolink-boot-check.service exolink-update.path exolink-mark-good.path
 # Wi-Fi starts when a USB adapter's wlan0 appears (also plugged in later), never at boot: enabled
 # for multi-user.target it made boot wait 90 s for a device the BeagleBone Black does not have.
 install -d "$R/etc/systemd/system/sys-subsystem-net-devices-wlan0.device.wants"
@@ -64,9 +71,17 @@ echo uninitialized > "$R/etc/machine-id"
 rm -f "$R/var/lib/dbus/machine-id"
 echo exolink > "$R/etc/hostname"
 
-say "boot partition contents"
+say "RAUC: two root slots, bundles signed by $(openssl x509 -noout -subject -in "$RAUC_KEYRING")"
+install -d "$R/etc/rauc"
+sed -e "s/@RAUC_COMPATIBLE@/$RAUC_COMPATIBLE/" -e "s/@ROOT_A_PARTUUID@/$ROOT_A_PARTUUID/" \
+  -e "s/@ROOT_B_PARTUUID@/$ROOT_B_PARTUUID/" image/rauc/system.conf.in > "$R/etc/rauc/system.conf"
+install -m 0644 "$RAUC_KEYRING" "$R/etc/rauc/ca.cert.pem"
+install -m 0755 image/rauc/rauc-boot-backend image/rauc/rauc-post-install "$R/usr/lib/exolink/"
+install -m 0644 image/boot.cmd "$R/usr/lib/exolink/"
+
+say "kernel, initrd and merged dtb into this slot's /boot/exolink (image/boot.cmd loads them)"
 ch exolink-boot-update
-ls -l "$R/boot/firmware" | sed 's/^/    /'
+ls -l "$R/boot/exolink" | sed 's/^/    /'
 install -d "$R/usr/lib/exolink/u-boot"
 cp "$R"/usr/lib/u-boot/am335x_boneblack/{MLO,u-boot.img} "$R/usr/lib/exolink/u-boot/"
 

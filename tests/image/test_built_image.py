@@ -1,11 +1,12 @@
 """The built SD-card image (`make image`, then `make test-image-built`): what the AM335x boot chain
-reads, what the root filesystem holds, and a boot of that root under qemu-system-arm (-M virt, the
-same armmp kernel and initrd) up to a supervisor that a laptop-side `exolink status` reaches through
-the card's generated Zenoh login.
+reads, the A/B layout, what root slot A holds, and a boot of that root under qemu-system-arm (-M
+virt, the same armmp kernel and initrd) up to a supervisor that a laptop-side `exolink status`
+reaches through the card's generated Zenoh login.
 
-Not verifiable here (no BeagleBone): the boot ROM loading MLO, U-Boot reading extlinux.conf, the
-merged dtb on real pins, c_can on DCAN1, omap_wdt; the qemu boot skips U-Boot and uses qemu's
-own device tree.
+Not verifiable here (no BeagleBone): the boot ROM loading MLO, the BeagleBone's U-Boot running
+boot.scr, the merged dtb on real pins, c_can on DCAN1, omap_wdt; this qemu boot skips U-Boot and
+uses qemu's own device tree (tests/image/test_update.py boots through Debian's qemu_arm U-Boot and
+the card's boot.scr).
 """
 
 from __future__ import annotations
@@ -98,10 +99,14 @@ def mcat(fat: str, name: str) -> bytes:
 def test_partition_table_is_what_u_boot_and_the_kernel_expect(image: Path) -> None:
     table = partition_table(image)
     assert table["label"] == "dos" and table["id"] == CONF["DISK_ID"]
-    boot, root = table["partitions"]
+    boot, slot_a, slot_b, data = table["partitions"]
     assert boot["start"] == int(CONF["BOOT_START_MIB"]) * 2048
     assert boot["type"] == "c" and boot.get("bootable") is True
-    assert root["type"] == "83" and root["start"] == boot["start"] + boot["size"]
+    slot = int(CONF["ROOT_SLOT_MIB"]) * 2048
+    assert slot_a["type"] == "83" and slot_a["start"] == boot["start"] + boot["size"]
+    assert slot_b["start"] == slot_a["start"] + slot and slot_a["size"] == slot_b["size"] == slot
+    assert data["start"] == slot_b["start"] + slot and data["size"] == int(CONF["DATA_MIB"]) * 2048
+    assert not slot_a.get("bootable") and not data.get("bootable")
 
 
 def test_mlo_and_u_boot_sit_at_the_raw_offsets(image: Path, rootfs: Path) -> None:
@@ -114,24 +119,25 @@ def test_mlo_and_u_boot_sit_at_the_raw_offsets(image: Path, rootfs: Path) -> Non
     assert 384 * 1024 + len(uboot) < int(CONF["BOOT_START_MIB"]) * MIB  # clear of partition 1
 
 
-def test_boot_partition_has_kernel_initrd_merged_dtb_and_extlinux(fat: str, tmp_path: Path) -> None:
+def test_boot_partition_has_the_boot_script_and_slot_a_its_kernel(
+    fat: str, rootfs: Path, tmp_path: Path
+) -> None:
+    """U-Boot's distro boot runs boot.scr (image/boot.cmd, wrapped by mkimage); the kernel, initrd
+    and merged dtb come from the chosen slot's /boot/exolink, so an update brings its own."""
     listing = subprocess.run(
         ["mdir", "-/", "-b", "-i", fat, "::"], capture_output=True, text=True, check=True
     ).stdout
-    for name in (
-        "vmlinuz",
-        "initrd.img",
-        "am335x-boneblack-exolink.dtb",
-        "extlinux/extlinux.conf",
-        "overlays/exolink-dcan1.dtbo",
-        "exolink-settings.yaml",
-    ):
+    for name in ("boot.scr", "exolink-boot.env", "exolink-settings.yaml"):
         assert f"::/{name}" in listing, name
-    conf = mcat(fat, "extlinux/extlinux.conf").decode()
-    assert "fdt /am335x-boneblack-exolink.dtb" in conf
-    assert f"root=PARTUUID={CONF['ROOT_PARTUUID']}" in conf
-    dtb = tmp_path / "merged.dtb"
-    dtb.write_bytes(mcat(fat, "am335x-boneblack-exolink.dtb"))
+    assert "extlinux" not in listing  # distro boot would take it before boot.scr
+    scr = mcat(fat, "boot.scr")
+    assert scr[:4] == b"\x27\x05\x19\x56"  # the legacy image header mkimage writes
+    assert (REPO / "image/boot.cmd").read_bytes() in scr
+    env = mcat(fat, "exolink-boot.env").decode()
+    assert env == "BOOT_ORDER=A B\nBOOT_A_LEFT=3\nBOOT_B_LEFT=3\n"
+    for name in ("vmlinuz", "initrd.img", "board.dtb"):
+        assert (rootfs / "boot/exolink" / name).stat().st_size > 10_000, name
+    dtb = rootfs / "boot/exolink/board.dtb"
     dcan1 = "/ocp/interconnect@48000000/segment@100000/target-module@d0000/can@0"
     status = subprocess.run(
         ["fdtget", str(dtb), dcan1, "status"], capture_output=True, text=True, check=True
@@ -163,8 +169,8 @@ def cpio_names(data: bytes) -> list[str]:
     return names
 
 
-def test_initrd_carries_the_drivers_to_find_the_root(fat: str) -> None:
-    names = "\n".join(cpio_names(mcat(fat, "initrd.img")))
+def test_initrd_carries_the_drivers_to_find_the_root(rootfs: Path) -> None:
+    names = "\n".join(cpio_names((rootfs / "boot/exolink/initrd.img").read_bytes()))
     # MMC core and mmc_block are built into armmp; these are modules:
     for mod in ("ext4.ko", "sdhci-omap.ko", "omap_hsmmc.ko", "omap_wdt.ko", "virtio_blk.ko"):
         assert re.search(rf"/{re.escape(mod)}(\.xz|\.zst)?$", names, re.M), mod
@@ -187,7 +193,14 @@ def test_root_has_exolink_units_enabled_and_fstab(rootfs: Path) -> None:
     assert (rootfs / target.lstrip("/")).is_file(), target
     assert not (wants / "wpa_supplicant@wlan0.service").exists()
     fstab = (rootfs / "etc/fstab").read_text()
-    assert f"PARTUUID={CONF['ROOT_PARTUUID']}" in fstab and "/boot/firmware vfat" in fstab
+    assert "/dev/root " in fstab and "/boot/firmware    vfat" in fstab
+    assert f"PARTUUID={CONF['DATA_PARTUUID']}  /data" in fstab
+    assert "/data/exolink             /var/lib/exolink  none   bind" in fstab
+    conf = (rootfs / "etc/rauc/system.conf").read_text()
+    assert f"compatible={CONF['RAUC_COMPATIBLE']}" in conf and "@" not in conf
+    assert f"by-partuuid/{CONF['ROOT_B_PARTUUID']}" in conf
+    assert "BEGIN CERTIFICATE" in (rootfs / "etc/rauc/ca.cert.pem").read_text()
+    assert os.access(rootfs / "usr/lib/exolink/rauc-boot-backend", os.X_OK)
     assert not list((rootfs / "etc/ssh").glob("ssh_host_*")), "host keys must be made per card"
     assert (rootfs / "etc/machine-id").read_text() == "uninitialized\n"
     wd = (rootfs / "etc/systemd/system.conf.d/exolink-watchdog.conf").read_text()
@@ -336,18 +349,21 @@ def _boot(image: Path, d: Path, edit: Callable[[dict], dict], log: str) -> Itera
         _unavailable("qemu-system-arm is not installed")
     img = d / "card.img"
     subprocess.run(["cp", "--sparse=always", str(image), str(img)], check=True)
-    os.truncate(img, img.stat().st_size + 256 * MIB)  # a "bigger card": the first boot grows p2
+    os.truncate(img, img.stat().st_size + 256 * MIB)  # a "bigger card": the first boot grows p4
     fat = f"{img}@@{int(CONF['BOOT_START_MIB']) * MIB}"
     settings = mcat(fat, "exolink-settings.yaml").decode()
     settings = settings.replace("simulate: false", "simulate: true")
     (d / "exolink-settings.yaml").write_text(settings)
     subprocess.run(["mcopy", "-o", "-i", fat, str(d / "exolink-settings.yaml"), "::/"], check=True)
-    for name in ("vmlinuz", "initrd.img"):
-        (d / name).write_bytes(mcat(fat, name))
+    spec = f"{img}?offset={partition_table(img)['partitions'][1]['start'] * 512}"
+    for name in ("vmlinuz", "initrd.img"):  # from slot A, as boot.scr loads them
+        path = f"/boot/exolink/{name}"
+        subprocess.run(["debugfs", "-R", f"dump {path} {d / name}", spec], check=True,
+                       capture_output=True)  # fmt: skip
     _edit_appliance_yaml(img, d, edit)
     port = _free_port()
     append = (
-        f"root=PARTUUID={CONF['ROOT_PARTUUID']} rootwait console=ttyAMA0 "
+        f"root=PARTUUID={CONF['ROOT_A_PARTUUID']} rootwait console=ttyAMA0 rauc.slot=A "
         "systemd.journald.forward_to_console=1 systemd.show_status=1"
     )
     cmd = [
@@ -419,7 +435,7 @@ def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -
     finished = c.wait_for(r"Startup finished in", 600)
     line = next(s for t, s in c.lines if t == finished and "Startup finished" in s)
     report["systemd_startup_line"] = line.split("Startup finished in", 1)[1].strip()  # type: ignore[assignment]
-    c.wait_for(r"root filesystem grown", 60)
+    c.wait_for(r"data filesystem grown", 60)
     c.wait_for(r"ssh host keys generated", 60)
 
     laptop = booted["dir"] / "exolink-operator.json5"

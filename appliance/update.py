@@ -1,0 +1,427 @@
+"""Updates of the board's root file system: signed RAUC bundles into the other A/B slot.
+
+Three parties, so that the process a laptop talks to never holds root:
+
+- the supervisor (user ``exolink``) takes a bundle from an admin laptop in chunks (``Upload``),
+  checks its size, sha256 and squashfs header, refuses it while the exoskeleton is armed, and
+  drops a request next to it in ``UPDATE_DIR``; from then on it refuses to arm (the board is about
+  to reboot). Once every critical node beats after a boot (the first armable state) it leaves a
+  ``healthy`` mark with the boot's id.
+- the root agent (``exolink update-agent``, run by systemd path units, exolink-update.service and
+  exolink-mark-good.service) installs a requested bundle with ``rauc install`` (RAUC checks the
+  signature against /etc/rauc/ca.cert.pem and writes the other slot), reboots into it, and on the
+  ``healthy`` mark of the same boot runs ``rauc status mark-good``. At every boot
+  (exolink-boot-check.service) it works out what became of a pending update: on the new slot
+  (on trial: marked good only by the mark), or back on the old one (the new one never came up:
+  U-Boot's attempts ran out, image/boot.cmd).
+- ``state.json`` in ``UPDATE_DIR`` (written by the agent, read by the supervisor's status): the
+  booted slot, versions and the last update's result.
+
+``UPDATE_DIR`` is on the data partition, shared by both slots, as are recordings.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+log = structlog.get_logger("exolink.update")
+
+UPDATE_DIR = Path("/var/lib/exolink/update")
+INCOMING = "incoming.raucb"
+REQUEST = "install.request"
+STATE = "state.json"
+HEALTHY = "healthy"
+BOOT_ENV = Path("/boot/firmware/exolink-boot.env")
+SLOTS = ("A", "B")
+# The largest bundle an admin may send (a root slot is 1.5 GiB; a bundle compresses it) and the
+# space left on the data partition after it (recordings keep their room).
+MAX_BUNDLE_BYTES = 1 << 30
+KEEP_FREE_BYTES = 64 << 20
+MAX_CHUNK = 1 << 20  # raw bytes per chunk (base64 in JSON: ~1.4 MB, under the admin's 2 MiB)
+SQUASHFS_MAGIC = b"hsqs"
+# A new slot on trial that is not marked good within this reboots (the watchdog-less hang: a
+# supervisor that runs but never gets every critical node beating). U-Boot counts the attempt.
+TRIAL_S = int(os.environ.get("EXOLINK_UPDATE_TRIAL_S", "900"))
+TRIAL_UNIT = "exolink-update-trial"
+
+
+def local_dir(workdir: Path) -> Path:
+    """``UPDATE_DIR`` on a board (where the root agent looks), else a folder of the supervisor's
+    working directory (``make sim`` on a laptop: uploads work, nothing installs them)."""
+    if UPDATE_DIR.parent.is_dir() and os.access(UPDATE_DIR.parent, os.W_OK):
+        return UPDATE_DIR
+    return workdir / "update"
+
+
+class UpdateRefused(Exception):
+    """A request the supervisor will not act on; the message says what was wrong."""
+
+
+def boot_id() -> str:
+    return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+
+
+def read_state(directory: Path = UPDATE_DIR) -> dict[str, Any]:
+    """The agent's last word (``{}`` before the first boot check)."""
+    try:
+        data = json.loads((directory / STATE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    """Atomic and on the card when it returns (the board loses power without warning)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=1, sort_keys=True)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+# --- the boot state file (U-Boot's env export -t format) ------------------------------------
+
+
+def parse_boot_env(text: str) -> dict[str, str]:
+    """``NAME=value`` lines as U-Boot's ``env export -t`` writes them (NUL-terminated)."""
+    out = {}
+    for line in text.replace("\0", "\n").splitlines():
+        name, eq, value = line.partition("=")
+        if eq and re.fullmatch(r"[A-Z_]+", name):
+            out[name] = value
+    return out
+
+
+def format_boot_env(env: dict[str, str]) -> str:
+    return "".join(f"{k}={env[k]}\n" for k in ("BOOT_ORDER", "BOOT_A_LEFT", "BOOT_B_LEFT"))
+
+
+# --- the supervisor's side: taking a bundle from a laptop --------------------------------------
+
+
+@dataclass
+class Upload:
+    """One bundle on its way in: chunks in order, appended to ``INCOMING``."""
+
+    size: int
+    sha256: str
+    name: str
+    by: str
+    received: int = 0
+    started: float = 0.0
+
+
+class Receiver:
+    """The supervisor's half (runs as ``exolink``): begin, chunk, commit, abort."""
+
+    def __init__(self, directory: Path = UPDATE_DIR) -> None:
+        self.dir = directory
+        self.upload: Upload | None = None
+        self._hash: Any = None
+
+    @property
+    def installing(self) -> bool:
+        """A bundle handed to the agent and not yet refused: the board reboots when it is in."""
+        if (self.dir / REQUEST).exists():
+            return True
+        st = read_state(self.dir)
+        return st.get("result") == "installing" and st.get("boot_id") == _boot_id_or_none()
+
+    def begin(self, req: dict[str, Any], by: str) -> dict[str, Any]:
+        size, sha, name = req.get("size"), req.get("sha256"), req.get("name", "bundle.raucb")
+        if not isinstance(size, int) or isinstance(size, bool) or size <= 0:
+            raise UpdateRefused(f"size must be a positive integer of bytes, not {size!r:.40}")
+        if size > MAX_BUNDLE_BYTES:
+            raise UpdateRefused(
+                f"bundle of {size} bytes refused: the largest is {MAX_BUNDLE_BYTES} bytes"
+            )
+        if not isinstance(sha, str) or not re.fullmatch(r"[0-9a-f]{64}", sha):
+            raise UpdateRefused("sha256 must be 64 lowercase hex digits")
+        if self.installing:
+            raise UpdateRefused("an update is already being installed; the board reboots when done")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(self.dir).free + self._partial_bytes()
+        if size + KEEP_FREE_BYTES > free:
+            raise UpdateRefused(
+                f"bundle of {size >> 20} MiB does not fit: {free >> 20} MiB free on the data "
+                f"partition, {KEEP_FREE_BYTES >> 20} MiB kept for recordings"
+            )
+        (self.dir / INCOMING).unlink(missing_ok=True)
+        (self.dir / INCOMING).touch(mode=0o640)
+        self.upload = Upload(size, sha, str(name)[:120], by, started=time.monotonic())
+        self._hash = hashlib.sha256()
+        log.info("update_upload_started", size=size, name=self.upload.name, by=by)
+        return {"offset": 0, "max_chunk": MAX_CHUNK}
+
+    def _partial_bytes(self) -> int:
+        try:
+            return (self.dir / INCOMING).stat().st_size
+        except OSError:
+            return 0
+
+    def chunk(self, req: dict[str, Any]) -> dict[str, Any]:
+        up = self._current()
+        offset, data = req.get("offset"), req.get("data")
+        if offset != up.received:
+            raise UpdateRefused(f"chunk at offset {offset!r:.20} refused: expected {up.received}")
+        if not isinstance(data, str):
+            raise UpdateRefused("data must be base64 text")
+        try:
+            raw = base64.b64decode(data, validate=True)
+        except ValueError:
+            raise UpdateRefused("data is not valid base64") from None
+        if not raw or len(raw) > MAX_CHUNK:
+            raise UpdateRefused(f"a chunk holds 1 to {MAX_CHUNK} bytes, not {len(raw)}")
+        if up.received + len(raw) > up.size:
+            raise UpdateRefused(f"chunk ends past the announced size of {up.size} bytes")
+        if up.received == 0 and not raw.startswith(SQUASHFS_MAGIC):
+            self.abort()
+            raise UpdateRefused("not a RAUC bundle (no squashfs header): nothing installed")
+        with open(self.dir / INCOMING, "ab") as f:
+            f.write(raw)
+        self._hash.update(raw)
+        up.received += len(raw)
+        return {"offset": up.received}
+
+    def commit(self, by: str) -> dict[str, Any]:
+        up = self._current()
+        if up.received != up.size:
+            raise UpdateRefused(f"bundle incomplete: {up.received} of {up.size} bytes received")
+        digest = self._hash.hexdigest()
+        if digest != up.sha256:
+            self.abort()
+            raise UpdateRefused(f"sha256 differs: received {digest}, announced {up.sha256}")
+        with open(self.dir / INCOMING, "rb+") as f:
+            os.fsync(f.fileno())
+        request = {
+            "bundle": INCOMING,
+            "sha256": digest,
+            "size": up.size,
+            "name": up.name,
+            "by": by,
+            "time": time.time(),
+        }
+        _write_json(self.dir / REQUEST, request)
+        took = time.monotonic() - up.started
+        log.warning("update_requested", size=up.size, name=up.name, by=by, upload_s=round(took, 1))
+        self.upload = None
+        return {"accepted": True, "upload_s": round(took, 1)}
+
+    def abort(self) -> None:
+        self.upload = None
+        (self.dir / INCOMING).unlink(missing_ok=True)
+
+    def _current(self) -> Upload:
+        if self.upload is None:
+            raise UpdateRefused("no upload under way (begin first)")
+        return self.upload
+
+    def mark_healthy(self) -> None:
+        """Every critical node beats: the agent may mark this boot's slot good."""
+        self.dir.mkdir(parents=True, exist_ok=True)
+        _write_json(self.dir / HEALTHY, {"boot_id": boot_id(), "time": time.time()})
+        log.info("update_healthy_marked")
+
+    def status(self, version: str) -> dict[str, Any]:
+        st = read_state(self.dir)
+        out = {
+            "version": version,
+            "slot": st.get("slot") or _slot_from_cmdline(),
+            "bundle_version": st.get("bundle_version"),
+            "result": st.get("result"),
+            "detail": st.get("detail"),
+            "since": st.get("since"),
+            "installing": self.installing,
+        }
+        if self.upload is not None:
+            out["upload"] = {"received": self.upload.received, "size": self.upload.size}
+        return out
+
+
+def _boot_id_or_none() -> str | None:
+    try:
+        return boot_id()
+    except OSError:
+        return None
+
+
+def _slot_from_cmdline(cmdline: str | None = None) -> str | None:
+    if cmdline is None:
+        try:
+            cmdline = Path("/proc/cmdline").read_text()
+        except OSError:
+            return None
+    m = re.search(r"(?:^|\s)rauc\.slot=(\S+)", cmdline)
+    return m.group(1) if m else None
+
+
+# --- the root agent ---------------------------------------------------------------------------
+
+
+def _run(*cmd: str, timeout: float = 1800) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+def _rauc_error(r: subprocess.CompletedProcess[str]) -> str:
+    """RAUC's own error lines (``signature verification failed: ...``) before OpenSSL's stack
+    (``C0BDFBB6:error:...:rsa_sig.c:1060:``), which the board showed alone at first."""
+    lines = [ln.strip() for ln in (r.stderr + r.stdout).splitlines() if ln.strip()]
+    own = [ln for ln in lines if not re.match(r"^[0-9A-Fa-f]{6,}:error:", ln)]
+    for group in (own, lines):
+        errors = [ln for ln in group if "rror" in ln or "fail" in ln.lower()]
+        if errors:
+            return " | ".join(errors[-3:])[:600]
+    return " | ".join(lines[-3:])[:600] or f"rauc exited {r.returncode}"
+
+
+def _booted_bundle_version() -> str | None:
+    r = _run("rauc", "status", "--detailed", "--output-format=json", timeout=120)
+    if r.returncode != 0:
+        return None
+    try:
+        st = json.loads(r.stdout)
+        booted = st.get("booted")
+        for group in st.get("slots", []):
+            for _name, slot in group.items():
+                if slot.get("bootname") == booted:
+                    return (slot.get("slot_status") or {}).get("bundle", {}).get("version")
+    except (ValueError, AttributeError):
+        return None
+    return None
+
+
+def _set_state(directory: Path, **changes: Any) -> dict[str, Any]:
+    st = read_state(directory)
+    st.update(changes)
+    st["since"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    _write_json(directory / STATE, st)
+    log.info("update_state", **{k: v for k, v in st.items() if k != "pending"})
+    return st
+
+
+def agent_install(directory: Path = UPDATE_DIR, reboot: bool = True) -> int:
+    """Install the requested bundle into the other slot and reboot into it (root)."""
+    req_path = directory / REQUEST
+    try:
+        req = json.loads(req_path.read_text())
+    except (OSError, ValueError) as exc:
+        log.error("update_request_unreadable", error=str(exc))
+        req_path.unlink(missing_ok=True)
+        return 1
+    bundle = directory / INCOMING
+    booted = _slot_from_cmdline()
+    target = next((s for s in SLOTS if s != booted), None)
+    _set_state(directory, result="installing", detail=f"{req.get('name')} into slot {target}",
+               boot_id=boot_id())  # fmt: skip
+    info = _run("rauc", "info", "--output-format=json", str(bundle), timeout=600)
+    if info.returncode != 0:
+        return _refused(directory, f"bundle refused by its signature or format check (rauc "
+                        f"info): {_rauc_error(info)}")  # fmt: skip
+    try:
+        version = json.loads(info.stdout).get("version")
+    except ValueError:
+        version = None
+    t0 = time.monotonic()
+    r = _run("rauc", "install", str(bundle))
+    if r.returncode != 0:
+        return _refused(directory, f"install failed: {_rauc_error(r)}")
+    took = round(time.monotonic() - t0, 1)
+    bundle.unlink(missing_ok=True)
+    req_path.unlink(missing_ok=True)
+    _set_state(directory, result="installed", detail=f"slot {target}: version {version}, "
+               f"installed in {took} s; rebooting into it", boot_id=boot_id(),
+               pending={"slot": target, "from": booted, "version": version, "by": req.get("by")})  # fmt: skip
+    if reboot:
+        subprocess.run(["systemctl", "reboot"], check=False)
+    return 0
+
+
+def _refused(directory: Path, why: str) -> int:
+    log.error("update_refused", why=why)
+    (directory / INCOMING).unlink(missing_ok=True)
+    (directory / REQUEST).unlink(missing_ok=True)
+    _set_state(directory, result="refused", detail=why, boot_id=boot_id())
+    return 2
+
+
+def agent_boot_check(directory: Path = UPDATE_DIR) -> int:
+    """At each boot: the booted slot, and what became of a pending update."""
+    directory.mkdir(parents=True, exist_ok=True)
+    os.chown(directory, *_exolink_ids())
+    booted = _slot_from_cmdline()
+    st = read_state(directory)
+    pending = st.get("pending")
+    # A request left by a boot that never got to install it is stale: drop it.
+    if not (directory / REQUEST).exists():
+        (directory / INCOMING).unlink(missing_ok=True)
+    changes: dict[str, Any] = {"slot": booted, "bundle_version": _booted_bundle_version()}
+    if isinstance(pending, dict):
+        if pending.get("slot") == booted:
+            changes.update(result="trial", detail=f"slot {booted} (version {pending.get('version')})"
+                           " on trial: marked good once every critical node beats")  # fmt: skip
+            _run("systemd-run", f"--unit={TRIAL_UNIT}", f"--on-active={TRIAL_S}",
+                 "--description=exolink: a slot on trial that was not marked good",
+                 "systemctl", "reboot", timeout=60)  # fmt: skip
+        else:
+            changes.update(result="rolled back", pending=None, detail=(
+                f"slot {pending.get('slot')} (version {pending.get('version')}) did not come up; "
+                f"back on slot {booted}"))  # fmt: skip
+            log.error("update_rolled_back", failed=pending.get("slot"), booted=booted)
+    _set_state(directory, **changes)
+    return 0
+
+
+def agent_mark_good(directory: Path = UPDATE_DIR) -> int:
+    """The supervisor's healthy mark of this boot: tell RAUC (and U-Boot) this slot is good."""
+    mark = directory / HEALTHY
+    try:
+        data = json.loads(mark.read_text())
+    except (OSError, ValueError):
+        data = {}
+    mark.unlink(missing_ok=True)
+    if data.get("boot_id") != boot_id():
+        log.warning("update_healthy_mark_stale")
+        return 0
+    r = _run("rauc", "status", "mark-good", timeout=120)
+    if r.returncode != 0:
+        log.error("update_mark_good_failed", error=_rauc_error(r))
+        return 1
+    _run("systemctl", "stop", f"{TRIAL_UNIT}.timer", timeout=60)
+    st = read_state(directory)
+    booted = _slot_from_cmdline()
+    pending = st.get("pending")
+    if isinstance(pending, dict) and pending.get("slot") == booted:
+        _set_state(directory, result="good", pending=None, detail=f"slot {booted} runs version "
+                   f"{pending.get('version')}, every critical node beating; marked good")  # fmt: skip
+    log.info("update_marked_good", slot=booted)
+    return 0
+
+
+def _exolink_ids() -> tuple[int, int]:
+    import pwd
+
+    try:
+        pw = pwd.getpwnam("exolink")
+    except KeyError:
+        return os.getuid(), os.getgid()
+    return pw.pw_uid, pw.pw_gid
