@@ -138,6 +138,23 @@ class CyclicWatch:
         self.close()
 
 
+def _check_lease(lease: int, planned: int, ring: int) -> None:
+    """A lease of 1 frame up to what is planned, at most the op's ring (both leases' rule)."""
+    if not 1 <= lease <= min(planned, ring):
+        raise ValueError(
+            f"lease of {lease} frames: must be 1..{min(planned, ring)} "
+            f"(the frames planned, at most the op's {ring})"
+        )
+
+
+def _place(ring: list[bytes], first: int, frames: list[bytes]) -> None:
+    """``frames`` (slots ``first``...) at the front of an op's ring, as many as it holds."""
+    for i, f in enumerate(frames[: len(ring)]):
+        if len(f) > 8:
+            raise ValueError(f"slot {first + i}: a CAN frame carries 8 bytes, got {len(f)}")
+        ring[i] = bytes(f)
+
+
 class CyclicLease:
     """A broadcast-manager send op on ``can_id``: frames the kernel sends one per ``period_s``
     on its own timer, for at most ``lease`` frames after the last ``start`` or ``renew``.
@@ -187,23 +204,10 @@ class CyclicLease:
         self._sock.send(head + body)
         self._lease = lease
 
-    def _place(self, first: int, frames: list[bytes]) -> None:
-        for i, f in enumerate(frames[: self.ring]):
-            if len(f) > 8:
-                raise ValueError(f"slot {first + i}: a CAN frame carries 8 bytes, got {len(f)}")
-            self._frames[i] = bytes(f)
-
-    def _check_lease(self, lease: int, planned: int) -> None:
-        if not 1 <= lease <= min(planned, self.ring):
-            raise ValueError(
-                f"lease of {lease} frames: must be 1..{min(planned, self.ring)} "
-                f"(the frames planned, at most the op's {self.ring})"
-            )
-
     def start(self, frames: list[bytes], lease: int) -> None:
         """Slot 0 (``frames[0]``) now, then one frame per period: a new phase."""
-        self._check_lease(lease, len(frames))
-        self._place(0, frames)
+        _check_lease(lease, len(frames), self.ring)
+        _place(self._frames, 0, frames)
         self._setup(
             socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
             lease,
@@ -234,8 +238,8 @@ class CyclicLease:
         while n + len(plan) in frames_from and len(plan) < self.ring:
             plan.append(frames_from[n + len(plan)])
         lease = min(lease, len(plan))  # never past the plan: a renewal by an owner behind
-        self._check_lease(lease, len(plan))
-        self._place(n, plan)
+        _check_lease(lease, len(plan), self.ring)
+        _place(self._frames, n, plan)
         self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX, lease)
         self._base = n
         return n
@@ -299,23 +303,10 @@ class ThreadLease:
         self._thread = threading.Thread(target=self._run, name=f"lease-{can_id}", daemon=True)
         self._thread.start()
 
-    def _check(self, lease: int, planned: int) -> None:
-        if not 1 <= lease <= min(planned, self.ring):
-            raise ValueError(
-                f"lease of {lease} frames: must be 1..{min(planned, self.ring)} "
-                f"(the frames planned, at most the op's {self.ring})"
-            )
-
-    def _place(self, frames: list[bytes]) -> None:
-        for i, f in enumerate(frames[: self.ring]):
-            if len(f) > 8:
-                raise ValueError(f"a CAN frame carries 8 bytes, got {len(f)}")
-            self._frames[i] = bytes(f)
-
     def start(self, frames: list[bytes], lease: int) -> None:
-        self._check(lease, len(frames))
+        _check_lease(lease, len(frames), self.ring)
         with self._cond:
-            self._place(frames)
+            _place(self._frames, 0, frames)
             self._index, self._count, self._base, self._lease = 0, lease, 0, lease
             self._running, self._next_at = True, time.monotonic()
             self._cond.notify()
@@ -335,8 +326,8 @@ class ThreadLease:
             while n + len(plan) in frames_from and len(plan) < self.ring:
                 plan.append(frames_from[n + len(plan)])
             lease = min(lease, len(plan))
-            self._check(lease, len(plan))
-            self._place(plan)
+            _check_lease(lease, len(plan), self.ring)
+            _place(self._frames, n, plan)
             self._index, self._base, self._lease = 0, n, lease
             self._count = lease if self._running else 0
             return n

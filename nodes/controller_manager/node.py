@@ -439,8 +439,7 @@ class ControllerManagerNode(ManagerApi, Node):
                 _payload,
                 lambda: self.beat(False),
             )
-            broke = timed.begin(self.manager, state, not_armed)
-            self.beat(False)  # the plan took CPU after the cycle's beat (tens of ms under TCG)
+            broke = timed.begin(self.manager, state, not_armed)  # beats after each slot
             if broke is not None:
                 timed.abort()
                 self._send(self._safe_frames(broke))
@@ -476,12 +475,9 @@ class ControllerManagerNode(ManagerApi, Node):
             )
         if self.timed is None:
             return
-        if (
-            self._not_armed()
-            or self.manager.version != self.timed_version
-            or not self.manager.plannable()
-        ):
-            self._untime(orderly=not self._not_armed())
+        not_armed = self._not_armed()
+        if not_armed or self.manager.version != self.timed_version or not self.manager.plannable():
+            self._untime(orderly=not not_armed)
             return
         with self.io_lock:
             if self.timed is None:

@@ -68,7 +68,6 @@ class Timed:
         self.plan = Plan(joints)
         self.t0 = t0  # controller time (epoch s) of slot 0
         self.started = now  # monotonic time of slot 0
-        self.renewed_slot = 0
         self.base = 0  # the op's frame the last start or renewal put first
         self.lease_frames = 0  # and how many it allowed
         self.renewed_at = now  # monotonic
@@ -142,12 +141,12 @@ class Timed:
         if sent >= self.base + last_lease:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
         self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
-        self.base, self.renewed_slot = sent, sent // n
+        self.base = sent
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent)
         self.renewals += 1
         for i in [i for i in self.plan.frames if i < sent - n]:
             del self.plan.frames[i]
-        for k in [k for k in self.plan.positions if k < self.renewed_slot - 1]:
+        for k in [k for k in self.plan.positions if k < sent // n - 1]:
             del self.plan.positions[k]
         return None
 
