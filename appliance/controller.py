@@ -146,6 +146,12 @@ class Controller:
     def deactivate(self) -> None:
         pass
 
+    def repeats_s(self) -> float | None:
+        """A planned controller whose outputs repeat: their period (s; a gait's cycle at its
+        speed), so the manager plans one cycle and replays it instead of computing every slot
+        again. None: they do not repeat (the default)."""
+        return None
+
     def update(self, state: State, time: float, period: float) -> dict[str, Any]:
         """``time``: the angle frame's kernel receive time (s since the epoch); ``period``: the
         measured time since the previous cycle's frame (s). Values are numbers, except a

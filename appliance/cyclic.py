@@ -32,6 +32,7 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 from exolink.canbus import CAN_FRAME, SO_TIMESTAMPNS, CanOpenError, Frame
@@ -228,7 +229,7 @@ class CyclicLease:
         """The slot the op sends next: how many it sent since ``start``."""
         return self._base + self._lease - self.remaining()
 
-    def renew(self, frames_from: dict[int, bytes], lease: int) -> int:
+    def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
         """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
         slot, as the kernel counts) and ``lease`` frames from now, no more than are planned
         from n (none planned: ValueError). A lease that already ran out is not restarted
@@ -265,7 +266,7 @@ class Lease(Protocol):
 
     def start(self, frames: list[bytes], lease: int) -> None: ...
     def sent(self) -> int: ...
-    def renew(self, frames_from: dict[int, bytes], lease: int) -> int: ...
+    def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
     def stop(self) -> None: ...
     def close(self) -> None: ...
 
@@ -319,7 +320,7 @@ class ThreadLease:
         with self._cond:
             return self._base + self._lease - (self._count if self._running else 0)
 
-    def renew(self, frames_from: dict[int, bytes], lease: int) -> int:
+    def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
         with self._cond:
             n = self._base + self._lease - (self._count if self._running else 0)
             plan: list[bytes] = []

@@ -159,3 +159,37 @@ def test_a_controller_that_fails_in_a_planned_slot_ends_the_plan_with_its_safe_a
         timed.abort()
     assert broke is not None and broke.safe == {0}
     assert m.slots["gait"].state == "inactive" and "planned slot broke" in m.slots["gait"].error
+
+
+def test_a_gait_is_planned_for_one_cycle_then_replayed_frame_for_frame(buses) -> None:  # type: ignore[no-untyped-def]
+    tx, _rx = buses
+    full, replay = gait_manager(), gait_manager()
+    period = replay.repeats_slots(0.02)
+    assert period == len(ROWS)  # speed 10: a row per 20 ms slot
+    ring = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
+    try:
+        every = Timed(ring, (0,), 0.02, 3, 1000.001, 0.0)
+        assert every._plan_until(full, STATE, 40, None) is None
+        timed = Timed(ring, (0,), 0.02, 3, 1000.001, 0.0, period=period)
+        assert timed._plan_until(replay, STATE, 40, None) is None
+    finally:
+        ring.close()
+    # the ramp from 0 deg (two slots saturated by the step limit), then one cycle computed
+    # until a slot equals the one a period before it; the rest replayed
+    assert timed.computed < 40 and timed.plan.cycle_from is not None, timed.computed
+    assert [timed.plan[i] for i in range(40)] == [every.plan.frames[i] for i in range(40)]
+    assert timed.plan.position(39) == every.plan.positions[39]
+    assert len(timed.plan.frames) <= timed.computed  # memory: one cycle, not the whole walk
+
+
+def test_outputs_that_do_not_repeat_in_whole_slots_are_planned_every_slot() -> None:
+    m = gait_manager()
+    assert m.repeats_slots(0.025) is None  # 6 rows x 20 ms is no whole number of 25 ms slots
+    m.load(
+        "reach",
+        "joint_trajectory",
+        {"joints": ["l_hip"], "points": [{"time_s": 1.0, "positions": [5]}]},
+    )
+    m.request(Switch(["reach"], []))
+    m.cycle(STATE, 1000.01, h2.PERIOD_S, None)
+    assert m.repeats_slots(0.02) is None  # a trajectory does not repeat

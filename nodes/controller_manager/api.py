@@ -143,6 +143,11 @@ class ManagerApi:
                 "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
                 "lapses": self.timed_lapses,
                 "refused": self.timed_refused,
+                # slots computed through the manager, and the cycle replayed (0: none yet)
+                "computed": self.timed.computed if self.timed else 0,
+                "repeating": self.timed.plan.period or 0
+                if self.timed and self.timed.plan.cycle_from is not None
+                else 0,
             },
             "maccepa_written": self.mc_written,
             "maccepa_safe": self.mc_safe_sent,

@@ -280,6 +280,9 @@ class GaitPattern(Controller):
         nxt, frac = rows[(self.index + 1) % len(rows)], x - k
         return {key: row[j] + frac * (nxt[j] - row[j]) for key, j in self.cols}
 
+    def repeats_s(self) -> float:
+        return len(self.params.rows) * self.period_s(self.speed)
+
     def status(self) -> dict[str, Any]:
         return {"index": self.index, "speed": self.speed, "length": len(self.params.rows)}
 

@@ -655,6 +655,23 @@ class Manager:
                 )
             )
 
+    def repeats_slots(self, slot_s: float) -> int | None:
+        """The slots after which every active controller's outputs repeat (the least common
+        multiple of their periods), or None: one does not repeat, or not in whole slots."""
+        with self.lock:
+            slots = 1
+            for s in self.slots.values():
+                if s.state != "active":
+                    continue
+                period = s.ctrl.repeats_s()
+                if period is None:
+                    return None
+                k = round(period / slot_s)
+                if k < 1 or abs(k * slot_s - period) > 1e-6:
+                    return None
+                slots = math.lcm(slots, k)
+            return slots
+
     def position_joints(self) -> tuple[int, ...]:
         """The joints whose position an active controller owns (indices, in order)."""
         with self.lock:

@@ -438,6 +438,7 @@ class ControllerManagerNode(ManagerApi, Node):
                 time.monotonic(),
                 _payload,
                 lambda: self.beat(False),
+                self.manager.repeats_slots(slot_s),
             )
             broke = timed.begin(self.manager, state, not_armed)  # beats after each slot
             if broke is not None:

@@ -17,8 +17,7 @@ first disable frame. Any stop, trip or switch deletes the op first (``abort``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator, Mapping
 
 import structlog
 from exolink.controller import State
@@ -31,15 +30,80 @@ log = structlog.get_logger()
 PLAN_PER_WAKE = 3
 
 
-@dataclass
-class Plan:
+class Plan(Mapping[int, bytes]):
     """Frames by index on the op's timer (slot k, joint i: ``k x joints + i``) and, per slot,
-    the positions they carry (to give the step limit back what was really sent)."""
+    the positions they carry (to give the step limit back what was really sent).
 
-    joints: tuple[int, ...]  # joint indices, in the order they go out within a slot
-    frames: dict[int, bytes] = field(default_factory=dict)
-    positions: dict[int, tuple[int, ...]] = field(default_factory=dict)  # slot -> degrees
-    slots: int = 0  # slots planned so far
+    Outputs that repeat every ``period`` slots (a gait) are planned through the manager until
+    one slot equals the slot a period before it: from there every slot is the one a period
+    earlier (the manager's output is a function of its last position and the controllers',
+    and both then repeat), so the plan is that cycle, replayed. On the board a planned slot is
+    milliseconds of CPU; a replayed one is an index."""
+
+    def __init__(self, joints: tuple[int, ...], period: int | None = None) -> None:
+        self.joints = joints  # joint indices, in the order they go out within a slot
+        self.per_slot = len(joints)
+        self.period = period  # slots after which the outputs repeat; None: they do not
+        self.frames: dict[int, bytes] = {}
+        self.positions: dict[int, tuple[int, ...]] = {}  # slot -> degrees
+        self.slots = 0  # slots planned so far (replayed ones included)
+        self.cycle_from: int | None = None  # the first slot of the replayed cycle
+
+    def add(self, k: int, frames: list[bytes], positions: tuple[int, ...]) -> None:
+        """Slot ``k`` (the next), planned through the manager."""
+        n = self.per_slot
+        for i, f in enumerate(frames):
+            self.frames[k * n + i] = f
+        self.positions[k] = positions
+        self.slots = k + 1
+        p = self.period
+        if p is None or k < p or self.positions.get(k - p) != positions:
+            return
+        if all(self.frames.get((k - p) * n + i) == f for i, f in enumerate(frames)):
+            self.cycle_from = k - p
+            for i in range(n):
+                del self.frames[k * n + i]
+            del self.positions[k]
+
+    def _fold(self, k: int) -> int:
+        first = self.cycle_from
+        if first is None or self.period is None or k < first + self.period:
+            return k
+        return first + (k - first) % self.period
+
+    def position(self, k: int) -> tuple[int, ...] | None:
+        return self.positions.get(self._fold(k)) if k < self.slots else None
+
+    def __getitem__(self, index: int) -> bytes:
+        k, i = divmod(index, self.per_slot)
+        if k >= self.slots:
+            raise KeyError(index)
+        return self.frames[self._fold(k) * self.per_slot + i]
+
+    def __contains__(self, index: object) -> bool:
+        if not isinstance(index, int) or index < 0:
+            return False
+        k, i = divmod(index, self.per_slot)
+        return k < self.slots and self._fold(k) * self.per_slot + i in self.frames
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.frames)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def forget_before(self, slot: int) -> None:
+        """Slots before ``slot`` are needed no more, except the last period's while the plan
+        looks for its repeat, and the replayed cycle."""
+        if self.cycle_from is not None:
+            slot = min(slot, self.cycle_from)
+        elif self.period is not None:
+            slot = min(slot, self.slots - self.period)
+        n = self.per_slot
+        for i in [i for i in self.frames if i < slot * n]:
+            del self.frames[i]
+        for k in [k for k in self.positions if k < slot]:
+            del self.positions[k]
 
 
 class Timed:
@@ -57,15 +121,17 @@ class Timed:
         now: float,
         encode: Callable[[int, int, int, int], bytes] | None = None,
         alive: Callable[[], None] | None = None,
+        period: int | None = None,
     ) -> None:
         """``encode(motor, mode, setpoint, stiffness)``: a joint-control payload (the node's
         cache of encoded frames; default the H2 codec's); ``alive``: called after each slot
-        planned (the node's heartbeat: on the board proxy the first plan of a process took
-        300 ms for three slots, past the manager's 50 ms deadline)."""
+        planned (the node's heartbeat: the first plan of a process can take longer than the
+        manager's deadline on the board); ``period``: slots after which the outputs repeat
+        (``Manager.repeats_slots``), None: plan every slot."""
         self.alive = alive or (lambda: None)
         self.lease, self.slot_s, self.lease_slots = lease, slot_s, lease_slots
         self.encode = encode or _encode
-        self.plan = Plan(joints)
+        self.plan = Plan(joints, period)
         self.t0 = t0  # controller time (epoch s) of slot 0
         self.started = now  # monotonic time of slot 0
         self.base = 0  # the op's frame the last start or renewal put first
@@ -73,6 +139,7 @@ class Timed:
         self.renewed_at = now  # monotonic
         self.since_renewal_s = 0.0  # between the last two renewals (a lapse: how late)
         self.renewals = 0
+        self.computed = 0  # slots planned through the manager (the rest replayed)
         self.lapsed = False
 
     @property
@@ -88,6 +155,9 @@ class Timed:
         steps = max(1, round(self.slot_s / h2.PERIOD_S))
         plan = self.plan
         while plan.slots < slot:
+            if plan.cycle_from is not None:  # replayed: nothing to compute
+                plan.slots = slot
+                break
             k = plan.slots
             out = manager.cycle(
                 state, self.t0 + k * self.slot_s, self.slot_s, not_armed, steps, switches=False
@@ -95,12 +165,9 @@ class Timed:
             writes = sorted(out.writes, key=lambda w: w.motor)
             if out.safe or out.safe_boards or tuple(w.motor - 1 for w in writes) != plan.joints:
                 return out
-            for i, w in enumerate(writes):
-                plan.frames[k * self.per_slot + i] = self.encode(
-                    w.motor, w.mode, w.setpoint, w.stiffness
-                )
-            plan.positions[k] = tuple(w.setpoint for w in writes)
-            plan.slots += 1
+            frames = [self.encode(w.motor, w.mode, w.setpoint, w.stiffness) for w in writes]
+            plan.add(k, frames, tuple(w.setpoint for w in writes))
+            self.computed += 1
             self.alive()
         return None
 
@@ -112,7 +179,7 @@ class Timed:
         if (broke := self._plan_until(manager, state, first, not_armed)) is not None:
             return broke
         n = self.per_slot
-        frames = [self.plan.frames[i] for i in range(min(self.lease.ring, self.plan.slots * n))]
+        frames = [self.plan[i] for i in range(min(self.lease.ring, self.plan.slots * n))]
         self.lease.start(frames, first * n)
         self.lease_frames = first * n
         return None
@@ -137,17 +204,14 @@ class Timed:
         if (broke := self._plan_until(manager, state, until, not_armed)) is not None:
             return broke
         last_lease = self.lease_frames
-        sent = self.lease.renew(self.plan.frames, self.lease_slots * n)
+        sent = self.lease.renew(self.plan, self.lease_slots * n)
         if sent >= self.base + last_lease:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
         self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
         self.base = sent
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent)
         self.renewals += 1
-        for i in [i for i in self.plan.frames if i < sent - n]:
-            del self.plan.frames[i]
-        for k in [k for k in self.plan.positions if k < sent // n - 1]:
-            del self.plan.positions[k]
+        self.plan.forget_before(sent // n - 1)
         return None
 
     def abort(self) -> None:
@@ -165,8 +229,8 @@ class Timed:
         n, out = self.per_slot, {}
         for i, j in enumerate(self.plan.joints):
             last = (sent - 1 - i) // n if sent - 1 - i >= 0 else None
-            if last is not None and last in self.plan.positions:
-                out[j] = self.plan.positions[last][i]
+            if last is not None and (pos := self.plan.position(last)) is not None:
+                out[j] = pos[i]
         return out
 
 
