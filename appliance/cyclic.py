@@ -149,11 +149,11 @@ def _check_lease(lease: int, planned: int, ring: int) -> None:
 
 
 def _place(ring: list[bytes], first: int, frames: list[bytes]) -> None:
-    """``frames`` (slots ``first``...) at the front of an op's ring, as many as it holds."""
-    for i, f in enumerate(frames[: len(ring)]):
+    """``frames`` at ring positions ``first``, ``first + 1``, ..., as many as fit."""
+    for i, f in enumerate(frames[: len(ring) - first]):
         if len(f) > 8:
-            raise ValueError(f"slot {first + i}: a CAN frame carries 8 bytes, got {len(f)}")
-        ring[i] = bytes(f)
+            raise ValueError(f"a CAN frame carries 8 bytes, got {len(f)}")
+        ring[first + i] = bytes(f)
 
 
 class CyclicLease:
@@ -166,13 +166,16 @@ class CyclicLease:
     frames at ``ival1``, no ``ival2``: the op's timer ends). Closing the socket (the process
     killed) deletes the op at once; ``stop`` (TX_DELETE) does the same on purpose.
 
-    Content is planned by slot: slot n is the n-th frame the op sends since ``start``. A renewal
-    reads how many were sent (TX_READ: the op's remaining ``count``), puts slots n, n+1, ... at
-    the front of the op's frames and resets its index (TX_RESET_MULTI_IDX), and sets a new
-    ``count`` without restarting its timer (SETTIMER without STARTTIMER keeps the phase). A
-    frame the kernel sends between that read and the renewal is sent again as the renewal's
-    first: one repeated set-point and the plan a period later from then on, never a skipped
-    one (a skip would double a step the plan's step limit was checked against)."""
+    Content is planned by slot: slot n is the n-th frame the op sends since ``start``, and it
+    sits at ring position n mod ``ring``, always: the op's index is never reset after
+    ``start``. A renewal reads how many were sent (TX_READ: the op's remaining ``count``),
+    writes slots n, n+1, ... at their positions and sets a new ``count`` without restarting
+    the timer (SETTIMER without STARTTIMER keeps the phase; the same number of frames keeps
+    the index). A frame the kernel sends between that read and the renewal was already at
+    its position: nothing is repeated or skipped, the phase never slips, and the lease ends
+    one frame later than counted (``sent`` is then one short). So a lease never reaches a
+    position the renewal did not write, it is at most the frames planned minus one.
+    """
 
     def __init__(self, channel: str, can_id: int, period_s: float, ring: int = 16) -> None:
         if not 0 < period_s < 60:
@@ -231,17 +234,18 @@ class CyclicLease:
 
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
         """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
-        slot, as the kernel counts) and ``lease`` frames from now, no more than are planned
-        from n (none planned: ValueError). A lease that already ran out is not restarted
-        (``start`` is a new phase, on purpose)."""
+        slot, as the kernel counts) and ``lease`` frames from now, fewer than are planned
+        from n (fewer than two planned: ValueError). A lease that already ran out is not
+        restarted (``start`` is a new phase, on purpose)."""
         n = self.sent()
         plan = []
         while n + len(plan) in frames_from and len(plan) < self.ring:
             plan.append(frames_from[n + len(plan)])
-        lease = min(lease, len(plan))  # never past the plan: a renewal by an owner behind
-        _check_lease(lease, len(plan), self.ring)
-        _place(self._frames, n, plan)
-        self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX, lease)
+        lease = min(lease, len(plan) - 1)  # never past the plan, even one frame late
+        _check_lease(lease, len(plan) - 1, self.ring)
+        for i, f in enumerate(plan):
+            _place(self._frames, (n + i) % self.ring, [f])
+        self._setup(socket.CAN_BCM_SETTIMER, lease)
         self._base = n
         return n
 
@@ -326,9 +330,9 @@ class ThreadLease:
             plan: list[bytes] = []
             while n + len(plan) in frames_from and len(plan) < self.ring:
                 plan.append(frames_from[n + len(plan)])
-            lease = min(lease, len(plan))
-            _check_lease(lease, len(plan), self.ring)
-            _place(self._frames, n, plan)
+            lease = min(lease, len(plan) - 1)  # the kernel's rule (CyclicLease.renew)
+            _check_lease(lease, len(plan) - 1, self.ring)
+            _place(self._frames, 0, plan)
             self._index, self._base, self._lease = 0, n, lease
             self._count = lease if self._running else 0
             return n

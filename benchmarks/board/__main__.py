@@ -169,6 +169,15 @@ def table(result: dict[str, Any]) -> str:
         "n/a",
     )
     row("laptop session", _laptop(g), _laptop(n))
+    if f := g.get("fetch"):
+        staged = g.get("fetch_staged") or {}
+        ok = f.get("rc") == 0 and f.get("sha256") == staged.get("sha256")
+        row(
+            "record fetch in window",
+            f"{(f.get('bytes') or 0) / 2**20:.1f} MiB in "
+            f"{f.get('seconds')} s, rc {f.get('rc')}, sha256 {'equal' if ok else 'DIFFERS'}",
+            "n/a",
+        )
     if g.get("cpu_quota_pct"):
         stat = g.get("cpu_stat_at_end") or {}
         row("service CPU quota (10 ms period)", f"{g['cpu_quota_pct']}%", "n/a")
@@ -371,6 +380,14 @@ def main() -> int:
         help="after the window: e-stop -> first disable frame in the guest, idle and beside "
         "hostile clients on this host (benchmarks/estop.py's cases)",
     )
+    p.add_argument(
+        "--fetch-mb",
+        type=int,
+        default=0,
+        metavar="MIB",
+        help="a closed recording of MIB MiB put on the card before the load and fetched by "
+        "the laptop's `exolink record fetch` from the window's start (its cost to the gait)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -390,6 +407,7 @@ def main() -> int:
         "timings": args.timings,
         "cpu_quota_pct": args.cpu_quota,
         "pid_joint": args.pid or None,
+        "fetch_mb": args.fetch_mb or None,
         "laptop_joint_states": "one by one" if args.laptop_one_by_one else "bundles if bundled",
         "checkout": cardlib.checkout_info(REPO),
         "host": {
@@ -419,6 +437,7 @@ def main() -> int:
             tuple(filter(None, args.cprofile.split(","))),
             args.cpu_quota,
             args.estop,
+            args.fetch_mb,
         )
     if args.only != "guest":
         result["native"] = _guarded(

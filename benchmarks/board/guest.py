@@ -175,10 +175,9 @@ class Guest:
         return subprocess.run(self.ssh_cmd(remote), capture_output=True, text=True, timeout=timeout)
 
     def upload(self, local: Path, remote: str) -> None:
-        """Copy a file to the guest (the probe and unit scripts: stdlib-only, run by its
-        python3)."""
-        with open(local) as f:
-            subprocess.run(self.ssh_cmd(f"cat > {remote}"), stdin=f, check=True, timeout=120)
+        """Copy a file to the guest (the probe and unit scripts, a recording to fetch)."""
+        with open(local, "rb") as f:
+            subprocess.run(self.ssh_cmd(f"cat > {remote}"), stdin=f, check=True, timeout=600)
 
     def jit(self) -> dict[str, Any]:
         """TCG's translation counters from the monitor's ``info jit`` (``flushes``: times the

@@ -68,8 +68,11 @@ def _run_load(
     seconds: float,
     profiler: list[str] | None = None,
     jit: Callable[[], dict[str, Any]] | None = None,
+    fetch: str | None = None,
+    work: Path | None = None,
 ) -> dict[str, Any]:
-    """Arm, the pattern held, settle, then the window measured by the probe and the laptop.
+    """Arm, the pattern held, settle, then the window measured by the probe and the laptop
+    (and ``fetch``, a recording on the card, fetched into ``work`` from the window's start).
 
     The probe starts and calibrates before the arm and waits (``--go``): on the proxy its
     interpreter's start and calibration take seconds of CPU 1, where the simulated H2 streams,
@@ -80,7 +83,7 @@ def _run_load(
         [*probe_cmd, "--go"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
     )
     try:
-        return _load_window(laptop, probe, seconds, profiler, jit)
+        return _load_window(laptop, probe, seconds, profiler, jit, fetch, work)
     finally:
         if probe.poll() is None:
             probe.kill()
@@ -92,6 +95,8 @@ def _load_window(
     seconds: float,
     profiler: list[str] | None,
     jit: Callable[[], dict[str, Any]] | None,
+    fetch: str | None = None,
+    work: Path | None = None,
 ) -> dict[str, Any]:
     assert probe.stdin is not None and probe.stdout is not None
     out: dict[str, Any] = {}
@@ -121,14 +126,58 @@ def _load_window(
     probe.stdin.write("go\n")
     probe.stdin.flush()
     prof = _start_profiler(profiler)
+    fetching = None
+    if fetch is not None and work is not None:
+        fetching = (laptop.fetch(fetch, work / "fetched"), time.monotonic())
     try:
         out["window"] = scenario.measure(laptop, probe, seconds)
     finally:
         _end_profiler(prof, out)
+        if fetching is not None:
+            out["fetch"] = _fetched(*fetching, work / "fetched" / fetch)  # type: ignore[operator]
     out["held_pattern_cli"] = laptop.stop_pattern()
     if jit is not None:
         out["qemu_jit"] = _jit_window(jit0, jit())
     out["derived"] = scenario.derived(out["window"])
+    return out
+
+
+def _stage_recording(guest: Guest, work: Path, mb: int, result: dict[str, Any]) -> str:
+    """A closed recording of ``mb`` MiB, as the recorder writes them, put in its directory on
+    the card (before the load: the copy over ssh costs the guest CPU). Its name."""
+    from benchmarks.bench_recorder import joint_states, write
+
+    name = f"bench_fetch_{mb}mib.mcap"
+    local = work / name
+    if not local.exists():
+        write(local, joint_states(), mb * 2**20 // 180, "none")
+    remote = f"/var/lib/exolink/recordings/{name}"
+    t = time.monotonic()
+    guest.upload(local, remote)
+    guest.ssh(f"chown exolink:exolink {remote} && chmod 0640 {remote}")
+    result["fetch_staged"] = {
+        "name": name,
+        "bytes": local.stat().st_size,
+        "sha256": _sha256(local),
+        "upload_s": round(time.monotonic() - t, 1),
+    }
+    return name
+
+
+def _fetched(proc: subprocess.Popen[str], t0: float, path: Path) -> dict[str, Any]:
+    """The laptop's fetch, waited for after the window: its exit, time and the file's sha256."""
+    try:
+        output, _ = proc.communicate(timeout=600)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        output, _ = proc.communicate()
+    out: dict[str, Any] = {
+        "rc": proc.returncode,
+        "seconds": round(time.monotonic() - t0, 1),
+        "output": output.strip()[-600:],
+    }
+    if path.exists():
+        out["bytes"], out["sha256"] = path.stat().st_size, _sha256(path)
     return out
 
 
@@ -191,12 +240,15 @@ def run_guest(
     cprofile: tuple[str, ...] = (),
     cpu_quota: int | None = None,
     estop: bool = False,
+    fetch_mb: int = 0,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
     nodes' loops under cProfile (exolink.runtime.profiled), fetched when the service stops;
     ``cpu_quota``: the service capped at this % of a CPU (cardlib.prepare); ``estop``: after the
-    window, e-stop -> first disable frame in the guest, beside hostile clients on this host."""
+    window, e-stop -> first disable frame in the guest, beside hostile clients on this host;
+    ``fetch_mb``: a closed recording of this size on the card, fetched by the laptop's
+    ``exolink record fetch`` from the window's start."""
     if cprofile:
         env = (
             *env,
@@ -268,6 +320,7 @@ def run_guest(
         log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
         if cpu_quota:
             result["simulator_cgroup"] = _simulator_out_of_the_quota(guest)
+        fetch = _stage_recording(guest, work, fetch_mb, result) if fetch_mb else None
         time.sleep(SETTLE_S)
 
         guest.upload(PROBE, GUEST_PROBE)
@@ -296,7 +349,7 @@ def run_guest(
             result["logs"] = _guest_logs(guest, result)
             return result
         if laptop is not None and "laptop_error" not in result:
-            result |= _run_load(laptop, probe_cmd, seconds, profiler, guest.jit)
+            result |= _run_load(laptop, probe_cmd, seconds, profiler, guest.jit, fetch, work)
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
         if estop and laptop is not None:

@@ -285,6 +285,17 @@ class Laptop:
             out["pid"] = (r.stdout + r.stderr).strip()
         return out
 
+    def fetch(self, name: str, dest: Path) -> subprocess.Popen[str]:
+        """``exolink record fetch NAME`` in the background, as an operator's laptop runs it."""
+        dest.mkdir(parents=True, exist_ok=True)
+        (dest / name).unlink(missing_ok=True)
+        return subprocess.Popen(
+            self._cli("record", "fetch", name, "-o", str(dest)),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+
     def stop_pattern(self) -> str:
         if self.holder is None:
             return ""

@@ -46,6 +46,7 @@ from before the reader closed (boards, torques, feet) is dropped with it.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from functools import lru_cache
@@ -61,6 +62,7 @@ from exolink.canfilter import Drop
 from exolink.config import ConfigError
 from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
 from exolink.cyclic import open_lease
+from exolink.jointlimits import POSITION
 from exolink.maccepalimits import BoardLimits, target
 from exolink.node import Node
 from exolink.nodes.controller_manager.api import ManagerApi
@@ -75,6 +77,10 @@ BEAT_S = 0.02
 # default deadline), not 50 times a second: ~1.2 ms of the board proxy's CPU per wake-up. It
 # also judges the holder's keep-alive this often.
 IDLE_BEAT_S = 0.2
+# Reading back the timer's last frames after its op is deleted: a read this long that brings
+# none means the echo queue is empty (a frame's loopback is a softirq away, on the board's CAN
+# its transmit interrupt: ~0.1 ms at 1 Mbit/s).
+ECHO_S = 0.003
 WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
 # A planned set-point may reach the bus at most this long after the watchdog's first disable
 # frame (hung detection's own budget): lease_ms <= heartbeat deadline + this.
@@ -234,6 +240,7 @@ class ControllerManagerNode(ManagerApi, Node):
         self.timed_refused = ""
         self.timed_lapses = 0
         self.timed_renewals = 0
+        self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
         self.last_state: State | None = None  # the last cycle's: a plan's activation state
         for n, spec in enumerate(p.controllers):
             try:
@@ -428,6 +435,7 @@ class ControllerManagerNode(ManagerApi, Node):
                     self.log.error("timer_unavailable", error=str(exc))
                 return
             opened = time.perf_counter()
+            self.echoed = {}
             slot_s = ival_us * len(joints) / 1e6
             timed = Timed(
                 lease,
@@ -471,9 +479,7 @@ class ControllerManagerNode(ManagerApi, Node):
             self._untime(orderly=False)
             return
         if frames:
-            self._stops(
-                [(f, self._decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
-            )
+            self._stops(self._echoed(frames))
         if self.timed is None:
             return
         not_armed = self._not_armed()
@@ -500,6 +506,16 @@ class ControllerManagerNode(ManagerApi, Node):
         self.check_presence()
         self._maybe_tell()
 
+    def _echoed(self, frames: list[Any]) -> list[tuple[Any, Any]]:
+        """Frames read while the timer sends, decoded: the timer's own set-points as the bus
+        carried them kept (each joint's last position: what the step limit goes on from when
+        the cycle loop takes the joints back). The caller acts on disables (``_stops``)."""
+        decoded = [(f, self._decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
+        for _f, d in decoded:
+            if isinstance(d, h2.JointControl) and d.mode == POSITION and 1 <= d.motor <= 6:
+                self.echoed[d.motor - 1] = d.setpoint
+        return decoded
+
     def _abort_timed(self) -> None:
         """Under ``io_lock``: the timer's op ends now (every stop and trip path)."""
         if self.timed is not None:
@@ -507,15 +523,29 @@ class ControllerManagerNode(ManagerApi, Node):
             self._end_timed()
 
     def _untime(self, orderly: bool) -> None:
-        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent."""
+        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent,
+        read back from the bus once the op is deleted (the frames it sent before are then in
+        the reader's queue, or in the kernel's backlog for a moment: read until quiet)."""
         with self.io_lock:
             if self.timed is None:
                 return
-            if orderly:
-                self.manager.written_back(self.timed.leave())
-            else:
+            if not orderly:
                 self.timed.abort()
+                self._end_timed()
+                return
+            joints = self.timed.plan.joints
+            back = self.timed.leave()
+            frames: list[Any] = []
+            if self.reader is not None:
+                with contextlib.suppress(can.CanError, OSError):
+                    while batch := self.reader.read(ECHO_S):
+                        frames += batch
+            decoded = self._echoed(frames)
+            # the bus is the truth where the kernel's count may be one frame short
+            back |= {j: self.echoed[j] for j in joints if j in self.echoed}
+            self.manager.written_back(back)
             self._end_timed()
+        self._stops(decoded)
 
     def _end_timed(self) -> None:
         self.timed_renewals += self.timed.renewals if self.timed is not None else 0

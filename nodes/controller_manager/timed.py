@@ -209,7 +209,7 @@ class Timed:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
         self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
         self.base = sent
-        self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent)
+        self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)
         self.renewals += 1
         self.plan.forget_before(sent // n - 1)
         return None
@@ -220,8 +220,10 @@ class Timed:
         self.lease.close()
 
     def leave(self) -> dict[int, int]:
-        """End the op at once and return each joint's last sent position, so the cycle loop's
-        step limit goes on from it (slots planned but not sent are dropped)."""
+        """End the op at once and return each joint's last sent position by the op's count, so
+        the cycle loop's step limit goes on from it (slots planned but not sent are dropped).
+        The kernel's count can be one frame short (``CyclicLease``): the node prefers what it
+        read back from the bus."""
         try:
             sent = self.lease.sent()
         finally:
