@@ -14,6 +14,7 @@ from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.remote import Refused, Remote, _decimal, _guard, _integer, _Leaves, common, remote
 from exolink.mcapcheck import iso
 from exolink.recording import REPLAY_PREFIX
+from exolink.recstore import DEFAULT_CHUNK
 
 
 def _labels(items: list[str]) -> dict[str, str]:
@@ -410,13 +411,25 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     q.add_argument("names", nargs="+", metavar="NAME")
     q.add_argument("-o", "--dir", default=".", help="where to put them (default: here)")
-    q.add_argument("--chunk", type=_integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
+    q.add_argument(
+        "--chunk",
+        type=_integer,
+        default=DEFAULT_CHUNK,
+        help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
+        "link drops larger replies)",
+    )
     q.set_defaults(func=cmd_record_fetch)
     q = s.add_parser(
         "sync", help="fetch every finished recording DIR lacks (operator; the end of the day)"
     )
     q.add_argument("dir", metavar="DIR")
-    q.add_argument("--chunk", type=_integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
+    q.add_argument(
+        "--chunk",
+        type=_integer,
+        default=DEFAULT_CHUNK,
+        help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
+        "link drops larger replies)",
+    )
     q.set_defaults(func=cmd_record_sync)
     q = s.add_parser("delete", help="delete recordings from the board's card (admin)")
     q.add_argument("names", nargs="+", metavar="NAME")

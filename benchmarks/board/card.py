@@ -241,8 +241,11 @@ class Card:
 def copy_card(image: Path, dest: Path) -> Card:
     dest.unlink(missing_ok=True)
     subprocess.run(["cp", "--sparse=always", str(image), str(dest)], check=True)
-    with open(dest, "r+b") as f:  # a "bigger card": the first boot grows the root, as on a card
-        f.truncate(dest.stat().st_size + 256 * MIB)
+    # A "bigger card": the first boot grows the data partition, as on a card, enough for the
+    # recorder's reserve (256 MiB free) and then some (with less the nominal load's recorder
+    # stopped at once, "card full", and recorded nothing).
+    with open(dest, "r+b") as f:
+        f.truncate(dest.stat().st_size + 1024 * MIB)
     return Card(dest)
 
 
