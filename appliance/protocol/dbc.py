@@ -70,6 +70,19 @@ class FrameSpec:
             out[i] = raw[i] * s.scale + s.offset
         return tuple(out)
 
+    def pack_whole(self, values: tuple[int, ...]) -> bytes:
+        """Whole raw values of an unscaled frame, checked against the DBC's bounds and packed:
+        ``encode`` for a hot path (the controller manager's planned set-points: a few
+        comparisons, not ``check``'s conversions). Anything else goes through ``encode``, which
+        names what is wrong."""
+        if len(values) == len(self.signals) and not self.scaled:
+            for v, s in zip(values, self.signals, strict=True):
+                if type(v) is not int or not s.minimum <= v <= s.maximum:
+                    break
+            else:
+                return self.struct.pack(*values)
+        return self.encode(values)
+
     def encode(self, values: tuple[float, ...] | list[float]) -> bytes:
         """Check every value against the DBC's bounds before packing: no half-valid frame."""
         return self.struct.pack(*self.check(values))

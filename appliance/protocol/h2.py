@@ -205,6 +205,14 @@ def encode_joint_control(
     return _message(joint_control(motor, mode, setpoint, stiffness))
 
 
+def joint_control_payload(motor: int, mode: int, setpoint: int, stiffness: int) -> bytes:
+    """A joint-control frame's bytes for values the controller manager has already held to
+    the limits in force (its planned slots): the DBC's bounds checked once more, cheaply, and
+    no ``can.Message``. A whole set of checks per frame was most of a planned slot's CPU on
+    the board (a new frame per joint per slot in a gait's first cycle)."""
+    return _TABLE.spec[JointControl].pack_whole((motor, mode, setpoint, stiffness))
+
+
 def joint_control(
     motor: int | str, mode: int | str, setpoint: float = 0, stiffness: float = 0
 ) -> JointControl:

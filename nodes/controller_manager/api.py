@@ -145,6 +145,7 @@ class ManagerApi:
                 "refused": self.timed_refused,
                 # slots computed through the manager, and the cycle replayed (0: none yet)
                 "computed": self.timed.computed if self.timed else 0,
+                "plan_cpu_ms": round(self.timed.plan_cpu_s * 1e3, 1) if self.timed else 0,
                 "repeating": self.timed.plan.period or 0
                 if self.timed and self.timed.plan.cycle_from is not None
                 else 0,

@@ -154,8 +154,9 @@ def _frame(motor: int, mode: int, setpoint: int, stiffness: int) -> can.Message:
 
 @lru_cache(maxsize=4096)
 def _payload(motor: int, mode: int, setpoint: int, stiffness: int) -> bytes:
-    """A joint-control frame's bytes, from ``_frame``'s cache (the timer's plan)."""
-    return bytes(_frame(motor, mode, setpoint, stiffness).data)
+    """A joint-control frame's bytes for the timer's plan (values the manager held to the
+    limits; the DBC's bounds checked again by the codec)."""
+    return h2.joint_control_payload(motor, mode, setpoint, stiffness)
 
 
 @lru_cache(maxsize=4096)
@@ -463,6 +464,7 @@ class ControllerManagerNode(ManagerApi, Node):
             slot_ms=p.slot_ms,
             open_ms=round((opened - t0) * 1e3, 2),
             plan_ms=round((time.perf_counter() - opened) * 1e3, 2),
+            plan_cpu_ms=round(self.timed.plan_cpu_s * 1e3, 2) if self.timed else None,
         )
 
     def _timed_wake(self) -> None:
@@ -482,6 +484,9 @@ class ControllerManagerNode(ManagerApi, Node):
             self._stops(self._echoed(frames))
         if self.timed is None:
             return
+        # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
+        # beating after each): any beat after the last renewal keeps the lease's bound.
+        self.beat(False)
         not_armed = self._not_armed()
         if not_armed or self.manager.version != self.timed_version or not self.manager.plannable():
             self._untime(orderly=not not_armed)

@@ -17,6 +17,7 @@ first disable frame. Any stop, trip or switch deletes the op first (``abort``).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator, Mapping
 
 import structlog
@@ -140,6 +141,7 @@ class Timed:
         self.since_renewal_s = 0.0  # between the last two renewals (a lapse: how late)
         self.renewals = 0
         self.computed = 0  # slots planned through the manager (the rest replayed)
+        self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
         self.lapsed = False
 
     @property
@@ -153,6 +155,15 @@ class Timed:
         controller failed, or wrote other joints): the plan ends there and the caller acts on
         it (safe frames, leaving the timer)."""
         steps = max(1, round(self.slot_s / h2.PERIOD_S))
+        c0 = time.thread_time()
+        try:
+            return self._plan_slots(manager, state, slot, not_armed, steps)
+        finally:
+            self.plan_cpu_s += time.thread_time() - c0
+
+    def _plan_slots(
+        self, manager: Manager, state: State, slot: int, not_armed: str | None, steps: int
+    ) -> Cycle | None:
         plan = self.plan
         while plan.slots < slot:
             if plan.cycle_from is not None:  # replayed: nothing to compute
