@@ -182,3 +182,18 @@ def test_mode_mask_covers_the_joint_control_mode_byte_only() -> None:
         bytes(disabled) + bytes(2), "little"
     )
     assert changed & mask == (1 ^ 4) << 8  # only the mode byte, not the motor or set-point
+
+
+def test_the_planned_set_points_cheap_path_packs_what_encode_packs_and_refuses_the_rest() -> None:
+    for motor in range(1, 7):
+        for mode in (1, 2, 3):
+            for sp in (-20, 0, 30, 95):
+                st = 40 if mode == 2 else 0
+                try:
+                    want = bytes(h2.encode_joint_control(motor, mode, sp, st).data)
+                except ProtocolError:
+                    continue  # outside the joint's range: the manager's limits never plan it
+                assert h2.joint_control_payload(motor, mode, sp, st) == want
+    for bad in ((0, 1, 10, 0), (1, 9, 10, 0), (1, 1, 300, 0), (1, 2, 10, 101), (1, 1, 1.5, 0)):
+        with pytest.raises(ProtocolError):
+            h2.joint_control_payload(*bad)  # type: ignore[arg-type]
