@@ -183,7 +183,8 @@ class CyclicLease:
         if not 2 <= ring <= 256:
             raise ValueError(f"broadcast-manager frames per op must be 2..256, got {ring}")
         self.can_id, self.period_s, self.ring = can_id, period_s, ring
-        self._frames = [bytes(8)] * ring
+        self._frames = [CAN_FRAME.pack(can_id, 0, bytes(8))] * ring  # packed, by ring position
+        self._written = 0  # slots below this are placed (in increasing order: never again)
         self._base = 0  # slot of the op's first frame since the last start or renew
         self._lease = 0  # the count that start or renew set
         try:
@@ -202,16 +203,22 @@ class CyclicLease:
         head = _HEAD.pack(
             socket.CAN_BCM_TX_SETUP, flags, lease, sec, usec, 0, 0, self.can_id, self.ring
         )
-        body = b"".join(
-            CAN_FRAME.pack(self.can_id, len(f), f.ljust(8, b"\0")) for f in self._frames
-        )
-        self._sock.send(head + body)
+        self._sock.send(head + b"".join(self._frames))
         self._lease = lease
+
+    def _put(self, slot: int, payload: bytes) -> None:
+        if len(payload) > 8:
+            raise ValueError(f"slot {slot}: a CAN frame carries 8 bytes, got {len(payload)}")
+        self._frames[slot % self.ring] = CAN_FRAME.pack(
+            self.can_id, len(payload), payload.ljust(8, b"\0")
+        )
 
     def start(self, frames: list[bytes], lease: int) -> None:
         """Slot 0 (``frames[0]``) now, then one frame per period: a new phase."""
         _check_lease(lease, len(frames), self.ring)
-        _place(self._frames, 0, frames)
+        for k, f in enumerate(frames[: self.ring]):
+            self._put(k, f)
+        self._written = min(len(frames), self.ring)
         self._setup(
             socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
             lease,
@@ -238,13 +245,15 @@ class CyclicLease:
         from n (fewer than two planned: ValueError). A lease that already ran out is not
         restarted (``start`` is a new phase, on purpose)."""
         n = self.sent()
-        plan = []
-        while n + len(plan) in frames_from and len(plan) < self.ring:
-            plan.append(frames_from[n + len(plan)])
-        lease = min(lease, len(plan) - 1)  # never past the plan, even one frame late
-        _check_lease(lease, len(plan) - 1, self.ring)
-        for i, f in enumerate(plan):
-            _place(self._frames, (n + i) % self.ring, [f])
+        # Slots from n on are placed once each (a plan does not change what it planned): only
+        # those no renewal placed yet, up to a ring ahead of n.
+        k = max(n, self._written)
+        while k < n + self.ring and k in frames_from:
+            self._put(k, frames_from[k])
+            k += 1
+        self._written = max(self._written, k)
+        lease = min(lease, k - n - 1)  # never past the plan, even one frame late
+        _check_lease(lease, k - n - 1, self.ring)
         self._setup(socket.CAN_BCM_SETTIMER, lease)
         self._base = n
         return n

@@ -364,13 +364,23 @@ def stamp_ns(t: Any) -> int:
 # with it every e-stop and the watchdog's word to the nodes, until Zenoh closed that client 5 s
 # later. Dropped instead, a reply nobody reads costs nothing; one a client wanted and lost to a
 # full queue ends its query without an answer (its own timeout says so).
+# Queries (and so their replies) go in a queue of their own, ahead of the data stream: on the
+# board proxy, with CPU 0 saturated, every request to the recorder (which takes every topic)
+# and every chunk back to the laptop (behind its joint_states) was dropped, and a fetch never
+# got one. A request's rate is bounded per login (roles, messaging.serve).
 ROUTER_QOS = [
     {
         "id": "nothing_blocks_the_router",
-        "messages": ["put", "delete", "query"],
+        "messages": ["put", "delete"],
         "flows": ["ingress"],
         "overwrite": {"congestion_control": "drop"},
-    }
+    },
+    {
+        "id": "requests_ahead_of_data",
+        "messages": ["query"],
+        "flows": ["ingress"],
+        "overwrite": {"congestion_control": "drop", "priority": "interactive_high"},
+    },
 ]
 # The most the router takes in one message (transport/link/rx/max_message_size): the largest
 # request any login may send (roles.MAX_REQUEST_BYTES) and room for its framing. Zenoh's own
