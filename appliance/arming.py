@@ -23,7 +23,7 @@ class ArmingState:
         self._state, self._reason, self._seen = "unknown", "no word from the watchdog yet", 0.0
         self.stale_s = stale_s
         # How the watchdog's word reaches this node: events taken and the longest wait between
-        # two (the board proxy stopped patterns for "no word for 3 s" with the watchdog armed),
+        # two (a starved core can stop a pattern for "no word for 3 s" while armed),
         # split by the times the supervisor put them (the sample's attachment) into its side
         # (the longest gap between two puts: it published late) and the way here (the longest
         # receive - put).

@@ -175,8 +175,8 @@ class FrameReader:
     ``quiet``: a second bus (same interface) whose frames are read only when this one wakes.
     A periodic source that sends several frames per cycle (the H2: 110, 120, 130 every 10 ms)
     costs one wake-up per cycle instead of one per frame when only the cycle's last id wakes the
-    reader: on this machine and on the board proxy a wake-up (select, scheduler, the GIL) costs
-    far more CPU than the frames it brings. Frames of both sockets come out in kernel-timestamp
+    reader: on x86 and on the emulated board a wake-up (select, scheduler, the GIL) costs far
+    more CPU than the frames it brings (docs/performance.md). Frames of both sockets come out in kernel-timestamp
     order; a cycle whose waking frame never comes is read when the caller's timeout ends.
 
     ``every_s`` bounds how often a busy reader wakes: after a read that found frames, the next
@@ -374,9 +374,9 @@ class FrameReader:
         return out
 
     def _skip_stale(self, out: list[Frame], cut: float) -> list[Frame]:
-        """A reader that fell behind (a CPU saturated for a while: the board proxy's h2 reader
-        read 79 s old frames and never caught up, its FIFO queue as long as its buffer) skips
-        what is older than ``stale_s`` instead of publishing it as news; counted in ``stale``."""
+        """A reader that falls behind (a CPU saturated for a while) skips what is older than
+        ``stale_s`` instead of publishing it as news; counted in ``stale``. Without it, a reader
+        that falls behind never catches up (docs/performance.md)."""
         fresh = [f for f in out if f.timestamp >= cut]
         self.stale += len(out) - len(fresh)
         return fresh
@@ -425,9 +425,9 @@ class FrameReader:
         batch limit ended: what the other one read past that waits for the next read.
 
         Behind by more than a batch, a read takes a batch of each socket: 64 cycles of the h2
-        reader's waking 130 but only 32 of its quiet 110/120, so the quiet socket fell further
-        behind every read (board proxy: its frames went stale and overflowed, and no
-        joint_states came out at all)."""
+        reader's waking 130 but only 32 of its quiet 110/120, so the quiet socket would fall
+        further behind every read until its frames go stale and overflow, and no joint_states
+        come out at all."""
         out = self._held + quiet + waking
         if sum(map(bool, (self._held, quiet, waking))) > 1:  # more than one source: merge
             out.sort(key=_arrival)
@@ -598,8 +598,8 @@ class BatchReceiver:
     """Every datagram queued on a socket, up to ``_BATCH``, in one ``recvmmsg`` call.
 
     A ``recvmsg`` per frame costs a system call and a tuple of Python objects per frame; on
-    the board proxy (qemu TCG) the kernel's side of a call is where the time goes, so one call
-    per wake-up instead of one per frame (12 frames at the h2 reader's board cadence). Python
+    a slow core (qemu TCG in `make bench-board`) the kernel's side of a call is where the time
+    goes, so one call per wake-up instead of one per frame (12 frames at the h2 reader's board cadence). Python
     has no ``recvmmsg``: libc's, through ctypes, into buffers allocated once per socket.
     Returns (data, kernel receive time or None) pairs; raises OSError as ``recvmsg`` would."""
 
@@ -657,8 +657,8 @@ class BatchReceiver:
     def _headers(self, n: int) -> tuple[tuple[int, ...], tuple[int, ...], list[float | None]]:
         """The last call's lengths, flags and kernel times (SO_TIMESTAMPNS, the only control
         message asked for; None where the kernel sent none), the whole batch's headers and
-        control messages read by one ``struct`` call each, not four calls per datagram: on the
-        board proxy each was ~0.1 ms of the one core for every frame of every reader."""
+        control messages read by one ``struct`` call each, not four calls per datagram: on a slow
+        core each call costs per frame of every reader (measured: docs/performance.md)."""
         heads = _batch_struct(n, _HEAD_ENTRY).unpack_from(self._hdrs)
         ctls = _batch_struct(n, _CTL_ENTRY).unpack_from(self._ctl_view)
         # plain ints: socket.MSG_TRUNC is an IntFlag, whose & costs ~1 us a frame
@@ -693,8 +693,8 @@ class FrameWriter:
 
     python-can's SocketCAN ``send`` costs, per frame, a ``select`` for room and the ``send``
     (two system calls), two logger look-ups and a frame build; the controller manager sends up
-    to eight frames per H2 cycle, and on the board proxy (qemu TCG) the kernel's side of a call
-    is where the time goes, as for ``BatchReceiver``. On SocketCAN a batch goes to the kernel
+    to eight frames per H2 cycle, and on a slow core (qemu TCG) the kernel's side of a call is
+    where the time goes, as for ``BatchReceiver``. On SocketCAN a batch goes to the kernel
     in one ``sendmmsg`` (libc's, through ctypes), never blocking; frames the kernel refuses (a
     full transmit queue) raise ``can.CanOperationError`` naming how many of the batch went out,
     after one more try for the rest. Order on the bus is the batch's. Other interfaces (the

@@ -18,8 +18,9 @@ The deadline itself is a kernel timer: with each beat the node also sets a timer
 the supervisor at spawn, to expire at that beat's time plus its deadline (``EXOLINK_LIVENESS_TIMER_FD``,
 deadlines in ``EXOLINK_LIVENESS_DEADLINES``). The supervisor waits on the timers and wakes only
 when one expires, then judges the node by the beats in its pipe as before. Polling each node's
-deadline woke it ~25 times a second on the board proxy (the controller manager's 50 ms), each
-wake ~1.5 ms of the one core; a re-arm costs the node one system call and wakes nobody.
+deadline wakes it many times a second (the controller manager's 50 ms), each wake a cost on
+the one core (measured: docs/performance.md); a re-arm costs the node one system call and wakes
+nobody.
 """
 
 from __future__ import annotations
@@ -172,8 +173,7 @@ def with_beats(channels: Iterable[Channel]) -> set[Channel]:
 
     A node is started or stopped by a management command on another thread, which closes its
     old channel: one closed between the list and the select made select fail with EBADF, and
-    that crashed the supervisor (seen on the board proxy when a node stopped). The select is
-    then retried on the channels still open."""
+    that crashes the supervisor. The select is then retried on the channels still open."""
     channels = list(channels)
     for _ in range(3):
         live = {fd: c for c in channels if (fd := c.fileno()) >= 0}

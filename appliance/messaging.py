@@ -176,10 +176,10 @@ def data_key_of(entity: rosgraph.Entity) -> str:
 
 # --- bundles ---------------------------------------------------------------------------------
 # A high-rate topic (joint_states, a MACCEPA board's state: 100 Hz each) reaches the recorder as
-# one sample per batch of messages instead of one per message. On the board proxy a Zenoh sample
-# costs ~0.4 ms of the one core in the publisher, ~0.5 in the router and ~0.7 in each subscriber
-# however small it is (benchmarks/board/units.py), and the recorder took every message of both
-# topics through the router. The messages inside are the CDR bytes, sequence numbers and source
+# one sample per batch of messages instead of one per message: on a slow core a Zenoh sample
+# costs the publisher, the router and each subscriber a fixed amount however small it is
+# (docs/performance.md, benchmarks/board/units.py), and the recorder takes every message of
+# both topics through the router. The messages inside are the CDR bytes, sequence numbers and source
 # times they have on the topic's own key, which a laptop still gets one by one.
 
 BUNDLE_PATH = "bundle"
@@ -254,8 +254,8 @@ class MessageSubscription:
     A bundled topic (one with a bundle token: joint_states and the MACCEPA states when the
     board reads in batches) is taken as its bundles, one sample per batch: the publisher then
     puts its messages one by one only for subscribers of the topic's own key (a ROS 2 tool,
-    Foxglove), and on the board proxy each such sample cost ~0.5 ms of the one core in the
-    publisher and as much in the router, 100 a second for joint_states. The messages are the
+    Foxglove): each such sample costs the one core in the publisher and in the router, 100
+    a second for joint_states (docs/performance.md). The messages are the
     same (CDR, sequence numbers, stamps); they arrive in bursts, one per batch (up to 90 ms
     later at the board's cadence, as the one-by-one samples of that batch already do).
     Whether a topic is bundled is asked once, at subscription: a publisher that appears later
@@ -446,8 +446,8 @@ def zenoh_runtime(zcfg: ZenohConfig, env: MutableMapping[str, str] = os.environ)
     ZENOH_RUNTIME is left as it is. Returns the setting in force.
 
     Why: Zenoh 1.x runs rx (2 threads), tx, accept, net and app runtimes; a sample crosses
-    several of them in each process. On one core each hand-over is a thread wake-up, and on the
-    board proxy a wake-up costs ~1 ms of CPU (benchmarks/board/units.py). Handlers that query
+    several of them in each process. On one core each hand-over is a thread wake-up, and a
+    wake-up costs about a millisecond of the emulated board's CPU (docs/performance.md). Handlers that query
     another node from inside a queryable (the sender handing a position to the manager) still
     answer with one thread (tests/test_zenoh_runtime.py). The router is the exception
     (``router_runtime``)."""
@@ -665,10 +665,8 @@ class Outbox:
 
     Zenoh joins samples queued together into one network message, and a router or subscriber
     then handles them for a fraction of the cost of each alone; but it does not wait for more:
-    measured (x86, pub -> router -> sub), 1.2 ms of work between puts, what decoding a cycle's
-    frames takes on the board proxy, cost the router and subscriber 8x more CPU per sample than
-    the same puts in a row. On the proxy the h2 reader's Zenoh thread and the router took ~11 %
-    and ~30 % of CPU 0 for 100 samples/s published as each cycle was decoded."""
+    puts spread over a read's decoding cost the router and subscriber several times more CPU per
+    sample than the same puts in a row (measured: docs/performance.md)."""
 
     def __init__(self) -> None:
         self._items: list[tuple[Publisher, bytes, int]] = []

@@ -1,6 +1,6 @@
 """CPU time of a node loop's phases, sampled every few iterations.
 
-On the board proxy every process shares one saturated core, so wall-clock profiles (cProfile,
+On the board every process shares one core, often saturated, so wall-clock profiles (cProfile,
 the manager's ``overhead_us``) measure the waits for the CPU, not the work. This thread's CPU
 clock does not advance while the thread is preempted: a phase's figure is its own cost, however
 busy the core. Reading that clock is a system call (no vDSO for per-thread clocks; tens of

@@ -134,8 +134,8 @@ class NodeRunner:
         )
         # The loop's stall clock starts now, not at construction. Idle: nothing is driven
         # before the loop runs, whose first beat that is not idle comes before it drives
-        # anything; a motion node's own 50 ms from here killed a restarted controller manager
-        # whose loop first beat 67 ms later on the board proxy (exolink.liveness).
+        # anything; a motion node's own 50 ms from here would kill a restarted controller
+        # manager whose loop beats first a little later (docs/performance.md, exolink.liveness).
         self.node.beat(idle=True)
         hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         hb.start()
@@ -179,7 +179,7 @@ def profiled(name: str) -> Iterator[None]:
     ``DIR/<name>-<pid>.prof`` when the loop ends (before shutdown, which a slow stop may not
     finish; a file per spawn: one restarted after a bench's window overwrote the window's);
     ``EXOLINK_PROFILE_NODES`` (comma-separated): only these nodes. In-process: py-spy sampling
-    from outside fell minutes behind on the board proxy and took the simulator's CPU."""
+    from outside falls minutes behind under qemu and takes the simulator's CPU."""
     where = os.environ.get("EXOLINK_PROFILE_DIR")
     only = os.environ.get("EXOLINK_PROFILE_NODES")
     if not where or (only and name not in only.split(",")):
@@ -266,9 +266,9 @@ def start(config_path: str, name: str, listen: list[str] | None = None) -> int:
 
 def pin_to_cpus(cpus: list[int] | None) -> None:
     """The configured CPUs for the whole process, set before any thread exists, which then all
-    inherit them. The supervisor's later per-thread pass alone raced with the threads Zenoh
-    starts while a session opens: on the board proxy the simulator pinned to CPU 1 kept threads
-    on CPU 0, the core that is measured."""
+    inherit them. A later per-thread pass alone races with the threads Zenoh starts while a
+    session opens: a node pinned to one CPU keeps threads on another (the simulator pinned to
+    CPU 1 in `make bench-board` kept threads on CPU 0, the core that is measured)."""
     if not cpus:
         return
     try:

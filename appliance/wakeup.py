@@ -1,8 +1,8 @@
 """A wait that another thread ends, on a file descriptor.
 
 ``threading.Event``'s timed wait builds a lock and a condition per call and takes several
-more; the supervisor's loop waits ~20 times a second on the board proxy (the controller
-manager's 50 ms heartbeat deadline), each wait a fraction of a millisecond of the one A8 core.
+more; the supervisor's loop waits many times a second (the controller manager's 50 ms
+heartbeat deadline), each wait a fraction of a millisecond of a slow core (docs/performance.md).
 A pipe costs one ``select``, and its descriptor can join a wait on other descriptors (the
 watchdog's listener waits on its CAN sockets and the broadcast manager's watches with it).
 """

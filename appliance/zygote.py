@@ -133,8 +133,8 @@ def own_process_group() -> None:
     Why not a session of its own (setsid): the kernel's autogroup (CONFIG_SCHED_AUTOGROUP, on in
     Debian's armmp kernel and most desktops) makes each session one scheduling group of equal
     weight, and nice then only orders threads inside a group. With a session per node, board.yaml's
-    priorities did nothing: on the board proxy's saturated CPU 0 the recorder at nice 10 kept
-    16 % while the h2 reader at nice -10 read half its frames too late to publish."""
+    priorities do nothing: on a saturated core a nice 10 observer keeps its share while a
+    nice -10 reader falls behind (measured: docs/performance.md)."""
     os.setpgid(0, 0)
     with contextlib.suppress(OSError):
         fd = os.open(os.devnull, os.O_RDONLY)

@@ -9,8 +9,8 @@ travelled, stamped with the publisher's source timestamp from the attachment. Re
 
 Channels come from the ROS 2 graph (the publishers' liveliness tokens, ``exolink.rosgraph``), not
 from data: the bridge subscribes to a topic's data only while a Foxglove client subscribes to its
-channel. Without a client it receives nothing (subscribed to everything, an idle bridge took 20 %
-of the board proxy's CPU 0 in issue 18's ladder).
+channel. Without a client it receives nothing (an idle bridge subscribed to everything costs CPU
+for nobody: docs/performance.md).
 
 The server is the maintained Foxglove SDK (``foxglove-sdk``: Rust underneath, armv7 wheels):
 this node only forwards bytes, so its cost is one Zenoh callback and one ``Channel.log`` per

@@ -49,9 +49,9 @@ MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
 # has already reported as failed.
 ENGAGE_WAIT_S = 5.0
 ENGAGE_MARGIN_S = 1.0
-# The gait's CPU budget per update in the manager: its update is a few look-ups per joint (0.28
-# ms mean on the board proxy), but its first updates run code the proxy's emulator translates
-# then, and two over the default 2 ms in a row stopped the gait at its start. Still well inside
+# The gait's CPU budget per update in the manager: its update is a few look-ups per joint
+# (docs/performance.md), but its first updates are slower on a slow CPU (under qemu: code the
+# emulator translates then), and two over the default 2 ms in a row stop the gait at its start. Still well inside
 # the board's 20 ms update period; a lab's own controllers keep the manager's default.
 GAIT_BUDGET_MS = 8.0
 # The manager stops a running pattern's controller itself (a trip, a disable on the bus, the

@@ -28,9 +28,9 @@ MAX_STAMPS = 200_000
 # queue holds far more than this many seconds of the monitored ids.
 READ_EVERY_S = 0.25
 # The socket's receive queue: an observer yields the CPU (board.yaml: nice 10) and reads late,
-# so its queue must outlast a starved stretch. On the board proxy's saturated core the 1 MiB
-# default (~3000 frames, ~6 s of ids 70 and 110 with the pattern running) overflowed and the
-# monitor saw 168 of ~4000 set-points in a minute. 4 MiB asked (the kernel doubles it): ~25 s.
+# so its queue must outlast a starved stretch. On a saturated core the 1 MiB default (~3000
+# frames, ~6 s of ids 70 and 110 with the pattern running) overflows (docs/performance.md).
+# 4 MiB asked (the kernel doubles it): ~25 s.
 # Memory is taken only while frames wait.
 RCVBUF_BYTES = 4 << 20
 MAX_ONLY = 3  # ids with ``only``: up to 9 content-filter rules each (canfilter.MAX_RULES)

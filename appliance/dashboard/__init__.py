@@ -1,1 +1,1 @@
-"""The dashboard: the thesis GUIs as one live web app (issue 22)."""
+"""The dashboard: the thesis GUIs as one live web app (docs/dashboard.md)."""

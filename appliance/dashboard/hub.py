@@ -127,9 +127,9 @@ class Hub:
         log.info("dashboard_connected", device=device, at=r.at, role=self.role)
 
     def _open_rings(self) -> None:
-        """The 100 Hz data topics, subscribed only while a page is open: with none, the router
-        forwarded ~300 samples/s here and the tick drained them for nobody (17.5 % of the board
-        proxy's CPU 0 for a dashboard without a browser, issue 18's ladder)."""
+        """The 100 Hz data topics, subscribed only while a page is open: otherwise the router
+        forwards ~300 samples/s here and the tick drains them for nobody (measured:
+        docs/performance.md)."""
         r = self.remote
         for selector in (
             messaging.topic_key(r.domain, r.ns, "joint_states", JOINT_STATE),

@@ -8,9 +8,9 @@ Zenoh queryable for faults; ``exolink sim`` runs it bare on a chosen bus.
 On SocketCAN the H2's cyclic frames go out on the kernel's timer (``KernelStream``: the
 broadcast manager, as the real board's hardware timer sends them) and each cycle only updates
 their contents, which a send may carry up to one cycle late (the kernel's and Python's phases
-are not locked). On a slow CPU (the board proxy's H2 stand-in: one TCG core at ~90 %)
-Python-timed frames strayed up to 122 ms from their 10 ms period and tripped the watchdog's
-silence limit: a late Python now costs stale contents, not a gap in the stream.
+are not locked). On a slow CPU Python-timed frames
+stray far from their 10 ms period and trip the watchdog's silence limit (measured:
+docs/performance.md): a late Python costs stale contents, not a gap in the stream.
 """
 
 from __future__ import annotations
@@ -48,9 +48,9 @@ class SimParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # SocketCAN: the H2's frames on the kernel's timer (KernelStream); False: sent by Python
     kernel_timer: bool = True
     # With the kernel's timer only: the models step, their frames' contents change and commands
-    # are read every this many periods (the kernel still sends every period). The board proxy's
-    # CPU 1 (TCG) could not step them every 10 ms, and its timers then came late: gaps in the H2
-    # stream that the appliance on CPU 0 took for silence. 1: as the boards do.
+    # are read every this many periods (the kernel still sends every period). A slow CPU
+    # (TCG in `make bench-board`) cannot step them every 10 ms, and its timers then come late:
+    # gaps in the H2 stream that the appliance takes for silence. 1: as the boards do.
     update_cycles: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
 
 
@@ -225,8 +225,8 @@ class Simulator:
         which the controller manager, paced by them, passed on to every set-point.)
 
         When the kernel sends every cyclic frame (SocketCAN), Python only updates their
-        contents: it steps and updates at the deadline in one wake-up and never spins (on the
-        board proxy the spin and the second wake-up were CPU the kernel's timers needed)."""
+        contents: it steps and updates at the deadline in one wake-up and never spins (on a slow
+        CPU the spin and the second wake-up take CPU the kernel's timers need)."""
         kernel = self.stream is not None  # then the boards' frames are kernel-timed too
         prepare_s, spin_s = (0.0, 0.0) if kernel else (PREPARE_S, SPIN_S)
         every = self.params.update_cycles if kernel else 1
