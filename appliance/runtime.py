@@ -248,7 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--config", "-c", required=True)
     p.add_argument("--listen", action="append", help="also listen on a Zenoh endpoint")
     args = p.parse_args(argv)
-    from exolink.cli.errors import run_guarded
+    from exolink.errors import run_guarded
 
     return run_guarded(lambda a: start(a.config, a.name, a.listen), args)
 
