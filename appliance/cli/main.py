@@ -45,11 +45,11 @@ class Parser(argparse.ArgumentParser):
 
 def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser:
     """The whole command line; the dashboard parses its forms with a parser_class that raises."""
-    from exolink.cli import board, bus_tools, motion, recordings, remote
+    from exolink.cli import board, bus_tools, motion, options, recordings, remote
 
     parser = parser_class(prog="exolink", description=__doc__)
     parser.add_argument("--version", action="version", version=f"exolink {__version__}")
-    remote.add_global_options(parser)
+    options.add_global_options(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("up", help="run the appliance: supervisor, nodes, watchdog (board side)")
@@ -86,13 +86,13 @@ def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser
 
     p = sub.add_parser("sim", help="run the hardware simulator on a bus (no Zenoh)")
     _add_bus(p)
-    p.add_argument("--maccepa", type=remote._integer, action="append", default=[], metavar="BOARD")
+    p.add_argument("--maccepa", type=options.integer, action="append", default=[], metavar="BOARD")
     p.set_defaults(func=bus_tools.cmd_sim)
 
     p = sub.add_parser("candump", help="live decoded view of a CAN bus (H2 + MACCEPA DBC)")
     _add_bus(p)
     p.add_argument("--raw", action="store_true", help="also print the raw bytes")
-    p.add_argument("--count", type=remote._integer, default=0, help="stop after N frames")
+    p.add_argument("--count", type=options.integer, default=0, help="stop after N frames")
     p.set_defaults(func=bus_tools.cmd_candump)
 
     remote.register(sub)
@@ -108,7 +108,7 @@ def build_parser(parser_class: type[Parser] = Parser) -> argparse.ArgumentParser
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """The command line as the command functions get it (appliance options resolved)."""
-    from exolink.cli.remote import resolve_appliance_options
+    from exolink.cli.options import resolve_appliance_options
 
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
-from exolink.cli.remote import Refused, Remote, _decimal, _guard, _integer, _Leaves, common, remote
+from exolink.cli.options import Leaves, common, decimal, guard, integer
+from exolink.client import Refused, Remote, remote
 from exolink.mcapcheck import iso
 from exolink.recording import REPLAY_PREFIX
 
@@ -34,7 +35,7 @@ def record_body(args: argparse.Namespace) -> dict[str, Any]:
     return body
 
 
-@_guard
+@guard
 def cmd_record(args: argparse.Namespace) -> int:
     try:
         body = record_body(args)
@@ -83,7 +84,7 @@ def _mib(n: float) -> str:
     return f"{n / 2**20:.2f} MiB"
 
 
-@_guard
+@guard
 def cmd_record_list(args: argparse.Namespace) -> int:
     with remote(args) as r:
         s = _asker(r)({"action": "list"})
@@ -133,7 +134,7 @@ def _guard_store(func):  # type: ignore[no-untyped-def]
 
 
 @_guard_store
-@_guard
+@guard
 def cmd_record_fetch(args: argparse.Namespace) -> int:
     dest = Path(args.dir)
     dest.mkdir(parents=True, exist_ok=True)
@@ -145,7 +146,7 @@ def cmd_record_fetch(args: argparse.Namespace) -> int:
 
 
 @_guard_store
-@_guard
+@guard
 def cmd_record_sync(args: argparse.Namespace) -> int:
     from exolink import recstore
 
@@ -166,7 +167,7 @@ def cmd_record_sync(args: argparse.Namespace) -> int:
     return 0
 
 
-@_guard
+@guard
 def cmd_record_delete(args: argparse.Namespace) -> int:
     with remote(args) as r:
         ask = _asker(r)
@@ -329,7 +330,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 @_guard_file
-@_guard
+@guard
 def cmd_play(args: argparse.Namespace) -> int:
     from exolink.recording import info, play
 
@@ -394,7 +395,7 @@ def _held_back(
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
     p = sub.add_parser("record", help="start / stop / status of the recorder on the board")
-    s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
+    s = Leaves(p.add_subparsers(dest="action", required=True), parent)
     q = s.add_parser("start", help="start [--label subject=S01 --label session=walk1]")
     q.add_argument("--label", action="append", metavar="KEY=VALUE")
     s.add_parser("stop")
@@ -410,13 +411,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     q.add_argument("names", nargs="+", metavar="NAME")
     q.add_argument("-o", "--dir", default=".", help="where to put them (default: here)")
-    q.add_argument("--chunk", type=_integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
+    q.add_argument("--chunk", type=integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
     q.set_defaults(func=cmd_record_fetch)
     q = s.add_parser(
         "sync", help="fetch every finished recording DIR lacks (operator; the end of the day)"
     )
     q.add_argument("dir", metavar="DIR")
-    q.add_argument("--chunk", type=_integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
+    q.add_argument("--chunk", type=integer, default=1 << 20, help="bytes per request (<= 1 MiB)")
     q.set_defaults(func=cmd_record_sync)
     q = s.add_parser("delete", help="delete recordings from the board's card (admin)")
     q.add_argument("names", nargs="+", metavar="NAME")
@@ -458,7 +459,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument(
         "--debounce-ms",
-        type=_decimal,
+        type=decimal,
         default=30.0,
         help="a foot contact change counts once it held this long (default 30)",
     )
@@ -485,7 +486,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help=f"republish a recording onto Zenoh with its timing (under /{REPLAY_PREFIX}/ unless --live)",
     )
     p.add_argument("file")
-    p.add_argument("--rate", type=_decimal, default=1.0)
+    p.add_argument("--rate", type=decimal, default=1.0)
     p.add_argument("--loop", action="store_true")
     p.add_argument("--topics", nargs="+")
     p.add_argument(

@@ -15,7 +15,9 @@ Unit = str | Callable[[dict[str, Any]], str | None]
 
 
 def _setpoint(msg: dict[str, Any]) -> str | None:
-    from exolink.protocol import h2
+    from exolink.protocol import (
+        h2,  # heavy: the DBC files parse on import; `echo` of this type only
+    )
 
     mode = h2.MODE_NAMES.get(msg.get("mode", 0))
     return {"position": "deg", "stiffness": "deg", "torque": "counts"}.get(mode or "")

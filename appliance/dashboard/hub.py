@@ -10,7 +10,7 @@ publishers' sequence numbers (the rmw_zenoh attachment), not from counting sampl
 Events a person must not miss (watchdog state, trigger edges, pattern state) go out at once.
 The supervisor's status (nodes, bus, watchdog details) is polled once a second.
 
-Commands go out on the laptop client's session and login (exolink.cli.remote.Remote), parsed by
+Commands go out on the laptop client's session and login (exolink.client.Remote), parsed by
 the CLI's own parser (exolink.dashboard.commands): a refusal is the appliance's own text, and a
 command the parser refuses is never sent.
 """
@@ -33,7 +33,7 @@ import structlog
 import zenoh
 from exolink import cdr, clock, messaging, recstore, roles
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
-from exolink.cli.remote import Refused, Remote
+from exolink.client import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.holder import Holder, HoldRefused, describe
 from exolink.protocol import h2
