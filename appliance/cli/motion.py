@@ -15,6 +15,7 @@ from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
 from exolink.cli.options import Leaves, common, decimal, frame_id, guard, integer, number
 from exolink.cli.remote import hold
 from exolink.client import remote
+from exolink.config import ZenohConfig
 from exolink.holder import Holder, HoldRefused, describe
 
 # --- pattern ----------------------------------------------------------------------------------
@@ -149,8 +150,6 @@ class _FakeCfg:
     """The three fields Messaging needs, from the CLI's options (no appliance config on a laptop)."""
 
     def __init__(self, r: Any) -> None:
-        from exolink.config import ZenohConfig
-
         self.zenoh = ZenohConfig(domain_id=r.domain, namespace=r.ns)
         self.device = r.device
 

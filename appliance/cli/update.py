@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from exolink import messaging, update
+from exolink import logs, messaging, update
 from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
@@ -156,8 +156,6 @@ def cmd_update(args: argparse.Namespace) -> int:
 
 def cmd_update_agent(args: argparse.Namespace) -> int:
     """The board's root side (systemd units; exolink.update)."""
-    from exolink import logs
-
     logs.setup("update-agent")
     action = {
         "install": update.agent_install,
