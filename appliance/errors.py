@@ -32,8 +32,8 @@ def fail(message: str, code: int) -> int:
 
 
 def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    # light start: every command imports this module for its exit codes; config, plugins, CAN
-    # and Zenoh load only for a guarded run
+    # light: the supervisor's CAN link and trigger import this module for their errors, and the
+    # commands for the exit codes; plugins, config and Zenoh load only for a guarded run
     from exolink.canbus import CanOpenError
     from exolink.config import ConfigError
     from exolink.messaging import Unreachable

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from exolink import logs, recstore
+from exolink import gaitlab, logs, recstore
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.options import Leaves, common, decimal, guard, integer
 from exolink.client import Refused, Remote, remote
@@ -260,8 +260,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 def _export_gaitlab(args: argparse.Namespace) -> None:
     """C3D, OpenSim and the events CSV (exolink.gaitlab); what was lost is said, never hidden."""
     from pathlib import Path
-
-    from exolink import gaitlab  # optional: the gaitlab extra (numpy, ezc3d), a laptop's
 
     logs.setup("export")  # the library's log lines on stderr, never mixed into this output
     if args.c3d:

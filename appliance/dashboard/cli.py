@@ -10,6 +10,7 @@ import sys
 
 from exolink.cli.errors import EXIT_USAGE, fail
 from exolink.cli.options import common, decimal, guard, integer
+from exolink.client import remote
 
 
 @guard
@@ -17,9 +18,8 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     import asyncio
     import signal
 
-    from exolink.client import remote
-    from exolink.dashboard import server
-    from exolink.dashboard.hub import Hub
+    from exolink.dashboard import server  # heavy: aiohttp; `exolink dashboard` only
+    from exolink.dashboard.hub import Hub  # heavy: the dashboard's Zenoh side; `dashboard` only
 
     try:
         hosts = server.Hosts(args.port, args.allow_host)
