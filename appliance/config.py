@@ -295,7 +295,10 @@ def parse(
 def _check_nodes(
     cfg: ApplianceConfig, root: yaml.Node | None, check: Collection[str] | None = None
 ) -> None:
-    from exolink.plugins import PluginError, find_node_class
+    from exolink.plugins import (  # above config: a node's Params are its plugin's (the contract's one exception)
+        PluginError,
+        find_node_class,
+    )
 
     seen: set[str] = set()
     for i, node in enumerate(cfg.nodes):
@@ -373,7 +376,9 @@ def check_all_apart(path: str | Path) -> None:
 
 def node_params(cfg: ApplianceConfig, name: str) -> Any:
     """The typed params of one configured node (already validated by parse)."""
-    from exolink.plugins import find_node_class
+    from exolink.plugins import (
+        find_node_class,  # above config: a node's Params are its plugin's (the contract's one exception)
+    )
 
     node = cfg.node(name)
     return msgspec.convert(node.params, find_node_class(node.plugin).Params)

@@ -467,7 +467,7 @@ def build_trial(
 
 
 def _joint_order(name: str) -> tuple[int, str]:
-    from exolink.protocol import h2
+    from exolink.protocol import h2  # heavy: python-can; the joint order only
 
     return (h2.JOINTS.index(name) if name in h2.JOINTS else len(h2.JOINTS), name)
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import structlog
 import zenoh
-from exolink import cdr, logs, roles, rosgraph
+from exolink import cdr, logs, roles, rosgraph, srvtypes
 from exolink.config import ApplianceConfig, ConfigError, ZenohConfig
 
 MSG_DIR = Path(__file__).with_name("msgs")
@@ -53,7 +53,6 @@ CLIENT_CONNECT_TIMEOUT_MS = 3000
 @cache
 def typestore() -> Any:
     """ROS 2 Jazzy's standard types plus every exolink_msgs .msg file."""
-    from exolink import rosservices
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
@@ -61,8 +60,8 @@ def typestore() -> Any:
     for path in sorted(MSG_DIR.glob("*/msg/*.msg")):
         name = f"{path.parent.parent.name}/msg/{path.stem}"
         types.update(get_types_from_msg(path.read_text(), name))
-    for name, (request, response) in rosservices.srv_definitions(MSG_DIR).items():
-        types.update(rosservices.service_fielddefs(name, request, response))
+    for name, (request, response) in srvtypes.srv_definitions(MSG_DIR).items():
+        types.update(srvtypes.service_fielddefs(name, request, response))
     store.register(types)
     return store
 
@@ -123,17 +122,16 @@ def write_hash_table() -> int:
     """``make msgs``: the table for every type in the typestore (after editing a .msg file),
     and the schema table (MSGDEFS)."""
     MSGDEFS.write_text(json.dumps(msgdef_table(), indent=0, sort_keys=True) + "\n")
-    from exolink import rosservices
 
     store = typestore()
-    services = list(rosservices.srv_definitions(MSG_DIR))
+    services = list(srvtypes.srv_definitions(MSG_DIR))
     parts = {f"{s}_{p}" for s in services for p in ("Request", "Response", "Event")}
     table = {
         name: str(store.hash_rihs01(name))
         for name in sorted(store.types)
         if name not in parts and name not in services
     }
-    table.update(rosservices.service_hashes(store, services))
+    table.update(srvtypes.service_hashes(store, services))
     table = dict(sorted(table.items()))
     TYPE_HASHES.write_text(json.dumps(table, indent=0, sort_keys=True) + "\n")
     return len(table)

@@ -9,10 +9,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import cache
 from importlib.metadata import entry_points
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from exolink.node import Node
+from exolink.controller import Controller
+from exolink.node import Node
 
 GROUP = "exolink.nodes"
 
@@ -49,8 +48,6 @@ def _load(
 def find_node_class(plugin: str) -> type[Node]:
     """Import only the node that is asked for: other nodes' dependencies stay unloaded."""
     cls, where = _load(GROUP, plugin, "node plugin", available)
-    from exolink.node import Node
-
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise PluginError(f"node plugin {plugin!r} ({where}) is not an exolink Node")
     return cls
@@ -68,8 +65,6 @@ def controller_types() -> dict[str, str]:
 def find_controller_class(kind: str) -> type:
     """Import the controller type asked for; PluginError names what is installed."""
     cls, where = _load(CONTROLLER_GROUP, kind, "controller type", controller_types)
-    from exolink.controller import Controller
-
     if not (isinstance(cls, type) and issubclass(cls, Controller)):
         raise PluginError(f"controller type {kind!r} ({where}) is not an exolink Controller")
     return cls

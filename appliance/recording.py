@@ -20,7 +20,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from exolink import roles
+from exolink import roles, rosgraph
 from exolink.mcapcheck import Loss, RecordingError, Walk, _open, check, verify
 
 TRIGGER_SUFFIX = "/trigger"
@@ -360,7 +360,7 @@ COMMAND_PATH = "cmd"  # anything on a ``cmd`` path (``cmd/joint``, ``arm/cmd``)
 
 @cache
 def _command_names() -> tuple[tuple[str, ...], ...]:
-    from exolink import messaging
+    from exolink import messaging  # heavy: Zenoh; reading a file offline needs none
 
     names = (*roles.ROS2_TOPICS_IN, messaging.COMMANDS_TOPIC, JOINT_COMMANDS_TOPIC)
     return tuple(tuple(n.strip("/").split("/")) for n in names)
@@ -443,7 +443,7 @@ PLAY_SETTLE_S = 1.0  # how long a replay waits for subscribers to learn of its p
 def _declare(
     session: Any, graph: Any, pubs: dict[str, Any], key: str, topic: str, typename: str
 ) -> Any:
-    from exolink import messaging, rosgraph
+    from exolink import messaging  # heavy: Zenoh; reading a file offline needs none
 
     token = graph.declare(rosgraph.PUBLISHER, f"/{topic}", typename, key.rsplit("/", 1)[-1])
     pub = pubs[key] = messaging.Publisher(session, key, typename, True, token, graph)
@@ -461,7 +461,7 @@ def _declare_all(
     """Every replayed topic's publisher before the first message, and a moment for those who
     discover topics from the graph (a recorder, ``ros2 bag record``) to subscribe: its first
     messages are not lost to them."""
-    from exolink import messaging
+    from exolink import messaging  # heavy: Zenoh; reading a file offline needs none
 
     for source, topic in targets.items():
         typename = recorded.get(source, {}).get("type")
@@ -499,7 +499,7 @@ def play(
     the graph with a publisher token per topic, as ``ros2 bag play`` is: a ROS 2 tool sees what
     it publishes, and a recorder (which learns topics from the graph) records it.
     """
-    from exolink import messaging, rosgraph
+    from exolink import messaging  # heavy: Zenoh; reading a file offline needs none
 
     if not rate > 0:
         raise RecordingError(f"rate must be > 0, got {rate}")

@@ -338,7 +338,9 @@ class Patient:
     retried_lost: int = 0
 
     def __call__(self, body: dict[str, Any]) -> dict[str, Any]:
-        from exolink.messaging import Unreachable
+        from exolink.messaging import (
+            Unreachable,  # heavy: Zenoh; a laptop's store needs it for fetches only
+        )
 
         why = "no try"
         for _ in range(self.tries):

@@ -14,7 +14,7 @@ key the way exolink's CLI does. Every call lands in the command log, by ``ros2``
 client's GID.
 
 Type hashes of services come from the table ``make msgs`` writes (rosbags is slow to import on
-the board); ``service_fielddefs`` is what both the table and the CDR use.
+the board); exolink.srvtypes.service_fielddefs is what both the table and the CDR use.
 """
 
 from __future__ import annotations
@@ -23,84 +23,15 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Any
 
 import structlog
 import zenoh
-from exolink import logs, roles, rosgraph
+from exolink import logs, messaging, roles, rosgraph
 
 _log = structlog.get_logger("exolink.ros2")
 
-# Standard services used as they are (std_srvs' definitions, unchanged since Humble).
-STD_SRVS = {
-    "std_srvs/srv/Trigger": ("", "bool success\nstring message\n"),
-    "std_srvs/srv/SetBool": ("bool data\n", "bool success\nstring message\n"),
-}
 ROS2_USER = "ros2"
-
-
-def srv_definitions(msg_dir: Path) -> dict[str, tuple[str, str]]:
-    """Every service type exolink serves: std_srvs' and each ``<pkg>/srv/*.srv`` file."""
-    out = dict(STD_SRVS)
-    for path in sorted(msg_dir.glob("*/srv/*.srv")):
-        request, _, response = path.read_text().partition("\n---\n")
-        out[f"{path.parent.parent.name}/srv/{path.stem}"] = (request, response)
-    return out
-
-
-def _srv_names(x: Any) -> Any:
-    """rosbags files every type under ``<pkg>/msg/``; a service's parts live under ``srv``."""
-    if isinstance(x, str):
-        return x.replace("/srv/msg/", "/srv/")
-    if isinstance(x, tuple | list):
-        return type(x)(_srv_names(i) for i in x)
-    return x
-
-
-def service_fielddefs(name: str, request: str, response: str) -> dict[str, Any]:
-    """rosbags field definitions of a service as rosidl generates it: ``<T>_Request``,
-    ``<T>_Response``, ``<T>_Event`` (service_msgs/ServiceEventInfo info, request and response
-    as sequences of at most one) and ``<T>`` itself (request_message, response_message,
-    event_message), the type whose RIHS01 hash rmw_zenoh puts into the key."""
-    from rosbags.typesys import get_types_from_msg
-
-    types: dict[str, Any] = {}
-    types.update(get_types_from_msg(request, f"{name}_Request"))
-    types.update(get_types_from_msg(response, f"{name}_Response"))
-    event = (
-        f"service_msgs/msg/ServiceEventInfo info\n{name}_Request[<=1] request\n"
-        f"{name}_Response[<=1] response\n"
-    )
-    types.update(get_types_from_msg(event, f"{name}_Event"))
-    whole = (
-        f"{name}_Request request_message\n{name}_Response response_message\n"
-        f"{name}_Event event_message\n"
-    )
-    types.update(get_types_from_msg(whole, name))
-    return {_srv_names(k): _srv_names(v) for k, v in types.items()}
-
-
-def service_hashes(store: Any, names: list[str]) -> dict[str, str]:
-    """RIHS01 of each service type. rosbags' Jazzy store types ServiceEventInfo's client_gid as
-    ``char[16]``, which rosidl maps to uint8 (a different id in the hashed description): with
-    it, std_srvs/Trigger hashed to 50f8... instead of the eeff2c... Jazzy advertises. The hashes
-    are taken in a copy of the store whose ServiceEventInfo says uint8[16]."""
-    from rosbags.typesys import Stores, get_typestore
-
-    fixed = get_typestore(Stores.EMPTY)
-    defs = dict(store.fielddefs)
-    info = "service_msgs/msg/ServiceEventInfo"
-    consts, fields = defs[info]
-
-    def uint8(desc: Any) -> Any:
-        if isinstance(desc, tuple):
-            return ("uint8", 0) if desc == ("char", 0) else tuple(uint8(d) for d in desc)
-        return desc
-
-    defs[info] = (consts, [(n, uint8(t)) for n, t in fields])
-    fixed.register(defs)
-    return {name: str(fixed.hash_rihs01(name)) for name in names}
 
 
 # --- serving ---------------------------------------------------------------------------------
@@ -128,8 +59,6 @@ class ServiceServer:
         workers: ThreadPoolExecutor,
         urgent: bool = False,
     ) -> None:
-        from exolink import messaging
-
         self._messaging = messaging
         self.msg, self.name, self.srv_type, self.handler = msg, name, srv_type, handler
         self.urgent = urgent
@@ -220,11 +149,9 @@ def outcome(reply: dict[str, Any], summary: Callable[[dict[str, Any]], str]) -> 
 def run_json(handler: Callable[[dict[str, Any]], dict[str, Any] | None], request: dict[str, Any]):  # type: ignore[no-untyped-def]
     """A JSON API handler called in-process, its outcome shaped as ``messaging.serve`` shapes
     it (ok, or the refusal's text)."""
-    from exolink.messaging import CommandRefused, Unreachable
-
     try:
         return {"ok": True, **(handler(request) or {})}
-    except (CommandRefused, roles.Forbidden, Unreachable) as exc:
+    except (messaging.CommandRefused, roles.Forbidden, messaging.Unreachable) as exc:
         return {"ok": False, "error": str(exc)}
     except Exception as exc:  # a caller never waits on a handler bug
         return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}

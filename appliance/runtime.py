@@ -24,8 +24,9 @@ from typing import Any
 import msgspec
 import structlog
 import zenoh
-from exolink import cdr, liveness, messaging, roles
-from exolink.config import ApplianceConfig
+from exolink import cdr, liveness, logs, messaging, roles
+from exolink.config import ApplianceConfig, load, node_params
+from exolink.errors import run_guarded
 from exolink.node import (
     HEARTBEAT_TOPIC,
     HEARTBEAT_TYPE,
@@ -34,6 +35,7 @@ from exolink.node import (
     NodeContext,
     beat_period_s,
 )
+from exolink.plugins import find_node_class
 
 STALL_LOG_EVERY_S = 10.0
 
@@ -44,8 +46,6 @@ class NodeRunner:
     def __init__(
         self, cls: type[Node], cfg: ApplianceConfig, name: str, session: zenoh.Session | None = None
     ) -> None:
-        from exolink.config import node_params
-
         self.cfg = cfg
         self.name = name
         self.stop = threading.Event()
@@ -225,8 +225,6 @@ def stop_on_signals(stop: threading.Event, log: Any) -> None:
 
 def run_standalone(cfg: ApplianceConfig, name: str, listen: list[str] | None = None) -> int:
     """One node in this process until SIGTERM/SIGINT (``exolink node run``, and supervised)."""
-    from exolink.plugins import find_node_class
-
     node_cfg = cfg.node(name)
     cls = find_node_class(node_cfg.plugin)
     messaging.zenoh_runtime(cfg.zenoh)  # as the supervisor does; a supervised node inherits it
@@ -248,16 +246,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--config", "-c", required=True)
     p.add_argument("--listen", action="append", help="also listen on a Zenoh endpoint")
     args = p.parse_args(argv)
-    from exolink.cli.errors import run_guarded
-
     return run_guarded(lambda a: start(a.config, a.name, a.listen), args)
 
 
 def start(config_path: str, name: str, listen: list[str] | None = None) -> int:
     """Load the config checking this node's params only (its plugin alone loads), then run it."""
-    from exolink import logs
-    from exolink.config import load
-
     cfg = load(config_path, check=[name])
     logs.setup(name)
     pin_to_cpus(cfg.node(name).priority.cpus)

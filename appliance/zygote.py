@@ -30,7 +30,7 @@ from typing import Any, NoReturn
 
 import exolink.canbus
 import exolink.cdr
-import exolink.cli.errors
+import exolink.errors
 import exolink.liveness
 import exolink.logs
 import exolink.messaging

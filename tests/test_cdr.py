@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from exolink import cdr, messaging, rosservices
+from exolink import cdr, messaging, srvtypes
 from exolink.protocol import h2
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -330,7 +330,7 @@ def test_type_hash_table_matches_rosbags() -> None:
     store = messaging.typestore()
     # Services are in the table as the whole service type (the key's hash), not their parts;
     # they are hashed with ServiceEventInfo corrected (tests/test_exolink_msgs.py checks them).
-    services = set(rosservices.srv_definitions(messaging.MSG_DIR))
+    services = set(srvtypes.srv_definitions(messaging.MSG_DIR))
     parts = {f"{s}_{p}" for s in services for p in ("Request", "Response", "Event")}
     assert set(table) == set(store.types) - parts, "run `make msgs` after editing a .msg file"
     for name, value in table.items():

@@ -13,7 +13,7 @@ import pytest
 from conftest import EXOLINK, Appliance
 from exolink import messaging
 from exolink.cli.main import parse
-from exolink.cli.remote import DEFAULT_AT
+from exolink.client import DEFAULT_AT
 from exolink.nodes.recorder import McapFile, RecorderParams
 
 JS = "sensor_msgs/msg/JointState"

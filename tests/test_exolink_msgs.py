@@ -12,7 +12,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from exolink import messaging, rosservices
+from exolink import messaging, srvtypes
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 PKG = Path(__file__).resolve().parents[1] / "ros2" / "exolink_msgs"
@@ -63,11 +63,11 @@ def test_message_hashes_are_the_ones_on_the_wire() -> None:
 def test_service_hashes_are_the_ones_on_the_wire() -> None:
     defs = {
         f"exolink_msgs/srv/{p.stem}": tuple(p.read_text().split("\n---\n")) for p in _files("srv")
-    } | rosservices.STD_SRVS
+    } | srvtypes.STD_SRVS
     store = get_typestore(Stores.ROS2_JAZZY)
     for name, (req, resp) in defs.items():
-        store.register(rosservices.service_fielddefs(name, req, resp))
-    hashes = rosservices.service_hashes(store, list(defs))
+        store.register(srvtypes.service_fielddefs(name, req, resp))
+    hashes = srvtypes.service_hashes(store, list(defs))
     for name, h in hashes.items():
         assert TABLE[name] == h, name
         pkg, _, short = name.split("/")

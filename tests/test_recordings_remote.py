@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import EXOLINK, Appliance, wait_for
 from exolink import messaging, recstore, roles
-from exolink.cli.remote import Remote
+from exolink.client import Remote
 from exolink.dashboard.hub import Hub
 from exolink.recording import info
 from test_recording import nodes

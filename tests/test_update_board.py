@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from exolink import messaging, roles, update
 from exolink.cli import update as cli_update
-from exolink.cli.remote import Refused
+from exolink.client import Refused
 from exolink.supervisor.core import Supervisor
 
 REPO = Path(__file__).resolve().parents[1]

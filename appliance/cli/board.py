@@ -6,6 +6,9 @@ import argparse
 import sys
 
 import msgspec
+from exolink import logs
+from exolink.config import bundled, check_all_apart, load
+from exolink.plugins import available
 
 DEFAULT_CONFIG = "/etc/exolink/appliance.yaml"
 
@@ -15,8 +18,6 @@ def config_path(args: argparse.Namespace) -> str:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    from exolink.config import load
-
     cfg = load(args.file)
     out = msgspec.json.format(msgspec.json.encode(cfg), indent=2)
     sys.stdout.write(out.decode() + "\n")
@@ -24,14 +25,12 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_node_run(args: argparse.Namespace) -> int:
-    from exolink.runtime import start
+    from exolink.runtime import start  # board-side: the node runtime, for `node run` only
 
     return start(config_path(args), args.name, args.listen)
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    from exolink.plugins import available
-
     for name, target in sorted(available().items()):
         sys.stdout.write(f"{name:20} {target}\n")
     return 0
@@ -39,9 +38,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 
 def cmd_up(args: argparse.Namespace) -> int:
     """The supervisor. A bad config starts nothing and exits non-zero (the caller sees why)."""
-    from exolink import logs
-    from exolink.config import bundled, check_all_apart, load
-    from exolink.supervisor.core import run, simulated
+    from exolink.supervisor.core import run, simulated  # heavy: the whole supervisor, `up` only
 
     path = args.config or (str(bundled("sim")) if args.sim else DEFAULT_CONFIG)
     cfg = load(path, check=())
@@ -55,7 +52,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_board_setup(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from exolink import boardsetup, logs
+    from exolink import boardsetup  # the board's own setup: `board-setup` only
 
     logs.setup("board-setup")
     boot = Path(args.boot)

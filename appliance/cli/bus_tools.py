@@ -7,7 +7,10 @@ import sys
 import threading
 from datetime import UTC, datetime
 
+from exolink import logs
+from exolink.canbus import open_bus, open_reader
 from exolink.config import INTERFACE_ALIASES, SIM_INTERFACE, SIM_MULTICAST_GROUP, CanConfig
+from exolink.protocol import h2, maccepa
 
 
 def bus_config(args: argparse.Namespace) -> CanConfig:
@@ -19,10 +22,8 @@ def bus_config(args: argparse.Namespace) -> CanConfig:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from exolink import logs
-    from exolink.canbus import open_reader
-    from exolink.nodes.simulator import SimParams, Simulator
-    from exolink.runtime import stop_on_signals
+    from exolink.nodes.simulator import SimParams, Simulator  # a node plugin: `sim` only
+    from exolink.runtime import stop_on_signals  # the node runtime: `sim` only
 
     log = logs.setup("sim")
     params = SimParams(maccepa_boards=args.maccepa)
@@ -41,7 +42,6 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def describe(msg) -> str:  # type: ignore[no-untyped-def]
     """One decoded line: H2 frames first, MACCEPA otherwise, 'unknown' for the rest."""
-    from exolink.protocol import h2, maccepa
 
     f = h2.decode(msg)
     if isinstance(f, h2.Unknown):
@@ -56,7 +56,6 @@ def describe(msg) -> str:  # type: ignore[no-untyped-def]
 
 
 def cmd_candump(args: argparse.Namespace) -> int:
-    from exolink.canbus import open_bus
 
     bus = open_bus(bus_config(args))
     n = 0

@@ -12,7 +12,8 @@ import time
 from typing import Any
 
 from exolink import clock
-from exolink.cli.remote import Refused, Remote, _guard, common, remote
+from exolink.cli.options import common, guard
+from exolink.client import Refused, Remote, remote
 
 
 def offset(r: Remote) -> clock.Offset:
@@ -72,7 +73,7 @@ def sync_at_arm(r: Remote) -> str:
     )
 
 
-@_guard
+@guard
 def cmd_clock(args: argparse.Namespace) -> int:
     with remote(args) as r:
         off = offset(r)

@@ -8,7 +8,8 @@ import json
 import sys
 from typing import Any
 
-from exolink.cli.remote import _decimal, _guard, _Leaves, common, remote
+from exolink.cli.options import Leaves, common, decimal, guard
+from exolink.client import remote
 
 
 def _limits(lim: dict[str, Any]) -> list[str]:
@@ -87,7 +88,7 @@ def _value(text: str) -> tuple[str, float]:
     if not sep:
         raise argparse.ArgumentTypeError(f"{text!r}: give JOINT=VALUE, e.g. r_knee=30")
     try:
-        return joint, _decimal(value)
+        return joint, decimal(value)
     except argparse.ArgumentTypeError as exc:
         raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
 
@@ -102,7 +103,7 @@ def _params(text: str) -> dict[str, Any]:
     return data
 
 
-@_guard
+@guard
 def cmd_controllers(args: argparse.Namespace) -> int:
     a = args.action
     body: dict[str, Any] = {"action": a}
@@ -139,7 +140,7 @@ def cmd_controllers(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
     p = sub.add_parser("controllers", help="controller manager: list, load, activate, switch")
-    s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
+    s = Leaves(p.add_subparsers(dest="action", required=True), parent)
     q = s.add_parser("list", help="loaded controllers, their state, claims and update times")
     q.add_argument("--json", action="store_true")
     s.add_parser("types", help="installed controller types (entry points exolink.controllers)")
@@ -149,7 +150,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q.add_argument("name")
     q.add_argument("type")
     q.add_argument("--params", type=_params, default={})
-    q.add_argument("--budget-ms", type=_decimal, help="CPU per update before it is deactivated")
+    q.add_argument("--budget-ms", type=decimal, help="CPU per update before it is deactivated")
     q.add_argument("--replace", action="store_true", help="unload a controller of that name first")
     q.add_argument("--activate", action="store_true", help="and activate it at the next cycle")
     q = s.add_parser("unload", help="unload NAME (inactive only)")

@@ -1,49 +1,33 @@
-"""Turns the errors an operator can fix into one line on stderr and an exit code."""
+"""The command line's stdout for a reader that may leave early; the exit codes and the guarded
+run are exolink.errors', shared with the node runtime."""
 
 from __future__ import annotations
 
 import _thread
-import argparse
 import os
-import sys
 import threading
-from collections.abc import Callable
 from typing import Any, TextIO
 
-EXIT_USAGE, EXIT_CONFIG, EXIT_UNREACHABLE, EXIT_REFUSED = 2, 3, 4, 5
-# Apart from a bad config: CAN or GPIO missing may pass (a driver still probing at boot), so
-# systemd restarts on it; a bad config never fixes itself, so systemd must not (exolink.service).
-EXIT_HARDWARE = 6
+from exolink.errors import (
+    EXIT_CONFIG,
+    EXIT_HARDWARE,
+    EXIT_REFUSED,
+    EXIT_UNREACHABLE,
+    EXIT_USAGE,
+    fail,
+    run_guarded,
+)
 
-
-def fail(message: str, code: int) -> int:
-    sys.stderr.write(f"exolink: {message}\n")
-    return code
-
-
-def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    from exolink.canbus import CanOpenError
-    from exolink.config import ConfigError
-    from exolink.messaging import Unreachable
-    from exolink.plugins import PluginError
-    from exolink.protocol import ProtocolError
-    from exolink.supervisor.canlink import CanLinkError
-    from exolink.supervisor.trigger import TriggerError
-
-    try:
-        return func(args)
-    except ConfigError as exc:
-        return fail(f"config error: {exc}", EXIT_CONFIG)
-    except PluginError as exc:
-        return fail(str(exc), EXIT_CONFIG)
-    except (CanOpenError, CanLinkError, TriggerError) as exc:
-        return fail(str(exc), EXIT_HARDWARE)
-    except Unreachable as exc:
-        return fail(f"appliance unreachable: {exc}", EXIT_UNREACHABLE)
-    except ProtocolError as exc:
-        return fail(f"refused: {exc}", EXIT_REFUSED)
-    except KeyboardInterrupt:
-        return 130
+__all__ = [
+    "EXIT_CONFIG",
+    "EXIT_HARDWARE",
+    "EXIT_REFUSED",
+    "EXIT_UNREACHABLE",
+    "EXIT_USAGE",
+    "Stdout",
+    "fail",
+    "run_guarded",
+]
 
 
 class Stdout:

@@ -12,17 +12,10 @@ from typing import Any
 
 from exolink import messaging
 from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
-from exolink.cli.remote import (
-    _decimal,
-    _frame_id,
-    _guard,
-    _integer,
-    _Leaves,
-    _number,
-    common,
-    hold,
-    remote,
-)
+from exolink.cli.options import Leaves, common, decimal, frame_id, guard, integer, number
+from exolink.cli.remote import hold
+from exolink.client import remote
+from exolink.config import ZenohConfig
 from exolink.holder import Holder, HoldRefused, describe
 
 # --- pattern ----------------------------------------------------------------------------------
@@ -60,7 +53,7 @@ def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
 START_TIMEOUT_S = 8.0
 
 
-@_guard
+@guard
 def cmd_pattern(args: argparse.Namespace) -> int:
     action, body = args.action, pattern_body(args)
     if action == "start":
@@ -125,7 +118,7 @@ def _holder(r: Any, what: str, ended: threading.Event) -> Holder:
     return Holder(lambda b: r.ask("controllers", body=b), describe(what), told)
 
 
-@_guard
+@guard
 def cmd_hold(args: argparse.Namespace) -> int:
     """Hold motion until Ctrl-C (or another client takes over): what an operator keeps running
     while motion is commanded from other terminals, the dashboard or ROS 2."""
@@ -157,8 +150,6 @@ class _FakeCfg:
     """The three fields Messaging needs, from the CLI's options (no appliance config on a laptop)."""
 
     def __init__(self, r: Any) -> None:
-        from exolink.config import ZenohConfig
-
         self.zenoh = ZenohConfig(domain_id=r.domain, namespace=r.ns)
         self.device = r.device
 
@@ -178,7 +169,7 @@ def maccepa_body(args: argparse.Namespace) -> dict[str, Any]:
     return body
 
 
-@_guard
+@guard
 def cmd_maccepa(args: argparse.Namespace) -> int:
     if args.kind == "watch":
         return _watch(args)
@@ -245,7 +236,7 @@ def timing_body(args: argparse.Namespace) -> dict[str, Any]:
     return body
 
 
-@_guard
+@guard
 def cmd_timing(args: argparse.Namespace) -> int:
     body = timing_body(args)
     args.timeout = max(args.timeout, args.seconds + 5)
@@ -269,7 +260,7 @@ def cmd_timing(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
     p = sub.add_parser("pattern", help="gait pattern player")
-    s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
+    s = Leaves(p.add_subparsers(dest="action", required=True), parent)
     q = s.add_parser(
         "start",
         help="start, holding motion (stays attached: Ctrl-C stops); --detach: leave it to "
@@ -280,7 +271,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     for name in ("stop", "pause", "restart", "status"):
         s.add_parser(name)
     q = s.add_parser("speed", help="speed LEVEL (1..10; 10 = a set-point every 20 ms)")
-    q.add_argument("level", type=_integer)
+    q.add_argument("level", type=integer)
     for name in ("select", "disable"):
         q = s.add_parser(name, help=f"{name} JOINT...")
         q.add_argument("joints", nargs="+")
@@ -300,36 +291,36 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=cmd_hold)
 
     p = sub.add_parser("maccepa", help="MACCEPA actuator boards")
-    p.add_argument("board", type=_integer)
-    s = _Leaves(p.add_subparsers(dest="kind", required=True), parent)
+    p.add_argument("board", type=integer)
+    s = Leaves(p.add_subparsers(dest="kind", required=True), parent)
     q = s.add_parser("gains", help="gains --kp X --ki Y --kd Z [--controller position|velocity]")
     for g in ("--kp", "--ki", "--kd"):
-        q.add_argument(g, type=_number)
+        q.add_argument(g, type=number)
     q.add_argument("--controller", choices=["position", "velocity"], default="position")
     q = s.add_parser("setpoint", help="setpoint VALUE [--controller ...]")
-    q.add_argument("value", type=_number)
+    q.add_argument("value", type=number)
     q.add_argument("--controller", choices=["position", "velocity"], default="position")
     q = s.add_parser("duty", help="duty PERCENT (0..100)")
-    q.add_argument("value", type=_number)
+    q.add_argument("value", type=number)
     s.add_parser("stop", help="stop control")
     q = s.add_parser("watch", help="live link-2 vs lever-arm plot (the tuning view)")
-    q.add_argument("--rate", type=_decimal, default=10.0, help="lines per second")
-    q.add_argument("--seconds", type=_decimal, default=0, help="stop after N seconds")
+    q.add_argument("--rate", type=decimal, default=10.0, help="lines per second")
+    q.add_argument("--seconds", type=decimal, default=0, help="stop after N seconds")
     p.set_defaults(func=cmd_maccepa)
 
     p = sub.add_parser(
         "timing", parents=[parent], help="period deviation of a CAN id (timing monitor)"
     )
-    p.add_argument("id", type=_frame_id)
+    p.add_argument("id", type=frame_id)
     p.add_argument(
-        "--motor", type=_integer, help="only frames whose first byte is this (id 70: motor id)"
+        "--motor", type=integer, help="only frames whose first byte is this (id 70: motor id)"
     )
-    p.add_argument("--seconds", type=_decimal, default=10.0)
+    p.add_argument("--seconds", type=decimal, default=10.0)
     p.add_argument(
         "--dlc",
-        type=_integer,
+        type=integer,
         help="only frames of this length (id 70 is also MACCEPA board 0's, 8 bytes)",
     )
-    p.add_argument("--expected-ms", type=_decimal)
+    p.add_argument("--expected-ms", type=decimal)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_timing)

@@ -10,11 +10,22 @@ import time
 from pathlib import Path
 from typing import Any
 
+from exolink import gaitlab, logs, recstore
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
-from exolink.cli.remote import Refused, Remote, _decimal, _guard, _integer, _Leaves, common, remote
+from exolink.cli.options import Leaves, common, decimal, guard, integer
+from exolink.client import Refused, Remote, remote
 from exolink.mcapcheck import iso
-from exolink.recording import REPLAY_PREFIX
-from exolink.recstore import DEFAULT_CHUNK
+from exolink.recording import (
+    COMMANDS,
+    REPLAY_PREFIX,
+    RecordingError,
+    export_csv,
+    held_back,
+    info,
+    play,
+    recover,
+)
+from exolink.recstore import DEFAULT_CHUNK, StoreError
 
 
 def _labels(items: list[str]) -> dict[str, str]:
@@ -35,7 +46,7 @@ def record_body(args: argparse.Namespace) -> dict[str, Any]:
     return body
 
 
-@_guard
+@guard
 def cmd_record(args: argparse.Namespace) -> int:
     try:
         body = record_body(args)
@@ -66,8 +77,6 @@ FETCH_TIMEOUT_S = 5.0
 def _asker(r: Remote) -> Any:
     """Requests to the board's ``recordings`` (the recorder's), patient with the board's rate
     limit and lost replies (recstore.Patient); a refusal is the CLI's usual one."""
-    from exolink import recstore
-
     r.timeout = max(r.timeout, FETCH_TIMEOUT_S)
     patient = recstore.Patient(lambda body: r.ask("recordings", body=body))
 
@@ -84,7 +93,7 @@ def _mib(n: float) -> str:
     return f"{n / 2**20:.2f} MiB"
 
 
-@_guard
+@guard
 def cmd_record_list(args: argparse.Namespace) -> int:
     with remote(args) as r:
         s = _asker(r)({"action": "list"})
@@ -103,8 +112,6 @@ def cmd_record_list(args: argparse.Namespace) -> int:
 
 
 def _fetch_one(ask: Any, name: str, dest: Path, chunk: int) -> None:
-    from exolink import recstore
-
     f = recstore.fetch(ask, name, dest, chunk)
     if f.skipped:
         sys.stdout.write(f"{name}: already here, sha256 {f.sha256}\n")
@@ -121,8 +128,6 @@ def _guard_store(func):  # type: ignore[no-untyped-def]
     """What the laptop found wrong with a fetch (a checksum, a name) is a refusal, one line."""
 
     def wrapped(args: argparse.Namespace) -> int:
-        from exolink.recstore import StoreError
-
         try:
             return int(func(args))
         except StoreError as exc:
@@ -134,7 +139,7 @@ def _guard_store(func):  # type: ignore[no-untyped-def]
 
 
 @_guard_store
-@_guard
+@guard
 def cmd_record_fetch(args: argparse.Namespace) -> int:
     dest = Path(args.dir)
     dest.mkdir(parents=True, exist_ok=True)
@@ -146,10 +151,8 @@ def cmd_record_fetch(args: argparse.Namespace) -> int:
 
 
 @_guard_store
-@_guard
+@guard
 def cmd_record_sync(args: argparse.Namespace) -> int:
-    from exolink import recstore
-
     dest = Path(args.dir)
     dest.mkdir(parents=True, exist_ok=True)
     with remote(args) as r:
@@ -167,7 +170,7 @@ def cmd_record_sync(args: argparse.Namespace) -> int:
     return 0
 
 
-@_guard
+@guard
 def cmd_record_delete(args: argparse.Namespace) -> int:
     with remote(args) as r:
         ask = _asker(r)
@@ -190,8 +193,6 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
     """A file that is missing, unreadable or not writable is one line naming it."""
 
     def wrapped(args: argparse.Namespace) -> int:
-        from exolink.recording import RecordingError
-
         try:
             return int(func(args))
         except RecordingError as exc:
@@ -207,8 +208,6 @@ def _guard_file(func):  # type: ignore[no-untyped-def]
 
 @_guard_file
 def cmd_info(args: argparse.Namespace) -> int:
-    from exolink.recording import info
-
     i = info(args.file)
     if args.json:
         sys.stdout.write(json.dumps({**vars(i), "duration_s": i.duration_s}, indent=2) + "\n")
@@ -251,8 +250,6 @@ def cmd_export(args: argparse.Namespace) -> int:
             "export needs --csv DIR, --c3d FILE, --opensim DIR or --events FILE", EXIT_USAGE
         )
     if args.csv:
-        from exolink.recording import export_csv
-
         for topic, n in sorted(export_csv(args.file, args.csv).items()):
             sys.stdout.write(f"{topic:40} {n:>8} rows\n")
     if args.c3d or args.opensim or args.events:
@@ -263,8 +260,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 def _export_gaitlab(args: argparse.Namespace) -> None:
     """C3D, OpenSim and the events CSV (exolink.gaitlab); what was lost is said, never hidden."""
     from pathlib import Path
-
-    from exolink import gaitlab, logs
 
     logs.setup("export")  # the library's log lines on stderr, never mixed into this output
     if args.c3d:
@@ -313,8 +308,6 @@ def _export_gaitlab(args: argparse.Namespace) -> None:
 
 @_guard_file
 def cmd_recover(args: argparse.Namespace) -> int:
-    from exolink.recording import recover
-
     out = args.output or args.file.removesuffix(".mcap") + ".recovered.mcap"
     r = recover(args.file, out)
     for loss in r.losses:
@@ -330,10 +323,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 @_guard_file
-@_guard
+@guard
 def cmd_play(args: argparse.Namespace) -> int:
-    from exolink.recording import info, play
-
     recorded = info(args.file).topics  # a missing or broken file is said before connecting
     topics = (
         [t if t.startswith("/") else f"/{args.ns}/{t}" for t in args.topics]
@@ -368,8 +359,6 @@ def _held_back(
 ) -> str:
     """Says on stderr which topics play holds back and why, with their message counts; returns
     the totals for the closing line."""
-    from exolink.recording import COMMANDS, held_back
-
     why: dict[str, list[tuple[str, int]]] = {}
     for t in topics:
         entry = recorded.get(t, {})
@@ -395,7 +384,7 @@ def _held_back(
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
     p = sub.add_parser("record", help="start / stop / status of the recorder on the board")
-    s = _Leaves(p.add_subparsers(dest="action", required=True), parent)
+    s = Leaves(p.add_subparsers(dest="action", required=True), parent)
     q = s.add_parser("start", help="start [--label subject=S01 --label session=walk1]")
     q.add_argument("--label", action="append", metavar="KEY=VALUE")
     s.add_parser("stop")
@@ -413,7 +402,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q.add_argument("-o", "--dir", default=".", help="where to put them (default: here)")
     q.add_argument(
         "--chunk",
-        type=_integer,
+        type=integer,
         default=DEFAULT_CHUNK,
         help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
         "link drops larger replies)",
@@ -425,7 +414,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q.add_argument("dir", metavar="DIR")
     q.add_argument(
         "--chunk",
-        type=_integer,
+        type=integer,
         default=DEFAULT_CHUNK,
         help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
         "link drops larger replies)",
@@ -471,7 +460,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument(
         "--debounce-ms",
-        type=_decimal,
+        type=decimal,
         default=30.0,
         help="a foot contact change counts once it held this long (default 30)",
     )
@@ -498,7 +487,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help=f"republish a recording onto Zenoh with its timing (under /{REPLAY_PREFIX}/ unless --live)",
     )
     p.add_argument("file")
-    p.add_argument("--rate", type=_decimal, default=1.0)
+    p.add_argument("--rate", type=decimal, default=1.0)
     p.add_argument("--loop", action="store_true")
     p.add_argument("--topics", nargs="+")
     p.add_argument(

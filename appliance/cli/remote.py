@@ -5,109 +5,21 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import math
 import os
-import re
 import statistics
 import sys
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 from exolink import messaging
+from exolink.cli import clock
+from exolink.cli.controllers import show
 from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
-
-DEFAULT_AT = "tcp/127.0.0.1:7447"
-DEFAULT_TIMEOUT_S = 3.0
-
-
-class Remote:
-    """One session to one appliance; the device name is discovered when not given."""
-
-    def __init__(self, args: argparse.Namespace) -> None:
-        self.at = args.at
-        self.timeout = args.timeout
-        self.domain, self.ns = args.domain, args.ns
-        # A longer --timeout also waits longer for the session (a board with a saturated CPU
-        # answers Zenoh's handshake late); the default keeps Zenoh's own.
-        wait = args.timeout if args.timeout > DEFAULT_TIMEOUT_S else None
-        self.session = messaging.open_client_session(self.at, args.zenoh_config, handshake_s=wait)
-        self.user = messaging.client_login(args.zenoh_config)
-        self._device = args.device
-
-    @property
-    def device(self) -> str:
-        if self._device is None:
-            self._device = self._discover()
-        return self._device
-
-    def _discover(self) -> str:
-        """Devices announce themselves through their nodes' liveliness tokens."""
-        deadline = time.monotonic() + self.timeout
-        while True:
-            replies = self.session.liveliness().get("exolink/*/nodes/*/alive", timeout=0.5)
-            devices = {str(r.ok.key_expr).split("/")[1] for r in replies if r.ok is not None}
-            if len(devices) == 1:
-                return devices.pop()
-            if len(devices) > 1:
-                raise messaging.Unreachable(
-                    f"several appliances answer at {self.at}: {', '.join(sorted(devices))}; "
-                    "choose one with --device"
-                )
-            if time.monotonic() >= deadline:
-                raise messaging.Unreachable(
-                    f"no appliance answers at {self.at} within {self.timeout:g} s "
-                    "(is it running and reachable? set --at tcp/<board-ip>:7447)"
-                )
-            time.sleep(0.1)
-
-    def call(self, *path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
-        reply = self.ask(*path, body=body)
-        if not reply.get("ok"):
-            raise Refused(str(reply.get("error", "refused")))
-        return reply
-
-    def ask(self, *path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
-        """The reply as it came, refusals included (``ok``, ``error``); Unreachable when
-        nothing answers."""
-        key = messaging.mgmt_key(self.device, *path)
-        try:
-            return messaging.request(self.session, key, body or {}, self.timeout, self.user)
-        except messaging.RequestTooLarge as exc:
-            raise Refused(str(exc)) from None
-
-    def selector(self, topic: str) -> str:
-        if topic.startswith("/"):
-            return f"{self.domain}/{topic.strip('/')}/*/*"
-        return messaging.topic_selector(self.domain, self.ns, topic)
-
-    def close(self) -> None:
-        self.session.close()
-
-
-class Refused(Exception):
-    pass
-
-
-@contextmanager
-def remote(args: argparse.Namespace) -> Iterator[Remote]:
-    r = Remote(args)
-    try:
-        yield r
-    finally:
-        r.close()
-
-
-def _guard(func):  # type: ignore[no-untyped-def]
-    def wrapped(args: argparse.Namespace) -> int:
-        try:
-            return int(func(args))
-        except Refused as exc:
-            return fail(f"refused: {exc}", EXIT_REFUSED)
-
-    return wrapped
+from exolink.cli.options import Leaves, common, decimal, guard, integer, number
+from exolink.cli.units import degrees, unit
+from exolink.cli.update import describe
+from exolink.client import Refused, remote
 
 
 def to_builtin(obj: Any) -> Any:
@@ -126,7 +38,7 @@ def to_builtin(obj: Any) -> Any:
 # --- data topics ------------------------------------------------------------------------------
 
 
-@_guard
+@guard
 def cmd_topics(args: argparse.Namespace) -> int:
     seen: dict[tuple[str, str], int] = {}
     lock = threading.Lock()
@@ -150,7 +62,7 @@ def cmd_topics(args: argparse.Namespace) -> int:
     return 0
 
 
-@_guard
+@guard
 def cmd_echo(args: argparse.Namespace) -> int:
     done = threading.Event()
     count = [0]
@@ -199,8 +111,6 @@ def _quiet_stdout() -> None:
 
 def _pretty(data: Any, indent: int = 0, typename: str = "") -> str:
     """YAML-like text; a top-level field of a known unit (exolink.cli.units) shows it."""
-    from exolink.cli.units import degrees, unit
-
     pad = "  " * indent
     if isinstance(data, dict):
         lines = []
@@ -227,7 +137,7 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-@_guard
+@guard
 def cmd_hz(args: argparse.Namespace) -> int:
     stamps: list[float] = []
     lock = threading.Lock()
@@ -268,53 +178,11 @@ def cmd_hz(args: argparse.Namespace) -> int:
 # --- commands to the H2 (the controller manager) ---------------------------------------------
 
 
-# Numbers as a person types them on a keyboard, in ASCII: Python's float() and int() also take
-# other scripts' digits (full-width, Arabic-Indic), underscores, padding: a command line must not.
-_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_INTEGER = re.compile(r"[+-]?[0-9]+")
-_FRAME_ID = re.compile(r"0[xX][0-9a-fA-F]+|[0-9]+")
-
-
-def _not_a_number(text: str, what: str) -> argparse.ArgumentTypeError:
-    why = " (only ASCII digits 0-9 count)" if not text.isascii() else ""
-    return argparse.ArgumentTypeError(f"{text!r} is not {what}{why}")
-
-
-def _decimal(text: str) -> float:
-    """A finite decimal number in ASCII (30, -1.5, 2e-3)."""
-    if not _DECIMAL.fullmatch(text):
-        raise _not_a_number(text, "a number")
-    v = float(text)
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
-    return v
-
-
-def _integer(text: str) -> int:
-    """A whole number in ASCII digits (a count, a port, a board)."""
-    if not _INTEGER.fullmatch(text):
-        raise _not_a_number(text, "a whole number")
-    return int(text)
-
-
-def _frame_id(text: str) -> int:
-    """A CAN id, decimal or 0x hex (70, 0x46)."""
-    if not _FRAME_ID.fullmatch(text):
-        raise _not_a_number(text, "a CAN id (decimal or 0x hex)")
-    return int(text, 0) if text[:2] in ("0x", "0X") else int(text)
-
-
-def _number(text: str) -> float:
-    """A protocol value: whole numbers stay int (the protocol checks they are whole)."""
-    v = _decimal(text)
-    return int(v) if v == int(v) else v
-
-
 def _angles(text: str) -> list[float]:
     parts = [p for p in text.replace(" ", "").split(",") if p]
     if len(parts) != 6:
         raise argparse.ArgumentTypeError(f"need six comma-separated angles, got {len(parts)}")
-    return [_number(p) for p in parts]
+    return [number(p) for p in parts]
 
 
 def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
@@ -358,7 +226,7 @@ def h2_body(args: argparse.Namespace) -> dict[str, Any]:
     return {"kind": "stream", "on": args.state == "on"}
 
 
-@_guard
+@guard
 def cmd_send(args: argparse.Namespace) -> int:
     return _h2_command(args, h2_body(args))
 
@@ -366,144 +234,43 @@ def cmd_send(args: argparse.Namespace) -> int:
 # --- registration ----------------------------------------------------------------------------
 
 
-def _appliance_options() -> list[tuple[str, dict[str, Any]]]:
-    """The options of every command that talks to an appliance: flag -> add_argument keywords."""
-    return [
-        (
-            "--at",
-            {
-                "default": os.environ.get("EXOLINK_AT", DEFAULT_AT),
-                "help": f"Zenoh endpoint of the appliance (env EXOLINK_AT, default {DEFAULT_AT})",
-            },
-        ),
-        (
-            "--device",
-            {
-                "default": os.environ.get("EXOLINK_DEVICE"),
-                "help": "device name when several appliances answer (env EXOLINK_DEVICE)",
-            },
-        ),
-        (
-            "--zenoh-config",
-            {
-                "default": os.environ.get("EXOLINK_ZENOH_CONFIG"),
-                "help": "Zenoh login for a board that requires one: the card's "
-                "exolink-<role>.json5 (env EXOLINK_ZENOH_CONFIG)",
-            },
-        ),
-        (
-            "--timeout",
-            {
-                "type": _decimal,
-                "default": DEFAULT_TIMEOUT_S,
-                "help": "seconds to wait for an answer (default 3); a longer one also waits "
-                "that long for the connection",
-            },
-        ),
-        ("--domain", {"type": _integer, "default": 0, "help": "ROS domain id of data topics (0)"}),
-        ("--ns", {"default": "h2", "help": "namespace of data topics (h2)"}),
-    ]
-
-
-GLOBAL_PREFIX = "global_"
-
-
-def _dest(flag: str) -> str:
-    return flag.lstrip("-").replace("-", "_")
-
-
-def common() -> argparse.ArgumentParser:
-    """Parent of the commands that talk to an appliance: its options after the command.
-
-    Nothing is set unless given, so a value after the command wins over one before it (see
-    add_global_options); resolve_appliance_options fills in the defaults.
-    """
-    p = argparse.ArgumentParser(add_help=False)
-    p.set_defaults(talks_to_appliance=True)
-    g = p.add_argument_group("appliance (also accepted before the command)")
-    for flag, kw in _appliance_options():
-        g.add_argument(flag, **{**kw, "default": argparse.SUPPRESS})
-    return p
-
-
-def add_global_options(parser: argparse.ArgumentParser) -> None:
-    """The same options before the command: `exolink --at tcp/10.0.0.2:7447 status`."""
-    g = parser.add_argument_group("appliance options (before or after the command)")
-    for flag, kw in _appliance_options():
-        g.add_argument(
-            flag,
-            **{**kw, "dest": GLOBAL_PREFIX + _dest(flag), "default": argparse.SUPPRESS},
-            metavar=_dest(flag).upper(),
-        )
-
-
-def resolve_appliance_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """After the command > before it > environment / default; refused by commands without them."""
-    before = {
-        flag: getattr(args, GLOBAL_PREFIX + _dest(flag))
-        for flag, _kw in _appliance_options()
-        if hasattr(args, GLOBAL_PREFIX + _dest(flag))
-    }
-    for flag in before:
-        delattr(args, GLOBAL_PREFIX + _dest(flag))
-    if not getattr(args, "talks_to_appliance", False):
-        if before:
-            parser.error(
-                f"{', '.join(before)}: `exolink {args.command}` does not talk to an appliance"
-            )
-        return
-    for flag, kw in _appliance_options():
-        if not hasattr(args, _dest(flag)):
-            setattr(args, _dest(flag), before.get(flag, kw["default"]))
-
-
-class _Leaves:
-    """Sub-subcommands that all take the appliance options (so `--at` may come last)."""
-
-    def __init__(self, sub: argparse._SubParsersAction, parent: argparse.ArgumentParser) -> None:  # type: ignore[type-arg]
-        self.sub, self.parent = sub, parent
-
-    def add_parser(self, name: str, **kw: Any) -> argparse.ArgumentParser:
-        return self.sub.add_parser(name, parents=[self.parent], **kw)  # type: ignore[no-any-return]
-
-
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
 
     p = sub.add_parser("topics", parents=[parent], help="list data topics with type and rate")
-    p.add_argument("--listen", type=_decimal, default=2.0, help="seconds to listen")
+    p.add_argument("--listen", type=decimal, default=2.0, help="seconds to listen")
     p.set_defaults(func=cmd_topics)
 
     p = sub.add_parser("echo", parents=[parent], help="print messages of a topic")
     p.add_argument("topic")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
-    p.add_argument("--count", "-n", type=_integer, default=0, help="stop after N messages")
+    p.add_argument("--count", "-n", type=integer, default=0, help="stop after N messages")
     p.set_defaults(func=cmd_echo)
 
     p = sub.add_parser("hz", parents=[parent], help="measure a topic's publishing rate")
     p.add_argument("topic")
-    p.add_argument("--window", type=_decimal, default=1.0)
-    p.add_argument("--count", "-n", type=_integer, default=0, help="stop after N reports")
+    p.add_argument("--window", type=decimal, default=1.0)
+    p.add_argument("--count", "-n", type=integer, default=0, help="stop after N reports")
     p.set_defaults(func=cmd_hz)
 
     p = sub.add_parser("send", help="send a validated command to the H2")
-    s = _Leaves(p.add_subparsers(dest="what", required=True), parent)
+    s = Leaves(p.add_subparsers(dest="what", required=True), parent)
     q = s.add_parser("joint", help="joint JOINT MODE VALUE (e.g. joint r_knee position 30)")
     q.add_argument("joint")
     q.add_argument("mode", choices=["position", "stiffness", "torque", "disabled", "stopped"])
-    q.add_argument("value", type=_number, nargs="?", default=0)
-    q.add_argument("--stiffness", type=_number, default=0)
+    q.add_argument("value", type=number, nargs="?", default=0)
+    q.add_argument("--stiffness", type=number, default=0)
     q = s.add_parser("position", help="position JOINT DEG")
     q.add_argument("joint")
-    q.add_argument("value", type=_number)
+    q.add_argument("value", type=number)
     q.set_defaults(stiffness=0)
     q = s.add_parser("stiffness", help="stiffness JOINT DEG PERCENT")
     q.add_argument("joint")
-    q.add_argument("value", type=_number)
-    q.add_argument("stiffness", type=_number)
+    q.add_argument("value", type=number)
+    q.add_argument("stiffness", type=number)
     q = s.add_parser("torque", help="torque JOINT COUNTS")
     q.add_argument("joint")
-    q.add_argument("value", type=_number)
+    q.add_argument("value", type=number)
     for name in ("disable", "stop"):
         q = s.add_parser(name, help=f"{name} JOINT|all")
         q.add_argument("joint")
@@ -629,7 +396,7 @@ def _card_line(nodes: list[dict[str, Any]]) -> str:
     return text + "\n"
 
 
-@_guard
+@guard
 def cmd_status(args: argparse.Namespace) -> int:
     with remote(args) as r:
         s = r.call("status")
@@ -642,8 +409,6 @@ def cmd_status(args: argparse.Namespace) -> int:
                 ctrl = r.call("controllers")
             except (messaging.Unreachable, Refused) as exc:
                 ctrl = {"error": f"controller manager: {exc}"}
-        from exolink.cli import clock
-
         off = clock.offset(r) if "clock" in s else None  # (an older supervisor has none)
     if args.json:
         if off is not None:  # the board's clock minus this laptop's
@@ -673,19 +438,15 @@ def cmd_status(args: argparse.Namespace) -> int:
     if ctrl is not None and "error" in ctrl:
         sys.stdout.write(f"controllers  unavailable: {ctrl['error']}\n")
     elif ctrl is not None:
-        from exolink.cli.controllers import show
-
         sys.stdout.write("controllers  " + show(ctrl) + "\n")
     return 0
 
 
 def update_line(sw: dict[str, Any] | None) -> str:
-    from exolink.cli.update import describe
-
     return describe(sw)
 
 
-@_guard
+@guard
 def cmd_nodes(args: argparse.Namespace) -> int:
     with remote(args) as r:
         nodes = r.call("nodes")["nodes"]
@@ -693,7 +454,7 @@ def cmd_nodes(args: argparse.Namespace) -> int:
     return 0
 
 
-@_guard
+@guard
 def cmd_control(args: argparse.Namespace) -> int:
     with remote(args) as r:
         n = r.call("control", body={"action": args.command, "node": args.node})["node"]
@@ -711,7 +472,7 @@ def hold(seconds: float = 0) -> None:
         pass
 
 
-@_guard
+@guard
 def cmd_logs(args: argparse.Namespace) -> int:
     with remote(args) as r:
         for line in r.call("logs", body={"node": args.node, "lines": args.lines})["lines"]:
@@ -733,13 +494,11 @@ def cmd_logs(args: argparse.Namespace) -> int:
     return 0
 
 
-@_guard
+@guard
 def cmd_watchdog(args: argparse.Namespace) -> int:
     body = {"action": args.command}  # the e-stop's detail names this session's login
     with remote(args) as r:
         if args.command == "arm":  # a board with no time server takes this laptop's first
-            from exolink.cli import clock
-
             sys.stdout.write(clock.sync_at_arm(r))
         s = r.call("watchdog", body=body)
     detail = f": {s['detail']}" if s.get("detail") else ""
@@ -760,7 +519,7 @@ def params_body(args: argparse.Namespace) -> dict[str, Any]:
     return {"set": {"key": key, "value": value}}
 
 
-@_guard
+@guard
 def cmd_params(args: argparse.Namespace) -> int:
     with remote(args) as r:
         names = [n["name"] for n in r.call("status")["nodes"]]
@@ -774,7 +533,7 @@ def cmd_params(args: argparse.Namespace) -> int:
     return 0
 
 
-@_guard
+@guard
 def cmd_trigger(args: argparse.Namespace) -> int:
     with remote(args) as r:
         reply = r.call("trigger", body={"action": "fire"} if args.action == "fire" else {})
@@ -796,7 +555,7 @@ def register_management(sub: argparse._SubParsersAction) -> None:  # type: ignor
         p.set_defaults(func=cmd_control)
     p = sub.add_parser("logs", parents=[parent], help="a node's recent output")
     p.add_argument("node")
-    p.add_argument("--lines", "-n", type=_integer, default=50)
+    p.add_argument("--lines", "-n", type=integer, default=50)
     p.add_argument("--follow", "-f", action="store_true")
     p.set_defaults(func=cmd_logs)
     for name, text in (

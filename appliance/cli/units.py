@@ -11,12 +11,12 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from exolink.protocol import h2
+
 Unit = str | Callable[[dict[str, Any]], str | None]
 
 
 def _setpoint(msg: dict[str, Any]) -> str | None:
-    from exolink.protocol import h2
-
     mode = h2.MODE_NAMES.get(msg.get("mode", 0))
     return {"position": "deg", "stiffness": "deg", "torque": "counts"}.get(mode or "")
 

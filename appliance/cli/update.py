@@ -19,9 +19,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from exolink import messaging, update
+from exolink import logs, messaging, update
 from exolink.cli.errors import EXIT_REFUSED, fail
-from exolink.cli.remote import Refused, Remote, _guard, common, remote
+from exolink.cli.options import common, guard
+from exolink.client import Refused, Remote, remote
 
 POLL_S = 5.0
 
@@ -133,7 +134,7 @@ def wait_outcome(args: argparse.Namespace, before: dict[str, Any], out: Any) -> 
     return fail(f"no outcome within {args.wait:g} s; `exolink status` shows the board's word", 1)
 
 
-@_guard
+@guard
 def cmd_update(args: argparse.Namespace) -> int:
     path = Path(args.bundle)
     size, sha = check_bundle(path)
@@ -155,8 +156,6 @@ def cmd_update(args: argparse.Namespace) -> int:
 
 def cmd_update_agent(args: argparse.Namespace) -> int:
     """The board's root side (systemd units; exolink.update)."""
-    from exolink import logs
-
     logs.setup("update-agent")
     action = {
         "install": update.agent_install,

@@ -9,17 +9,17 @@ import argparse
 import sys
 
 from exolink.cli.errors import EXIT_USAGE, fail
-from exolink.cli.remote import _decimal, _guard, _integer, common
+from exolink.cli.options import common, decimal, guard, integer
+from exolink.client import remote
 
 
-@_guard
+@guard
 def cmd_dashboard(args: argparse.Namespace) -> int:
     import asyncio
     import signal
 
-    from exolink.cli.remote import remote
-    from exolink.dashboard import server
-    from exolink.dashboard.hub import Hub
+    from exolink.dashboard import server  # heavy: aiohttp; `exolink dashboard` only
+    from exolink.dashboard.hub import Hub  # heavy: the dashboard's Zenoh side; `dashboard` only
 
     try:
         hosts = server.Hosts(args.port, args.allow_host)
@@ -59,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="the web dashboard on this laptop (http://127.0.0.1:8080)",
     )
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (127.0.0.1)")
-    p.add_argument("--port", type=_integer, default=8080, help="port to serve on (8080)")
+    p.add_argument("--port", type=integer, default=8080, help="port to serve on (8080)")
     p.add_argument(
         "--allow-host",
         action="append",
@@ -69,7 +69,5 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "<address>: the address a request came in on); loopback names always work",
     )
     p.add_argument("--no-browser", action="store_true", help="do not open a browser")
-    p.add_argument(
-        "--rate", type=_decimal, default=25.0, help="frames per second to each page (25)"
-    )
+    p.add_argument("--rate", type=decimal, default=25.0, help="frames per second to each page (25)")
     p.set_defaults(func=cmd_dashboard)

@@ -13,7 +13,7 @@ import argparse
 from dataclasses import dataclass
 from typing import Any
 
-from exolink.cli import main as cli_main
+from exolink.cli import parser as cli_parser
 from exolink.cli.motion import START_TIMEOUT_S, maccepa_body, pattern_body, timing_body
 from exolink.cli.recordings import record_body
 from exolink.cli.remote import h2_body, params_body
@@ -23,7 +23,7 @@ class CommandError(Exception):
     """A command line the dashboard will not send; the text says why."""
 
 
-class _RaisingParser(cli_main.Parser):
+class _RaisingParser(cli_parser.Parser):
     """The CLI's parser, raising instead of printing usage and exiting the server."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
@@ -63,7 +63,7 @@ _parser: argparse.ArgumentParser | None = None
 def _get_parser() -> argparse.ArgumentParser:
     global _parser
     if _parser is None:
-        _parser = cli_main.build_parser(_RaisingParser)
+        _parser = cli_parser.build_parser(_RaisingParser)
     return _parser
 
 

@@ -10,7 +10,7 @@ publishers' sequence numbers (the rmw_zenoh attachment), not from counting sampl
 Events a person must not miss (watchdog state, trigger edges, pattern state) go out at once.
 The supervisor's status (nodes, bus, watchdog details) is polled once a second.
 
-Commands go out on the laptop client's session and login (exolink.cli.remote.Remote), parsed by
+Commands go out on the laptop client's session and login (exolink.client.Remote), parsed by
 the CLI's own parser (exolink.dashboard.commands): a refusal is the appliance's own text, and a
 command the parser refuses is never sent.
 """
@@ -32,11 +32,13 @@ from typing import Any
 import structlog
 import zenoh
 from exolink import cdr, clock, messaging, recstore, roles
+from exolink import nodes as node_plugins
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
-from exolink.cli.remote import Refused, Remote
+from exolink.client import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.holder import Holder, HoldRefused, describe
 from exolink.protocol import h2
+from exolink.recording import decode, info, iter_messages
 
 log = structlog.get_logger("exolink.dashboard")
 
@@ -57,9 +59,7 @@ def _cache_dir() -> Path:
 
 def _patterns_dir() -> Path:
     """The bundled patterns: the pattern page plots a pattern the player names by a file here."""
-    from exolink import nodes
-
-    return Path(nodes.__file__).resolve().parent / "patterns"
+    return Path(node_plugins.__file__).resolve().parent / "patterns"
 
 
 class Hub:
@@ -506,8 +506,6 @@ class Hub:
 def recording_plot(path: str, max_points: int = 2000) -> dict[str, Any]:
     """A finished recording's joint angles (deg, every n-th message up to max_points) and its
     trigger edges, seconds from the first message: the Recording page's plot."""
-    from exolink.recording import decode, info, iter_messages
-
     i = info(path)
     topics = [t for t in i.topics if t.endswith("/joint_states") and "/replay/" not in t]
     if not topics:

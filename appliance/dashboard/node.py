@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 
 import msgspec
 from exolink import roles
-from exolink.cli.remote import Remote
+from exolink.client import Remote
 from exolink.dashboard import server
 from exolink.dashboard.hub import Hub
 from exolink.node import Node

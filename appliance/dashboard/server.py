@@ -23,8 +23,10 @@ from typing import Any
 
 import structlog
 from aiohttp import WSMsgType, web
+from exolink import gaitlab, recstore
 from exolink.dashboard import hub as hub_module
 from exolink.dashboard.hub import Hub
+from exolink.recording import RecordingError
 
 log = structlog.get_logger("exolink.dashboard")
 STATIC = Path(__file__).resolve().parent / "static"
@@ -317,8 +319,6 @@ async def _recording(request: web.Request) -> Path:
     """A recording the recorder lists, as a file here: the recorder decides (this dashboard's
     role, the file closed) and a laptop fetches it from the board (Hub.recording); a name the
     recorder did not list is never opened."""
-    from exolink import recstore
-
     hub = request.app[HUB]
     name = request.query.get("file", "")
     files = (hub.record or {}).get("files") or []
@@ -342,8 +342,6 @@ async def download(request: web.Request) -> web.StreamResponse:
 
 
 def _c3d(path: Path, out_dir: str) -> Path:
-    from exolink import gaitlab
-
     trial = gaitlab.build_trial(path)
     return gaitlab.write_c3d(trial, Path(out_dir) / (path.name.removesuffix(".mcap") + ".c3d"))
 
@@ -352,9 +350,6 @@ async def recording_c3d(request: web.Request) -> web.StreamResponse:
     """The recording as C3D for the gait lab (exolink.gaitlab, as `exolink export --c3d`), where
     the dashboard runs with the gaitlab extra (a laptop): on the board, 501 naming the extra."""
     import tempfile
-
-    from exolink import gaitlab
-    from exolink.recording import RecordingError
 
     path = await _recording(request)
     try:
@@ -375,8 +370,6 @@ async def recording_c3d(request: web.Request) -> web.StreamResponse:
 
 
 async def recording_plot(request: web.Request) -> web.StreamResponse:
-    from exolink.recording import RecordingError
-
     try:
         path = await _recording(request)
     except web.HTTPException as exc:

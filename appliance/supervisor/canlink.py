@@ -28,6 +28,7 @@ from typing import Any
 
 from exolink.canbus import CAN_ERR_FLAG, CAN_FRAME
 from exolink.config import CanConfig
+from exolink.errors import CanLinkError
 
 # DCAN1 (0x481d0000) in Debian's am335x-boneblack.dtb (kernel 6.12); the overlay sets it "okay".
 DCAN1_STATUS = Path(
@@ -41,10 +42,6 @@ STATES = {
     4: "stopped",
     5: "sleeping",
 }
-
-
-class CanLinkError(RuntimeError):
-    pass
 
 
 @dataclass(frozen=True)

@@ -449,7 +449,7 @@ class Zygote:
 
 
 def _fork_zygote(ours: socket.socket, theirs: socket.socket) -> int:
-    from exolink import zygote
+    from exolink import zygote  # heavy: preloads the node runtime; the forked child's only
 
     pid = os.fork()
     if pid == 0:

@@ -15,10 +15,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 
 from exolink.config import TriggerConfig
-
-
-class TriggerError(RuntimeError):
-    pass
+from exolink.errors import TriggerError
 
 
 @dataclass(frozen=True)

@@ -194,7 +194,9 @@ class GaitPattern(Controller):
     planned = True
 
     def configure(self) -> None:
-        from exolink.nodes.pattern_player import period_s
+        from exolink.nodes.pattern_player import (
+            period_s,  # another plugin: a pattern controller's only
+        )
 
         _unique(self.name, list(self.params.joints))
         if self.params.start >= len(self.params.rows):
