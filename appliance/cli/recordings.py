@@ -381,6 +381,16 @@ def _held_back(
     return f"; held back {' and '.join(totals)}" + (" each pass" if loop else "")
 
 
+def _chunk_option(q: argparse.ArgumentParser) -> None:
+    q.add_argument(
+        "--chunk",
+        type=integer,
+        default=DEFAULT_CHUNK,
+        help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
+        "link drops larger replies)",
+    )
+
+
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parent = common()
     p = sub.add_parser("record", help="start / stop / status of the recorder on the board")
@@ -400,25 +410,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     q.add_argument("names", nargs="+", metavar="NAME")
     q.add_argument("-o", "--dir", default=".", help="where to put them (default: here)")
-    q.add_argument(
-        "--chunk",
-        type=integer,
-        default=DEFAULT_CHUNK,
-        help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
-        "link drops larger replies)",
-    )
+    _chunk_option(q)
     q.set_defaults(func=cmd_record_fetch)
     q = s.add_parser(
         "sync", help="fetch every finished recording DIR lacks (operator; the end of the day)"
     )
     q.add_argument("dir", metavar="DIR")
-    q.add_argument(
-        "--chunk",
-        type=integer,
-        default=DEFAULT_CHUNK,
-        help=f"bytes per request (default {DEFAULT_CHUNK >> 10} KiB, at most 1 MiB: a slow "
-        "link drops larger replies)",
-    )
+    _chunk_option(q)
     q.set_defaults(func=cmd_record_sync)
     q = s.add_parser("delete", help="delete recordings from the board's card (admin)")
     q.add_argument("names", nargs="+", metavar="NAME")
