@@ -32,7 +32,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 from exolink.canbus import CAN_FRAME, SO_TIMESTAMPNS, CanOpenError, Frame
@@ -148,12 +148,27 @@ def _check_lease(lease: int, planned: int, ring: int) -> None:
         )
 
 
-def _place(ring: list[bytes], first: int, frames: list[bytes]) -> None:
-    """``frames`` at ring positions ``first``, ``first + 1``, ..., as many as fit."""
-    for i, f in enumerate(frames[: len(ring) - first]):
-        if len(f) > 8:
-            raise ValueError(f"a CAN frame carries 8 bytes, got {len(f)}")
-        ring[first + i] = bytes(f)
+def _checked(slot: int, payload: bytes) -> bytes:
+    if len(payload) > 8:
+        raise ValueError(f"slot {slot}: a CAN frame carries 8 bytes, got {len(payload)}")
+    return payload
+
+
+def _place_ahead(
+    frames_from: Mapping[int, bytes],
+    n: int,
+    written: int,
+    ring: int,
+    put: Callable[[int, bytes], None],
+) -> int:
+    """Both leases' renewal: slot k sits at ring position k mod ``ring`` from ``start`` on, and
+    each is placed once (a plan does not change what it planned), so only slots from
+    ``max(n, written)`` up to a ring ahead of ``n`` are put. The first slot not placed."""
+    k = max(n, written)
+    while k < n + ring and k in frames_from:
+        put(k, frames_from[k])
+        k += 1
+    return k
 
 
 class CyclicLease:
@@ -207,8 +222,7 @@ class CyclicLease:
         self._lease = lease
 
     def _put(self, slot: int, payload: bytes) -> None:
-        if len(payload) > 8:
-            raise ValueError(f"slot {slot}: a CAN frame carries 8 bytes, got {len(payload)}")
+        payload = _checked(slot, payload)
         self._frames[slot % self.ring] = CAN_FRAME.pack(
             self.can_id, len(payload), payload.ljust(8, b"\0")
         )
@@ -245,12 +259,7 @@ class CyclicLease:
         from n (fewer than two planned: ValueError). A lease that already ran out is not
         restarted (``start`` is a new phase, on purpose)."""
         n = self.sent()
-        # Slots from n on are placed once each (a plan does not change what it planned): only
-        # those no renewal placed yet, up to a ring ahead of n.
-        k = max(n, self._written)
-        while k < n + self.ring and k in frames_from:
-            self._put(k, frames_from[k])
-            k += 1
+        k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
         self._written = max(self._written, k)
         lease = min(lease, k - n - 1)  # never past the plan, even one frame late
         _check_lease(lease, k - n - 1, self.ring)
@@ -306,7 +315,8 @@ class ThreadLease:
         self.can_id, self.period_s, self.ring = can_id, period_s, ring
         self._bus = bus
         self._cond = threading.Condition()
-        self._frames = [bytes(8)] * ring
+        self._frames = [bytes(8)] * ring  # by ring position, as CyclicLease's
+        self._written = 0
         self._index = 0  # the op's next frame
         self._count = 0  # frames the lease still allows
         self._base = 0
@@ -320,7 +330,9 @@ class ThreadLease:
     def start(self, frames: list[bytes], lease: int) -> None:
         _check_lease(lease, len(frames), self.ring)
         with self._cond:
-            _place(self._frames, 0, frames)
+            for k, f in enumerate(frames[: self.ring]):
+                self._put(k, f)
+            self._written = min(len(frames), self.ring)
             self._index, self._count, self._base, self._lease = 0, lease, 0, lease
             self._running, self._next_at = True, time.monotonic()
             self._cond.notify()
@@ -336,15 +348,16 @@ class ThreadLease:
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
         with self._cond:
             n = self._base + self._lease - (self._count if self._running else 0)
-            plan: list[bytes] = []
-            while n + len(plan) in frames_from and len(plan) < self.ring:
-                plan.append(frames_from[n + len(plan)])
-            lease = min(lease, len(plan) - 1)  # the kernel's rule (CyclicLease.renew)
-            _check_lease(lease, len(plan) - 1, self.ring)
-            _place(self._frames, 0, plan)
-            self._index, self._base, self._lease = 0, n, lease
+            k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
+            self._written = max(self._written, k)
+            lease = min(lease, k - n - 1)  # the kernel's rule (CyclicLease.renew)
+            _check_lease(lease, k - n - 1, self.ring)
+            self._base, self._lease = n, lease
             self._count = lease if self._running else 0
             return n
+
+    def _put(self, slot: int, payload: bytes) -> None:
+        self._frames[slot % self.ring] = bytes(_checked(slot, payload))
 
     def stop(self) -> None:
         with self._cond:
