@@ -380,6 +380,11 @@ ROUTER_QOS = [
         "overwrite": {"congestion_control": "drop", "priority": "interactive_high"},
     },
 ]
+# Batches (64 KiB each, allocated when used) a session may queue for requests and replies
+# toward one peer: Zenoh's default is 2, and a recording's chunk (a 64 KiB chunk is ~88 KB of
+# JSON, two batches) then fits only into an empty queue; behind a slow link or a starved
+# router its second fragment waited past max_wait_before_drop_fragments and was dropped.
+REPLY_QUEUE_BATCHES = 8
 # The most the router takes in one message (transport/link/rx/max_message_size): the largest
 # request any login may send (roles.MAX_REQUEST_BYTES) and room for its framing. Zenoh's own
 # default, 1 GiB, let any client make the router hold that much while it reassembled it.
@@ -411,6 +416,7 @@ def session_config(
     # file turns it on.
     if not (zcfg.config_file and "shared_memory" in Path(zcfg.config_file).read_text()):
         cfg.insert_json5("transport/shared_memory/enabled", "false")
+    cfg.insert_json5("transport/link/tx/queue/size/interactive_high", str(REPLY_QUEUE_BATCHES))
     cfg.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else []))
     cfg.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else []))
     if mode == "client":

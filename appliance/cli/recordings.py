@@ -74,19 +74,27 @@ def cmd_record(args: argparse.Namespace) -> int:
 FETCH_TIMEOUT_S = 5.0
 
 
-def _asker(r: Remote) -> Any:
+class _Asker:
     """Requests to the board's ``recordings`` (the recorder's), patient with the board's rate
-    limit and lost replies (recstore.Patient); a refusal is the CLI's usual one."""
-    r.timeout = max(r.timeout, FETCH_TIMEOUT_S)
-    patient = recstore.Patient(lambda body: r.ask("recordings", body=body))
+    limit and lost replies (recstore.Patient); a refusal is the CLI's usual one. Its counts
+    of what was asked again end each fetch's line: a slow fetch says why."""
 
-    def ask(body: dict[str, Any]) -> dict[str, Any]:
+    def __init__(self, r: Remote) -> None:
+        r.timeout = max(r.timeout, FETCH_TIMEOUT_S)
+        self.patient = recstore.Patient(lambda body: r.ask("recordings", body=body))
+
+    def __call__(self, body: dict[str, Any]) -> dict[str, Any]:
         try:
-            return patient(body)
+            return self.patient(body)
         except recstore.Refused as exc:
             raise Refused(str(exc)) from None
 
-    return ask
+    def retried(self) -> str:
+        """What this fetch asked again, or nothing."""
+        p = self.patient
+        if not (p.retried_lost or p.retried_rate):
+            return ""
+        return f"; asked again: {p.retried_lost} lost, {p.retried_rate} rate-limited"
 
 
 def _mib(n: float) -> str:
@@ -96,7 +104,7 @@ def _mib(n: float) -> str:
 @guard
 def cmd_record_list(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        s = _asker(r)({"action": "list"})
+        s = _Asker(r)({"action": "list"})
     if args.json:
         sys.stdout.write(json.dumps({"files": s["files"], "card": s["card"]}) + "\n")
         return 0
@@ -111,7 +119,8 @@ def cmd_record_list(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fetch_one(ask: Any, name: str, dest: Path, chunk: int) -> None:
+def _fetch_one(ask: _Asker, name: str, dest: Path, chunk: int) -> None:
+    ask.patient.retried_lost = ask.patient.retried_rate = 0
     f = recstore.fetch(ask, name, dest, chunk)
     if f.skipped:
         sys.stdout.write(f"{name}: already here, sha256 {f.sha256}\n")
@@ -120,7 +129,7 @@ def _fetch_one(ask: Any, name: str, dest: Path, chunk: int) -> None:
     rate = (f.size - f.resumed_at) / 2**20 / f.seconds if f.seconds > 0 else 0.0
     sys.stdout.write(
         f"{name}: {_mib(f.size)} in {f.seconds:.1f} s ({rate:.1f} MiB/s){resumed}, "
-        f"sha256 {f.sha256} checked\n"
+        f"sha256 {f.sha256} checked{ask.retried()}\n"
     )
 
 
@@ -144,7 +153,7 @@ def cmd_record_fetch(args: argparse.Namespace) -> int:
     dest = Path(args.dir)
     dest.mkdir(parents=True, exist_ok=True)
     with remote(args) as r:
-        ask = _asker(r)
+        ask = _Asker(r)
         for name in args.names:
             _fetch_one(ask, name, dest, args.chunk)
     return 0
@@ -156,7 +165,7 @@ def cmd_record_sync(args: argparse.Namespace) -> int:
     dest = Path(args.dir)
     dest.mkdir(parents=True, exist_ok=True)
     with remote(args) as r:
-        ask = _asker(r)
+        ask = _Asker(r)
         listing = ask({"action": "list"})["files"]
         lacking = recstore.missing(listing, dest)
         for name in lacking:
@@ -173,7 +182,7 @@ def cmd_record_sync(args: argparse.Namespace) -> int:
 @guard
 def cmd_record_delete(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        ask = _asker(r)
+        ask = _Asker(r)
         for name in args.names:
             d = ask({"action": "delete", "name": name})
             sys.stdout.write(f"deleted {d['name']} ({_mib(d['size'])}) from the board\n")
