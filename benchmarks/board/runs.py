@@ -241,6 +241,7 @@ def run_guest(
     cpu_quota: int | None = None,
     estop: bool = False,
     fetch_mb: int = 0,
+    cap_after_start: bool = False,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
@@ -248,7 +249,8 @@ def run_guest(
     ``cpu_quota``: the service capped at this % of a CPU (cardlib.prepare); ``estop``: after the
     window, e-stop -> first disable frame in the guest, beside hostile clients on this host;
     ``fetch_mb``: a closed recording of this size on the card, fetched by the laptop's
-    ``exolink record fetch`` from the window's start."""
+    ``exolink record fetch`` from the window's start; ``cap_after_start``: the quota set once
+    every node beats (``systemctl set-property --runtime``), so the start is not under it."""
     if cprofile:
         env = (
             *env,
@@ -274,7 +276,7 @@ def run_guest(
         (py_spy,) if py_spy else (),
         env,
         without,
-        cpu_quota,
+        None if cap_after_start else cpu_quota,
     )
     result["config"] = cfg
     result["cpu_quota_pct"] = cpu_quota
@@ -320,6 +322,8 @@ def run_guest(
         log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
         if cpu_quota:
             result["simulator_cgroup"] = _simulator_out_of_the_quota(guest)
+        if cpu_quota and cap_after_start:
+            result["cpu_quota_set"] = _cap_now(guest, cpu_quota)
         fetch = _stage_recording(guest, work, fetch_mb, result) if fetch_mb else None
         time.sleep(SETTLE_S)
 
@@ -437,6 +441,21 @@ def _hostile_clients(case: str, at: str, login: str, device: str) -> list[subpro
             p.send_signal(signal.SIGSTOP)
     time.sleep(1.0)
     return procs
+
+
+def _cap_now(guest: Guest, pct: int) -> dict[str, Any]:
+    """The service's quota set at run time, with the cgroup's counters then: the figures at
+    the end minus these are the load's alone."""
+    guest.ssh(
+        f"systemctl set-property --runtime exolink.service CPUQuota={pct}% CPUQuotaPeriodSec=10ms"
+    )
+    r = guest.ssh(
+        "cat /sys/fs/cgroup/system.slice/exolink.service/cpu.max "
+        "/sys/fs/cgroup/system.slice/exolink.service/cpu.stat"
+    )
+    lines = r.stdout.splitlines()
+    stat = dict(line.split(" ", 1) for line in lines[1:] if " " in line)
+    return {"cpu_max": lines[0] if lines else r.stderr.strip(), "cpu_stat": stat}
 
 
 def _simulator_out_of_the_quota(guest: Guest) -> str:
