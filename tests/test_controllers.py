@@ -903,6 +903,42 @@ def test_a_hung_or_killed_manager_ends_the_gaits_timer(gait, mbus, sig) -> None:
                 os.kill(pid, signal.SIGCONT)
 
 
+def test_a_feedback_controller_beside_the_gait_runs_each_cycle_the_gait_stays_timed(
+    gait, mbus
+) -> None:  # type: ignore[no-untyped-def]
+    """A PID on a joint the pattern does not drive is a feedback controller: the cycle loop
+    runs it every H2 cycle while the gait's joints stay on the timer, one set-point a slot
+    (before, any such controller sent the gait back to the cycle loop as well)."""
+    app = gait
+    app.arm_and_hold()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    wait_for(lambda: json.loads(ctl(app, "list", "--json").stdout)["timer"]["sending"])
+    params = json.dumps({"joints": ["l_ankle"], "kp": 0.5})
+    r = ctl(app, "load", "ankle", "pid", "--params", params, "--activate")
+    assert r.returncode == 0, r.stderr
+    wait_for(lambda: listing(app)["ankle"]["state"] == "active")
+    # the activation was a switch: the gait left the timer for it, then went back on alone
+    wait_for(lambda: json.loads(ctl(app, "list", "--json").stdout)["timer"]["sending"])
+    mbus.q.queue.clear()
+    frames = collect(mbus, 1.0, {70, 110})
+    angles = sum(m.arbitration_id == 110 for m in frames)
+    hips = joint_frames(frames, 1)  # the gait's r_hip
+    ankle = joint_frames(frames, 6)  # the PID's l_ankle, in torque mode
+    timer = json.loads(ctl(app, "list", "--json").stdout)["timer"]
+    assert timer["sending"] and timer["runs"] >= 2, timer
+    assert angles / 4 <= len(hips) <= angles / 2 + 3, (len(hips), angles, timer)
+    assert len(ankle) > angles * 3 / 4, (len(ankle), angles)  # about one a cycle
+    assert {f.mode for f in ankle} == {h2.MODES["torque"]}, ankle[:3]
+    assert listing(app)["pattern"]["state"] == "active"
+    # the watchdog stops both: after its first disable frame, no set-point of either
+    mbus.q.queue.clear()
+    assert app.cli("estop").returncode == 0
+    after = [(m.timestamp, h2.decode(m)) for m in collect(mbus, 0.6, {70})]
+    first = min((t for t, f in after if f.mode == h2.MODES["disabled"]), default=None)  # type: ignore[union-attr]
+    assert first is not None, "no disable frame"
+    assert [f for t, f in after if t > first and f.mode != h2.MODES["disabled"]] == []  # type: ignore[union-attr]
+
+
 def test_with_the_timer_off_the_gait_runs_in_the_cycle_loop(write_config, spawn, mbus) -> None:  # type: ignore[no-untyped-def]
     """``timer: false`` (the board's for now): planned controllers are written by the cycle
     loop like the others, one set-point per H2 cycle, and no send op is made."""

@@ -68,6 +68,8 @@ gc.callbacks.append(GC_CLOCK)
 # would be 100 frames/s per board for no news: one bus send per cycle doubled the manager's
 # overhead on this machine (benchmarks/bench_controllers.py).
 MACCEPA_REFRESH_CYCLES = 10
+# ``Manager.cycle``'s parts: the controllers planned for the timer, or the cycle loop's others.
+PLANNED, UNPLANNED = "planned", "unplanned"
 
 
 class ManagerRefused(Exception):
@@ -641,29 +643,37 @@ class Manager:
                     self._release(slot, why)
                     log.warning("controller_stopped", controller=slot.name, reason=why)
 
+    def _planned(self) -> frozenset[str]:
+        """Under ``lock``: the active controllers whose set-points can be planned ahead (their
+        outputs a function of time, joint positions only)."""
+        return frozenset(
+            s.name
+            for s in self.slots.values()
+            if s.state == "active"
+            and type(s.ctrl).planned
+            and all(c.endswith("/position") for c in s.claims)
+        )
+
     def plannable(self) -> bool:
-        """Every active controller is ``planned`` and claims joint positions only, and no switch
-        waits: the set-points can be planned ahead and left to the kernel's timer."""
+        """An active controller is ``planned`` and no switch waits: its set-points can be
+        planned ahead and left to the kernel's timer (the others, feedback controllers, stay
+        in the cycle loop: ``cycle(part=UNPLANNED)``)."""
         with self.lock:
-            active = [s for s in self.slots.values() if s.state == "active"]
-            return (
-                bool(active)
-                and not self.pending
-                and all(
-                    type(s.ctrl).planned and all(c.endswith("/position") for c in s.claims)
-                    for s in active
-                )
-            )
+            return not self.pending and bool(self._planned())
+
+    def unplanned(self) -> bool:
+        """An active controller is not planned: the cycle loop runs beside the timer."""
+        with self.lock:
+            planned = self._planned()
+            return any(s.state == "active" and s.name not in planned for s in self.slots.values())
 
     def repeats_slots(self, slot_s: float) -> int | None:
-        """The slots after which every active controller's outputs repeat (the least common
+        """The slots after which every planned controller's outputs repeat (the least common
         multiple of their periods), or None: one does not repeat, or not in whole slots."""
         with self.lock:
             slots = 1
-            for s in self.slots.values():
-                if s.state != "active":
-                    continue
-                period = s.ctrl.repeats_s()
+            for name in self._planned():
+                period = self.slots[name].ctrl.repeats_s()
                 if period is None:
                     return None
                 k = round(period / slot_s)
@@ -673,9 +683,12 @@ class Manager:
             return slots
 
     def position_joints(self) -> tuple[int, ...]:
-        """The joints whose position an active controller owns (indices, in order)."""
+        """The joints whose position a planned controller owns (indices, in order)."""
         with self.lock:
-            return tuple(j for j, (key, _t, _s) in enumerate(_JOINT_KEYS) if key in self.owners)
+            planned = self._planned()
+            return tuple(
+                j for j, (key, _t, _s) in enumerate(_JOINT_KEYS) if self.owners.get(key) in planned
+            )
 
     def written_back(self, positions: dict[int, int]) -> None:
         """Slots planned ahead were never sent (the plan was stopped): the step limit goes on
@@ -693,11 +706,14 @@ class Manager:
         not_armed: str | None,
         steps: int | None = None,
         switches: bool = True,
+        part: str | None = None,
     ) -> Cycle:
         """One H2 cycle (or one planned slot): apply switches, update active controllers,
         saturate, compose frames. ``steps``: the 10 ms step limits this update may move
         (default ``cycles_per_update``; a 20 ms slot: 2). ``switches`` False: a slot planned
-        ahead is no boundary (an activation needs where the joints are now).
+        ahead is no boundary (an activation needs where the joints are now). ``part``: only
+        the PLANNED controllers (a slot planned for the timer) or only the UNPLANNED ones (the
+        cycle loop beside the timer), their joints and boards; None: all.
 
         Not armed: every active controller stops, and its MACCEPA boards get "stop control"
         from here too (the watchdog stops only the boards in ``watchdog.maccepa_boards``)."""
@@ -716,10 +732,13 @@ class Manager:
                 self._apply(state, not_armed)
             if not_armed:
                 return out
+            planned = self._planned() if part is not None else frozenset()
             for slot in list(self.slots.values()):
-                if slot.state == "active":
+                if slot.state == "active" and (
+                    part is None or (slot.name in planned) == (part == PLANNED)
+                ):
                     self._update(slot, state, t, period, out)
-            self._compose(state, out)
+            self._compose(state, out, None if part is None else (planned, part == PLANNED))
         return out
 
     def _update(self, slot: Slot, state: State, t: float, period: float, out: Cycle) -> None:
@@ -801,9 +820,13 @@ class Manager:
         out.safe |= joints
         out.safe_boards |= boards
 
-    def _compose(self, state: State, out: Cycle) -> None:
+    def _compose(
+        self, state: State, out: Cycle, part: tuple[frozenset[str], bool] | None = None
+    ) -> None:
         """One frame per claimed joint, inside the limits; a joint whose values are not all
-        known yet gets no frame (the H2 keeps what it had)."""
+        known yet gets no frame (the H2 keeps what it had). ``part`` (the planned controllers,
+        and whether to compose theirs or the others'): only those joints, and the boards only
+        with the others."""
         owners, held, limits = self.owners, self.held, self.limits
         if not owners:
             return
@@ -828,6 +851,8 @@ class Manager:
                 mode = STIFFNESS if stiff else POSITION
             else:
                 continue
+            if part is not None and (owner in part[0]) != part[1]:
+                continue
             last = self.last_pos[j] if mode != TORQUE else self.last_torque[j]
             sp2, st2 = limits.saturate(j, mode, sp, st, last, self._steps)
             if sp2 != sp or st2 != st:
@@ -840,7 +865,7 @@ class Manager:
                 self.last_torque[j] = sp2
             self.slots[owner].written += 1
             out.writes.append(Write(j + 1, mode, sp2, st2))
-        if self.boards:
+        if self.boards and not (part is not None and part[1]):
             self._compose_maccepa(out)
 
     def _compose_maccepa(self, out: Cycle) -> None:

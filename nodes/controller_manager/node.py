@@ -67,7 +67,7 @@ from exolink.maccepalimits import BoardLimits, target
 from exolink.node import Node
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import Cycle, Manager, ManagerRefused
+from exolink.nodes.controller_manager.manager import UNPLANNED, Cycle, Manager, ManagerRefused
 from exolink.nodes.controller_manager.timed import Timed
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -359,8 +359,10 @@ class ControllerManagerNode(ManagerApi, Node):
         while not stop.is_set():
             clock.start()
             if self.timed is not None:
-                self._timed_wake()
-                continue
+                if not self.manager.unplanned():
+                    self._timed_wake()
+                    continue
+                self._keep_timed()  # a feedback controller beside it: the cycle loop runs too
             busy = self.reader is not None or self.manager.busy()
             # Idle (held to the appliance's default deadline) until a controller drives: the
             # reader's opening and an activation (hundreds of ms on the board proxy: its stock
@@ -376,12 +378,13 @@ class ControllerManagerNode(ManagerApi, Node):
                 continue
             if (
                 self.params.timer
+                and self.timed is None
                 and self.reader is not None
                 and self.last_state is not None
                 and self.manager.plannable()
             ):
                 self._time()  # after this iteration's beat: planning takes CPU
-                if self.timed is not None:
+                if self.timed is not None and not self.manager.unplanned():
                     continue
             self._update_reads()
             if self.reader is None:
@@ -456,7 +459,8 @@ class ControllerManagerNode(ManagerApi, Node):
                 return
             self.timed, self.timed_version = timed, self.manager.version
             self.timed_runs += 1
-            if self.reader is not None and self._one_socket():  # no angle frame wakes it now
+            if self.reader is not None and self._one_socket() and not self.manager.unplanned():
+                # no angle frame wakes it now (with a feedback controller, every cycle does)
                 self.reader.set_ids([i for i in self.read_ids if i != h2.JOINT_ANGLES])
         self.log.info(
             "timer_started",
@@ -487,6 +491,17 @@ class ControllerManagerNode(ManagerApi, Node):
         # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
         # beating after each): any beat after the last renewal keeps the lease's bound.
         self.beat(False)
+        self._keep_timed()
+        self.beat(False)
+        self.check_presence()
+        self._maybe_tell()
+
+    def _keep_timed(self) -> None:
+        """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
+        a controller stopped, the limits) hands the joints back to the cycle loop first."""
+        timed = self.timed
+        if timed is None:
+            return
         not_armed = self._not_armed()
         if not_armed or self.manager.version != self.timed_version or not self.manager.plannable():
             self._untime(orderly=not not_armed)
@@ -507,9 +522,6 @@ class ControllerManagerNode(ManagerApi, Node):
                 lease_ms=self.params.lease_ms,
             )
             self._untime(orderly=True)
-        self.beat(False)
-        self.check_presence()
-        self._maybe_tell()
 
     def _echoed(self, frames: list[Any]) -> list[tuple[Any, Any]]:
         """Frames read while the timer sends, decoded: the timer's own set-points as the bus
@@ -760,7 +772,15 @@ class ControllerManagerNode(ManagerApi, Node):
 
     def _cycle_io(self, state: State, stamp: float, period: float) -> None:
         """The cycle's outputs and their frames, decided and sent under ``io_lock``."""
-        out = self.manager.cycle(state, stamp, period, self._not_armed())
+        timed = self.timed is not None  # beside the timer: its controllers are planned there
+        out = self.manager.cycle(
+            state,
+            stamp,
+            period,
+            self._not_armed(),
+            switches=not timed,
+            part=UNPLANNED if timed else None,
+        )
         self._controller_s = out.controller_s
         self.clock.mark("cycle")
         frames = self._safe_frames(out)  # safe actions first, in the cycle's one send

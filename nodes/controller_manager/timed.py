@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator, Mapping
 import structlog
 from exolink.controller import State
 from exolink.cyclic import Lease
-from exolink.nodes.controller_manager.manager import Cycle, Manager
+from exolink.nodes.controller_manager.manager import PLANNED, Cycle, Manager
 from exolink.protocol import h2
 
 log = structlog.get_logger()
@@ -174,7 +174,13 @@ class Timed:
                 break
             k = plan.slots
             out = manager.cycle(
-                state, self.t0 + k * self.slot_s, self.slot_s, not_armed, steps, switches=False
+                state,
+                self.t0 + k * self.slot_s,
+                self.slot_s,
+                not_armed,
+                steps,
+                switches=False,
+                part=PLANNED,
             )
             writes = sorted(out.writes, key=lambda w: w.motor)
             if out.safe or out.safe_boards or tuple(w.motor - 1 for w in writes) != plan.joints:
