@@ -5,7 +5,7 @@ than a reader uses: id 70 is the H2's joint control (6 bytes, the controller man
 set-points per cycle with the gait) and MACCEPA board 0's controller status (8 bytes). The
 MACCEPA bridge read every set-point to skip it, the manager every board-0 status it does not
 drive. On the board each frame queued to a socket costs its reader a dequeue, a copy and a
-parse (on the proxy more than the Python that skips it), so ``Drop`` rules name what to leave
+parse (more than the Python that skips it), so ``Drop`` rules name what to leave
 out, by id, length and optionally one data byte's values.
 
 On SocketCAN the rules become a classic BPF socket filter (``SO_ATTACH_FILTER``): the kernel

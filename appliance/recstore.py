@@ -36,8 +36,8 @@ PART = ".part"
 MAX_CHUNK = 1 << 20  # bytes per chunk at most (the reply: base64 in JSON, ~1.4 MB)
 # A reply to a laptop must fit the router's transmit queue toward it: Zenoh drops a reply that
 # waits there longer than wait_before_drop (messaging.ROUTER_QOS: 50 ms for the rest of a
-# fragmented one). On the board proxy, behind a link of ~4 MB/s, every 1 MiB chunk (1.4 MB of
-# JSON) was dropped and the fetch never got its first one; 64 KiB replies pass at that speed.
+# fragmented one), and a 1 MiB chunk (1.4 MB of JSON) behind a slow link always did; 64 KiB
+# replies pass (docs/performance.md, "Measurements behind the code").
 DEFAULT_CHUNK = 1 << 16
 MAX_NAME = 255
 HASH_BLOCK = 1 << 20

@@ -308,7 +308,7 @@ def test_handlers_get_the_caller_when_they_take_one() -> None:
 
 def test_the_command_log_keeps_a_bounded_summary() -> None:
     request = {f"k{i}": "v" * 1000 for i in range(100)} | {"content": "c" * 10_000}
-    text = json.dumps(messaging._summary(request))
+    text = json.dumps(messaging.rpc._summary(request))
     assert len(text) < 6000 and "81 more fields" in text
     assert messaging.clip("a" * 1000, 10) == "aaaaaaaaaa... (1000 chars)"
 

@@ -33,8 +33,7 @@ log = structlog.get_logger()
 class GcClock:
     """CPU seconds each thread spent in the garbage collector (gc.callbacks), so a controller's
     budget counts its own work: a collection falls in whichever update allocates past the
-    threshold, and on the board proxy a 0.1 ms update measured 14 ms of CPU once and its
-    controller was deactivated for an overrun that was the collector's."""
+    threshold, and a controller must not be stopped for an overrun that was the collector's."""
 
     def __init__(self) -> None:
         self.spent: dict[int, float] = {}
@@ -772,9 +771,8 @@ class Manager:
     def _overran(self, slot: Slot, cpu: float) -> str | None:
         """Why an update over its budget stops the controller: a second one in a row, or one
         longer than the update period (that cycle itself late). One alone is counted: a
-        thread's CPU clock also takes the interrupts served while it ran (on the board proxy
-        the gait's 0.13 ms mean update measured 3.5 ms once, and stopping the gait then would
-        have put a walking patient's joints in the safe action for nothing)."""
+        thread's CPU clock also takes the interrupts served while it ran, and stopping a gait
+        for one would put a walking patient's joints in the safe action for nothing."""
         budget = f"{slot.budget_s * 1e3:g} ms"
         last, slot.overran_last = slot.overran_last, cpu
         if cpu > self._period_s:

@@ -38,7 +38,7 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
 
 Off the bus while idle: with no controller active and no switch queued the node holds no socket
 that frames reach (a send-only bus stays, for commands and safe actions): reading and decoding
-every H2 and MACCEPA frame for nothing took >= 47 % of the board proxy's CPU 0. A queued switch
+every H2 and MACCEPA frame for nothing was the board's largest cost. A queued switch
 opens the reader; activations wait until it is warm (every configured board's position frame
 seen, or ``WARM_S``) so a controller never starts from a stale or missing state, and the state
 from before the reader closed (boards, torques, feet) is dropped with it.
@@ -74,8 +74,8 @@ from exolink.protocol import ProtocolError, h2, maccepa
 
 BEAT_S = 0.02
 # Nothing active: the loop beats idle this often (exolink.liveness: then held to the appliance's
-# default deadline), not 50 times a second: ~1.2 ms of the board proxy's CPU per wake-up. It
-# also judges the holder's keep-alive this often.
+# default deadline), not 50 times a second: each wake-up costs about a millisecond of the
+# board's CPU. It also judges the holder's keep-alive this often.
 IDLE_BEAT_S = 0.2
 # Reading back the timer's last frames after its op is deleted: a read this long that brings
 # none means the echo queue is empty (a frame's loopback is a softirq away, on the board's CAN
@@ -92,8 +92,7 @@ READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
 EXTRA_IDS = {"torque": h2.JOINT_TORQUES, "feet": h2.FOOT_SWITCHES}
 # Every change of a controller's state goes out on ACTIVITY_TOPIC at once, and the whole list
 # again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
-# asking. On the board proxy the player's five state queries a second were four Zenoh hops and a
-# handler each, all on the one core.
+# asking: five state queries a second were four Zenoh hops and a handler each, on one core.
 ACTIVITY_REFRESH_S = 60.0
 
 
@@ -120,9 +119,8 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # renewal, so a manager that stops renewing stops moving within that (it must not exceed
     # the manager's heartbeat deadline + 60 ms: checked at start).
     slot_ms: Annotated[int, msgspec.Meta(ge=10, le=100, multiple_of=10)] = 20
-    # False: planned controllers run in the cycle loop like the others (the board until the
-    # plan is cheap enough there: each slot is a manager cycle, ~11 ms of the board proxy's
-    # CPU, and the timer's start tripped the 50 ms heartbeat deadline; make bench-board).
+    # False: planned controllers run in the cycle loop like the others, one set-point per
+    # update (no send op is made).
     timer: bool = True
     lease_ms: Annotated[int, msgspec.Meta(ge=20, le=500)] = 100
     safe_action: Literal["disable", "stop"] = "disable"
@@ -365,7 +363,7 @@ class ControllerManagerNode(ManagerApi, Node):
                 self._keep_timed()  # a feedback controller beside it: the cycle loop runs too
             busy = self.reader is not None or self.manager.busy()
             # Idle (held to the appliance's default deadline) until a controller drives: the
-            # reader's opening and an activation (hundreds of ms on the board proxy: its stock
+            # reader's opening and an activation (hundreds of ms on the board: its stock
             # 50 ms deadline tripped the watchdog at every gait start) come before the first
             # set-point, and _send says "not idle" before that one goes out.
             self.beat(not (busy and self.manager.driving()))
@@ -665,7 +663,7 @@ class ControllerManagerNode(ManagerApi, Node):
             return d
         reason = d.reason
         # Also without configured boards: id 70 is MACCEPA board 0's too (8 bytes), which is
-        # not a malformed H2 frame (the board proxy counted 93 in a second). Unconfigured
+        # not a malformed H2 frame (there may be a hundred a second). Unconfigured
         # boards' frames are then skipped (_board_frame).
         m = maccepa.decode(f)
         if not isinstance(m, maccepa.Unknown):
@@ -753,7 +751,7 @@ class ControllerManagerNode(ManagerApi, Node):
 
     def _cycle(self, stamp: float, state: State) -> None:
         """One H2 cycle, for the newest angle frame of a read. A read that finds several (the
-        loop ran late: on the board proxy a manager read 22 cycles at once) runs only the last
+        loop ran late: a starved manager may read twenty cycles at once) runs only the last
         and counts the others in ``late_cycles``: replaying them wrote their set-points back to
         back, each a step limit from the one before, so a joint's set-point could move 22 steps
         within a millisecond. The controllers get the measured period since the last cycle run."""
@@ -765,7 +763,7 @@ class ControllerManagerNode(ManagerApi, Node):
             self._cycle_io(state, stamp, period)
         self.clock.mark("send")
         # The H2-silence clock restarts when the cycle ends, not when it began: a cycle that
-        # took long (an activation on the board proxy: 408 ms) is the manager's lateness, and
+        # took long (an activation on the board: hundreds of ms) is the manager's lateness, and
         # the angle frames queued meanwhile are read next, before silence is judged.
         self.last_angle_mono = time.monotonic()
         self.manager.overhead_s.append(time.perf_counter() - t0 - self._controller_s)

@@ -207,8 +207,8 @@ class Timed:
     def due(self, now: float) -> bool:
         """At each wake while the lease is short (a new op's first), then every second slot
         by the time since the last renewal (with wakes every slot: every second wake). Not by
-        the op's count against the clock: the kernel's timer runs late under load, and on the
-        board proxy that made every wake a renewal (12 ms of CPU each)."""
+        the op's count against the clock: the kernel's timer runs late under load, and that
+        made every wake a renewal."""
         if self.lease_frames < self.lease_slots * self.per_slot:
             return True
         return now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s

@@ -196,6 +196,12 @@ def _until(pred, what: str, timeout: float = 60.0):  # type: ignore[no-untyped-d
     raise AssertionError(f"{what}: not within {timeout} s")
 
 
+def _sending() -> dict | None:
+    """The manager's timer status while it sends, else None."""
+    timer = _manager()["timer"]
+    return timer if timer["sending"] else None
+
+
 def _walk() -> None:
     """Armed, held, the gait on the manager's timer."""
     _until(lambda: _cli("arm").returncode == 0, "armed")
@@ -347,7 +353,9 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
             for n in json.loads(_cli("status", "--json").stdout)["nodes"]
             if n["name"] == "controller_manager"
         )
-        out["timer_before_sigstop"] = _manager()["timer"]
+        # the timer sending right before the signal (a loaded guest's stall can hand the joints
+        # back to the cycle loop for a moment, and a stopped cycle loop sends nothing)
+        out["timer_before_sigstop"] = _until(_sending, "the timer sends")
         try:
             out["sigstop"] = _after(vcan0, lambda: os.kill(pid, signal.SIGSTOP))
         finally:  # hung-killed by the supervisor meanwhile, as a rule
@@ -371,6 +379,7 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
             for n in json.loads(_cli("status", "--json").stdout)["nodes"]
             if n["name"] == "controller_manager"
         )
+        out["timer_before_sigkill"] = _until(_sending, "the timer sends")
         out["sigkill"] = _after(vcan0, lambda: os.kill(pid, signal.SIGKILL))
     finally:
         _results("manager-timer", out)
@@ -384,4 +393,6 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
         assert out[case]["last_set_point_after_first_disable_ms"] <= 60, (case, out[case])
     assert out["sigstop"]["last_set_point_ms"] is not None  # the kernel went on, leased
     assert out["sigstop"]["last_set_point_ms"] <= 100 + 20, out["sigstop"]  # lease + a slot
-    assert out["sigkill"]["set_points_after"] <= 1, out["sigkill"]  # one in flight at most
+    # the op ends as the killed process's socket closes: one slot (four joints) at most, as the
+    # exit of a killed process in a busy UML guest took up to 18 ms
+    assert out["sigkill"]["set_points_after"] <= 4, out["sigkill"]
