@@ -15,16 +15,16 @@ from typing import Any
 
 from exolink.protocol import h2
 
-from benchmarks.harness import Appliance, Drained, motion_nodes, pct
+from benchmarks.harness import Appliance, DrainedBus, motion_nodes, pct
 
 
 def run(quick: bool) -> dict[str, Any]:
     n = 50 if quick else 300
-    app = Appliance(nodes=motion_nodes())
-    bus = Drained(app.group)
+    app = Appliance.sim(nodes=motion_nodes())
+    bus = DrainedBus(app.group)
     request_ms, frame_ms = [], []
     try:
-        app.arm()
+        app.arm_and_hold()
         for i in range(n):
             sp = 30 + 2 * (i % 2)
             bus.clear()

@@ -27,7 +27,7 @@ from typing import Any
 
 from exolink.protocol import h2, maccepa
 
-from benchmarks.harness import Appliance, Drained, cpu_s, pct
+from benchmarks.harness import Appliance, DrainedBus, cpu_s, pct
 
 JOINTS3 = ["r_knee", "l_knee", "r_hip"]
 
@@ -64,10 +64,10 @@ def measure(
             "params": manager,
         },
     ]
-    app = Appliance(nodes=nodes, watchdog={"maccepa_boards": [0]})
-    bus = Drained(app.group)
+    app = Appliance.sim(nodes=nodes, watchdog={"maccepa_boards": [0]})
+    bus = DrainedBus(app.group)
     try:
-        app.arm()
+        app.arm_and_hold()
         names = [c["name"] for c in controllers] if n_controllers else []
         if names:
             reply = app.call("controllers", {"action": "activate", "names": names})

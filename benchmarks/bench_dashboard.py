@@ -88,7 +88,7 @@ STATS = "({f: exolinkStats.frames, d: exolinkStats.drawn, n: exolinkStats.lat.le
 
 def _laptop(browser: Any, seconds: float, soak_s: float) -> dict[str, Any]:
     """`exolink dashboard` beside a sim appliance, one page open."""
-    app = Appliance()
+    app = Appliance.sim()
     port = free_port()
     dash = None
     out: dict[str, Any] = {}
@@ -133,7 +133,9 @@ def _board_node(browser: Any, seconds: float) -> dict[str, Any]:
     port = free_port()
     nodes = yaml.safe_load(bundled("sim").read_text())["nodes"]
     params = {"host": "127.0.0.1", "port": port, "rate_hz": BOARD_RATE_HZ}
-    app = Appliance(nodes=[*nodes, {"name": "dashboard", "plugin": "dashboard", "params": params}])
+    app = Appliance.sim(
+        nodes=[*nodes, {"name": "dashboard", "plugin": "dashboard", "params": params}]
+    )
     try:
         pid = app.node("dashboard")["pid"]
         time.sleep(3)  # past its start (imports, first queries)

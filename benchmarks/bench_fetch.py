@@ -54,7 +54,7 @@ def fetch_cost(file_mb: int, chunk: int, fetch_mb_s: float) -> dict[str, Any]:
     n = file_mb * 2**20 // 180
     write(d / "sim_big_000.mcap", joint_states(), n, "none")
     size = (d / "sim_big_000.mcap").stat().st_size
-    app = Appliance(nodes=_nodes(d, fetch_mb_s))
+    app = Appliance.sim(nodes=_nodes(d, fetch_mb_s))
     try:
         app.call("record", {"action": "start"})  # live data flows and is written meanwhile
         rec = app.node("recorder")

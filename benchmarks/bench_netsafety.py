@@ -27,7 +27,7 @@ def _rss_mb(pid: int) -> float:
 
 def run(quick: bool) -> dict[str, Any]:
     trials = 5 if quick else 30
-    app = Appliance()  # the shipped sim config: every node, zenoh.threads 1
+    app = Appliance.sim()  # the shipped sim config: every node, zenoh.threads 1
     out: dict[str, Any] = {"trials": trials, "goal_p99_ms": 100}
     try:
         assert app.proc is not None

@@ -16,7 +16,7 @@ from typing import Any
 
 from exolink.protocol import h2
 
-from benchmarks.harness import Appliance, Drained, pct
+from benchmarks.harness import Appliance, DrainedBus, pct
 
 
 def _burn(stop: Any) -> None:
@@ -50,7 +50,7 @@ def measure(loaded: bool, seconds: float) -> dict[str, Any]:
             "params": {"ids": [70, 110]},
         },
     ]
-    app = Appliance(nodes=nodes)
+    app = Appliance.sim(nodes=nodes)
     stop = multiprocessing.Event()
     burners = [
         multiprocessing.Process(target=_burn, args=(stop,)) for _ in range(1 if loaded else 0)
@@ -58,7 +58,7 @@ def measure(loaded: bool, seconds: float) -> dict[str, Any]:
     try:
         for b in burners:
             b.start()
-        app.arm()
+        app.arm_and_hold()
         app.call("pattern", {"action": "start"})
         time.sleep(0.5)
         # one set-point per joint per 20 ms slot, on the timer
@@ -78,10 +78,10 @@ def measure(loaded: bool, seconds: float) -> dict[str, Any]:
 
 def trip_trials(app: Appliance, n: int) -> list[float]:
     """E-stop while the pattern plays: first disable frame -> last position frame after it."""
-    bus, out = Drained(app.group), []
+    bus, out = DrainedBus(app.group), []
     try:
         for _ in range(n):
-            app.arm()
+            app.arm_and_hold()
             app.call("pattern", {"action": "start"})
             time.sleep(0.3)
             bus.clear()

@@ -18,7 +18,7 @@ from typing import Any
 
 from exolink.protocol import h2
 
-from benchmarks.harness import EXOLINK, Appliance, Drained, motion_nodes, pct
+from benchmarks.harness import EXOLINK, Appliance, DrainedBus, motion_nodes, pct
 
 LOST_MS = 2000  # watchdog.operator_lost_ms, as shipped
 PLAYER = {
@@ -29,7 +29,7 @@ PLAYER = {
 }
 
 
-def _trial(app: Appliance, bus: Drained, sig: int) -> tuple[float, int] | None:
+def _trial(app: Appliance, bus: DrainedBus, sig: int) -> tuple[float, int] | None:
     """(s from the signal to the first disable frame, position frames in between)."""
     end = time.monotonic() + 15
     while not app.call("watchdog", {"action": "arm"}).get("ok"):
@@ -72,8 +72,8 @@ def _position(m: Any) -> bool:
 
 def run(quick: bool) -> dict[str, Any]:
     trials = 3 if quick else 8
-    app = Appliance(nodes=motion_nodes(PLAYER))
-    bus = Drained(app.group)
+    app = Appliance.sim(nodes=motion_nodes(PLAYER))
+    bus = DrainedBus(app.group)
     out: dict[str, Any] = {"operator_lost_ms": LOST_MS, "trials": trials}
     try:
         for name, sig in (("frozen_sigstop", signal.SIGSTOP), ("killed_sigkill", signal.SIGKILL)):

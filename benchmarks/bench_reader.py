@@ -47,7 +47,7 @@ def latency_and_cpu(
         for n in nodes:
             if n["plugin"] == "h2_reader":
                 n.setdefault("params", {})["cycles_per_read"] = cycles_per_read
-    app = Appliance(nodes=nodes, zenoh={"threads": None} if zenoh_own_threads else {})
+    app = Appliance.sim(nodes=nodes, zenoh={"threads": None} if zenoh_own_threads else {})
     try:
         time.sleep(1)
         pid = app.node("h2_reader")["pid"]

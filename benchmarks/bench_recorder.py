@@ -86,7 +86,7 @@ def long_run(seconds: float, cycles_per_read: int = 1) -> dict[str, Any]:
         },
         {"name": "recorder", "plugin": "recorder", "params": {"directory": d}},
     ]
-    app = Appliance(nodes=nodes)
+    app = Appliance.sim(nodes=nodes)
     try:
         app.call("record", {"action": "start"})
         cpu0 = app.node("recorder").get("cpu_s") or 0.0

@@ -105,7 +105,7 @@ def bridge_cpu(quick: bool) -> dict[str, Any]:
             "params": {"host": "127.0.0.1", "port": port},
         },
     ]
-    app = Appliance(nodes=nodes)
+    app = Appliance.sim(nodes=nodes)
     try:
         pid = app.node("foxglove_bridge")["pid"]
         seconds = 5.0 if quick else 20.0

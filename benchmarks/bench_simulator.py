@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from exolink.protocol import h2, maccepa
 
-from benchmarks.harness import EXOLINK, Drained, cpu_s, group, pct
+from benchmarks.harness import EXOLINK, DrainedBus, cpu_s, group, pct
 
 
 def run(quick: bool) -> dict[str, Any]:
@@ -24,10 +24,10 @@ def run(quick: bool) -> dict[str, Any]:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    bus = Drained(g)
+    bus = DrainedBus(g)
     try:
         time.sleep(1.5)
-        bus.bus.send(h2.encode_stream(True))
+        bus.send(h2.encode_stream(True))
         bus.wait_for(lambda m: m.arbitration_id == 110, 5)
         commands = [h2.encode_joint_control(j, "position", 20) for j in (1, 2, 4, 5)]
         commands.append(maccepa.encode_setpoint(0, 10.0, "position"))
@@ -39,7 +39,7 @@ def run(quick: bool) -> dict[str, Any]:
             if m is not None:
                 stamps.append(m.timestamp)
                 for c in commands:  # the pattern's load, once per H2 cycle
-                    bus.bus.send(c)
+                    bus.send(c)
         cpu = cpu_s(proc.pid) - c0
         wall = time.monotonic() - t0
     finally:

@@ -14,7 +14,7 @@ from typing import Any
 from exolink import messaging
 from exolink.protocol import h2
 
-from benchmarks.harness import Appliance, Drained, pct, pss_mb
+from benchmarks.harness import Appliance, DrainedBus, pct, pss_mb
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},
@@ -47,8 +47,8 @@ def is_disable(m: Any) -> bool:
 
 def run(quick: bool) -> dict[str, Any]:
     trials = 20
-    app = Appliance(nodes=NODES)
-    bus = Drained(app.group)
+    app = Appliance.sim(nodes=NODES)
+    bus = DrainedBus(app.group)
     js_times: list[float] = []
     lock = threading.Lock()
 
@@ -92,7 +92,7 @@ def run(quick: bool) -> dict[str, Any]:
         silence_to_trip = []
         for _ in range(5 if quick else 10):
             time.sleep(1.5)  # the simulator streams again
-            app.arm()
+            app.arm_and_hold()
             bus.clear()
             time.sleep(0.05)  # a few angle frames queued: the last one marks the silence start
             app.call("sim/fault", {"fault": "silent", "duration_s": 1.0})
@@ -127,13 +127,13 @@ def run(quick: bool) -> dict[str, Any]:
     }
 
 
-def _sigstop_trials(app: Appliance, bus: Drained, node: str, trials: int) -> list[float]:
+def _sigstop_trials(app: Appliance, bus: DrainedBus, node: str, trials: int) -> list[float]:
     out = []
     for _ in range(trials):
         end = time.monotonic() + 10
         while app.node(node)["heartbeat_age_s"] is None and time.monotonic() < end:
             time.sleep(0.05)  # the killed node is back
-        app.arm()
+        app.arm_and_hold()
         pid = app.node(node)["pid"]
         bus.clear()
         t0 = time.time()

@@ -4,37 +4,23 @@ and helpers to run exolink processes for real (no mocks of buses or sessions).""
 from __future__ import annotations
 
 import contextlib
-import json
 import os
-import queue
-import random
 import re
 import socket
 import subprocess
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
 import pytest
-import yaml
-import zenoh
-from exolink import messaging
-from exolink.canbus import Frame, FrameReader, open_reader
-from exolink.config import CanConfig, bundled, load
-from exolink.holder import Holder
+from exolink.canbus import FrameReader
 from exolink.supervisor import canlink
 
-EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
+from benchmarks import harness
+from benchmarks.harness import DrainedBus, Spawner, connect, wait_for
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -53,26 +39,7 @@ def kernel_timestamps_on() -> Iterator[None]:
 @pytest.fixture
 def group() -> str:
     """A multicast group of its own per test, so concurrent or leftover traffic never mixes."""
-    return f"239.74.{random.randint(1, 254)}.{random.randint(1, 254)}"
-
-
-def motion_nodes(deadline_ms: int = 300, h2_timeout_ms: int | None = 300) -> list[dict]:
-    """The simulated H2, its reader and the controller manager (the one writer of motion).
-    ``deadline_ms``: the manager's heartbeat deadline (300: above a loaded test machine's
-    stalls, where the deadline is not under test; 50 as shipped)."""
-    manager: dict = {
-        "name": "controller_manager",
-        "plugin": "controller_manager",
-        "critical": True,
-        "heartbeat_deadline_ms": deadline_ms,
-    }
-    if h2_timeout_ms is not None:
-        manager["params"] = {"h2_timeout_ms": h2_timeout_ms}
-    return [
-        {"name": "simulator", "plugin": "simulator"},
-        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-        manager,
-    ]
+    return harness.group(harness.TEST_GROUPS)
 
 
 @pytest.fixture
@@ -80,61 +47,9 @@ def write_config(tmp_path: Path, group: str) -> Callable[..., Path]:
     """Write the bundled sim config with overrides onto this test's own group and port."""
 
     def write(nodes: list[dict] | None = None, **overrides: object) -> Path:
-        data = yaml.safe_load(bundled("sim").read_text())
-        data["can"]["channel"] = group
-        data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
-        if nodes is not None:
-            data["nodes"] = nodes
-        for key, value in overrides.items():
-            if isinstance(value, dict) and isinstance(data.get(key), dict):
-                data[key].update(value)
-            else:
-                data[key] = value
-        path = tmp_path / "appliance.yaml"
-        path.write_text(yaml.safe_dump(data))
-        return path
+        return harness.sim_config(tmp_path / "appliance.yaml", group, nodes, **overrides)
 
     return write
-
-
-class DrainedBus:
-    """A bus listener read continuously by a thread into a queue, with an exact loss count.
-
-    At 600 frames/s a socket left unread while a test waits on a CLI call overflows its kernel
-    buffer and silently drops the newest frames: exactly the ones a test looks for. The thread
-    reads through the appliance's own FrameReader (its large receive queue), and ``dropped``
-    is the kernel's count of what this listener lost, so a test can tell "not on the bus"
-    from "not seen"."""
-
-    def __init__(self, reader: FrameReader) -> None:
-        self.reader = reader
-        self.q: queue.Queue[Frame] = queue.Queue()
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._drain, daemon=True)
-        self._t.start()
-
-    def _drain(self) -> None:
-        while not self._stop.is_set():
-            for m in self.reader.read(0.05):
-                self.q.put(m)
-
-    @property
-    def dropped(self) -> int:
-        return self.reader.dropped or 0
-
-    def recv(self, timeout: float | None = None) -> Frame | None:
-        try:
-            return self.q.get(timeout=timeout)
-        except queue.Empty:
-            return None
-
-    def send(self, msg: can.Message) -> None:
-        self.reader.bus.send(msg)
-
-    def shutdown(self) -> None:
-        self._stop.set()
-        self._t.join(1)
-        self.reader.close()
 
 
 @pytest.fixture
@@ -158,21 +73,9 @@ def in_node(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[[str, s
 @pytest.fixture
 def mbus(group: str) -> Iterator[DrainedBus]:
     """An independent listener on the test's udp_multicast bus."""
-    bus = DrainedBus(open_reader(CanConfig(interface="udp_multicast", channel=group)))
+    bus = DrainedBus(group)
     yield bus
-    bus.shutdown()
-
-
-def collect(
-    bus: can.BusABC | DrainedBus, seconds: float, ids: set[int] | None = None
-) -> list[can.Message]:
-    out = []
-    end = time.monotonic() + seconds
-    while (left := end - time.monotonic()) > 0:
-        m = bus.recv(timeout=left)
-        if m is not None and (ids is None or m.arbitration_id in ids):
-            out.append(m)
-    return out
+    bus.close()
 
 
 def bus_sockets(pid: int) -> int:
@@ -201,39 +104,6 @@ def read_cycle(tx: can.BusABC, reader: FrameReader, ids: list[int]) -> list[int]
     return got
 
 
-def wait_for(pred: Callable[[], object], timeout: float = 10.0, step: float = 0.02) -> object:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(step)
-    raise AssertionError(f"condition not met within {timeout} s")
-
-
-def connect(endpoint: str, timeout: float = 30.0) -> zenoh.Session:
-    """A client session to a process just spawned: it listens once its imports are done, which
-    took longer than one connect attempt (3 s) on a host busy with other test runs."""
-    end = time.monotonic() + timeout
-    while True:
-        try:
-            return messaging.open_client_session(endpoint)
-        except messaging.Unreachable:
-            if time.monotonic() > end:
-                raise
-
-
-def connect_as(endpoint: str, login: Path | None, timeout: float = 30.0) -> zenoh.Session:
-    """``connect`` with a laptop login file (a board with logins), or none."""
-    end = time.monotonic() + timeout
-    while True:
-        try:
-            return messaging.open_client_session(endpoint, str(login) if login else None)
-        except messaging.Unreachable:
-            if time.monotonic() > end:
-                raise
-
-
 def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
     """Until every named node has declared its liveliness token (it does so after configure())."""
     s = connect(endpoint, timeout)
@@ -249,119 +119,13 @@ def wait_alive(endpoint: str, names: list[str], timeout: float = 30.0) -> None:
         s.close()
 
 
-class Proc:
-    """A real exolink process whose stderr is kept for the failure message."""
-
-    def __init__(self, args: list[str], log: Path) -> None:
-        self.log = log
-        self._f = log.open("wb")
-        env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
-        self.p = subprocess.Popen(
-            [*EXOLINK, *args], stdout=self._f, stderr=subprocess.STDOUT, env=env
-        )
-
-    def stop(self, timeout: float = 10.0) -> int:
-        if self.p.poll() is None:
-            self.p.terminate()
-            try:
-                self.p.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
-        self._f.close()
-        return self.p.returncode
-
-    def output(self) -> str:
-        return self.log.read_text(errors="replace")
-
-
 @pytest.fixture
-def spawn(tmp_path: Path) -> Iterator[Callable[..., Proc]]:
-    procs: list[Proc] = []
-    cleanups: list[Callable[[], None]] = []  # run before the processes stop (holders, sessions)
-
-    def start(*args: str, name: str = "proc") -> Proc:
-        p = Proc(list(args), tmp_path / f"{name}-{len(procs)}.log")
-        procs.append(p)
-        return p
-
-    start.cleanups = cleanups  # type: ignore[attr-defined]
-    yield start
-    for c in reversed(cleanups):
-        with contextlib.suppress(Exception):
-            c()
-    for p in reversed(procs):
-        p.stop()
-
-
-class Appliance:
-    def __init__(
-        self, cfg_path, spawn, *, wait_nodes: bool = True, login: Path | None = None
-    ) -> None:  # type: ignore[no-untyped-def]
-        self.cfg = load(cfg_path)
-        self.at = messaging.local_endpoint(self.cfg.zenoh)
-        self.login = login  # the laptop login file the CLI uses (a board with logins)
-        self.proc = spawn("up", "-c", str(cfg_path), name="up")
-        self._cleanups: list[Callable[[], None]] = getattr(spawn, "cleanups", [])
-        self.session = None
-        wait_for(lambda: self.cli("status").returncode == 0, timeout=20)
-        if wait_nodes:
-            wait_for(
-                lambda: all(n["heartbeat_age_s"] is not None for n in self.status()["nodes"]),
-                timeout=20,
-            )
-
-    def cli(self, *args: str, login: Path | None = None) -> subprocess.CompletedProcess[str]:
-        who = login or self.login
-        opts = ["--zenoh-config", str(who)] if who else []
-        return subprocess.run(
-            # 10 s, not the CLI's 3: the connect waits that long too (a --timeout above 3 s
-            # does), and on this 2-core host with chromium and an appliance running, one
-            # connect of the dashboard test timed out at 3 s twice in ~8 full-suite runs
-            [*EXOLINK, *args, "--at", self.at, "--timeout", "10", *opts],
-            capture_output=True,
-            text=True,
-            timeout=30,
-        )
-
-    def status(self) -> dict:
-        r = self.cli("status", "--json")
-        assert r.returncode == 0, r.stderr
-        return json.loads(r.stdout)
-
-    def node(self, name: str) -> dict:
-        return next(n for n in self.status()["nodes"] if n["name"] == name)
-
-    def arm(self) -> None:
-        self.arm_as(None)
-
-    def arm_as(self, login: Path | None) -> None:
-        r = wait_for(lambda: (x := self.cli("arm", login=login)).returncode == 0 and x, timeout=10)
-        assert "armed" in r.stdout  # type: ignore[union-attr]
-
-    def hold(self, login: Path | None = None, take_over: bool = False) -> Holder:
-        """Motion held from this test, as `exolink hold` holds it (renewed from a thread until
-        the test ends): nothing moves a joint without a holder. Held once per appliance."""
-        held = getattr(self, "_holder", None)
-        if held is not None and held.holding and not take_over:
-            return held
-        who = login or self.login
-        session = connect_as(self.at, who)
-        user = messaging.client_login(str(who) if who else None)
-        key = messaging.mgmt_key(self.cfg.device, "controllers")
-
-        def call(body: dict) -> dict:
-            return messaging.request(session, key, body, 10.0, user)
-
-        holder = Holder(call, "test")
-        holder.acquire(take_over)
-        self._cleanups += [session.close, holder.release]
-        self._holder = holder
-        return holder
-
-    def arm_and_hold(self) -> Holder:
-        self.arm()
-        return self.hold()
+def spawn(tmp_path: Path) -> Iterator[Spawner]:
+    """exolink processes (``spawn("up", "-c", cfg, name="up")``) logging into the test's tmp
+    folder, all ended after the test, its ``cleanups`` (holders, sessions) first."""
+    spawner = Spawner(tmp_path)
+    yield spawner
+    spawner.close()
 
 
 # --- kernel-level fixtures (tests/kernel): real vcan0 and vfat card (UML guest), gpio-sim (qemu) ---

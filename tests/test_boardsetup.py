@@ -12,9 +12,10 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import free_port
 from exolink import boardsetup, messaging
 from exolink.config import ConfigError, ZenohConfig, bundled, load
+
+from benchmarks.harness import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "services/boot/exolink-settings.yaml"

@@ -10,11 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import EXOLINK, Appliance
 from exolink import messaging
 from exolink.cli.main import parse
 from exolink.client import DEFAULT_AT
 from exolink.nodes.recorder import McapFile, RecorderParams
+
+from benchmarks.harness import EXOLINK, Appliance
 
 JS = "sensor_msgs/msg/JointState"
 WD = "exolink_msgs/msg/WatchdogEvent"

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import pytest
-from conftest import Appliance, bus_sockets, collect, connect, wait_for
+from conftest import bus_sockets
 from exolink import messaging, roles
 from exolink.config import ConfigError, load
 from exolink.controller import State
@@ -22,6 +22,8 @@ from exolink.jointlimits import Limits, default_max, default_min
 from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
 from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
 from exolink.protocol import h2
+
+from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_for
 
 SITTING = State((40, 60, 0, 40, 60, 0), (0,) * 6)
 
@@ -468,18 +470,10 @@ CTRL = [
 def nodes(controllers: list[dict[str, Any]], deadline_ms: int = 50) -> list[dict[str, Any]]:
     """``deadline_ms``: the manager's heartbeat deadline (300 where a test is not about hung
     detection: above a loaded machine's stalls)."""
-    return [
-        {"name": "simulator", "plugin": "simulator"},
-        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-        {
-            "name": "controller_manager",
-            "plugin": "controller_manager",
-            "critical": True,
-            "heartbeat_deadline_ms": deadline_ms,
-            # Silence limits above a loaded test machine's stalls: these tests are not about them.
-            "params": {"controllers": controllers, "h2_timeout_ms": 300},
-        },
-    ]
+    # Silence limits above a loaded test machine's stalls: these tests are not about them.
+    return motion_nodes(
+        deadline_ms=deadline_ms, h2_timeout_ms=300, params={"controllers": controllers}
+    )
 
 
 @pytest.fixture

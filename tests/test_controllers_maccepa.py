@@ -11,7 +11,6 @@ from typing import Any
 
 import can
 import pytest
-from conftest import Appliance, collect, wait_for
 from exolink.controller import BoardState, State
 from exolink.jointlimits import Limits, default_max, default_min
 from exolink.maccepalimits import BoardLimits
@@ -22,6 +21,8 @@ from exolink.nodes.controller_manager.manager import (
     Switch,
 )
 from exolink.protocol import maccepa
+
+from benchmarks.harness import Appliance, collect, wait_for
 
 BOARD0 = BoardState(0, (10, 12, 0, 0), (0, 30, 0, 0), (0, 0, 12))
 STATE = State((40, 60, 0, 40, 60, 0), (0,) * 6, None, {0: BOARD0})

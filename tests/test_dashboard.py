@@ -19,11 +19,13 @@ from typing import Any
 import c3d
 import pytest
 import yaml
-from conftest import REPO, Appliance, collect, free_port, wait_for
+from conftest import REPO
 from exolink.config import bundled
 from exolink.dashboard import commands
 from exolink.protocol import h2
 from test_roles import board_logins
+
+from benchmarks.harness import Appliance, collect, free_port, wait_for
 
 SHOTS = REPO / "build" / "screenshots"
 TOKEN = "X-Exolink-Token"  # the header the page sends its token in

@@ -14,13 +14,15 @@ import can
 import numpy as np
 import pytest
 import zenoh
-from conftest import EXOLINK, collect, connect, wait_alive, wait_for
+from conftest import wait_alive
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import load
 from exolink.holder import Holder
 from exolink.protocol import h2
 from rosbags.typesys import Stores, get_typestore
+
+from benchmarks.harness import EXOLINK, collect, connect, wait_for
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},

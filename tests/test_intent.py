@@ -15,12 +15,13 @@ import time
 from typing import Any
 
 import pytest
-from conftest import EXOLINK, Appliance, collect, motion_nodes, wait_for
 from exolink.protocol import h2
+
+from benchmarks.harness import EXOLINK, Appliance, collect, motion_nodes, wait_for
 
 LOST_MS = 2000  # watchdog.operator_lost_ms, as shipped
 NODES = [
-    *motion_nodes(),
+    *motion_nodes(deadline_ms=300, h2_timeout_ms=300),
     {
         "name": "pattern_player",
         "plugin": "pattern_player",

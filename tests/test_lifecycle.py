@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import Appliance, connect, wait_for
 from exolink import messaging
+
+from benchmarks.harness import Appliance, connect, wait_for
 
 CRITICAL = ["h2_reader", "pattern_player", "controller_manager"]
 NODES = [

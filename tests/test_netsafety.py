@@ -22,14 +22,15 @@ from typing import Any
 import pytest
 import structlog
 import yaml
-from conftest import Appliance, motion_nodes, wait_for
 from exolink import messaging, roles
 from exolink.config import NodeConfig, bundled
 from exolink.protocol import h2
 from exolink.supervisor import processes
 from test_roles import board_logins
 
-NODES = motion_nodes(deadline_ms=50, h2_timeout_ms=None)  # as shipped
+from benchmarks.harness import Appliance, motion_nodes, wait_for
+
+NODES = motion_nodes()  # as shipped
 BOUND_S = 2.0  # an e-stop's way to the bus took 5-15 s beside these clients before
 
 # A client that queues ``count`` status queries, says so, and then waits to be SIGSTOPped.

@@ -14,12 +14,13 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import EXOLINK, Appliance, collect, motion_nodes, wait_for
 from exolink import clock, messaging, rosgraph
 from exolink.protocol import h2
 from exolink.recording import RecordingError, export_csv, info
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from benchmarks.harness import EXOLINK, Appliance, collect, motion_nodes, wait_for
 
 JS_KEY = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
 
@@ -438,7 +439,7 @@ def test_a_bundled_topic_reaches_the_recorder_once(write_config, spawn, tmp_path
 
 # --- play never replays a command ----------------------------------------------------------------
 
-CONTROL_NODES = motion_nodes()
+CONTROL_NODES = motion_nodes(deadline_ms=300, h2_timeout_ms=300)
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 

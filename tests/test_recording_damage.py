@@ -14,11 +14,19 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-import yaml
-from conftest import EXOLINK, Appliance, Proc, free_port, wait_for
-from exolink.config import bundled
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
+
+from benchmarks.harness import (
+    EXOLINK,
+    TEST_GROUPS,
+    Appliance,
+    Spawner,
+    free_port,
+    group,
+    sim_config,
+    wait_for,
+)
 
 FOOTER = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, CRC
 CHUNK_HEAD = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 4 + 8  # ... "zstd", then the compressed records
@@ -29,23 +37,14 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """~3 s of a sim appliance (joint states, foot switches, diagnostics, a trigger edge) in
     small zstd chunks (4 KiB: a dozen of them), labelled, as the recorder writes it."""
     d = tmp_path_factory.mktemp("damage")
-    data = yaml.safe_load(bundled("sim").read_text())
-    data["can"]["channel"] = f"239.74.{random.randint(1, 254)}.{random.randint(1, 254)}"
-    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
     params = {"directory": str(d / "rec"), "chunk_size": 4096, "fsync_interval_s": 0.5}
-    data["nodes"] = [
+    nodes = [
         {"name": "simulator", "plugin": "simulator"},
         {"name": "h2_reader", "plugin": "h2_reader"},
         {"name": "recorder", "plugin": "recorder", "params": params},
     ]
-    cfg = d / "appliance.yaml"
-    cfg.write_text(yaml.safe_dump(data))
-    procs: list[Proc] = []
-
-    def spawn(*args: str, name: str = "proc") -> Proc:
-        procs.append(Proc(list(args), d / f"{name}-{len(procs)}.log"))
-        return procs[-1]
-
+    cfg = sim_config(d / "appliance.yaml", group(TEST_GROUPS), nodes)
+    spawn = Spawner(d)
     try:
         app = Appliance(cfg, spawn)
         assert app.cli("record", "start", "--label", "subject=S01").returncode == 0
@@ -55,8 +54,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
         assert app.cli("record", "stop").returncode == 0
         wait_for(lambda: "idle" in app.cli("record", "status").stdout, timeout=15)
     finally:
-        for p in reversed(procs):
-            p.stop()
+        spawn.close()
     [path] = sorted((d / "rec").glob("*.mcap"))
     yield path
 

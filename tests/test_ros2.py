@@ -13,9 +13,10 @@ from typing import Any
 import pytest
 import xxhash
 import yaml
-from conftest import Appliance, wait_for
 from exolink import messaging
 from exolink.config import bundled
+
+from benchmarks.harness import Appliance, wait_for
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
 

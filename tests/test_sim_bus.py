@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import EXOLINK
+
+from benchmarks.harness import EXOLINK
 
 ROUND_TRIPS = r"""
 import json, socket, subprocess, sys, time

@@ -11,9 +11,10 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from conftest import collect, wait_for
 from exolink.nodes.simulator import SimParams, Simulator
 from exolink.protocol import h2, maccepa
+
+from benchmarks.harness import collect, wait_for
 
 
 class Harness:

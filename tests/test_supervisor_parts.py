@@ -16,11 +16,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_port
 from exolink.config import NodeConfig, Priority, TriggerConfig
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.processes import apply_priority, proc_usage
 from exolink.supervisor.systemd import Notifier
+
+from benchmarks.harness import free_port
 
 
 def test_overlay_check(tmp_path: Path) -> None:

@@ -212,9 +212,9 @@ def test_a_running_appliance_refuses_an_update_while_armed_and_arming_while_inst
 ) -> None:  # type: ignore[no-untyped-def]
     """The sim appliance, the real CLI over Zenoh: what the board's safety rests on. No RAUC
     here: the request stays in the supervisor's folder (exolink.update.local_dir)."""
-    from conftest import Appliance, motion_nodes
+    from benchmarks.harness import Appliance, motion_nodes
 
-    app = Appliance(write_config(nodes=motion_nodes()), spawn)
+    app = Appliance(write_config(nodes=motion_nodes(deadline_ms=300, h2_timeout_ms=300)), spawn)
     bundle = tmp_path / "next.raucb"
     bundle.write_bytes(bundle_bytes(3 * update.MAX_CHUNK + 123))  # four chunks
     app.arm()

@@ -13,12 +13,13 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from conftest import wait_for
 from exolink import cdr
 from exolink.canbus import FrameReader, open_bus, open_reader
 from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2, maccepa
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
+
+from benchmarks.harness import wait_for
 
 ANGLES = h2.encode(h2.JointAngles(76, 94, 0, 76, 93, 11))
 

@@ -8,7 +8,6 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -16,15 +15,16 @@ from pathlib import Path
 import can
 import pytest
 import yaml
-from conftest import read_cycle, wait_for
+from conftest import read_cycle
 from exolink.canbus import CAN_FRAME, FrameWriter, id_filters, open_bus, open_reader
 from exolink.config import CanConfig, bundled
 from exolink.nodes.simulator import SimParams, Simulator
 from exolink.protocol import h2
 from exolink.supervisor import canlink
 
+from benchmarks.harness import EXOLINK, wait_for
+
 pytestmark = pytest.mark.kernel
-EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
 
 
 def listener(channel: str) -> can.BusABC:
