@@ -20,6 +20,8 @@ import pytest
 from exolink.cyclic import CyclicLease
 from exolink.protocol import h2
 
+from benchmarks.harness import EXOLINK, motion_nodes
+
 pytestmark = pytest.mark.kernel
 ID, PERIOD, LEASE = 0x46, 0.010, 6
 
@@ -173,8 +175,6 @@ def test_stop_is_at_once_and_a_lease_that_ran_out_stays_out(vcan0: str) -> None:
 
 # --- the controller manager's timer, the whole appliance on vcan0 ---------------------------------
 
-EXOLINK = [sys.executable, "-m", "exolink.cli.main"]
-
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
@@ -284,20 +284,7 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
 
     data = yaml.safe_load(bundled("sim").read_text())
     data["can"] = {"interface": "socketcan", "channel": vcan0, "bring_up": True}
-    data["nodes"] = [
-        {"name": "simulator", "plugin": "simulator"},
-        {"name": "h2_reader", "plugin": "h2_reader", "critical": True},
-        {
-            "name": "controller_manager",
-            "plugin": "controller_manager",
-            "critical": True,
-            # The board's 50 ms tripped at random here: the whole UML guest stops for tens of ms
-            # when the host is busy (test_socketcan.py). 200 ms, and the lease the board's.
-            "heartbeat_deadline_ms": 200,
-            "priority": {"nice": -10},
-            "restart": {"policy": "always", "max_restarts": 10, "window_s": 600},
-            "params": {"h2_timeout_ms": 300},
-        },
+    data["nodes"] = motion_nodes(
         {
             "name": "pattern_player",
             "plugin": "pattern_player",
@@ -305,7 +292,13 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
             "params": {"speed": 10, "selected": ["r_hip", "r_knee", "l_hip", "l_knee"]},
         },
         {"name": "timing_monitor", "plugin": "timing_monitor", "params": {"ids": [70]}},
-    ]
+        # The board's 50 ms tripped at random here: the whole UML guest stops for tens of ms
+        # when the host is busy (test_socketcan.py). 200 ms, and the lease the board's.
+        deadline_ms=200,
+        h2_timeout_ms=300,
+        priority={"nice": -10},
+        restart={"policy": "always", "max_restarts": 10, "window_s": 600},
+    )
     # one UML CPU, CLI processes importing for seconds: wide limits for everything but the
     # manager, as tests/kernel/test_socketcan.py explains
     data["watchdog"].update(
