@@ -2,7 +2,8 @@
 
 Same machine as tests/image/test_built_image.py: ``-M virt -cpu cortex-a15 -smp 2 -m 512``,
 the card's own armmp kernel and initrd, the card as a virtio disk; user networking forwards the
-Zenoh port and ssh to 127.0.0.1.
+Zenoh port and ssh to 127.0.0.1. This runs on the host (the guest gets the wheel, probe.py and
+estop.py), so its ports come from the harness's ``free_port``.
 
 Two artifacts of the emulator, not of a board, stalled the guest's CPU 0 for 50-250 ms and tripped
 the stock 50 ms deadline (seen with QEMU 7.2, ftrace in the guest and ``info jit``):
@@ -32,6 +33,7 @@ from typing import Any
 import structlog
 
 from benchmarks.board.card import Card
+from benchmarks.harness import free_port
 
 log = structlog.get_logger("bench-board")
 
@@ -39,12 +41,6 @@ ROOT_PARTUUID = "45786f6c-02"
 # TCG's largest on an x86-64 host (it caps more to 2 GiB): mapped, touched as used; ~0.96 GiB at
 # the window's start, ~7-18 MB a minute during it
 TB_SIZE_MB = 2048
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Console:

@@ -26,7 +26,8 @@ from exolink.config import bundled
 from benchmarks.board import card as cardlib
 from benchmarks.board import ladder as ladderlib
 from benchmarks.board import profile, scenario
-from benchmarks.board.guest import Guest, free_port
+from benchmarks.board.guest import Guest
+from benchmarks.harness import free_port
 
 log = structlog.get_logger("bench-board")
 
