@@ -108,10 +108,9 @@ def motion_nodes(
     ``extra`` nodes. Defaults as shipped; a test not about stalls passes limits above a loaded
     machine's (``deadline_ms``: the manager's heartbeat deadline, ``h2_timeout_ms`` its H2
     silence); ``params`` and ``manager`` (priority, restart, ...) go to the manager's entry."""
-    params = {
-        **(params or {}),
-        **({} if h2_timeout_ms is None else {"h2_timeout_ms": h2_timeout_ms}),
-    }
+    params = dict(params or {})
+    if h2_timeout_ms is not None:
+        params["h2_timeout_ms"] = h2_timeout_ms
     controller_manager: dict[str, Any] = {
         "name": "controller_manager",
         "plugin": "controller_manager",
@@ -172,6 +171,8 @@ def connect(endpoint: str, timeout: float = 30.0, login: Path | None = None) -> 
 
 
 class Receiver(Protocol):
+    """What ``collect`` reads: a python-can bus or a DrainedBus."""
+
     def recv(self, timeout: float | None = None) -> Any: ...
 
 
@@ -242,6 +243,7 @@ class DrainedBus:
         self.reader.bus.send(msg)
 
     def close(self) -> None:
+        """The thread stopped, then the socket closed (never read from a closed one)."""
         self._stop.set()
         self._t.join(1)
         self.reader.close()
@@ -262,6 +264,7 @@ class Proc:
 
     @property
     def pid(self) -> int:
+        """The process's pid, to read its /proc figures or signal it."""
         return self.p.pid
 
     def stop(self, timeout: float = 10.0) -> int:
@@ -277,6 +280,7 @@ class Proc:
         return self.p.returncode
 
     def output(self) -> str:
+        """What it wrote so far, for an assertion's message."""
         return self.log.read_text(errors="replace")
 
 
@@ -368,6 +372,7 @@ class Appliance:
         return bool(nodes) and all(n["heartbeat_age_s"] is not None for n in nodes)
 
     def _key(self, path: str) -> str:
+        """The management key of ``path`` on this appliance's device."""
         return messaging.mgmt_key(self.cfg.device, path)
 
     @property
@@ -411,6 +416,7 @@ class Appliance:
         return next(n for n in self.call("status")["nodes"] if n["name"] == name)
 
     def arm(self) -> None:
+        """Armed as the appliance's login (``arm_as``)."""
         self.arm_as(None)
 
     def arm_as(self, login: Path | None) -> None:
@@ -439,6 +445,7 @@ class Appliance:
         return holder
 
     def arm_and_hold(self) -> Holder:
+        """Armed, and motion held: what moving a joint needs."""
         self.arm()
         return self.hold()
 

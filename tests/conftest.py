@@ -1,5 +1,7 @@
 """Shared fixtures: isolated multicast groups and Zenoh ports, configs written to tmp files,
-and helpers to run exolink processes for real (no mocks of buses or sessions)."""
+and exolink processes run for real (no mocks of buses or sessions). The appliance, the bus
+listener and the processes are the harness's (benchmarks/harness.py, shared with the
+benchmarks); the fixtures here only give each test its own and end them after it."""
 
 from __future__ import annotations
 
