@@ -236,6 +236,7 @@ class ControllerManagerNode(ManagerApi, Node):
         self.timed: Timed | None = None  # planned set-points on a timer (timed.py)
         self.timed_runs = 0
         self.timed_version = -1
+        self.timed_beside = False  # the cycle loop runs beside the timer (see _time)
         self.timed_refused = ""
         self.timed_lapses = 0
         self.timed_renewals = 0
@@ -357,7 +358,7 @@ class ControllerManagerNode(ManagerApi, Node):
         while not stop.is_set():
             clock.start()
             if self.timed is not None:
-                if not self.manager.unplanned():
+                if not self.timed_beside:
                     self._timed_wake()
                     continue
                 self._keep_timed()  # a feedback controller beside it: the cycle loop runs too
@@ -382,7 +383,7 @@ class ControllerManagerNode(ManagerApi, Node):
                 and self.manager.plannable()
             ):
                 self._time()  # after this iteration's beat: planning takes CPU
-                if self.timed is not None and not self.manager.unplanned():
+                if self.timed is not None and not self.timed_beside:
                     continue
             self._update_reads()
             if self.reader is None:
@@ -456,8 +457,11 @@ class ControllerManagerNode(ManagerApi, Node):
                 self._send(self._safe_frames(broke))
                 return
             self.timed, self.timed_version = timed, self.manager.version
+            # Feedback controllers beside the plan: the cycle loop runs too. Read once: any
+            # change of the controllers changes the version, which ends the timer first.
+            self.timed_beside = self.manager.unplanned()
             self.timed_runs += 1
-            if self.reader is not None and self._one_socket() and not self.manager.unplanned():
+            if self.reader is not None and self._one_socket() and not self.timed_beside:
                 # no angle frame wakes it now (with a feedback controller, every cycle does)
                 self.reader.set_ids([i for i in self.read_ids if i != h2.JOINT_ANGLES])
         self.log.info(
