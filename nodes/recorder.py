@@ -79,9 +79,10 @@ TOKEN_RING = 4096  # graph and bundle tokens waiting for the loop
 DUPLICATE_WINDOW = 1000
 
 Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publish ns, sequence
-# A stop replies within this (under the CLI's 3 s default) even if the card is slow to close the
-# file: the reply then says "stopping", which is true, instead of the CLI timing out.
-STOP_REPLY_S = 2.0
+# A start or stop replies within this (under the CLI's 3 s default) even if the card is slow to
+# open or close the file: the reply then says so ("stopping", or no file yet), which is true,
+# instead of the CLI timing out.
+REPLY_WAIT_S = 2.0
 RECEIVE_QUERY_S = 0.5  # the readers' receive counters, asked when a file opens and closes
 RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the file alone
 CARD_CHECK_S = 1.0  # how often the card's free space is read (one statvfs)
@@ -374,9 +375,11 @@ class Inbox:
         return any(sel.intersects(ke) for sel in self.selectors)
 
     def _subscribe(self, key: str) -> None:
+        """Other sessions' samples of ``key``: the recorder's own come through ``own`` (the
+        command log's key is every process' and its own, and came twice)."""
         if key not in self.subs:
             self.subs[key] = self.session.declare_subscriber(
-                key, zenoh.handlers.RingChannel(self.ring)
+                key, zenoh.handlers.RingChannel(self.ring), allowed_origin=zenoh.Locality.REMOTE
             )
 
     def samples(self) -> Iterator[Any]:
@@ -591,10 +594,16 @@ class Recorder(Node):
                 self.state = "stopping"
         elif action != "status":
             raise CommandRefused(f"unknown record action {action!r} (start, stop, status)")
-        deadline = time.monotonic() + STOP_REPLY_S
-        while self.state == "stopping" and time.monotonic() < deadline:
+        deadline = time.monotonic() + REPLY_WAIT_S
+        while self._settling() and time.monotonic() < deadline:
             time.sleep(0.01)
         return self.status()
+
+    def _settling(self) -> bool:
+        """Whether the writer thread has yet to act on the command: a start is answered once
+        its first file is open (the operator begins the trial on the reply, and the readers'
+        counters at the file's open are then from before it), a stop once the file is closed."""
+        return self.state == "stopping" or (self.state == "recording" and self.file is None)
 
     def status(self) -> dict[str, Any]:
         with self.lock:

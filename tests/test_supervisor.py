@@ -64,7 +64,11 @@ def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, vict
     assert collect(mbus, 0.3, {70}) == []
     app.arm()
     assert app.cli("send", "position", "r_knee", "40").returncode == 0
-    wait_for(lambda: any(h2.decode(m).r_knee == 40 for m in collect(mbus, 0.1, {110})), timeout=5)
+    wait_for(
+        lambda: any(h2.decode(m).r_knee == 40 for m in collect(mbus, 0.1, {110})),
+        timeout=5,
+        explain=lambda: app.status()["watchdog"],
+    )
 
 
 def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore[no-untyped-def]
