@@ -206,7 +206,7 @@ def _named_child(name: str) -> subprocess.Popen[bytes]:
 
 
 def test_node_processes_nobody_counts_are_killed_and_named() -> None:
-    from exolink.supervisor.processes import kill_strays
+    from exolink.supervisor.osproc import kill_strays
 
     stray, known, other = _named_child("exo-stray"), _named_child("exo-known"), _named_child("x")
     try:
@@ -243,6 +243,6 @@ if os.fork() == 0:
 
 
 def _kids(pid: int) -> dict[int, tuple[str, str]]:
-    from exolink.supervisor.processes import children
+    from exolink.supervisor.osproc import children
 
     return {k: v for k, v in children(pid).items() if v[0] not in ("Z", "X")}

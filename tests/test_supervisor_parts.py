@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from exolink.config import NodeConfig, Priority, TriggerConfig
 from exolink.supervisor import canlink, trigger
-from exolink.supervisor.processes import apply_priority, proc_usage
+from exolink.supervisor.osproc import apply_priority, proc_usage
 from exolink.supervisor.systemd import Notifier
 
 from benchmarks.harness import free_port

@@ -19,7 +19,7 @@ import pytest
 from exolink import messaging, roles, update
 from exolink.cli import update as cli_update
 from exolink.client import Refused
-from exolink.supervisor.core import Supervisor
+from exolink.supervisor.api import ManagementApi
 
 REPO = Path(__file__).resolve().parents[1]
 BACKEND = REPO / "image/rauc/rauc-boot-backend"
@@ -102,8 +102,10 @@ def test_a_bundle_whose_sha256_differs_is_dropped(tmp_path: Path) -> None:
 
 
 def _sup(tmp_path: Path, armed: bool) -> Any:
-    """What Supervisor.api_update uses of the supervisor: its watchdog's armed and the receiver."""
-    return SimpleNamespace(watchdog=SimpleNamespace(armed=armed), update=update.Receiver(tmp_path))
+    """The API over what its ``update`` uses of the supervisor: the watchdog's armed and the
+    receiver (``.sup``)."""
+    sup = SimpleNamespace(watchdog=SimpleNamespace(armed=armed), update=update.Receiver(tmp_path))
+    return ManagementApi(sup)  # type: ignore[arg-type]
 
 
 def test_update_is_refused_while_armed_and_says_why(tmp_path: Path) -> None:
@@ -111,27 +113,22 @@ def test_update_is_refused_while_armed_and_says_why(tmp_path: Path) -> None:
     req = {"action": "begin", "size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
     caller = messaging.Caller("admin")
     with pytest.raises(messaging.CommandRefused, match="armed: an update ends in a reboot"):
-        Supervisor.api_update(_sup(tmp_path, armed=True), req, caller)
-    sup = _sup(tmp_path, armed=False)
-    assert Supervisor.api_update(sup, req, caller)["offset"] == 0
+        _sup(tmp_path, armed=True).update(req, caller)
+    api = _sup(tmp_path, armed=False)
+    assert api.update(req, caller)["offset"] == 0
     b64 = base64.b64encode(data).decode()
-    Supervisor.api_update(sup, {"action": "chunk", "offset": 0, "data": b64}, caller)
-    sup.watchdog.armed = True  # armed between the last chunk and the commit
+    api.update({"action": "chunk", "offset": 0, "data": b64}, caller)
+    api.sup.watchdog.armed = True  # armed between the last chunk and the commit
     with pytest.raises(messaging.CommandRefused, match="Disarm first"):
-        Supervisor.api_update(sup, {"action": "commit"}, caller)
+        api.update({"action": "commit"}, caller)
     assert not (tmp_path / update.REQUEST).exists()
     with pytest.raises(messaging.CommandRefused, match="unknown update action 'frob'"):
-        Supervisor.api_update(sup, {"action": "frob"}, caller)
+        api.update({"action": "frob"}, caller)
 
 
 def test_update_actions_need_admin_and_its_status_any_role(monkeypatch) -> None:
-    """The route the supervisor serves (Supervisor._serve_api) and the check serve() makes."""
-    served: dict[str, Any] = {}
-    msg = SimpleNamespace(serve=lambda path, _h, needs, _u: served.setdefault(path, needs))
-    Supervisor._serve_api(SimpleNamespace(msg=msg, _decls=[], **{
-        f"api_{n}": None for n in ("status", "nodes", "control", "logs", "watchdog", "trigger",
-                                   "clock", "update")}))  # fmt: skip
-    needs = served["update"]
+    """The route the supervisor serves (ManagementApi.routes) and the check serve() makes."""
+    _handler, needs = ManagementApi(SimpleNamespace()).routes()["update"]  # type: ignore[arg-type]
     assert needs({}) == roles.OBSERVER
     roles.check(roles.OBSERVER, needs({"action": "status"}), "update")
     for action in ("begin", "chunk", "commit", "abort"):

@@ -8,7 +8,6 @@ Stop order is the reverse with the safe action first.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import functools
 import gc
 import json
@@ -24,28 +23,22 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import structlog
 import yaml
-from exolink import cdr, liveness, logs, messaging, roles, update
+from exolink import cdr, liveness, logs, messaging, update
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
-from exolink.clock import BoardClock, ClockRefused
+from exolink.clock import BoardClock
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
-from exolink.messaging import CommandRefused
 from exolink.protocol import h2
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
-from exolink.supervisor.processes import (
-    Exit,
-    NodeProcess,
-    Zygote,
-    apply_priority,
-    become_subreaper,
-    kill_strays,
-    proc_state,
-    relay,
-)
+from exolink.supervisor.api import ManagementApi
+from exolink.supervisor.forking import Zygote, become_subreaper
+from exolink.supervisor.memory import MemoryTrim
+from exolink.supervisor.osproc import apply_priority, kill_strays, proc_state
+from exolink.supervisor.processes import Exit, NodeProcess, relay
 from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
-from exolink.supervisor.watchdog import ArmRefused, Watchdog, WatchdogState
+from exolink.supervisor.watchdog import Watchdog, WatchdogState
 from exolink.wakeup import Wakeup
 
 if TYPE_CHECKING:
@@ -117,8 +110,6 @@ class Supervisor:
         self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
         self.nodes: dict[str, NodeProcess] = {}
         self.memory = MemoryTrim()
-        self._arming = threading.Lock()  # an arm's last check and the e-stops' count
-        self._estops = 0
         self.node_api: dict[str, dict[str, int]] = {}  # each node's Admission counters
         self.clock = BoardClock(Path(state_dir(cfg, self._workdir)), cfg.clock.from_laptop)
         # Bundles from an admin laptop (exolink.update; on the board /var/lib/exolink/update,
@@ -178,7 +169,8 @@ class Supervisor:
         # CDR from exolink.cdr: no typestore (rosbags, numpy: ~13 MB, seconds of start on the A8)
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE, raw=True)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE, raw=True)
-        self._serve_api()
+        self.api = ManagementApi(self)
+        self._decls += self.api.serve(self.msg)
         self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
         diag_key = self.msg.key("nodes/*/diagnostics", DIAGNOSTICS_TYPE)
         api_key = self.msg.key(messaging.API_TOPIC.format(node="*"), messaging.API_TYPE)
@@ -420,7 +412,7 @@ class Supervisor:
             return
         self.node_api[name] = counts
 
-    def _described(self, node: NodeProcess) -> dict[str, Any]:
+    def described(self, node: NodeProcess) -> dict[str, Any]:
         """A node as the API shows it: its own description and the requests it refused."""
         info = node.describe()
         if refused := self.node_api.get(node.name):
@@ -457,7 +449,7 @@ class Supervisor:
                 f"can {h.state}", f"{self.cfg.can.channel} tx errors {h.txerr}, rx errors {h.rxerr}"
             )
 
-    def _take_beats(self) -> None:
+    def take_beats(self) -> None:
         """Every node's beats read now, for an answer about them (arming, status): between
         sweeps the loop reads a pipe only when its node's deadline timer runs out."""
         now = time.monotonic()
@@ -468,7 +460,7 @@ class Supervisor:
 
     def arm_blockers(self) -> list[str]:
         out = []
-        self._take_beats()
+        self.take_beats()
         now = time.monotonic()
         for n in self.nodes.values():
             if not (n.cfg.critical and n.cfg.enabled):
@@ -663,256 +655,6 @@ class Supervisor:
             self.link.close()
         shutil.rmtree(self._workdir, ignore_errors=True)
         self.log.info("supervisor_stopped")
-
-    # --- management API ---------------------------------------------------------------------
-
-    def _serve_api(self) -> None:
-        routes: dict[str, tuple[Any, messaging.Needs]] = {
-            "status": (self.api_status, roles.OBSERVER),
-            "nodes": (self.api_nodes, roles.OBSERVER),
-            "control": (self.api_control, roles.ADMIN),
-            "logs": (self.api_logs, roles.ADMIN),
-            "watchdog": (self.api_watchdog, _watchdog_needs),
-            "trigger": (self.api_trigger, roles.status_or(roles.OPERATOR)),
-            "clock": (self.api_clock, roles.status_or(roles.OPERATOR)),
-            "update": (self.api_update, roles.status_or(roles.ADMIN)),
-        }
-        for path, (handler, needs) in routes.items():
-            urgent = _is_estop if path == "watchdog" else None
-            self._decls.append(self.msg.serve(path, handler, needs, urgent))
-
-    def api_nodes(self, _req: dict[str, Any]) -> dict[str, Any]:
-        self._take_beats()
-        return {"nodes": [self._described(n) for n in self.nodes.values()]}
-
-    def api_status(self, _req: dict[str, Any]) -> dict[str, Any]:
-        self._take_beats()  # heartbeat ages as of now
-        wd = self.watchdog.snapshot()
-        silent = self.watchdog.h2_silent_for()
-        return {
-            "device": self.cfg.device,
-            "pid": os.getpid(),
-            "zygote_pid": self.zygote.proc.pid if self.zygote is not None else None,
-            "watchdog": {
-                "state": wd.state,
-                "reason": wd.reason,
-                "detail": wd.detail,
-                "since_ns": wd.since_ns,
-                "trips": wd.trips,
-                "frames_sent": wd.frames_sent,
-                "violations": wd.violations,
-                "read_lag_max_ms": wd.read_lag_max_ms,
-                "malformed": wd.malformed,
-                "socket_dropped": wd.socket_dropped,
-            },
-            "bus": {
-                "interface": self.cfg.can.interface,
-                "channel": self.cfg.can.channel,
-                **(vars(self.health) if self.health else {"state": "n/a"}),
-                "h2_silent_s": None if silent is None else round(silent, 3),
-            },
-            "clock": self.clock.status(),
-            "software": self.update.status(_version()),
-            "trigger": {
-                "source": self.cfg.trigger.source,
-                "count": self.trigger_count,
-                "last_ns": self.last_trigger_ns,
-            },
-            "nodes": [self._described(n) for n in self.nodes.values()],
-            # requests the supervisor's API handled and refused (messaging.Admission), samples
-            # it could not read, and what it gave back to the kernel (MemoryTrim)
-            "api": self.msg.admission.counters(),
-            "bad_samples": dict(self.bad_samples),
-            "memory": {"rss_mb": round(_rss_mb(), 1), "trims": self.memory.trims},
-        }
-
-    def _node(self, req: dict[str, Any]) -> NodeProcess:
-        name = req.get("node")
-        if not isinstance(name, str) or name not in self.nodes:
-            raise CommandRefused(
-                f"unknown node {_shown(name)} (configured: {', '.join(self.nodes)})"
-            )
-        return self.nodes[name]
-
-    def api_control(self, req: dict[str, Any]) -> dict[str, Any]:
-        node, action = self._node(req), req.get("action")
-        if action not in ("start", "stop", "restart"):
-            raise CommandRefused(f"unknown action {_shown(action)} (start, stop or restart)")
-        if action != "start" and node.cfg.critical:
-            # Before the process goes, whatever the order its exit is reported in: a critical
-            # node down is a trip (and arming waits for it to beat again).
-            why = "stopped" if action == "stop" else "restarted"
-            self.watchdog.trip(f"critical node {why} by operator", node.name)
-        if action != "start":
-            node.stop()
-        if action != "stop":
-            with node.lock:
-                node.restart_times.clear()
-                node.start()
-        self.wake.set()  # a started node is looked at for its first beat at once
-        return {"node": self._described(node)}
-
-    def api_logs(self, req: dict[str, Any]) -> dict[str, Any]:
-        node = self._node(req)
-        n = req.get("lines", 50)
-        if not isinstance(n, int) or n < 1:
-            raise CommandRefused("lines must be a positive integer")
-        return {"lines": list(node.logs)[-n:]}
-
-    def api_watchdog(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
-        """``caller``: the login Zenoh proved, which the e-stop's detail names (a ``by`` in the
-        request is the client's own text and is not used)."""
-        action = req.get("action")
-        if action == "arm":
-            estops = self._estops
-            blockers = self.arm_blockers()  # reads every node's pipe: not under the lock
-            with self._arming:
-                if self._estops != estops:
-                    raise CommandRefused("not armed: an e-stop came in while arming")
-                try:
-                    self.watchdog.arm(blockers)
-                except ArmRefused as exc:
-                    raise CommandRefused(str(exc)) from None
-        elif action == "disarm":
-            self.watchdog.disarm()
-        elif action == "estop":
-            # On its own thread (urgent), beside an arm on the API's: counted first, so that
-            # an arm under way either finished before (and is tripped now) or sees the count
-            # and refuses; it never arms after this e-stop.
-            with self._arming:
-                self._estops += 1
-            self.watchdog.trip("operator e-stop", f"by {caller.login}")
-        elif action == "trip":  # the appliance's own nodes (the motion holder lost)
-            reason, detail = str(req.get("reason", "")), str(req.get("detail", ""))
-            self.watchdog.trip(reason[:80] or "node request", detail[:300])
-        elif action is not None:
-            raise CommandRefused(f"unknown watchdog action {_shown(action)} (arm, disarm or estop)")
-        s = self.watchdog.snapshot()
-        return {"state": s.state, "reason": s.reason, "detail": s.detail}
-
-    def api_trigger(self, req: dict[str, Any]) -> dict[str, Any]:
-        action = req.get("action")
-        if action == "fire":
-            if self.trigger_out is not None:
-                return {"fired_ns": self.trigger_out.fire()}
-            if isinstance(self.trigger_src, trigger.SimulatedTrigger):
-                self.trigger_src.fire()
-                return {"fired_ns": self.last_trigger_ns}
-            raise CommandRefused("no trigger output configured (trigger.output in the config)")
-        if action is not None:
-            raise CommandRefused(f"unknown trigger action {_shown(action)} (fire)")
-        return {"count": self.trigger_count, "last_ns": self.last_trigger_ns}
-
-    def api_clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
-        """The board's clock (any role: a laptop measures its offset from ``now``), or a step
-        to an operator laptop's time (exolink.clock: refused while armed or synchronised)."""
-        action = req.get("action")
-        if action == "step":
-            try:
-                step = self.clock.step(
-                    req.get("offset_s"), req.get("error_s"), caller.login, self.watchdog.armed
-                )
-            except ClockRefused as exc:
-                raise CommandRefused(str(exc)) from None
-            self.log.warning("clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"})
-        elif action not in (None, "status"):
-            raise CommandRefused(f"unknown clock action {_shown(action)} (status or step)")
-        return self.clock.status()
-
-    def api_update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
-        """A new root file system from an admin laptop, in chunks (exolink.update): ``begin``
-        (size, sha256, name), ``chunk`` (offset, base64 data), ``commit``, ``abort``; no action
-        is the software status (any role). Refused while armed: installing ends in a reboot,
-        never under a walking patient; once committed, arming is refused until the reboot."""
-        action = req.get("action")
-        try:
-            if action in (None, "status"):
-                return self.update.status(_version())
-            if action == "abort":
-                self.update.abort()
-                return self.update.status(_version())
-            if action in ("begin", "commit") and self.watchdog.armed:
-                raise update.UpdateRefused(
-                    "the exoskeleton is armed: an update ends in a reboot, never under a walking "
-                    "patient. Disarm first (exolink watchdog disarm)"
-                )
-            if action == "begin":
-                return self.update.begin(req, caller.login)
-            if action == "chunk":
-                return self.update.chunk(req)
-            if action == "commit":
-                return self.update.commit(caller.login)
-        except update.UpdateRefused as exc:
-            raise CommandRefused(str(exc)) from None
-        raise CommandRefused(
-            f"unknown update action {_shown(action)} (status, begin, chunk, commit or abort)"
-        )
-
-
-@functools.cache
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("exolink")
-    except PackageNotFoundError:
-        return "unknown"
-
-
-class MemoryTrim:
-    """Gives back to the kernel what glibc keeps after a burst (``malloc_trim``).
-
-    A flood of queries (three clients queueing 3000 status queries each) left the supervisor
-    ~20 MB larger for good: Zenoh's and Python's threads allocate in glibc arenas, which keep
-    freed memory; malloc_trim(0) gave it back (75 -> 53 MB). It is called only when the
-    resident size grew by TRIM_GROWTH_MB since the last call, looked at every TRIM_PERIOD_S
-    (one read of /proc/self/statm), so a steady supervisor never pays for the walk of its
-    heap (4.5 ms for 100k free chunks on x86)."""
-
-    def __init__(self) -> None:
-        self.trims = 0
-        self._next = 0.0
-        self._base: float | None = None
-        try:
-            self._trim: Any = ctypes.CDLL(None).malloc_trim
-        except (OSError, AttributeError):  # not glibc
-            self._trim = None
-
-    def check(self, now: float) -> None:
-        if self._trim is None or now < self._next:
-            return
-        self._next = now + TRIM_PERIOD_S
-        rss = _rss_mb()
-        if self._base is None:
-            self._base = rss
-        elif rss > self._base + TRIM_GROWTH_MB:
-            self._trim(0)
-            self.trims += 1
-            self._base = _rss_mb()
-
-
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * PAGE_SIZE / 2**20
-
-
-def _is_estop(req: dict[str, Any]) -> bool:
-    """An e-stop is acted on at once, whatever the rate of its login or the queue before it."""
-    return req.get("action") == "estop"
-
-
-def _shown(value: Any) -> str:
-    """A client's value in an error: its repr, cut (it may be a megabyte)."""
-    return messaging.clip(repr(value), 60)
-
-
-def _watchdog_needs(req: dict[str, Any]) -> str:
-    """E-stop is every login's; arming and disarming are the operator's; a trip with a reason
-    of its own only the appliance's nodes'."""
-    action = req.get("action")
-    if action == "trip":
-        return roles.APPLIANCE_USER
-    return roles.OPERATOR if action in ("arm", "disarm") else roles.OBSERVER
 
 
 def state_dir(cfg: ApplianceConfig, workdir: Path) -> str:

@@ -55,7 +55,7 @@ class Ros2Api:
         self.workers = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ros2")
         self._joints_lock = threading.Lock()
         self.joints_pending = self.joints_dropped = 0
-        wd = sup.api_watchdog
+        wd = sup.api.watchdog
         routes: dict[str, tuple[str, Callable[[Any], dict[str, Any]]]] = {
             "estop": (TRIGGER, self._local(wd, lambda _r: {"action": "estop"})),
             "arm": (TRIGGER, self._local(wd, lambda _r: {"action": "arm"})),
@@ -72,7 +72,7 @@ class Ros2Api:
             "joint_command": (JOINT_SRV, self._remote(("h2", "command"), _joint_request)),
             "node_control": (
                 NODE_SRV,
-                self._local(sup.api_control, lambda r: {"node": r.node, "action": r.action}),
+                self._local(sup.api.control, lambda r: {"node": r.node, "action": r.action}),
             ),
         }
         self.services = [

@@ -1,0 +1,253 @@
+"""The supervisor's management API: what a laptop's CLI, the dashboard, ROS 2 services and the
+appliance's own nodes ask the supervisor (status, node control and logs, the watchdog, the
+trigger, the board's clock, software updates), each route with the role it needs
+(exolink.roles). Handlers read the supervisor's state; only the watchdog and node control act.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import threading
+from typing import TYPE_CHECKING, Any
+
+from exolink import messaging, roles, update
+from exolink.clock import ClockRefused
+from exolink.messaging import CommandRefused
+from exolink.supervisor import trigger
+from exolink.supervisor.memory import rss_mb
+from exolink.supervisor.processes import NodeProcess
+from exolink.supervisor.watchdog import ArmRefused
+
+if TYPE_CHECKING:
+    from exolink.supervisor.core import Supervisor
+
+Route = tuple[Any, messaging.Needs]
+
+
+class ManagementApi:
+    """The routes under the supervisor's management key, and the e-stop's race with arming."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        self.sup = sup
+        self._arming = threading.Lock()  # an arm's last check and the e-stops' count
+        self._estops = 0
+
+    def routes(self) -> dict[str, Route]:
+        """path -> (handler, the role it needs: a role, or a function of the request)."""
+        return {
+            "status": (self.status, roles.OBSERVER),
+            "nodes": (self.nodes, roles.OBSERVER),
+            "control": (self.control, roles.ADMIN),
+            "logs": (self.logs, roles.ADMIN),
+            "watchdog": (self.watchdog, _watchdog_needs),
+            "trigger": (self.trigger, roles.status_or(roles.OPERATOR)),
+            "clock": (self.clock, roles.status_or(roles.OPERATOR)),
+            "update": (self.update, roles.status_or(roles.ADMIN)),
+        }
+
+    def serve(self, msg: messaging.Messaging) -> list[Any]:
+        """Every route declared on ``msg``'s session (an e-stop on its own, urgent, thread)."""
+        return [
+            msg.serve(path, handler, needs, _is_estop if path == "watchdog" else None)
+            for path, (handler, needs) in self.routes().items()
+        ]
+
+    def nodes(self, _req: dict[str, Any]) -> dict[str, Any]:
+        sup = self.sup
+        sup.take_beats()
+        return {"nodes": [sup.described(n) for n in sup.nodes.values()]}
+
+    def status(self, _req: dict[str, Any]) -> dict[str, Any]:
+        sup = self.sup
+        sup.take_beats()  # heartbeat ages as of now
+        wd = sup.watchdog.snapshot()
+        silent = sup.watchdog.h2_silent_for()
+        return {
+            "device": sup.cfg.device,
+            "pid": os.getpid(),
+            "zygote_pid": sup.zygote.proc.pid if sup.zygote is not None else None,
+            "watchdog": {
+                "state": wd.state,
+                "reason": wd.reason,
+                "detail": wd.detail,
+                "since_ns": wd.since_ns,
+                "trips": wd.trips,
+                "frames_sent": wd.frames_sent,
+                "violations": wd.violations,
+                "read_lag_max_ms": wd.read_lag_max_ms,
+                "malformed": wd.malformed,
+                "socket_dropped": wd.socket_dropped,
+            },
+            "bus": {
+                "interface": sup.cfg.can.interface,
+                "channel": sup.cfg.can.channel,
+                **(vars(sup.health) if sup.health else {"state": "n/a"}),
+                "h2_silent_s": None if silent is None else round(silent, 3),
+            },
+            "clock": sup.clock.status(),
+            "software": sup.update.status(version()),
+            "trigger": {
+                "source": sup.cfg.trigger.source,
+                "count": sup.trigger_count,
+                "last_ns": sup.last_trigger_ns,
+            },
+            "nodes": [sup.described(n) for n in sup.nodes.values()],
+            # requests the supervisor's API handled and refused (messaging.Admission), samples
+            # it could not read, and what it gave back to the kernel (memory.MemoryTrim)
+            "api": sup.msg.admission.counters(),
+            "bad_samples": dict(sup.bad_samples),
+            "memory": {"rss_mb": round(rss_mb(), 1), "trims": sup.memory.trims},
+        }
+
+    def _node(self, req: dict[str, Any]) -> NodeProcess:
+        name, nodes = req.get("node"), self.sup.nodes
+        if not isinstance(name, str) or name not in nodes:
+            raise CommandRefused(f"unknown node {_shown(name)} (configured: {', '.join(nodes)})")
+        return nodes[name]
+
+    def control(self, req: dict[str, Any]) -> dict[str, Any]:
+        node, action = self._node(req), req.get("action")
+        if action not in ("start", "stop", "restart"):
+            raise CommandRefused(f"unknown action {_shown(action)} (start, stop or restart)")
+        if action != "start" and node.cfg.critical:
+            # Before the process goes, whatever the order its exit is reported in: a critical
+            # node down is a trip (and arming waits for it to beat again).
+            why = "stopped" if action == "stop" else "restarted"
+            self.sup.watchdog.trip(f"critical node {why} by operator", node.name)
+        if action != "start":
+            node.stop()
+        if action != "stop":
+            with node.lock:
+                node.restart_times.clear()
+                node.start()
+        self.sup.wake.set()  # a started node is looked at for its first beat at once
+        return {"node": self.sup.described(node)}
+
+    def logs(self, req: dict[str, Any]) -> dict[str, Any]:
+        node = self._node(req)
+        n = req.get("lines", 50)
+        if not isinstance(n, int) or n < 1:
+            raise CommandRefused("lines must be a positive integer")
+        return {"lines": list(node.logs)[-n:]}
+
+    def watchdog(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+        """``caller``: the login Zenoh proved, which the e-stop's detail names (a ``by`` in the
+        request is the client's own text and is not used)."""
+        wd, action = self.sup.watchdog, req.get("action")
+        if action == "arm":
+            estops = self._estops
+            blockers = self.sup.arm_blockers()  # reads every node's pipe: not under the lock
+            with self._arming:
+                if self._estops != estops:
+                    raise CommandRefused("not armed: an e-stop came in while arming")
+                try:
+                    wd.arm(blockers)
+                except ArmRefused as exc:
+                    raise CommandRefused(str(exc)) from None
+        elif action == "disarm":
+            wd.disarm()
+        elif action == "estop":
+            # On its own thread (urgent), beside an arm on the API's: counted first, so that
+            # an arm under way either finished before (and is tripped now) or sees the count
+            # and refuses; it never arms after this e-stop.
+            with self._arming:
+                self._estops += 1
+            wd.trip("operator e-stop", f"by {caller.login}")
+        elif action == "trip":  # the appliance's own nodes (the motion holder lost)
+            reason, detail = str(req.get("reason", "")), str(req.get("detail", ""))
+            wd.trip(reason[:80] or "node request", detail[:300])
+        elif action is not None:
+            raise CommandRefused(f"unknown watchdog action {_shown(action)} (arm, disarm or estop)")
+        s = wd.snapshot()
+        return {"state": s.state, "reason": s.reason, "detail": s.detail}
+
+    def trigger(self, req: dict[str, Any]) -> dict[str, Any]:
+        sup, action = self.sup, req.get("action")
+        if action == "fire":
+            if sup.trigger_out is not None:
+                return {"fired_ns": sup.trigger_out.fire()}
+            if isinstance(sup.trigger_src, trigger.SimulatedTrigger):
+                sup.trigger_src.fire()
+                return {"fired_ns": sup.last_trigger_ns}
+            raise CommandRefused("no trigger output configured (trigger.output in the config)")
+        if action is not None:
+            raise CommandRefused(f"unknown trigger action {_shown(action)} (fire)")
+        return {"count": sup.trigger_count, "last_ns": sup.last_trigger_ns}
+
+    def clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+        """The board's clock (any role: a laptop measures its offset from ``now``), or a step
+        to an operator laptop's time (exolink.clock: refused while armed or synchronised)."""
+        clock, action = self.sup.clock, req.get("action")
+        if action == "step":
+            try:
+                step = clock.step(
+                    req.get("offset_s"), req.get("error_s"), caller.login, self.sup.watchdog.armed
+                )
+            except ClockRefused as exc:
+                raise CommandRefused(str(exc)) from None
+            self.sup.log.warning(
+                "clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"}
+            )
+        elif action not in (None, "status"):
+            raise CommandRefused(f"unknown clock action {_shown(action)} (status or step)")
+        return clock.status()
+
+    def update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+        """A new root file system from an admin laptop, in chunks (exolink.update): ``begin``
+        (size, sha256, name), ``chunk`` (offset, base64 data), ``commit``, ``abort``; no action
+        is the software status (any role). Refused while armed: installing ends in a reboot,
+        never under a walking patient; once committed, arming is refused until the reboot."""
+        rx, action = self.sup.update, req.get("action")
+        try:
+            if action in (None, "status"):
+                return rx.status(version())
+            if action == "abort":
+                rx.abort()
+                return rx.status(version())
+            if action in ("begin", "commit") and self.sup.watchdog.armed:
+                raise update.UpdateRefused(
+                    "the exoskeleton is armed: an update ends in a reboot, never under a walking "
+                    "patient. Disarm first (exolink watchdog disarm)"
+                )
+            if action == "begin":
+                return rx.begin(req, caller.login)
+            if action == "chunk":
+                return rx.chunk(req)
+            if action == "commit":
+                return rx.commit(caller.login)
+        except update.UpdateRefused as exc:
+            raise CommandRefused(str(exc)) from None
+        raise CommandRefused(
+            f"unknown update action {_shown(action)} (status, begin, chunk, commit or abort)"
+        )
+
+
+@functools.cache
+def version() -> str:
+    """The installed exolink's version (the software status names it)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("exolink")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _is_estop(req: dict[str, Any]) -> bool:
+    """An e-stop is acted on at once, whatever the rate of its login or the queue before it."""
+    return req.get("action") == "estop"
+
+
+def _shown(value: Any) -> str:
+    """A client's value in an error: its repr, cut (it may be a megabyte)."""
+    return messaging.clip(repr(value), 60)
+
+
+def _watchdog_needs(req: dict[str, Any]) -> str:
+    """E-stop is every login's; arming and disarming are the operator's; a trip with a reason
+    of its own only the appliance's nodes'."""
+    action = req.get("action")
+    if action == "trip":
+        return roles.APPLIANCE_USER
+    return roles.OPERATOR if action in ("arm", "disarm") else roles.OBSERVER
