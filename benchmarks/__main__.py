@@ -27,6 +27,7 @@ SUITES = [
     "netsafety",
     "gaitlab",
     "fetch",
+    "house",
 ]
 
 

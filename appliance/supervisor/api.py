@@ -9,26 +9,51 @@ from __future__ import annotations
 import functools
 import os
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from exolink import messaging, roles, update
-from exolink.clock import ClockRefused
+from exolink.clock import BoardClock, ClockRefused
+from exolink.config import ApplianceConfig
 from exolink.messaging import CommandRefused
-from exolink.supervisor import trigger
-from exolink.supervisor.memory import rss_mb
+from exolink.supervisor import canlink, trigger
+from exolink.supervisor.forking import Zygote
+from exolink.supervisor.memory import MemoryTrim, rss_mb
 from exolink.supervisor.processes import NodeProcess
-from exolink.supervisor.watchdog import ArmRefused
-
-if TYPE_CHECKING:
-    from exolink.supervisor.core import Supervisor
+from exolink.supervisor.watchdog import ArmRefused, Watchdog
+from exolink.wakeup import Wakeup
 
 Route = tuple[Any, messaging.Needs]
+
+
+class Supervised(Protocol):
+    """What the API reads and acts on of the supervisor (supervisor.core.Supervisor)."""
+
+    cfg: ApplianceConfig
+    log: Any
+    msg: messaging.Messaging
+    wake: Wakeup
+    nodes: dict[str, NodeProcess]
+    watchdog: Watchdog
+    zygote: Zygote | None
+    health: canlink.LinkHealth | None
+    clock: BoardClock
+    update: update.Receiver
+    memory: MemoryTrim
+    bad_samples: dict[str, int]
+    trigger_count: int
+    last_trigger_ns: int | None
+    trigger_src: Any
+    trigger_out: Any
+
+    def take_beats(self) -> None: ...
+    def described(self, node: NodeProcess) -> dict[str, Any]: ...
+    def arm_blockers(self) -> list[str]: ...
 
 
 class ManagementApi:
     """The routes under the supervisor's management key, and the e-stop's race with arming."""
 
-    def __init__(self, sup: Supervisor) -> None:
+    def __init__(self, sup: Supervised) -> None:
         self.sup = sup
         self._arming = threading.Lock()  # an arm's last check and the e-stops' count
         self._estops = 0

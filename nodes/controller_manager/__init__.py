@@ -5,7 +5,8 @@ the home of the operator's intent (limits in force, who holds motion).
 - ``api``: its requests: controllers, the H2's and the MACCEPA boards' commands, presence;
 - ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O);
 - ``intent``: the operator's limits (persisted) and presence;
-- ``builtin``: the built-in controllers.
+- ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager);
+- ``builtin``, ``maccepa``: the built-in controllers (joints; MACCEPA boards).
 """
 
 from exolink.nodes.controller_manager.node import ControllerManagerNode, drop_rules, one_socket
