@@ -12,6 +12,8 @@ IMPORT_TREE := $(VENV)/import-tree
 LINT_IMPORTS = rm -rf $(IMPORT_TREE) && mkdir -p $(IMPORT_TREE)/exolink && \
 	ln -s $(CURDIR)/appliance/* $(IMPORT_TREE)/exolink/ && ln -s $(CURDIR)/nodes $(IMPORT_TREE)/exolink/nodes && \
 	PYTHONPATH=$(CURDIR)/$(IMPORT_TREE) $(BIN)/lint-imports
+# Types (settings in pyproject's [tool.mypy]) on the same tree, after LINT_IMPORTS made it.
+LINT_TYPES = MYPYPATH=$(CURDIR)/$(IMPORT_TREE) $(BIN)/mypy -p exolink
 # Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
 APT_WAIT := -o DPkg::Lock::Timeout=600
 
@@ -46,6 +48,7 @@ test: $(STAMP) browser
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(LINT_IMPORTS)
+	$(LINT_TYPES)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 # Kernel-level tests (SocketCAN in User-Mode Linux, gpio-sim in qemu): see tests/kernel/run.sh.
@@ -93,6 +96,7 @@ test-update: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 	$(LINT_IMPORTS)
+	$(LINT_TYPES)
 
 format: $(STAMP)
 	$(BIN)/ruff format . && $(BIN)/ruff check --fix .

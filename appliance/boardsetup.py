@@ -56,13 +56,13 @@ class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=T
     pass
 
 
-class Ethernet(_Strict):
+class Ethernet(_Strict, frozen=True):
     address: str = "dhcp"  # "dhcp" or CIDR, e.g. 192.168.10.2/24
     gateway: str = ""
     dns: list[Host] = msgspec.field(default_factory=list)
 
 
-class Wifi(_Strict):
+class Wifi(_Strict, frozen=True):
     country: Country = "DE"
     ssid: Annotated[str, msgspec.Meta(max_length=32)] = ""
     password: str = ""
@@ -72,19 +72,19 @@ Role = Literal["observer", "operator", "admin"]
 Password = Annotated[str, msgspec.Meta(pattern=r"^[^:\s]{12,128}$")]
 
 
-class ZenohAuth(_Strict):
+class ZenohAuth(_Strict, frozen=True):
     # Roles that get a laptop login file on the card; [] = no logins at all (open port).
     logins: list[Role] = msgspec.field(default_factory=lambda: ["operator", "observer"])
     passwords: dict[Role, Password] = msgspec.field(default_factory=dict)  # else made up
     tls: bool = False  # laptops connect with TLS (a CA made on the board) on TLS_PORT
 
 
-class Ssh(_Strict):
+class Ssh(_Strict, frozen=True):
     authorized_keys: list[str] = msgspec.field(default_factory=list)
     password: str = ""
 
 
-class BoardSettings(_Strict):
+class BoardSettings(_Strict, frozen=True):
     device: DeviceName
     ethernet: Ethernet = msgspec.field(default_factory=Ethernet)
     wifi: Wifi = msgspec.field(default_factory=Wifi)

@@ -40,7 +40,7 @@ class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=T
     pass
 
 
-class CanConfig(_Strict):
+class CanConfig(_Strict, frozen=True):
     interface: Literal["socketcan", "virtual", "exolink_sim", "udp_multicast"] = "socketcan"
     channel: str = "can0"
     bitrate: Annotated[int, msgspec.Meta(ge=10_000, le=1_000_000)] = 1_000_000
@@ -61,13 +61,13 @@ class CanConfig(_Strict):
         return self.bus_interface == SIM_INTERFACE
 
 
-class TriggerOutput(_Strict):
+class TriggerOutput(_Strict, frozen=True):
     line: Annotated[int, msgspec.Meta(ge=0, le=511)]
     chip: str = "/dev/gpiochip0"
     pulse_ms: Annotated[int, msgspec.Meta(ge=1, le=10_000)] = 10
 
 
-class TriggerConfig(_Strict):
+class TriggerConfig(_Strict, frozen=True):
     source: Literal["gpio", "simulated", "none"] = "gpio"
     chip: str = "/dev/gpiochip0"
     line: Annotated[int, msgspec.Meta(ge=0, le=511)] = 7
@@ -78,7 +78,7 @@ class TriggerConfig(_Strict):
     output: TriggerOutput | None = None
 
 
-class ZenohConfig(_Strict):
+class ZenohConfig(_Strict, frozen=True):
     domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
     namespace: Annotated[str, msgspec.Meta(pattern=r"^[a-z0-9_]+(/[a-z0-9_]+)*$")] = "h2"
     listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
@@ -98,7 +98,7 @@ class ZenohConfig(_Strict):
     threads: Annotated[int, msgspec.Meta(ge=1, le=4)] | None = None
 
 
-class WatchdogConfig(_Strict):
+class WatchdogConfig(_Strict, frozen=True):
     heartbeat_deadline_ms: PositiveMs = 500
     # A (re)started node must send its first heartbeat within this. Only availability rides on
     # it, not safety: arming needs every critical node's heartbeat, and a restart already tripped.
@@ -111,13 +111,13 @@ class WatchdogConfig(_Strict):
     trip_on_bus_error_passive: bool = True
 
 
-class Priority(_Strict):
+class Priority(_Strict, frozen=True):
     nice: Annotated[int, msgspec.Meta(ge=-20, le=19)] | None = None
     fifo: Annotated[int, msgspec.Meta(ge=1, le=99)] | None = None
     cpus: list[Annotated[int, msgspec.Meta(ge=0, le=255)]] | None = None
 
 
-class RestartPolicy(_Strict):
+class RestartPolicy(_Strict, frozen=True):
     policy: Literal["always", "on-failure", "never"] = "always"
     backoff_initial_ms: PositiveMs = 200
     backoff_max_ms: PositiveMs = 10_000
@@ -125,7 +125,7 @@ class RestartPolicy(_Strict):
     window_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 60.0
 
 
-class ClockConfig(_Strict):
+class ClockConfig(_Strict, frozen=True):
     # Take the wall clock from an operator's laptop when no time server disciplines it (a
     # BeagleBone has no battery-backed clock: exolink.clock). False on a simulator, whose clock is
     # its host's.

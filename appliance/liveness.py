@@ -29,6 +29,7 @@ import contextlib
 import os
 import select
 import struct
+import sys
 import time
 from collections.abc import Iterable
 from typing import NamedTuple
@@ -45,8 +46,7 @@ class _Timers:
     libc's through ctypes (3.11 and 3.12)."""
 
     def __init__(self) -> None:
-        self._os = hasattr(os, "timerfd_create")
-        if not self._os:
+        if sys.version_info < (3, 13):  # (a version check, which a type checker follows)
             import ctypes
             import ctypes.util
 
@@ -74,13 +74,13 @@ class _Timers:
 
     def create(self) -> int:
         flags = os.O_NONBLOCK | os.O_CLOEXEC  # TFD_NONBLOCK, TFD_CLOEXEC
-        if self._os:
+        if sys.version_info >= (3, 13):
             return os.timerfd_create(time.CLOCK_MONOTONIC, flags=flags)
         return self._check(self._create(time.CLOCK_MONOTONIC, flags))
 
     def arm_at(self, fd: int, t: float) -> None:
         """Expire once at monotonic time ``t`` (> 0)."""
-        if self._os:
+        if sys.version_info >= (3, 13):
             os.timerfd_settime(fd, flags=_TFD_TIMER_ABSTIME, initial=t)
             return
         spec = self._spec()
@@ -89,7 +89,7 @@ class _Timers:
 
     def remaining(self, fd: int) -> float:
         """Seconds until it expires (0: not set, or run out)."""
-        if self._os:
+        if sys.version_info >= (3, 13):
             return float(os.timerfd_gettime(fd)[0])
         spec = self._spec()
         self._check(self._get(fd, self._ctypes.byref(spec)))

@@ -429,7 +429,7 @@ def fetch(
 def _wait_sum(ask: Ask, name: str, st: dict[str, Any], wait_s: float) -> str:
     """The board's sha256 of the file (it computes it once, on first ``stat``, paced): waited
     for while its hashing moves on, given up after ``wait_s`` without progress."""
-    deadline, hashed = time.monotonic() + wait_s, -1
+    deadline, hashed = time.monotonic() + wait_s, None  # the board's bytes hashed so far
     while st.get("sha256") is None:
         now = time.monotonic()
         if st.get("hashed") != hashed:

@@ -36,7 +36,7 @@ class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     topics: list[str] = msgspec.field(default_factory=list)
 
 
-class FoxgloveBridge(Node):
+class FoxgloveBridge(Node, foxglove.websocket.ServerListener):
     Params = BridgeParams
 
     def configure(self) -> None:

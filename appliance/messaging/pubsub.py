@@ -136,6 +136,8 @@ class Publisher:
     ) -> None:
         self.key, self.typename = key, typename
         # (publisher, liveliness token) of its bundle key (Messaging.publisher, bundled=True)
+        self._bundle: Any
+        self._bundle_token: Any
         self._bundle, self._bundle_token = bundle or (None, None)
         self._pub = session.declare_publisher(key)
         # With a graph token (an appliance node's publisher) the GID is the token's, as
@@ -173,7 +175,9 @@ class Publisher:
         with self._lock:
             first = self._seq + 1
             self._seq += len(items)
-            if self._pub.matching_status.matching:  # one Rust call per batch, not per sample
+            # one Rust call per batch, not per sample (zenoh 1.10's stub says bool: it is a
+            # MatchingStatus)
+            if self._pub.matching_status.matching:  # type: ignore[attr-defined]
                 head, gid = self._head, self._gid
                 for i, (payload, ns) in enumerate(items):
                     self._pub.put(payload, attachment=head.pack(first + i, ns, len(gid), gid))

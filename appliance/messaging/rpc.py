@@ -395,7 +395,6 @@ def request(
         if reply.ok is not None:
             result: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
             return result
-        raise Unreachable(
-            f"{key}: error reply: {reply.err.payload.to_bytes().decode(errors='replace')}"
-        )
+        why = reply.err.payload.to_bytes().decode(errors="replace") if reply.err else "?"
+        raise Unreachable(f"{key}: error reply: {why}")
     raise Unreachable(f"no answer from {key} within {timeout_s:g} s")

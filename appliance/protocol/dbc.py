@@ -18,7 +18,7 @@ import struct
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import structlog
 
@@ -32,6 +32,20 @@ _INT_FMT = {
     (32, True): "i",
     (32, False): "I",
 }
+
+
+class Received(Protocol):
+    """What a decoder reads of a frame: a python-can Message, or the reader's lighter
+    ``canbus.Frame`` (the hot path makes no Message per frame)."""
+
+    @property
+    def arbitration_id(self) -> int: ...
+    @property
+    def data(self) -> bytes | bytearray: ...
+    @property
+    def is_extended_id(self) -> bool: ...
+    @property
+    def is_remote_frame(self) -> bool: ...
 
 
 class ProtocolError(ValueError):
@@ -150,6 +164,8 @@ def _compile_with_cantools(path: Path) -> list[dict[str, Any]]:
     import cantools
 
     db = cantools.database.load_file(str(path), strict=True)
+    if not isinstance(db, cantools.database.can.Database):
+        raise TypeError(f"{path}: not a CAN database")
     frames = []
     for m in db.messages:
         signals = []

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 import can
-from exolink.protocol.dbc import FrameSpec, ProtocolError, bundled, load
+from exolink.protocol.dbc import FrameSpec, ProtocolError, Received, bundled, load
 
 JOINTS: tuple[str, ...] = ("r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle")
 
@@ -135,7 +136,7 @@ def dlc_of(frame_id: int) -> int | None:
     return entry[0].dlc if entry is not None else None
 
 
-def decode(msg: can.Message) -> H2Frame | Unknown:
+def decode(msg: Received) -> H2Frame | Unknown:
     """Decode any H2 frame; never raises (hot path of the reader)."""
     entry = _TABLE.by_id.get(msg.arbitration_id)
     if entry is None or msg.is_extended_id or msg.is_remote_frame:
@@ -236,9 +237,11 @@ def joint_control(
     return jc
 
 
-def encode_accepted_angles(kind: str, angles: dict[str, float] | list[float]) -> can.Message:
+def encode_accepted_angles(
+    kind: str, angles: Mapping[str, float] | Sequence[float]
+) -> can.Message:
     """Min (id 75) or max (id 80) accepted position set-points, one per joint."""
-    if isinstance(angles, dict):
+    if isinstance(angles, Mapping):
         unknown = set(angles) - set(JOINTS)
         if unknown:
             raise ProtocolError(f"unknown joints {sorted(unknown)} (valid: {', '.join(JOINTS)})")

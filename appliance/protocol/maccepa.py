@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import can
 from exolink.protocol import h2
-from exolink.protocol.dbc import FrameSpec, ProtocolError, bundled, load
+from exolink.protocol.dbc import FrameSpec, ProtocolError, Received, bundled, load
 
 BOARDS = range(10)
 GAIN_BASE = {"kp": 10, "ki": 20, "kd": 30}
@@ -123,7 +123,7 @@ def command_ids(boards: list[int] | range) -> list[int]:
     return [base + b for b in boards for base in bases]
 
 
-def decode(msg: can.Message) -> MaccepaFrame | Unknown:
+def decode(msg: Received) -> MaccepaFrame | Unknown:
     """Decode any MACCEPA frame; never raises."""
     entry = _TABLE.get(msg.arbitration_id)
     if entry is None or msg.is_extended_id or msg.is_remote_frame:

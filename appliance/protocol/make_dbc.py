@@ -13,6 +13,7 @@ from pathlib import Path
 from cantools.database import Database
 from cantools.database.can import Message, Node, Signal
 from cantools.database.conversion import BaseConversion
+from cantools.database.namedsignalvalue import NamedSignalValue
 
 HERE = Path(__file__).parent
 JOINTS = ("r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle")
@@ -25,10 +26,11 @@ RANGES = {
     "l_knee": (0, 100),
     "l_ankle": (-20, 20),
 }
-MODES = OrderedDict(
+Choices = OrderedDict[int, str | NamedSignalValue]  # a signal's named values, as cantools types them
+MODES: Choices = OrderedDict(
     [(1, "position"), (2, "stiffness"), (3, "torque"), (4, "disabled"), (5, "stopped")]
 )
-CONTROLLERS = OrderedDict([(0, "position"), (1, "velocity")])
+CONTROLLERS: Choices = OrderedDict([(0, "position"), (1, "velocity")])
 BOARDS = range(10)
 
 
@@ -40,7 +42,7 @@ def _sig(
     minimum: float | None = None,
     maximum: float | None = None,
     unit: str | None = None,
-    choices: OrderedDict[int, str] | None = None,
+    choices: Choices | None = None,
     is_float: bool = False,
     comment: str | None = None,
 ) -> Signal:

@@ -87,7 +87,7 @@ class Ros2Api:
         self.msg.log_command(rosservices.ROS2_USER, key, request, reply)
 
     def _local(
-        self, handler: Callable[[dict[str, Any]], Any], to_json: Callable[[Any], dict[str, Any]]
+        self, handler: Callable[..., Any], to_json: Callable[[Any], dict[str, Any]]
     ) -> Callable[[Any], dict[str, Any]]:
         caller = messaging.Caller(rosservices.ROS2_USER)  # the router's ACL chose who may call
         local = partial(handler, caller=caller) if messaging.takes_caller(handler) else handler
