@@ -34,7 +34,6 @@ import errno
 import fnmatch
 import json
 import math
-import os
 import threading
 import time
 from collections.abc import Iterator
@@ -44,11 +43,11 @@ from typing import Any
 import msgspec
 import yaml
 import zenoh
-from exolink import __version__, cdr, clock, messaging, recording, recstore, roles, rosgraph
+from exolink import __version__, cdr, clock, messaging, recstore, roles, rosgraph
 from exolink.messaging import CommandRefused, Unlogged
 from exolink.node import Node
+from exolink.nodes.recorder.mcapfile import McapFile
 from exolink.nodes.recorder.params import RecorderParams, Stats
-from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 # How often the loop takes what the inbox holds. Each take is a wake-up (~1 ms of the board's
@@ -86,74 +85,6 @@ REPLY_WAIT_S = 2.0
 RECEIVE_QUERY_S = 0.5  # the readers' receive counters, asked when a file opens and closes
 RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the file alone
 CARD_CHECK_S = 1.0  # how often the card's free space is read (one statvfs)
-
-
-class McapFile:
-    """One open MCAP file with its schemas and channels registered on first use.
-
-    Each channel's metadata marks whether its topic is a command (``exolink.command``: "true" or
-    "false", by exolink.recording.command_topic): ``exolink play`` never republishes a command.
-
-    Nothing here may import: the writer loop opens files, and an import on it (mcap and its
-    compressors took seconds under emulation) stalls its heartbeat until the supervisor kills it.
-    """
-
-    def __init__(self, path: Path, p: RecorderParams, metadata: dict[str, dict[str, str]]) -> None:
-        comp = {
-            "zstd": CompressionType.ZSTD,
-            "lz4": CompressionType.LZ4,
-            "none": CompressionType.NONE,
-        }
-        self.path = path
-        self.f = path.open("xb")  # never overwrite a recording
-        # CRCs of every chunk, of the data section and of the summary: readers tell a damaged
-        # file from a good one (exolink.recording.check), at one crc32 pass over what is written.
-        self.w = Writer(
-            self.f,
-            chunk_size=p.chunk_size,
-            compression=comp[p.compression],
-            enable_crcs=True,
-            enable_data_crcs=True,
-        )
-        self.w.start(profile="ros2", library=f"exolink {__version__}")
-        for name, data in metadata.items():
-            self.w.add_metadata(name, data)
-        self.schemas: dict[str, int] = {}
-        self.channels: dict[str, int] = {}
-        self.opened = time.monotonic()
-
-    def channel(self, topic: str, typename: str) -> int:
-        cid = self.channels.get(topic)
-        if cid is None:
-            sid = self.schemas.get(typename)
-            if sid is None:
-                text = messaging.msgdef(typename)
-                sid = self.schemas[typename] = self.w.register_schema(
-                    typename, "ros2msg", text.encode()
-                )
-            name = f"/{topic}"
-            cid = self.channels[topic] = self.w.register_channel(
-                name, "cdr", sid, recording.command_metadata(name)
-            )
-        return cid
-
-    def sync(self) -> None:
-        self.w.flush()
-        os.fsync(self.f.fileno())
-
-    def size(self) -> int:
-        return self.f.tell()
-
-    def close(self, stats: dict[str, str], receive: dict[str, str] | None = None) -> None:
-        self.w.add_metadata("exolink.stats", stats)
-        self.w.add_metadata("exolink.receive", receive or {})
-        self.w.finish()
-        self.f.flush()
-        os.fsync(self.f.fileno())
-        self.f.close()
-
-    def size_closed(self) -> int:
-        return os.stat(self.path).st_size
 
 
 class Inbox:
