@@ -24,21 +24,32 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import structlog
 from exolink import canfilter
+from exolink.canbus.frames import (
+    CAN_EFF_FLAG,
+    CAN_ERR_FLAG,
+    CAN_FRAME,
+    CAN_RTR_FLAG,
+    STD_MASK,
+    Frame,
+    id_filters,
+)
+from exolink.canbus.sockets import (
+    RCVBUF_BYTES,
+    SO_MEMINFO,
+    SO_RCVBUFFORCE,
+    SO_TIMESTAMPNS,
+    bus_socket,
+    size_receive_buffer,
+    socket_drops,
+)
 from exolink.config import CanConfig
 
 if TYPE_CHECKING:
     import can
 
-STD_MASK = 0x7FF
-
 
 class CanOpenError(RuntimeError):
     pass
-
-
-def id_filters(ids: Iterable[int]) -> list[dict[str, int | bool]]:
-    """Exact-match filters on standard 11-bit ids."""
-    return [{"can_id": i, "can_mask": STD_MASK, "extended": False} for i in sorted(set(ids))]
 
 
 def open_bus(
@@ -71,13 +82,6 @@ def open_bus(
     return bus
 
 
-def bus_socket(bus: can.BusABC) -> socket.socket | None:
-    """The socket under a bus that shows it (python-can's SocketCAN bus and the simulated bus
-    both have a public ``socket``); None for a bus without one (the in-process virtual bus)."""
-    sock = getattr(bus, "socket", None)
-    return sock if isinstance(sock, socket.socket) else None
-
-
 def _explain(cfg: CanConfig, exc: Exception) -> str:
     base = f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}"
     if cfg.interface == "socketcan":
@@ -95,35 +99,10 @@ def _explain(cfg: CanConfig, exc: Exception) -> str:
 
 # --- the receive hot path ----------------------------------------------------------------------
 
-CAN_FRAME = struct.Struct(
-    "=IB3x8s"
-)  # linux/can.h struct can_frame: id, len, pad, res0, len8_dlc, data
-_CAN_EFF_FLAG, _CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
-_CAN_FLAGS = _CAN_EFF_FLAG | _CAN_RTR_FLAG | CAN_ERR_FLAG
+_CAN_FLAGS = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
 _TIMESPEC = struct.Struct("@ll")
 _BATCH = 64  # frames read per socket and wake-up at most
-SO_RCVBUFFORCE, SO_MEMINFO, SO_TIMESTAMPNS = 33, 55, 35  # asm-generic/socket.h; not in Python
-_MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_alloc .. [8] drops
-# Receive queue asked for per socket: a 100 ms stall at full load loses nothing. The kernel
-# charges each queued frame its whole buffer (x86-64: 768 B per SocketCAN frame, 832 B per sim
-# datagram; an ARM32 sk_buff is smaller) and grants twice the request. SocketCAN at 1 Mbit/s:
-# at most 21,277 frames/s (no data bytes, no stuffing), 2,128 in 100 ms = 1.6 MB of the 2 MiB
-# granted. The sim bus has no bit rate: one sender floods it at ~50-70k frames/s on an x86
-# core, 7,000 in 100 ms = 5.8 MB of the 6 MiB granted. Without CAP_NET_ADMIN, net.core.rmem_max
-# caps the grant (often 212992: twice that holds ~510 frames), logged at open.
-RCVBUF_BYTES = {socket.AF_CAN: 1 << 20, socket.AF_INET: 3 << 20}  # by the bus socket's family
 LATE_S = 0.01  # a frame read later than this after it arrived is counted late (one H2 period)
-
-
-class Frame(NamedTuple):
-    """One received CAN frame: the attributes the protocol decoders read from a can.Message."""
-
-    timestamp: float  # kernel receive time, seconds since the epoch
-    arbitration_id: int
-    data: bytes
-    is_extended_id: bool = False
-    is_remote_frame: bool = False
-    is_error_frame: bool = False
 
 
 class Cadence(NamedTuple):
@@ -476,7 +455,7 @@ class FrameReader:
             if ts is None:
                 ts = now = now or time.time()
             if can_id & _CAN_FLAGS:
-                ext = bool(can_id & _CAN_EFF_FLAG)
+                ext = bool(can_id & CAN_EFF_FLAG)
                 fid = can_id & (0x1FFFFFFF if ext else 0x7FF)
                 append(
                     Frame(
@@ -484,7 +463,7 @@ class FrameReader:
                         fid,
                         payload[:dlc],
                         ext,
-                        bool(can_id & _CAN_RTR_FLAG),
+                        bool(can_id & CAN_RTR_FLAG),
                         bool(can_id & CAN_ERR_FLAG),
                     )
                 )
@@ -735,9 +714,9 @@ class FrameWriter:
         for i, m in enumerate(msgs):
             can_id = m.arbitration_id
             if m.is_extended_id:
-                can_id |= _CAN_EFF_FLAG
+                can_id |= CAN_EFF_FLAG
             if m.is_remote_frame:
-                can_id |= _CAN_RTR_FLAG
+                can_id |= CAN_RTR_FLAG
             if m.is_error_frame:
                 can_id |= CAN_ERR_FLAG
             CAN_FRAME.pack_into(view, i * size, can_id, m.dlc, bytes(m.data))
@@ -766,28 +745,6 @@ class FrameWriter:
 
 
 _arrival = operator.itemgetter(0)  # a Frame's timestamp, in C: sort and bisect keys per frame
-
-
-def socket_drops(sock: socket.socket) -> int | None:
-    """The socket's kernel drop counter (sk_drops, SO_MEMINFO), None if the kernel won't say."""
-    try:
-        raw = sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, _MEMINFO.size)
-    except OSError:
-        return None
-    return _MEMINFO.unpack(raw)[8] if len(raw) == _MEMINFO.size else None
-
-
-def size_receive_buffer(sock: socket.socket, want: int) -> int:
-    """Ask for ``want`` bytes of receive queue: SO_RCVBUFFORCE where permitted (CAP_NET_ADMIN),
-    else SO_RCVBUF, which net.core.rmem_max caps. Returns what the kernel granted (it doubles the
-    request for its bookkeeping; each queued frame is charged its whole buffer, see README)."""
-    for opt in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, opt, want)
-            break
-        except OSError:
-            continue
-    return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
 
 
 def open_reader(
@@ -859,3 +816,29 @@ def _reader_or_shutdown(
     except BaseException:
         bus.shutdown()
         raise
+
+
+__all__ = [
+    "CAN_EFF_FLAG",
+    "CAN_ERR_FLAG",
+    "CAN_FRAME",
+    "CAN_RTR_FLAG",
+    "LATE_S",
+    "RCVBUF_BYTES",
+    "SO_MEMINFO",
+    "SO_RCVBUFFORCE",
+    "SO_TIMESTAMPNS",
+    "STD_MASK",
+    "BatchReceiver",
+    "Cadence",
+    "CanOpenError",
+    "Frame",
+    "FrameReader",
+    "FrameWriter",
+    "bus_socket",
+    "id_filters",
+    "open_bus",
+    "open_reader",
+    "size_receive_buffer",
+    "socket_drops",
+]
