@@ -164,10 +164,8 @@ class FrameReader:
         one; the only one without): a socket never reads its own frames back (SocketCAN's
         CAN_RAW_RECV_OWN_MSGS is off), so a reader that also reads what it sends (the
         controller manager reads anyone's joint control, id 70, and sends its set-points
-        there) does not decode its own frames. Through the waking socket it read back every
-        set-point it sent, on the other socket: the pattern's four joints, 400 frames a
-        second to parse and decode. Made on first use (its buffers cost a few ms under TCG,
-        and most readers never send a batch)."""
+        there) does not decode its own frames. Made on first use (its buffers cost a few ms
+        under TCG, and most readers never send a batch)."""
         return FrameWriter(self.quiet_bus or self.bus, self._cfg)
 
     def set_ids(self, ids: Iterable[int]) -> None:
