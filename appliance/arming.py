@@ -61,7 +61,7 @@ class ArmingState:
             self.received += 1
             self._state, self._reason, self._seen = state, reason, now
 
-    def counters(self) -> dict[str, float | int]:
+    def counters(self) -> dict[str, float | int | None]:
         """For a node's status: whether its view of the watchdog is fed."""
         with self._lock:
             age = time.monotonic() - self._seen if self._seen else None

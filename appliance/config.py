@@ -132,7 +132,7 @@ class ClockConfig(_Strict, frozen=True):
     from_laptop: bool = False
 
 
-class NodeConfig(_Strict, kw_only=True):
+class NodeConfig(_Strict, frozen=True, kw_only=True):
     name: NodeName
     plugin: Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]*$")]
     critical: bool = False
@@ -145,7 +145,7 @@ class NodeConfig(_Strict, kw_only=True):
     params: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
-class ApplianceConfig(_Strict, kw_only=True):
+class ApplianceConfig(_Strict, frozen=True, kw_only=True):
     device: DeviceName
     can: CanConfig = CanConfig()
     zenoh: ZenohConfig = ZenohConfig()

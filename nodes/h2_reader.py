@@ -126,7 +126,7 @@ class H2Reader(Node):
         self.own(m.serve(("nodes", self.name, "stats"), lambda _req: self._stats()))
         self.js = cdr.JointStateCdr(h2.JOINTS)
         self._reported_out_of_range = 0
-        self._reported_dropped = 0
+        self._reported_dropped: float = 0  # frames: the stale count may come as a float
         self.fs = cdr.FootSwitchesCdr()
         self.out = messaging.Outbox()  # a read's samples go out together, after its frames
         self._last_feet: tuple[h2.FootSwitches, float] | None = None  # the last published, when

@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal
 import can
 import msgspec
 from exolink import cdr, messaging
-from exolink.canbus import Cadence, open_reader
+from exolink.canbus import Cadence, Frame, open_reader
 from exolink.canfilter import Drop
 from exolink.node import Node
 from exolink.protocol import maccepa
@@ -113,13 +113,13 @@ class MaccepaBridge(Node):
         self.out = messaging.Outbox()  # a read's samples go out together, after its frames
         self.malformed = 0
 
-    def handle(self, msg: can.Message) -> None:
+    def handle(self, msg: Frame | can.Message) -> None:
         """One frame; the cycle goes out at its controller frame, or, if that never came, when
         the next cycle's first frame shows it ended. Never raises for bad input (counted)."""
         f = maccepa.decode(msg)
         board = getattr(f, "board", None)
         cycle = self.cycles.get(board) if type(f) in _PARTS else None
-        if cycle is None:
+        if cycle is None or board is None:
             self.malformed += 1
             return
         for ts, stale, values in cycle.add(f, msg.timestamp):

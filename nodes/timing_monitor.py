@@ -174,9 +174,9 @@ class TimingMonitor(Node):
 
     def on_query(self, req: dict[str, Any]) -> dict[str, Any]:
         fid, byte0, dlc = req.get("id"), req.get("byte0"), req.get("dlc")
-        if fid not in self.params.ids:
+        if not isinstance(fid, int) or fid not in self.params.ids:
             raise CommandRefused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
-        only = self.params.only_for(fid) if isinstance(fid, int) else None
+        only = self.params.only_for(fid)
         if only is not None and (
             (dlc is not None and dlc != only.dlc)
             or (byte0 is not None and only.first_byte and byte0 not in only.first_byte)

@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
+
+if TYPE_CHECKING:
+    from can.typechecking import CanFilter
 
 STD_MASK = 0x7FF
 
@@ -16,7 +19,7 @@ CAN_FRAME = struct.Struct(
 CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 
 
-def id_filters(ids: Iterable[int]) -> list[dict[str, int | bool]]:
+def id_filters(ids: Iterable[int]) -> list[CanFilter]:
     """Exact-match filters on standard 11-bit ids."""
     return [{"can_id": i, "can_mask": STD_MASK, "extended": False} for i in sorted(set(ids))]
 

@@ -21,6 +21,7 @@ from exolink.config import CanConfig
 
 if TYPE_CHECKING:
     import can
+    from can.typechecking import CanFilter
 
 
 class CanOpenError(RuntimeError):
@@ -29,7 +30,7 @@ class CanOpenError(RuntimeError):
 
 def open_bus(
     cfg: CanConfig,
-    filters: list[dict[str, int | bool]] | None = None,
+    filters: list[CanFilter] | None = None,
     receive_own_messages: bool = False,
 ) -> can.BusABC:
     """Open the configured bus through python-can (the simulated bus is its interface
@@ -37,7 +38,7 @@ def open_bus(
     ``filters`` None: every frame; ``[]``: none (a bus that only sends)."""
     import can
 
-    kwargs: dict[str, object] = {"receive_own_messages": receive_own_messages}
+    kwargs: dict[str, Any] = {"receive_own_messages": receive_own_messages}
     if filters is not None:
         kwargs["can_filters"] = filters
     try:

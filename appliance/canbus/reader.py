@@ -12,7 +12,7 @@ import select
 import socket
 import time
 from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import structlog
 from exolink import canfilter
@@ -284,7 +284,7 @@ class FrameReader:
         behind = not self.complete  # the last read left frames queued or held: no waiting
         if behind:
             timeout = 0.0
-        watch = [sock, *wake_fds] if frames_wake else list(wake_fds)
+        watch: list[Any] = [sock, *wake_fds] if frames_wake else list(wake_fds)
         if watch:
             woke = sock in select.select(watch, (), (), timeout)[0]
         else:

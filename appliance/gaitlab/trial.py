@@ -101,9 +101,9 @@ def read_streams(path: str | Path) -> tuple[dict[str, Stream], list[tuple[int, s
     streams = {}
     for kind, (ts, cs) in rows.items():
         order = np.argsort(np.asarray(ts, dtype=np.int64), kind="stable")
-        t = np.asarray(ts, dtype=np.int64)[order]
+        stamps = np.asarray(ts, dtype=np.int64)[order]
         streams[kind] = Stream(
-            kind, t, {k: np.asarray(v, dtype=np.float64)[order] for k, v in cs.items()}
+            kind, stamps, {k: np.asarray(v, dtype=np.float64)[order] for k, v in cs.items()}
         )
     return streams, sorted(triggers), i
 

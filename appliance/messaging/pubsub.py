@@ -9,11 +9,11 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import zenoh
 from exolink import roles, rosgraph
-from exolink.config import ApplianceConfig
+from exolink.config import ZenohConfig
 from exolink.messaging.bundles import bundle_key, bundled_data_key, decode_bundle, encode_bundle
 from exolink.messaging.keys import mgmt_key, topic_key
 from exolink.messaging.rpc import (
@@ -228,6 +228,15 @@ class Outbox:
             pub.put_many(batch)
 
 
+class Scope(Protocol):
+    """What Messaging reads of a config: an appliance's, or a laptop's options (cli)."""
+
+    @property
+    def device(self) -> str: ...
+    @property
+    def zenoh(self) -> ZenohConfig: ...
+
+
 class Messaging:
     """Binds a session to the appliance's domain and namespace.
 
@@ -236,9 +245,7 @@ class Messaging:
     graph token and its GID from it (exolink.rosgraph); ``close`` takes the node out.
     """
 
-    def __init__(
-        self, session: zenoh.Session, cfg: ApplianceConfig, ros_node: str | None = None
-    ) -> None:
+    def __init__(self, session: zenoh.Session, cfg: Scope, ros_node: str | None = None) -> None:
         self.session = session
         self.domain_id = cfg.zenoh.domain_id
         self.namespace = cfg.zenoh.namespace

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Mapping, Sequence
-from typing import NamedTuple
+from typing import Final, NamedTuple
 
 import can
 from exolink.protocol.dbc import FrameSpec, ProtocolError, Received, bundled, load
@@ -18,7 +18,9 @@ from exolink.protocol.dbc import FrameSpec, ProtocolError, Received, bundled, lo
 JOINTS: tuple[str, ...] = ("r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle")
 
 JOINT_CONTROL, MIN_ANGLES, MAX_ANGLES, STREAM_CONTROL = 70, 75, 80, 85
-JOINT_ANGLES, JOINT_TORQUES, FOOT_SWITCHES = 110, 120, 130
+JOINT_ANGLES: Final = 110
+JOINT_TORQUES: Final = 120
+FOOT_SWITCHES: Final = 130  # the last of a 10 ms cycle
 DATA_IDS = (JOINT_ANGLES, JOINT_TORQUES, FOOT_SWITCHES)
 COMMAND_IDS = (JOINT_CONTROL, MIN_ANGLES, MAX_ANGLES, STREAM_CONTROL)
 PERIOD_S = 0.010
@@ -237,9 +239,7 @@ def joint_control(
     return jc
 
 
-def encode_accepted_angles(
-    kind: str, angles: Mapping[str, float] | Sequence[float]
-) -> can.Message:
+def encode_accepted_angles(kind: str, angles: Mapping[str, float] | Sequence[float]) -> can.Message:
     """Min (id 75) or max (id 80) accepted position set-points, one per joint."""
     if isinstance(angles, Mapping):
         unknown = set(angles) - set(JOINTS)

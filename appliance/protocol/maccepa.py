@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from typing import NamedTuple
+from typing import Final, NamedTuple
 
 import can
 from exolink.protocol import h2
@@ -17,7 +17,9 @@ from exolink.protocol.dbc import FrameSpec, ProtocolError, Received, bundled, lo
 BOARDS = range(10)
 GAIN_BASE = {"kp": 10, "ki": 20, "kd": 30}
 SETPOINT_BASE, DUTY_BASE = 40, 80
-SENSORS_BASE, POSITIONS_BASE, CONTROLLER_BASE = 50, 60, 70
+SENSORS_BASE: Final = 50
+POSITIONS_BASE: Final = 60
+CONTROLLER_BASE: Final = 70
 CONTROLLERS = {"position": 0, "velocity": 1}
 
 

@@ -157,8 +157,11 @@ class Supervisor:
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE, raw=True)
+        # the kernel's watches of ids 110 and 70 (none on the simulated bus)
+        angles = watches[0] if watches else None
+        control = watches[1] if len(watches) > 1 else None
         self.watchdog = Watchdog(
-            cfg.watchdog, self.reader, self._publish_watchdog, *watches, reopen=reopen
+            cfg.watchdog, self.reader, self._publish_watchdog, angles, control, reopen=reopen
         )
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
@@ -630,8 +633,8 @@ class Supervisor:
             t.start()
         for t in threads:
             t.join()
-        if getattr(self, "zygote", None) is not None:
-            self.zygote.close()
+        if (zygote := getattr(self, "zygote", None)) is not None:
+            zygote.close()
         for src in (getattr(self, "trigger_src", None), getattr(self, "trigger_out", None)):
             if src is not None:
                 src.close()
@@ -649,8 +652,8 @@ class Supervisor:
             self.session.close()
         if hasattr(self, "bus"):
             self.bus.shutdown()
-        if (t := getattr(self, "_link_thread", None)) is not None:
-            t.join(2)
+        if (link := getattr(self, "_link_thread", None)) is not None:
+            link.join(2)
         if self.link is not None:
             self.link.close()
         shutil.rmtree(self._workdir, ignore_errors=True)

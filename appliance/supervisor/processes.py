@@ -56,7 +56,7 @@ class NodeProcess:
     on_exit: Callable[[Exit], None]
     on_line: Callable[[str, str], None]
     state: str = "stopped"  # running | stopping | stopped | killed | backoff | failed | exited
-    proc: subprocess.Popen[bytes] | None = None
+    proc: subprocess.Popen[bytes] | Forked | None = None
     started_at: float = 0.0  # monotonic
     restarts: int = 0
     last_exit: str = ""

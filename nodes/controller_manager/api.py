@@ -335,8 +335,8 @@ class ManagerApi:
                     "limits needs 'min' and/or 'max' (six angles in degrees), or 'reset'"
                 )
             checked = {k: h2.decode(h2.encode_accepted_angles(k, v)) for k, v in got.items()}
-            lo = list(checked["min"]) if "min" in checked else None
-            hi = list(checked["max"]) if "max" in checked else None
+            lo = [int(a) for a in checked["min"]] if "min" in checked else None
+            hi = [int(a) for a in checked["max"]] if "max" in checked else None
         try:
             new = self.limits.set(lo, hi, caller.login)
         except IntentRefused as exc:
@@ -397,10 +397,12 @@ class ManagerApi:
                 raise CommandRefused("gains needs at least one of kp, ki, kd")
             for g, v in gains:
                 maccepa.encode_gain(board, g, v, lim.controller)
-        elif kind == "setpoint":
-            maccepa.encode_setpoint(board, req.get("value"), lim.controller)
         else:
-            maccepa.encode_duty(board, req.get("value"))
+            value: Any = req.get("value")  # anything: the codec refuses what is not a number
+            if kind == "setpoint":
+                maccepa.encode_setpoint(board, value, lim.controller)
+            else:
+                maccepa.encode_duty(board, value)
 
     def _maccepa(
         self: ControllerManagerNode, board: int, kind: str, req: dict[str, Any]

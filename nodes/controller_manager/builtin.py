@@ -186,6 +186,7 @@ class GaitPattern(Controller):
     Params = GaitParams
     reads = NO_EXTRA_READS
     planned = True
+    t0: float | None  # the controller time of row i0 (None: the next update's)
 
     def configure(self) -> None:
         from exolink.nodes.pattern_player import (

@@ -643,13 +643,18 @@ class ControllerManagerNode(ManagerApi, Node):
         if forget:
             self._forget_state()
 
+    # the H2's latest readings (read_ids says which come: _forget_state sets them)
+    torque: tuple[int, ...]
+    feet: tuple[int, int, int, int] | None
+    last_angle_ts: float | None  # the kernel stamp of the angle frame the last cycle ran on
+
     def _forget_state(self) -> None:
         self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame
         self.mview: dict[int, BoardState] = {}  # what cycles see: a copy taken when it changed
         self.mchanged = False
-        self.torque: tuple[int, ...] = (0,) * 6
-        self.feet: tuple[int, int, int, int] | None = None
-        self.last_angle_ts: float | None = None
+        self.torque = (0,) * 6
+        self.feet = None
+        self.last_angle_ts = None
         self.last_angle_mono = time.monotonic()
         self.skipped = 0  # angle frames read since the last update and not run
 

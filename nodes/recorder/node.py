@@ -66,7 +66,7 @@ class Recorder(Node):
         self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
         # key -> (topic, type), None for keys not recorded: a key is parsed and matched against
         # ``exclude`` once, not per sample (the board's ~220 samples/s share a dozen keys).
-        self._keys: dict[str, tuple[str, str] | None] = {}
+        self._keys: dict[str, tuple[str, str, bool] | None] = {}
         self._pending = 0  # taken from the inbox, not yet written
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
@@ -121,8 +121,9 @@ class Recorder(Node):
         last_seq = self._last_seq
         for sample in self._samples():
             key = str(sample.key_expr)
-            kept = keys.get(key, False)
-            if kept is False:
+            try:
+                kept = keys[key]
+            except KeyError:  # a key not seen before (once each)
                 if len(keys) >= MAX_KEYS:  # anyone may publish: the cache stays bounded
                     keys.clear()
                 kept = keys[key] = self._kept_sample_key(key)

@@ -19,7 +19,7 @@ import ctypes
 import threading
 import time
 from dataclasses import dataclass
-from typing import Annotated, Any
+from typing import Annotated, Any, cast
 
 import can
 import msgspec
@@ -90,7 +90,8 @@ class KernelStream:
             fid = m.arbitration_id
             task = self._tasks.get(fid)
             if task is None:
-                task = self._tasks[fid] = self._bus.send_periodic(m, self._period)
+                # socketcan's CyclicSendTask: its task id and flags head each update
+                task = self._tasks[fid] = cast(Any, self._bus.send_periodic(m, self._period))
                 self._heads[fid] = sc.build_bcm_update_header(task.task_id, task.flags, 1)
             else:
                 sc.send_bcm(task.bcm_socket, self._heads[fid] + sc.build_can_frame(m))
