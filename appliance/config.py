@@ -147,6 +147,8 @@ class NodeConfig(_Strict, frozen=True, kw_only=True):
 
 class ApplianceConfig(_Strict, frozen=True, kw_only=True):
     device: DeviceName
+    # The hardware the supervisor guards: an ``exolink.hardware`` entry point (exolink.hardware).
+    hardware: str = "h2"
     can: CanConfig = CanConfig()
     zenoh: ZenohConfig = ZenohConfig()
     trigger: TriggerConfig = TriggerConfig()

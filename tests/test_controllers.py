@@ -1098,4 +1098,4 @@ def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> N
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: [f for f in joint_frames(collect(mbus, 0.1, {70}), 2) if f.mode == 1])
     pattern = listing(app)["pattern"]
-    assert pattern["state"] == "active", (pattern.get("error"), pattern)
+    assert pattern["state"] == "active", (pattern.get("error"), app.status()["watchdog"])

@@ -131,7 +131,7 @@ def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None
         wd = app.status()["watchdog"]
         assert wd["reason"] == "h2 data silent" and "limit 100 ms" in wd["detail"]
         r = app.cli("arm")
-        assert r.returncode == 5 and "cannot arm: no H2 data for" in r.stderr
+        assert r.returncode == 5 and "cannot arm: no h2 data for" in r.stderr
     finally:
         s.close()
     wait_for(lambda: app.status()["bus"]["h2_silent_s"] < 0.5, timeout=15)

@@ -338,12 +338,13 @@ def test_between_sweeps_the_loop_reads_only_the_nodes_whose_deadline_came() -> N
 def test_a_trip_wakes_the_supervisor_for_its_repeats() -> None:
     import threading
 
+    from exolink import hardware
     from exolink.canbus import open_reader
     from exolink.config import CanConfig, WatchdogConfig
     from exolink.supervisor.watchdog import REPEAT_AFTER_S, Watchdog
 
     reader = open_reader(CanConfig(interface="virtual", channel="wake-test"), [110, 70])
-    wd = Watchdog(WatchdogConfig(), reader, lambda _s: None)
+    wd = Watchdog(WatchdogConfig(), reader, lambda _s: None, hardware.load("h2"))
     woken = threading.Event()
     wd.wake = woken.set
     try:

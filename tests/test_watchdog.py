@@ -13,13 +13,15 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from exolink import cdr
+from exolink import cdr, hardware
 from exolink.canbus import FrameReader, open_bus, open_reader
 from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2, maccepa
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
 
 from benchmarks.harness import wait_for
+
+H2 = hardware.load("h2")  # the device the watchdog guards here
 
 ANGLES = h2.encode(h2.JointAngles(76, 94, 0, 76, 93, 11))
 
@@ -86,11 +88,11 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Watchdog, StalledReade
     frames = FrameReader(
         reader, CanConfig(interface="virtual"), [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
     )
-    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), frames, states.append)
+    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), frames, states.append, H2)
     wd.start()
     try:
         end = time.monotonic() + 5
-        while wd.h2_silent_for() is None and time.monotonic() < end:
+        while wd.silent_for() is None and time.monotonic() < end:
             time.sleep(0.01)
         wd.arm([])
         yield wd, reader, board
@@ -208,10 +210,10 @@ def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_
     maccepa_b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
     board = H2Board(group, open_bus(cfg), maccepa_b0)  # real sockets, as on the board
     reader = open_reader(cfg, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL])
-    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, lambda _s: None)
+    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, lambda _s: None, H2)
     wd.start()
     try:
-        assert wait_for(lambda: wd.h2_silent_for() is not None)
+        assert wait_for(lambda: wd.silent_for() is not None)
         wd.arm([])
         before = reader.counters()
         time.sleep(1.0)

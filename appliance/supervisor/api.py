@@ -87,7 +87,7 @@ class ManagementApi:
         sup = self.sup
         sup.take_beats()  # heartbeat ages as of now
         wd = sup.watchdog.snapshot()
-        silent = sup.watchdog.h2_silent_for()
+        silent = sup.watchdog.silent_for()
         return {
             "device": sup.cfg.device,
             "pid": os.getpid(),

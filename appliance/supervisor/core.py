@@ -23,12 +23,11 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import structlog
 import yaml
-from exolink import cdr, liveness, logs, messaging, update
+from exolink import cdr, hardware, liveness, logs, messaging, update
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.canbus import open_reader
 from exolink.clock import BoardClock
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
-from exolink.protocol import h2
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.api import ManagementApi
@@ -93,6 +92,9 @@ class _Stop(threading.Event):
 class Supervisor:
     def __init__(self, cfg: ApplianceConfig) -> None:
         self.cfg = cfg
+        self.device = hardware.load(
+            cfg.hardware
+        )  # the hardware guarded (a bad name: nothing starts)
         self.log = structlog.get_logger().bind(node="supervisor")
         # The loop sleeps until its next deadline; whatever moves one closer sets this.
         self.wake = Wakeup()
@@ -120,7 +122,7 @@ class Supervisor:
     # --- start-up ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        cfg = self.cfg
+        cfg, dev = self.cfg, self.device
         runtime = messaging.zenoh_runtime(cfg.zenoh)  # before any session: nodes inherit it
         if runtime is not None:
             self.log.info("zenoh_runtime", setting=runtime)
@@ -139,15 +141,15 @@ class Supervisor:
                 from exolink.cyclic import CyclicWatch
 
                 limit_s = cfg.watchdog.h2_silence_ms / 1e3
-                watches.append(CyclicWatch(cfg.can.channel, h2.JOINT_ANGLES, limit_s))
+                watches.append(CyclicWatch(cfg.can.channel, dev.pulse_id, limit_s))
                 reopen = functools.partial(
-                    CyclicWatch, cfg.can.channel, h2.JOINT_CONTROL, mask=h2.MODE_MASK
+                    CyclicWatch, cfg.can.channel, dev.command_id, mask=dev.command_mask
                 )
                 watches.append(reopen())  # the first now: no can-bcm fails the start here
                 self.reader = open_reader(cfg.can, [])
             else:  # angle frames never wake it (read by their silence deadline); id 70 does
                 self.reader = open_reader(
-                    cfg.can, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL]
+                    cfg.can, [dev.pulse_id, dev.command_id], wake_on=[dev.command_id]
                 )
         except BaseException:
             for w in watches:
@@ -161,7 +163,7 @@ class Supervisor:
         angles = watches[0] if watches else None
         control = watches[1] if len(watches) > 1 else None
         self.watchdog = Watchdog(
-            cfg.watchdog, self.reader, self._publish_watchdog, angles, control, reopen=reopen
+            cfg.watchdog, self.reader, self._publish_watchdog, dev, angles, control, reopen=reopen
         )
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
@@ -474,17 +476,19 @@ class Supervisor:
                 n.cfg, n.idle
             ):
                 out.append(f"critical node {n.name} has no recent heartbeat")
-        silent = self.watchdog.h2_silent_for()
+        silent = self.watchdog.silent_for()
         limit = self.cfg.watchdog.h2_silence_ms / 1000
         behind = self.watchdog.behind_s()
         if behind > limit:  # the bus may stream: the watchdog cannot see it in time
             out.append(
                 f"the watchdog reads the bus {behind:.1f} s late (CPU saturated): it cannot "
-                "judge H2 silence"
+                f"judge {self.device.pulse} silence"
             )
         elif silent is None or silent > limit:
             out.append(
-                "no H2 data on the bus" if silent is None else f"no H2 data for {silent:.1f} s"
+                f"no {self.device.pulse} on the bus"
+                if silent is None
+                else f"no {self.device.pulse} for {silent:.1f} s"
             )
         if self.health is not None and self.health.bad:
             out.append(f"CAN bus is {self.health.state}")

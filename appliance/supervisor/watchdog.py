@@ -3,8 +3,11 @@
 It owns its own CAN socket, so no node (and no Zenoh hiccup) stands between a detected failure
 and the disable frames. Any trip sends the safe action at once and again shortly after (a frame
 lost on a lossy bus must not leave a joint powered), latches, and refuses motion until an
-operator re-arms. It also listens to the bus itself: H2 data silence while armed trips it, and
-a motion frame seen while not armed is answered with the safe action again.
+operator re-arms. It also listens to the bus itself: the device's pulse falling silent while
+armed trips it, and a motion frame seen while not armed is answered with the safe action again.
+What a frame is (pulse, motion, malformed) and what the safe action is are the device's word
+(exolink.hardware, ``Device``); the H2's pulse is its joint-angle frame (id 110), its motion
+joint control (id 70), as the rest of this docstring describes.
 
 Both bus checks go by when a frame reached the socket (its kernel timestamp), not by when this
 process got round to reading it: a supervisor busy for 150 ms (an import, a CLI call, a slow card)
@@ -36,7 +39,7 @@ simulated bus has no broadcast manager, and there the angle frames are read and 
 above. Both ways, the periodic check on the
 supervisor's loop takes the kernel's news too, so a stalled listener cannot hide a silence.
 
-Only a frame that matches the DBC contract counts: an id-110 frame of the wrong length (or an
+Only a frame that matches the device's DBC counts: an id-110 frame of the wrong length (or an
 extended / remote frame with that id) is not H2 data and does not hold off the silence trip.
 Frames neither contract can read are counted by id and reason (``malformed`` in status), never
 fatal; an id-70 frame of 8 bytes is MACCEPA board 0's and is left alone.
@@ -56,7 +59,7 @@ import structlog
 from exolink import logs
 from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
-from exolink.protocol import h2, maccepa
+from exolink.hardware import Device, Seen
 from exolink.wakeup import Wakeup
 
 if TYPE_CHECKING:
@@ -69,7 +72,6 @@ IDLE_POLL_S = 0.1
 # frame of another length, a mode change on id 70) wakes the listener on those sockets: its own
 # timeout only backs that up. Each wake costs ~1 ms of the board's core.
 KERNEL_WATCH_POLL_S = 1.0
-MOTION_MODES = {h2.MODES["position"], h2.MODES["stiffness"], h2.MODES["torque"]}
 
 
 class ArmRefused(Exception):
@@ -99,6 +101,7 @@ class Watchdog:
         cfg: WatchdogConfig,
         reader: FrameReader,
         publish: Publish,
+        device: Device,
         angles: CyclicWatch | None = None,
         control: CyclicWatch | None = None,
         reopen: Callable[[], CyclicWatch] | None = None,
@@ -113,18 +116,17 @@ class Watchdog:
         self.control_events = 0  # id-70 news taken from the kernel (see the module's docstring)
         # Re-entrant: a trip found while taking the kernel's news reopens the id-70 watch.
         self._kernel_lock = threading.RLock()
-        self._h2_alive = False  # with ``angles``: well-formed angle frames stream, per the kernel
+        self._pulse_alive = False  # with ``angles``: the device's pulse streams, per the kernel
         self.bus = reader.bus
         self.publish = publish
         self.log = structlog.get_logger().bind(node="watchdog")
         self.lock = threading.RLock()
-        self.frames = h2.safe_action(cfg.safe_action) + [
-            maccepa.encode_stop(b) for b in cfg.maccepa_boards
-        ]
+        self.device = device
+        self.frames = device.safe_action(cfg)
         self._s = WatchdogState("disarmed", "startup", "", time.time_ns(), 0, 0, 0)
         self._repeats: list[float] = []
         self._repeats_by_reason: dict[str, int] = {}  # trips while tripped (reasons: ours)
-        self.last_h2: float | None = None  # monotonic arrival of the last H2 angle frame
+        self.last_pulse: float | None = None  # monotonic arrival of the device's last pulse
         self._last_arrival = 0.0  # arrivals never go backwards (FIFO socket, clock steps clamped)
         self._armed_at: float | None = None  # monotonic; None while not armed
         self._left_armed_at = time.monotonic()
@@ -244,12 +246,12 @@ class Watchdog:
             except OSError as exc:  # CanOpenError included
                 self.log.error("control_watch_failed", error=str(exc))
 
-    def h2_silent_for(self) -> float | None:
+    def silent_for(self) -> float | None:
         if self.angles is not None:
             self._take_kernel()
-            if self._h2_alive:
+            if self._pulse_alive:
                 return 0.0
-        return None if self.last_h2 is None else time.monotonic() - self.last_h2
+        return None if self.last_pulse is None else time.monotonic() - self.last_pulse
 
     def _take_kernel(self) -> None:
         """The broadcast manager's news since the last look (either thread may look)."""
@@ -266,23 +268,23 @@ class Watchdog:
 
     def _angles_event(self, ev: Event) -> None:
         if ev.frame is None:  # no angle frame for the limit: the kernel's timer ran out
-            self._h2_alive = False
-            self.last_h2 = time.monotonic() - self.cfg.h2_silence_ms / 1000
+            self._pulse_alive = False
+            self.last_pulse = time.monotonic() - self.cfg.h2_silence_ms / 1000
             if self.armed:
                 self.trip(
-                    "h2 data silent",
-                    f"no joint-angle frame for {self.cfg.h2_silence_ms} ms (kernel timer)",
+                    f"{self.device.pulse} silent",
+                    f"no {self.device.pulse} for {self.cfg.h2_silence_ms} ms (kernel timer)",
                 )
             return
         at = self._arrival(ev.frame)
-        frame = h2.decode(ev.frame)
+        seen, why = self.device.judge(ev.frame)
         # A malformed frame ends the good stream from its arrival; the kernel's timer takes it
         # as life, so the silence is judged here from then on (``_check_silence``).
-        was_alive, self._h2_alive = self._h2_alive, isinstance(frame, h2.JointAngles)
-        if self._h2_alive or was_alive:  # good frames streamed up to this one
-            self.last_h2 = at
-        if isinstance(frame, h2.Unknown):
-            self._malformed(ev.frame, frame.reason)
+        was_alive, self._pulse_alive = self._pulse_alive, seen is Seen.PULSE
+        if self._pulse_alive or was_alive:  # good frames streamed up to this one
+            self.last_pulse = at
+        if seen is Seen.MALFORMED:
+            self._malformed(ev.frame, why)
 
     def behind_s(self) -> float:
         """How far behind the bus its reader is (0: current): a CPU too busy to let it read."""
@@ -298,23 +300,23 @@ class Watchdog:
             self.send_safe_action()
         if self.control is None and not self.armed:
             self._open_control()
-        silent = self.h2_silent_for()  # with the kernel timing the frames: its news, taken now
+        silent = self.silent_for()  # with the kernel timing the frames: its news, taken now
         if self.angles is not None:
             self._check_silence(time.monotonic())
             return
         backstop = self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S
         if self.armed and silent is not None and silent > backstop:
             self.trip(
-                "h2 data silent",
-                f"watchdog bus reader stalled: no joint-angle frame read for {silent * 1000:.0f} ms "
-                f"(limit {self.cfg.h2_silence_ms} ms)",
+                f"{self.device.pulse} silent",
+                f"watchdog bus reader stalled: no {self.device.pulse} read for "
+                f"{silent * 1000:.0f} ms (limit {self.cfg.h2_silence_ms} ms)",
             )
 
     def next_due(self) -> float:
         """When ``check`` has something to do next (monotonic): a repeat, or the backstop."""
         due = min(self._repeats, default=float("inf"))
-        if self.armed and self.last_h2 is not None and self.angles is None:
-            due = min(due, self.last_h2 + self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S)
+        if self.armed and self.last_pulse is not None and self.angles is None:
+            due = min(due, self.last_pulse + self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S)
         return due
 
     def _arrival(self, msg: Frame) -> float:
@@ -329,14 +331,15 @@ class Watchdog:
         """Silence while armed up to ``at``: a frame's arrival, or now when the socket was found
         empty (every frame that came before ``at`` has then been read)."""
         armed_at = self._armed_at
-        if not self.armed or armed_at is None or (self.angles is not None and self._h2_alive):
+        if not self.armed or armed_at is None or (self.angles is not None and self._pulse_alive):
             return
-        since = armed_at if self.last_h2 is None else max(self.last_h2, armed_at)
+        since = armed_at if self.last_pulse is None else max(self.last_pulse, armed_at)
         silent, limit = at - since, self.cfg.h2_silence_ms / 1000
         if silent > limit:
             self.trip(
-                "h2 data silent",
-                f"no joint-angle frame for {silent * 1000:.0f} ms (limit {self.cfg.h2_silence_ms} ms)",
+                f"{self.device.pulse} silent",
+                f"no {self.device.pulse} for {silent * 1000:.0f} ms "
+                f"(limit {self.cfg.h2_silence_ms} ms)",
             )
 
     def _was_armed_at(self, t: float) -> bool:
@@ -353,8 +356,8 @@ class Watchdog:
         while not self._stop.is_set():
             armed = self.armed
             poke = self._wake_fds()
-            silent = self.h2_silent_for()
-            if self.angles is not None and self._h2_alive:
+            silent = self.silent_for()
+            if self.angles is not None and self._pulse_alive:
                 timeout = KERNEL_WATCH_POLL_S
             elif armed and silent is not None:
                 timeout = max(0.002, limit - silent)  # the last angle frame's deadline
@@ -374,7 +377,7 @@ class Watchdog:
             # How late it looked: after the deadline it slept to, or after the frame that woke it.
             due = start + timeout
             for msg in frames:
-                if msg.arbitration_id == h2.JOINT_CONTROL:
+                if msg.arbitration_id == self.device.command_id:
                     due = min(due, self._arrival(msg))
                     break
             self._read_lag(now - due)
@@ -399,20 +402,12 @@ class Watchdog:
     def _judge(self, msg: Frame) -> None:
         at = self._arrival(msg)
         self._check_silence(at)
-        frame = h2.decode(msg)
-        if isinstance(frame, h2.Unknown):
-            # Id 70 of length 8 is MACCEPA board 0's controller frame (protocol/README.md): the
-            # other contract's traffic, not a malformed H2 frame, and no motion of the H2.
-            if isinstance(maccepa.decode(msg), maccepa.Unknown):
-                self._malformed(msg, frame.reason)
-            return
-        if isinstance(frame, h2.JointAngles):
-            self.last_h2 = at
-        elif (
-            isinstance(frame, h2.JointControl)
-            and frame.mode in MOTION_MODES
-            and not self._was_armed_at(at)
-        ):
+        seen, why = self.device.judge(msg)
+        if seen is Seen.MALFORMED:
+            self._malformed(msg, why)
+        elif seen is Seen.PULSE:
+            self.last_pulse = at
+        elif seen is Seen.MOTION and not self._was_armed_at(at):
             with self.lock:
                 self._s.violations += 1
             self.log.error(

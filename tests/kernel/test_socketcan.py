@@ -517,6 +517,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
     kernel's timer takes as life, trips it too."""
     import threading
 
+    from exolink import hardware
     from exolink.config import WatchdogConfig
     from exolink.cyclic import CyclicWatch
     from exolink.supervisor.watchdog import Watchdog
@@ -529,6 +530,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         cfg,
         reader,
         published.append,
+        hardware.load("h2"),
         CyclicWatch(vcan0, h2.JOINT_ANGLES, limit_s),
         CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=h2.MODE_MASK),
         reopen=lambda: CyclicWatch(vcan0, h2.JOINT_CONTROL, mask=h2.MODE_MASK),
@@ -554,7 +556,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
     try:
         wd.start()
         h2_tx.start()
-        wait_for(lambda: wd.h2_silent_for() == 0.0)
+        wait_for(lambda: wd.silent_for() == 0.0)
         # MACCEPA board 0's controller frames (id 70, 8 bytes) at 100 Hz: not H2 motion
         for i in range(100):
             tx.send(can.Message(arbitration_id=70, data=bytes([i, 0, 5, 0, 7, 0, 0, 0])))
@@ -608,13 +610,13 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
         stop.clear()
         h2_tx = threading.Thread(target=stream, daemon=True)
         h2_tx.start()
-        wait_for(lambda: wd.h2_silent_for() == 0.0)
+        wait_for(lambda: wd.silent_for() == 0.0)
         wd.arm([])
         length["n"] = 8
         wait_for(lambda: wd.snapshot().state == "tripped")
         s = wd.snapshot()
         assert s.reason == "h2 data silent" and "110 bad length" in s.malformed
-        assert wd.h2_silent_for() is not None and wd.h2_silent_for() > 0
+        assert wd.silent_for() is not None and wd.silent_for() > 0
     finally:
         stop.set()
         h2_tx.join(2)
