@@ -7,6 +7,7 @@ test's thread on the sim bus, as the H2 is the simulator's."""
 
 from __future__ import annotations
 
+import subprocess
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,7 +16,7 @@ import can
 import pytest
 from exolink.canbus import open_bus
 
-from benchmarks.harness import Appliance, DrainedBus, collect, wait_for
+from benchmarks.harness import EXOLINK, Appliance, DrainedBus, collect, wait_for
 
 RIG_DBC = """VERSION ""
 
@@ -157,3 +158,11 @@ def test_a_toy_rig_runs_under_the_supervisor_with_no_edit_to_it(
     finally:
         bus.shutdown()
     assert app.status()["watchdog"]["state"] == "tripped"
+
+
+def test_an_unknown_device_is_a_config_error_naming_those_installed(write_config) -> None:  # type: ignore[no-untyped-def]
+    cfg = write_config(nodes=[], hardware="exo9000")
+    for args in (["config", str(cfg)], ["up", "-c", str(cfg)]):
+        r = subprocess.run([*EXOLINK, *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 3, (args, r.stderr)
+        assert "hardware: unknown device 'exo9000' (installed: h2" in r.stderr, r.stderr

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 import msgspec
-from exolink import logs
+from exolink import hardware, logs
 from exolink.config import bundled, check_all_apart, load
 from exolink.plugins import available
 
@@ -19,6 +19,7 @@ def config_path(args: argparse.Namespace) -> str:
 
 def cmd_config(args: argparse.Namespace) -> int:
     cfg = load(args.file)
+    hardware.load(cfg.hardware)  # an unknown device is a config error (it names those installed)
     out = msgspec.json.format(msgspec.json.encode(cfg), indent=2)
     sys.stdout.write(out.decode() + "\n")
     return 0
@@ -42,6 +43,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     path = args.config or (str(bundled("sim")) if args.sim else DEFAULT_CONFIG)
     cfg = load(path, check=())
+    hardware.load(cfg.hardware)  # the device the watchdog guards: known before anything starts
     check_all_apart(path)  # every node's params, without their imports staying in this process
     if args.sim:
         cfg = simulated(cfg)
