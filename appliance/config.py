@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 import yaml
+from exolink.entrypoints import PluginError, node_params_type
 from exolink.jointlimits import Limits, LimitsConfig
 
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
@@ -297,11 +298,6 @@ def parse(
 def _check_nodes(
     cfg: ApplianceConfig, root: yaml.Node | None, check: Collection[str] | None = None
 ) -> None:
-    from exolink.plugins import (  # above config: a node's Params are its plugin's (the contract's one exception)
-        PluginError,
-        find_node_class,
-    )
-
     seen: set[str] = set()
     for i, node in enumerate(cfg.nodes):
         if node.name in seen:
@@ -319,12 +315,12 @@ def _check_nodes(
         if check is not None and node.name not in check:
             continue
         try:
-            cls = find_node_class(node.plugin)
+            params = node_params_type(node.plugin)
         except PluginError as exc:
             line = _line_of(root, f"nodes[{i}].plugin")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].plugin: {exc}") from None
         try:
-            msgspec.convert(node.params, cls.Params)
+            msgspec.convert(node.params, params)
         except msgspec.ValidationError as exc:
             err = _error(cfg.source, root, _prefixed(exc, f"nodes[{i}].params"))
             raise err from None
@@ -378,12 +374,8 @@ def check_all_apart(path: str | Path) -> None:
 
 def node_params(cfg: ApplianceConfig, name: str) -> Any:
     """The typed params of one configured node (already validated by parse)."""
-    from exolink.plugins import (
-        find_node_class,  # above config: a node's Params are its plugin's (the contract's one exception)
-    )
-
     node = cfg.node(name)
-    return msgspec.convert(node.params, find_node_class(node.plugin).Params)
+    return msgspec.convert(node.params, node_params_type(node.plugin))
 
 
 def bundled(name: str) -> Path:

@@ -165,4 +165,4 @@ def test_an_unknown_device_is_a_config_error_naming_those_installed(write_config
     for args in (["config", str(cfg)], ["up", "-c", str(cfg)]):
         r = subprocess.run([*EXOLINK, *args], capture_output=True, text=True, timeout=60)
         assert r.returncode == 3, (args, r.stderr)
-        assert "hardware: unknown device 'exo9000' (installed: h2" in r.stderr, r.stderr
+        assert "hardware: unknown device 'exo9000' (available: h2" in r.stderr, r.stderr

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from enum import Enum
 from functools import cache
-from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Protocol
 
+from exolink import entrypoints
 from exolink.config import ConfigError, WatchdogConfig
 
 if TYPE_CHECKING:
@@ -54,11 +54,11 @@ class Device(Protocol):
 @cache
 def load(name: str) -> Device:
     """The device named in the config; a ConfigError names the ones installed."""
-    found = {ep.name: ep for ep in entry_points(group=GROUP)}
-    if name not in found:
-        known = ", ".join(sorted(found)) or "none"
-        raise ConfigError(f"hardware: unknown device {name!r} (installed: {known})")
-    device: Device = found[name].load()()
+    try:
+        cls, _where = entrypoints.load(GROUP, name, "device")
+    except entrypoints.PluginError as exc:
+        raise ConfigError(f"hardware: {exc}") from None
+    device: Device = cls()
     return device
 
 

@@ -17,6 +17,8 @@ from exolink.config import ZenohConfig
 from exolink.messaging.bundles import bundle_key, bundled_data_key, decode_bundle, encode_bundle
 from exolink.messaging.keys import mgmt_key, topic_key
 from exolink.messaging.rpc import (
+    COMMANDS_TOPIC,
+    COMMANDS_TYPE,
     Admission,
     CommandLog,
     CommandRefused,
@@ -344,12 +346,15 @@ class Messaging:
     def mgmt(self, *path: str) -> str:
         return mgmt_key(self.device, *path)
 
+    def _command_log(self) -> CommandLog:
+        return CommandLog(self.publisher(COMMANDS_TOPIC, COMMANDS_TYPE, raw=True))
+
     def log_command(
         self, user: str, key: str, request: dict[str, Any], reply: dict[str, Any]
     ) -> None:
         """A command that came another way than ``serve`` (a ROS 2 service or topic)."""
         if self._commands is None:
-            self._commands = CommandLog(self)
+            self._commands = self._command_log()
         self._commands.write(user, key, request, reply)
 
     def serve(
@@ -362,7 +367,7 @@ class Messaging:
         """This appliance's management queryable at ``exolink/<device>/<path>`` (see serve);
         this process' queryables share one rate limit per login (``admission``)."""
         if self._commands is None:
-            self._commands = CommandLog(self)
+            self._commands = self._command_log()
         parts = (path,) if isinstance(path, str) else path
         key = self.mgmt(*parts)
         return serve(self.session, key, handler, needs, self._commands, self.admission, urgent)

@@ -10,15 +10,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import structlog
 import zenoh
 from exolink import cdr, logs, roles
 from exolink.messaging.sessions import Unreachable
 
-if TYPE_CHECKING:
-    from exolink.messaging.pubsub import Messaging
+
+class Putter(Protocol):
+    """Where the command log puts its entries (a raw ``commands`` publisher: pubsub)."""
+
+    def put(self, payload: bytes, source_ns: int | None = None) -> None: ...
+
 
 DEFAULT_QUERY_TIMEOUT_S = 2.0
 
@@ -100,11 +104,10 @@ class CommandLog:
     """Every command a role above observer sent, with the login that sent it: in the process'
     log and on the ``commands`` topic (std_msgs/String, JSON), which the recorder records."""
 
-    def __init__(self, msg: Messaging) -> None:
-        self._msg = msg
-        # Declared now, not at the first command: a recorder learns topics from the graph, and
-        # a publisher born with its first message would lose that message to it.
-        self._pub = msg.publisher(COMMANDS_TOPIC, COMMANDS_TYPE, raw=True)
+    def __init__(self, pub: Putter) -> None:
+        # Declared before the first command (by Messaging): a recorder learns topics from the
+        # graph, and a publisher born with its first message would lose that message to it.
+        self._pub = pub
         self._lock = threading.Lock()
 
     def write(self, user: str, key: str, request: dict[str, Any], reply: dict[str, Any]) -> None:
