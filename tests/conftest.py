@@ -39,6 +39,28 @@ def kernel_timestamps_on() -> Iterator[None]:
 
 
 @pytest.fixture
+def lab_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[..., Path]:
+    """A lab's package installed the way pip would (a dist-info with its entry points) in a
+    folder on the PYTHONPATH of the processes the test starts: ``lab_package("lab_rig",
+    "[exolink.hardware]\nrig = lab_rig:Rig\n", {"lab_rig.py": code})``."""
+
+    def install(name: str, entry_points: str, files: dict[str, str]) -> Path:
+        site = tmp_path / f"{name}-site"
+        info = site / f"{name}-0.1.dist-info"
+        info.mkdir(parents=True)
+        dist = name.replace("_", "-")
+        (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
+        (info / "entry_points.txt").write_text(entry_points)
+        for filename, text in files.items():
+            (site / filename).write_text(text)
+        path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+        monkeypatch.setenv("PYTHONPATH", path)
+        return site
+
+    return install
+
+
+@pytest.fixture
 def group() -> str:
     """A multicast group of its own per test, so concurrent or leftover traffic never mixes."""
     return harness.group(harness.TEST_GROUPS)

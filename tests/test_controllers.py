@@ -479,18 +479,9 @@ def nodes(controllers: list[dict[str, Any]], deadline_ms: int = 50) -> list[dict
 
 
 @pytest.fixture
-def lab_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    site = tmp_path / "labsite"
-    (site / "lab_ctrl-0.1.dist-info").mkdir(parents=True)
-    (site / "lab_ctrl-0.1.dist-info" / "METADATA").write_text(
-        "Metadata-Version: 2.1\nName: lab-ctrl\nVersion: 0.1\n"
-    )
-    (site / "lab_ctrl-0.1.dist-info" / "entry_points.txt").write_text(
-        "[exolink.controllers]\nraiser = lab_ctrl:Raiser\n"
-    )
-    (site / "lab_ctrl.py").write_text(LAB_PLUGIN)
-    monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+def lab_plugin(lab_package) -> None:  # type: ignore[no-untyped-def]
+    lab_package(
+        "lab_ctrl", "[exolink.controllers]\nraiser = lab_ctrl:Raiser\n", {"lab_ctrl.py": LAB_PLUGIN}
     )
 
 

@@ -5,8 +5,6 @@ an independent listener on the bus and in the simulated board's own status frame
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 from typing import Any
 
 import can
@@ -183,19 +181,10 @@ def nodes() -> list[dict[str, Any]]:
 
 
 @pytest.fixture
-def lab_board_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def lab_board_plugin(lab_package) -> None:  # type: ignore[no-untyped-def]
     """A lab's controller package installed the way pip would (dist-info + entry point)."""
-    site = tmp_path / "labsite"
-    info = site / "lab_board-0.1.dist-info"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: lab-board\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text(
-        "[exolink.controllers]\nboard_raiser = lab_board:BoardRaiser\n"
-    )
-    (site / "lab_board.py").write_text(LAB_PLUGIN)
-    monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
-    )
+    entry = "[exolink.controllers]\nboard_raiser = lab_board:BoardRaiser\n"
+    lab_package("lab_board", entry, {"lab_board.py": LAB_PLUGIN})
 
 
 def appliance(write_config, spawn) -> Appliance:  # type: ignore[no-untyped-def]

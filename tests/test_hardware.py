@@ -10,7 +10,6 @@ from __future__ import annotations
 import subprocess
 import threading
 from collections.abc import Iterator
-from pathlib import Path
 
 import can
 import pytest
@@ -72,16 +71,10 @@ OFF = bytes([0, 0, 0])
 
 
 @pytest.fixture
-def rig_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def rig_package(lab_package) -> None:  # type: ignore[no-untyped-def]
     """The lab's package on the path of the supervisor the test starts."""
-    site = tmp_path / "rigsite"
-    info = site / "lab_rig-0.1.dist-info"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: lab-rig\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[exolink.hardware]\nrig = lab_rig:Rig\n")
-    (site / "lab_rig.py").write_text(RIG_PY)
-    (site / "rig.dbc").write_text(RIG_DBC)
-    monkeypatch.setenv("PYTHONPATH", str(site))
+    entry = "[exolink.hardware]\nrig = lab_rig:Rig\n"
+    lab_package("lab_rig", entry, {"lab_rig.py": RIG_PY, "rig.dbc": RIG_DBC})
 
 
 class RigBoard:

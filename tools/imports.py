@@ -160,11 +160,12 @@ def main() -> int:
     if "-v" in sys.argv:
         for source, line, target in lazy:
             sys.stdout.write(f"  {source}:{line} -> {target}\n")
-    sys.stdout.write(f"function-level imports (all): {_all_lazy(known)}\n")
+    sys.stdout.write(f"function-level imports (all): {all_lazy(known)}\n")
     return 0
 
 
-def _all_lazy(known: dict[str, Path]) -> int:
+def all_lazy(known: dict[str, Path]) -> int:
+    """Import statements (and ``__import__`` calls) inside functions, of any module."""
     count = 0
     for path in known.values():
         for node, in_function in _walk(ast.parse(path.read_text(), str(path)), False):
