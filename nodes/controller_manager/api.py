@@ -24,7 +24,7 @@ from exolink import cdr, roles
 from exolink.maccepalimits import GAINS, KINDS, target
 from exolink.messaging import Caller, CommandRefused, Unlogged
 from exolink.nodes.controller_manager.intent import IntentRefused
-from exolink.nodes.controller_manager.manager import GC_CLOCK, ManagerRefused, Switch
+from exolink.nodes.controller_manager.manager import ManagerRefused, Switch
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
 
@@ -126,41 +126,6 @@ class ManagerApi:
             "(list, types, state, load, unload, activate, deactivate, switch, command, hold, "
             "release)"
         )
-
-    def status(self: ControllerManagerNode) -> dict[str, Any]:
-        reader = self.reader  # may close meanwhile: its counters stay readable
-        return {
-            **self.manager.status(),
-            "limits": self.limits.describe(),
-            "presence": self.presence.describe(),
-            "written": self.written,
-            "safe": self.safe_sent,
-            "late_cycles": self.late_cycles,
-            "cycles_per_update": self.params.cycles_per_update,
-            "timer": {  # planned set-points on the kernel's timer (timed.py)
-                "sending": self.timed is not None,
-                "runs": self.timed_runs,
-                "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
-                "lapses": self.timed_lapses,
-                "refused": self.timed_refused,
-                # slots computed through the manager, and the cycle replayed (0: none yet)
-                "computed": self.timed.computed if self.timed else 0,
-                "plan_cpu_ms": round(self.timed.plan_cpu_s * 1e3, 1) if self.timed else 0,
-                "repeating": self.timed.plan.period or 0
-                if self.timed and self.timed.plan.cycle_from is not None
-                else 0,
-            },
-            "maccepa_written": self.mc_written,
-            "maccepa_safe": self.mc_safe_sent,
-            "malformed": dict(self.malformed),
-            "reading": self.reader is not None,
-            "reader_opens": self.reader_opens,
-            "read_ids": self.read_ids,
-            "receive": reader.counters() if reader is not None else None,
-            "watchdog_word": self.arming.counters() if self.arming is not None else None,
-            "loop_cpu": self.clock.counters(),
-            "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
-        }
 
     def _hold(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
         try:

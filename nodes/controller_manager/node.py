@@ -67,7 +67,13 @@ from exolink.maccepalimits import BoardLimits, target
 from exolink.node import Node
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import UNPLANNED, Cycle, Manager, ManagerRefused
+from exolink.nodes.controller_manager.manager import (
+    GC_CLOCK,
+    UNPLANNED,
+    Cycle,
+    Manager,
+    ManagerRefused,
+)
 from exolink.nodes.controller_manager.timed import Timed
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -295,6 +301,41 @@ class ControllerManagerNode(ManagerApi, Node):
         ]
 
     # --- management ---------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        reader = self.reader  # may close meanwhile: its counters stay readable
+        return {
+            **self.manager.status(),
+            "limits": self.limits.describe(),
+            "presence": self.presence.describe(),
+            "written": self.written,
+            "safe": self.safe_sent,
+            "late_cycles": self.late_cycles,
+            "cycles_per_update": self.params.cycles_per_update,
+            "timer": {  # planned set-points on the kernel's timer (timed.py)
+                "sending": self.timed is not None,
+                "runs": self.timed_runs,
+                "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
+                "lapses": self.timed_lapses,
+                "refused": self.timed_refused,
+                # slots computed through the manager, and the cycle replayed (0: none yet)
+                "computed": self.timed.computed if self.timed else 0,
+                "plan_cpu_ms": round(self.timed.plan_cpu_s * 1e3, 1) if self.timed else 0,
+                "repeating": self.timed.plan.period or 0
+                if self.timed and self.timed.plan.cycle_from is not None
+                else 0,
+            },
+            "maccepa_written": self.mc_written,
+            "maccepa_safe": self.mc_safe_sent,
+            "malformed": dict(self.malformed),
+            "reading": self.reader is not None,
+            "reader_opens": self.reader_opens,
+            "read_ids": self.read_ids,
+            "receive": reader.counters() if reader is not None else None,
+            "watchdog_word": self.arming.counters() if self.arming is not None else None,
+            "loop_cpu": self.clock.counters(),
+            "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
+        }
 
     def _maybe_tell(self) -> None:
         """Publish the controllers' states if they changed (or the refresh is due): one
