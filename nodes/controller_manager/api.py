@@ -79,7 +79,7 @@ class ManagerApi:
 
     def may_move(self: ControllerManagerNode) -> None:
         """Refused unless motion may start now: armed, a holder present, the limits known."""
-        for why in (self._not_armed(), self.presence.check(), self.limits.check()):
+        for why in (self.not_armed(), self.presence.check(), self.limits.check()):
             if why:
                 raise CommandRefused(why)
 
@@ -89,7 +89,7 @@ class ManagerApi:
         try:
             return self._controllers(req, caller)
         finally:
-            self._maybe_tell()
+            self.maybe_tell()
 
     def _controllers(
         self: ControllerManagerNode, req: dict[str, Any], caller: Caller

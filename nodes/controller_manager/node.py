@@ -288,7 +288,7 @@ class ControllerManagerNode(ManagerApi, Node):
         )
         self._told, self._told_at = -1, 0.0
         self._tell_lock = threading.Lock()
-        self._maybe_tell()  # the controllers loaded from params
+        self.maybe_tell()  # the controllers loaded from params
         if p.send_limits_on_start:  # what the H2 enforces itself: the limits in force
             self.send_now(self.limit_frames())
         self.serve_api()
@@ -337,7 +337,7 @@ class ControllerManagerNode(ManagerApi, Node):
             "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
         }
 
-    def _maybe_tell(self) -> None:
+    def maybe_tell(self) -> None:
         """Publish the controllers' states if they changed (or the refresh is due): one
         comparison per cycle otherwise."""
         if self._told == self.manager.version and (
@@ -370,7 +370,7 @@ class ControllerManagerNode(ManagerApi, Node):
             self._abort_timed()
             self.manager.joints_disabled(joints, why)
             self._send(frames)
-        self._maybe_tell()
+        self.maybe_tell()
         return frames
 
     def stop_boards(self, boards: set[int], why: str) -> list[can.Message]:
@@ -380,7 +380,7 @@ class ControllerManagerNode(ManagerApi, Node):
             self._abort_timed()
             self.manager.boards_stopped(boards, why)
             self._send(frames)
-        self._maybe_tell()
+        self.maybe_tell()
         return frames
 
     def stop_all(self, why: str) -> None:
@@ -388,9 +388,9 @@ class ControllerManagerNode(ManagerApi, Node):
         with self.io_lock:
             self._abort_timed()
             self._safe(self.manager.stop_all(why))
-        self._maybe_tell()
+        self.maybe_tell()
 
-    def _not_armed(self) -> str | None:
+    def not_armed(self) -> str | None:
         return self.arming.check() if self.arming is not None else None
 
     def run(self, stop: threading.Event) -> None:
@@ -410,7 +410,7 @@ class ControllerManagerNode(ManagerApi, Node):
             # set-point, and _send says "not idle" before that one goes out.
             self.beat(not (busy and self.manager.driving()))
             self.check_presence()
-            self._maybe_tell()
+            self.maybe_tell()
             clock.mark("beat")
             if not busy:  # a request (load, switch) wakes it at once
                 self.wake.wait(IDLE_BEAT_S)
@@ -442,7 +442,7 @@ class ControllerManagerNode(ManagerApi, Node):
             clock.mark("frames")
             if time.monotonic() - self.last_angle_mono > timeout:
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
-                self.manager.idle(self._not_armed())
+                self.manager.idle(self.not_armed())
             if not self.manager.busy():
                 self._close_reader()
             clock.mark("rest")
@@ -452,7 +452,7 @@ class ControllerManagerNode(ManagerApi, Node):
     def _time(self) -> None:
         """Every active controller is planned: from now their set-points go out on a timer,
         planned a few slots ahead, and this loop wakes only to renew the lease."""
-        state, not_armed = self.last_state, self._not_armed()
+        state, not_armed = self.last_state, self.not_armed()
         if state is None or not_armed:
             return
         p, can_cfg = self.params, self.ctx.config.can
@@ -537,7 +537,7 @@ class ControllerManagerNode(ManagerApi, Node):
         self._keep_timed()
         self.beat(False)
         self.check_presence()
-        self._maybe_tell()
+        self.maybe_tell()
 
     def _keep_timed(self) -> None:
         """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
@@ -545,7 +545,7 @@ class ControllerManagerNode(ManagerApi, Node):
         timed = self.timed
         if timed is None:
             return
-        not_armed = self._not_armed()
+        not_armed = self.not_armed()
         if not_armed or self.manager.version != self.timed_version or not self.manager.plannable():
             self._untime(orderly=not not_armed)
             return
@@ -763,7 +763,7 @@ class ControllerManagerNode(ManagerApi, Node):
             elif isinstance(d, h2.JointAngles):
                 if not self._warm():  # nothing is active while cold: activations wait
                     self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
-                    self.manager.idle(self._not_armed())
+                    self.manager.idle(self.not_armed())
                     continue
                 if i != newest:  # read late, a newer cycle behind it: see _cycle
                     self.skipped += 1
@@ -825,7 +825,7 @@ class ControllerManagerNode(ManagerApi, Node):
             state,
             stamp,
             period,
-            self._not_armed(),
+            self.not_armed(),
             switches=not timed,
             part=UNPLANNED if timed else None,
         )
