@@ -202,7 +202,7 @@ def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
     return rules
 
 
-class ControllerManagerNode(ManagerApi, Node):
+class ControllerManagerNode(Node):
     Params = ManagerParams
     stall_s = 2 * BEAT_S
 
@@ -291,7 +291,8 @@ class ControllerManagerNode(ManagerApi, Node):
         self.maybe_tell()  # the controllers loaded from params
         if p.send_limits_on_start:  # what the H2 enforces itself: the limits in force
             self.send_now(self.limit_frames())
-        self.serve_api()
+        self.api = ManagerApi(self)  # the requests (api.py)
+        self.api.serve()
 
     def limit_frames(self) -> list[can.Message]:
         lim = self.limits.in_force
@@ -409,7 +410,7 @@ class ControllerManagerNode(ManagerApi, Node):
             # 50 ms deadline tripped the watchdog at every gait start) come before the first
             # set-point, and _send says "not idle" before that one goes out.
             self.beat(not (busy and self.manager.driving()))
-            self.check_presence()
+            self.api.check_presence()
             self.maybe_tell()
             clock.mark("beat")
             if not busy:  # a request (load, switch) wakes it at once
@@ -536,7 +537,7 @@ class ControllerManagerNode(ManagerApi, Node):
         self.beat(False)
         self._keep_timed()
         self.beat(False)
-        self.check_presence()
+        self.api.check_presence()
         self.maybe_tell()
 
     def _keep_timed(self) -> None:
