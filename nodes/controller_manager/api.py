@@ -17,19 +17,20 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol, TypeVar
 
 import can
+import structlog
 from exolink import cdr, roles
 from exolink.maccepalimits import GAINS, KINDS, target
 from exolink.messaging import Caller, CommandRefused, Unlogged
-from exolink.nodes.controller_manager.intent import IntentRefused
-from exolink.nodes.controller_manager.manager import GC_CLOCK, ManagerRefused, Switch
+from exolink.node import NodeContext
+from exolink.nodes.controller_manager.intent import IntentRefused, OperatorLimits, Presence
+from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
 
-if TYPE_CHECKING:
-    from exolink.nodes.controller_manager.node import ControllerManagerNode
+R = TypeVar("R")
 
 SWITCH_WAIT_S = 1.0
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
@@ -64,42 +65,65 @@ def _frames(frames: list[can.Message]) -> list[str]:
     return [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]
 
 
-class ManagerApi:
-    """The requests of ``ControllerManagerNode`` (a mixin: it uses the node's manager, intent,
-    presence and bus)."""
+class ManagerNode(Protocol):
+    """What the requests use of the controller manager's node (``ControllerManagerNode``)."""
 
-    def serve_api(self: ControllerManagerNode) -> None:
-        m = self.ctx.messaging
-        self.pub_commands = self.own(m.publisher("joint_commands", JOINT_COMMAND, raw=True))
-        self.own(m.serve("controllers", self.on_controllers, _controllers_needs, _presence))
-        self.own(m.serve(("h2", "command"), self.on_h2, roles.OPERATOR))
-        self.own(m.serve("maccepa", self.on_maccepa, roles.OPERATOR))
+    ctx: NodeContext
+    log: structlog.typing.FilteringBoundLogger
+    manager: Manager
+    limits: OperatorLimits
+    presence: Presence
+    board_ids: set[int]
+    wake: threading.Event  # a queued switch: the loop opens the reader now
+
+    def own(self, resource: R) -> R: ...
+    def status(self) -> dict[str, Any]: ...
+    def not_armed(self) -> str | None: ...
+    def maybe_tell(self) -> None: ...
+    def limit_frames(self) -> list[can.Message]: ...
+    def send_now(self, frames: list[can.Message]) -> None: ...
+    def stop_joints(self, joints: set[int], mode: int, why: str) -> list[can.Message]: ...
+    def stop_boards(self, boards: set[int], why: str) -> list[can.Message]: ...
+    def stop_all(self, why: str) -> None: ...
+
+
+class ManagerApi:
+    """The requests of ``ControllerManagerNode``, which makes one of these and serves it (it
+    uses the node's manager, intent, presence and bus: ``ManagerNode``)."""
+
+    def __init__(self, node: ManagerNode) -> None:
+        self.node = node
+
+    def serve(self) -> None:
+        m = self.node.ctx.messaging
+        self.pub_commands = self.node.own(m.publisher("joint_commands", JOINT_COMMAND, raw=True))
+        self.node.own(m.serve("controllers", self.on_controllers, _controllers_needs, _presence))
+        self.node.own(m.serve(("h2", "command"), self.on_h2, roles.OPERATOR))
+        self.node.own(m.serve("maccepa", self.on_maccepa, roles.OPERATOR))
 
     # --- checks -------------------------------------------------------------------------------
 
-    def may_move(self: ControllerManagerNode) -> None:
+    def may_move(self) -> None:
         """Refused unless motion may start now: armed, a holder present, the limits known."""
-        for why in (self._not_armed(), self.presence.check(), self.limits.check()):
+        for why in (self.node.not_armed(), self.node.presence.check(), self.node.limits.check()):
             if why:
                 raise CommandRefused(why)
 
     # --- controllers --------------------------------------------------------------------------
 
-    def on_controllers(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+    def on_controllers(self, req: dict[str, Any], caller: Caller) -> Any:
         try:
             return self._controllers(req, caller)
         finally:
-            self._maybe_tell()
+            self.node.maybe_tell()
 
-    def _controllers(
-        self: ControllerManagerNode, req: dict[str, Any], caller: Caller
-    ) -> dict[str, Any]:
+    def _controllers(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
         action = req.get("action", "list")
         try:
             if action == "list":
-                return self.status()
+                return self.node.status()
             if action == "state":
-                return self.manager.state_of(str(req.get("name", "")))
+                return self.node.manager.state_of(str(req.get("name", "")))
             if action == "types":
                 return {"types": controller_types()}
             if action == "hold":
@@ -109,14 +133,14 @@ class ManagerApi:
             if action == "load":
                 return self._load(req)
             if action == "unload":
-                self.manager.unload(str(req.get("name", "")))
+                self.node.manager.unload(str(req.get("name", "")))
                 return {}
             if action == "command":
                 name = str(req.get("name", ""))
-                if name in self.manager.active():  # it moves a joint now
+                if name in self.node.manager.active():  # it moves a joint now
                     self.may_move()
                 body = {k: v for k, v in req.items() if k not in ("action", "name")}
-                return self.manager.command(name, body)
+                return self.node.manager.command(name, body)
             if action in ("activate", "deactivate", "switch"):
                 return self._switch(action, req)
         except ManagerRefused as exc:
@@ -127,63 +151,28 @@ class ManagerApi:
             "release)"
         )
 
-    def status(self: ControllerManagerNode) -> dict[str, Any]:
-        reader = self.reader  # may close meanwhile: its counters stay readable
-        return {
-            **self.manager.status(),
-            "limits": self.limits.describe(),
-            "presence": self.presence.describe(),
-            "written": self.written,
-            "safe": self.safe_sent,
-            "late_cycles": self.late_cycles,
-            "cycles_per_update": self.params.cycles_per_update,
-            "timer": {  # planned set-points on the kernel's timer (timed.py)
-                "sending": self.timed is not None,
-                "runs": self.timed_runs,
-                "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
-                "lapses": self.timed_lapses,
-                "refused": self.timed_refused,
-                # slots computed through the manager, and the cycle replayed (0: none yet)
-                "computed": self.timed.computed if self.timed else 0,
-                "plan_cpu_ms": round(self.timed.plan_cpu_s * 1e3, 1) if self.timed else 0,
-                "repeating": self.timed.plan.period or 0
-                if self.timed and self.timed.plan.cycle_from is not None
-                else 0,
-            },
-            "maccepa_written": self.mc_written,
-            "maccepa_safe": self.mc_safe_sent,
-            "malformed": dict(self.malformed),
-            "reading": self.reader is not None,
-            "reader_opens": self.reader_opens,
-            "read_ids": self.read_ids,
-            "receive": reader.counters() if reader is not None else None,
-            "watchdog_word": self.arming.counters() if self.arming is not None else None,
-            "loop_cpu": self.clock.counters(),
-            "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
-        }
-
-    def _hold(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
+    def _hold(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
         try:
-            out = self.presence.hold(
+            out = self.node.presence.hold(
                 req.get("holder"), caller.login, req.get("what"), bool(req.get("take_over"))
             )
         except IntentRefused as exc:
             raise CommandRefused(str(exc)) from None
         reply = {
             **out,
-            "driving": self.manager.active(),
-            "presence_lost_after_s": self.presence.lost_s,
+            "driving": self.node.manager.active(),
+            "presence_lost_after_s": self.node.presence.lost_s,
         }
         return Unlogged(reply) if out["renewed"] else reply  # renewals: twice a second
 
-    def _release(self: ControllerManagerNode, req: dict[str, Any]) -> dict[str, Any]:
+    def _release(self, req: dict[str, Any]) -> dict[str, Any]:
         """A holder lets go: what it held stops (the safe action), without a trip."""
-        released = self.presence.release(req.get("holder"))
-        if released and self.manager.active():
-            self.stop_all("its holder released motion")
+        released = self.node.presence.release(req.get("holder"))
+        if released and self.node.manager.active():
+            self.node.stop_all("its holder released motion")
         return {"released": released}
 
-    def _load(self: ControllerManagerNode, req: dict[str, Any]) -> dict[str, Any]:
+    def _load(self, req: dict[str, Any]) -> dict[str, Any]:
         """``replace``: a controller of that name is deactivated and unloaded first;
         ``activate``: the new one is activated at the next cycle (within ``within_s`` of this
         request, if given). One request instead of four (what the pattern player sends). An
@@ -199,21 +188,23 @@ class ManagerApi:
         if activate:
             self.may_move()
         replace = bool(req.get("replace"))
-        slot = self.manager.prepare(name, kind, params, req.get("budget_ms"), replacing=replace)
-        if replace and name in self.manager.active():
+        slot = self.node.manager.prepare(
+            name, kind, params, req.get("budget_ms"), replacing=replace
+        )
+        if replace and name in self.node.manager.active():
             self._switch("deactivate", {"names": [name]})
-        old = self.manager.add(slot, replace=replace)
+        old = self.node.manager.add(slot, replace=replace)
         if not activate:
             return slot.status()
         try:
             active = self._switch("activate", {"names": [name]}, until)
         except CommandRefused:
-            self.manager.put_back(slot, old)  # nothing half-done: as before the request
+            self.node.manager.put_back(slot, old)  # nothing half-done: as before the request
             raise
         return {**slot.status(), **active}
 
     def _switch(
-        self: ControllerManagerNode, action: str, req: dict[str, Any], until: float | None = None
+        self, action: str, req: dict[str, Any], until: float | None = None
     ) -> dict[str, Any]:
         """Applied at one cycle boundary, or refused whole. An activation supersedes the
         operator's one-off holds (``operator.*``) on the joints and boards it claims, in the
@@ -235,25 +226,25 @@ class ManagerApi:
             sw = Switch([], names("names"))
         if sw.activate:
             self.may_move()
-            held = self.manager.superseded(sw.activate, OPERATOR + ".")
+            held = self.node.manager.superseded(sw.activate, OPERATOR + ".")
             sw.deactivate += [n for n in held if n not in sw.deactivate]
         wait = SWITCH_WAIT_S if until is None else until - time.monotonic()
         if wait <= 0:
             raise CommandRefused("the request's within_s ran out before its switch")
-        self.manager.request(sw)
-        self.wake.set()
-        if not sw.done.wait(wait) and self.manager.withdraw(sw):
+        self.node.manager.request(sw)
+        self.node.wake.set()
+        if not sw.done.wait(wait) and self.node.manager.withdraw(sw):
             raise CommandRefused(
                 f"no H2 cycle within {wait:.2g} s to switch at (is the H2 streaming?)"
             )
         sw.done.wait()
         if sw.error is not None:
             raise CommandRefused(sw.error)
-        return {"active": self.manager.active()}
+        return {"active": self.node.manager.active()}
 
     # --- the H2's commands --------------------------------------------------------------------
 
-    def on_h2(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+    def on_h2(self, req: dict[str, Any], caller: Caller) -> Any:
         """``exolink send``: joint control (motion held by the joint's operator controller;
         disable and stop at once, always allowed), the accepted angles (the operator's limits),
         the data stream. Nothing is sent unless the whole command is valid."""
@@ -268,7 +259,7 @@ class ManagerApi:
                 if not isinstance(on, bool):
                     raise CommandRefused("stream needs 'on': true or false")
                 frames = [h2.encode_stream(on)]
-                self.send_now(frames)
+                self.node.send_now(frames)
                 return {"frames": _frames(frames)}
         except ProtocolError as exc:
             raise CommandRefused(str(exc)) from None
@@ -276,14 +267,16 @@ class ManagerApi:
             raise CommandRefused(str(exc)) from None
         raise CommandRefused(f"unknown command kind {kind!r} (joint, limits or stream)")
 
-    def _joint(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
+    def _joint(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
         joint = req.get("joint")
         mode = h2.mode_id(req.get("mode", ""))
         if mode in SAFE_MODES:  # can only make things safer: always, and at once
             motors = range(1, 7) if joint == "all" else [h2.motor_id(joint)]  # type: ignore[arg-type]
             commands = [h2.joint_control(m, mode) for m in motors]
             what = f"{'all joints' if joint == 'all' else joint} {h2.MODE_NAMES[mode]}"
-            frames = self.stop_joints({m - 1 for m in motors}, mode, f"{what} by {caller.login}")
+            frames = self.node.stop_joints(
+                {m - 1 for m in motors}, mode, f"{what} by {caller.login}"
+            )
             for jc in commands:
                 self._record(jc, caller)
             return {"frames": _frames(frames)}
@@ -291,8 +284,8 @@ class ManagerApi:
             raise CommandRefused("'all' joints is only for disabled or stopped")
         jc = h2.joint_control(joint, mode, req.get("setpoint", 0), req.get("stiffness", 0))  # type: ignore[arg-type]
         i = jc.motor - 1
-        lim = self.limits.in_force
-        by = self.limits.set_by
+        lim = self.node.limits.in_force
+        by = self.node.limits.set_by
         where = f" (set by {by.login})" if by is not None else " (the config's limits:)"
         if why := lim.violation(i, mode, jc.setpoint, jc.stiffness, where=where):
             raise CommandRefused(why)
@@ -301,28 +294,26 @@ class ManagerApi:
         self._record(jc, caller)
         return reply
 
-    def _operator(
-        self: ControllerManagerNode, joint: str, mode: str, setpoint: int, stiffness: int
-    ) -> dict[str, Any]:
+    def _operator(self, joint: str, mode: str, setpoint: int, stiffness: int) -> dict[str, Any]:
         """Held by that joint's own operator controller, made on first use. A joint another
         controller drives is refused with that controller named; a joint the operator drove in
         another mode changes mode at one cycle boundary."""
         name, mine = f"{OPERATOR}.{joint}.{mode}", f"{OPERATOR}.{joint}."
-        for key, owner in self.manager.owners_of(joint).items():
+        for key, owner in self.node.manager.owners_of(joint).items():
             if not owner.startswith(mine):
                 raise CommandRefused(
                     f"{joint} is driven by controller {owner} ({key}): "
                     f"`exolink controllers deactivate {owner}` first"
                 )
-        if name not in self.manager.names():
-            self.manager.load(name, "operator", {"joint": joint, "mode": mode})
-        reply = self.manager.command(name, {"setpoint": setpoint, "stiffness": stiffness})
-        if name not in self.manager.active():
-            before = [n for n in self.manager.active() if n.startswith(mine)]
+        if name not in self.node.manager.names():
+            self.node.manager.load(name, "operator", {"joint": joint, "mode": mode})
+        reply = self.node.manager.command(name, {"setpoint": setpoint, "stiffness": stiffness})
+        if name not in self.node.manager.active():
+            before = [n for n in self.node.manager.active() if n.startswith(mine)]
             self._switch("switch", {"activate": [name], "deactivate": before})
         return {"controller": name, "frames": [], **reply}
 
-    def _limits(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+    def _limits(self, req: dict[str, Any], caller: Caller) -> Any:
         """The operator's accepted angles: only narrower than the config's, kept before they
         take effect (they survive a restart), then in force for every way in and sent to the
         H2. ``reset``: back to the config's."""
@@ -338,15 +329,15 @@ class ManagerApi:
             lo = [int(a) for a in checked["min"]] if "min" in checked else None
             hi = [int(a) for a in checked["max"]] if "max" in checked else None
         try:
-            new = self.limits.set(lo, hi, caller.login)
+            new = self.node.limits.set(lo, hi, caller.login)
         except IntentRefused as exc:
             raise CommandRefused(str(exc)) from None
-        self.manager.set_limits(new)
-        frames = self.limit_frames()
-        self.send_now(frames)
-        return {"frames": _frames(frames), "limits": self.limits.describe()}
+        self.node.manager.set_limits(new)
+        frames = self.node.limit_frames()
+        self.node.send_now(frames)
+        return {"frames": _frames(frames), "limits": self.node.limits.describe()}
 
-    def _record(self: ControllerManagerNode, jc: h2.JointControl, caller: Caller) -> None:
+    def _record(self, jc: h2.JointControl, caller: Caller) -> None:
         """An accepted command on ``joint_commands``, with the login that sent it."""
         now = time.time_ns()
         joint = h2.JOINTS[jc.motor - 1]
@@ -355,36 +346,36 @@ class ManagerApi:
 
     # --- the MACCEPA boards' commands ---------------------------------------------------------
 
-    def on_maccepa(self: ControllerManagerNode, req: dict[str, Any], caller: Caller) -> Any:
+    def on_maccepa(self, req: dict[str, Any], caller: Caller) -> Any:
         """``exolink maccepa N ...``: set-point, duty and gains held by that board's operator
         controller for the kind (``operator.maccepa0.setpoint``); stop control at once."""
         board, kind = req.get("board"), req.get("kind")
-        if board not in self.board_ids:
-            configured = ", ".join(str(b) for b in sorted(self.board_ids)) or "none"
+        if board not in self.node.board_ids:
+            configured = ", ".join(str(b) for b in sorted(self.node.board_ids)) or "none"
             raise CommandRefused(
                 f"MACCEPA board {board!r} is not driven by the controller manager "
                 f"(params.maccepa: {configured})"
             )
         try:
             if kind == "stop":
-                frames = self.stop_boards({board}, f"{target(board)} stopped by {caller.login}")  # type: ignore[arg-type]
+                frames = self.node.stop_boards(
+                    {board}, f"{target(board)} stopped by {caller.login}"
+                )
                 return {"frames": _frames(frames)}
             if kind in KINDS:
-                self._check_maccepa(board, kind, req)  # type: ignore[arg-type]
+                self._check_maccepa(board, kind, req)
                 self.may_move()
-                return self._maccepa(board, kind, req)  # type: ignore[arg-type]
+                return self._maccepa(board, kind, req)
         except ProtocolError as exc:
             raise CommandRefused(str(exc)) from None
         except ManagerRefused as exc:
             raise CommandRefused(str(exc)) from None
         raise CommandRefused(f"unknown MACCEPA command {kind!r} (gains, setpoint, duty, stop)")
 
-    def _check_maccepa(
-        self: ControllerManagerNode, board: int, kind: str, req: dict[str, Any]
-    ) -> None:
+    def _check_maccepa(self, board: int, kind: str, req: dict[str, Any]) -> None:
         """The codec's checks (ProtocolError names what is wrong); the board's limits are the
         controller's and the manager's."""
-        lim = self.manager.boards[board]
+        lim = self.node.manager.boards[board]
         ctl = req.get("controller", lim.controller)
         if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
             raise CommandRefused(
@@ -404,28 +395,26 @@ class ManagerApi:
             else:
                 maccepa.encode_duty(board, value)
 
-    def _maccepa(
-        self: ControllerManagerNode, board: int, kind: str, req: dict[str, Any]
-    ) -> dict[str, Any]:
+    def _maccepa(self, board: int, kind: str, req: dict[str, Any]) -> dict[str, Any]:
         """Set-point and duty drive the board and replace each other at one cycle boundary;
         gains are their own interface (tuning while something else drives the board). An
         interface another controller owns is refused with that controller named."""
         group = DRIVE if kind in DRIVE else ("gains",)
         name, mine = f"{OPERATOR}.{target(board)}.{kind}", f"{OPERATOR}.{target(board)}."
-        for key, owner in self.manager.owners_of(target(board)).items():
+        for key, owner in self.node.manager.owners_of(target(board)).items():
             if key.split("/")[1] in group and not owner.startswith(mine):
                 raise CommandRefused(
                     f"{target(board)} is driven by controller {owner} ({key}): "
                     f"`exolink controllers deactivate {owner}` first"
                 )
-        if name not in self.manager.names():
-            self.manager.load(name, "maccepa_operator", {"board": board, "kind": kind})
+        if name not in self.node.manager.names():
+            self.node.manager.load(name, "maccepa_operator", {"board": board, "kind": kind})
         body = {g: req.get(g) for g in GAINS} if kind == "gains" else {"value": req.get("value")}
-        reply = self.manager.command(name, body)
-        if name not in self.manager.active():
+        reply = self.node.manager.command(name, body)
+        if name not in self.node.manager.active():
             before = [
                 n
-                for n in self.manager.active()
+                for n in self.node.manager.active()
                 if n.startswith(mine) and n.rpartition(".")[2] in group
             ]
             self._switch("switch", {"activate": [name], "deactivate": before})
@@ -433,32 +422,32 @@ class ManagerApi:
 
     # --- presence -----------------------------------------------------------------------------
 
-    def check_presence(self: ControllerManagerNode) -> None:
+    def check_presence(self) -> None:
         """A holder whose keep-alive ran out while something drives: everything stops now
         (the safe action) and the watchdog is asked to trip (latched until re-armed)."""
-        lost = self.presence.lapsed()
+        lost = self.node.presence.lapsed()
         if lost is None:
             return
         detail = (
             f"{lost.login} ({lost.what or 'no description'}) sent no keep-alive for "
-            f"{self.presence.lost_s:g} s"
+            f"{self.node.presence.lost_s:g} s"
         )
-        if not self.manager.active():
-            self.log.info("presence_expired", detail=detail)
+        if not self.node.manager.active():
+            self.node.log.info("presence_expired", detail=detail)
             return
-        self.stop_all(f"operator lost: {detail}")
-        self.log.error("operator_lost", detail=detail)
-        if self.ctx.config.watchdog.trip_on_operator_lost:
+        self.node.stop_all(f"operator lost: {detail}")
+        self.node.log.error("operator_lost", detail=detail)
+        if self.node.ctx.config.watchdog.trip_on_operator_lost:
             self._ask_trip("operator lost", detail)
 
-    def _ask_trip(self: ControllerManagerNode, reason: str, detail: str) -> None:
+    def _ask_trip(self, reason: str, detail: str) -> None:
         """The supervisor's watchdog trips (its answer is not waited for by the loop)."""
 
         def ask() -> None:
             try:
                 body = {"action": "trip", "reason": reason, "detail": detail}
-                self.ctx.messaging.command("watchdog", body=body, timeout_s=2.0)
+                self.node.ctx.messaging.command("watchdog", body=body, timeout_s=2.0)
             except CommandRefused as exc:
-                self.log.error("trip_request_failed", reason=reason, error=str(exc))
+                self.node.log.error("trip_request_failed", reason=reason, error=str(exc))
 
         threading.Thread(target=ask, daemon=True, name="trip").start()

@@ -67,7 +67,13 @@ from exolink.maccepalimits import BoardLimits, target
 from exolink.node import Node
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import UNPLANNED, Cycle, Manager, ManagerRefused
+from exolink.nodes.controller_manager.manager import (
+    GC_CLOCK,
+    UNPLANNED,
+    Cycle,
+    Manager,
+    ManagerRefused,
+)
 from exolink.nodes.controller_manager.timed import Timed
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -196,7 +202,7 @@ def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
     return rules
 
 
-class ControllerManagerNode(ManagerApi, Node):
+class ControllerManagerNode(Node):
     Params = ManagerParams
     stall_s = 2 * BEAT_S
 
@@ -282,10 +288,11 @@ class ControllerManagerNode(ManagerApi, Node):
         )
         self._told, self._told_at = -1, 0.0
         self._tell_lock = threading.Lock()
-        self._maybe_tell()  # the controllers loaded from params
+        self.maybe_tell()  # the controllers loaded from params
         if p.send_limits_on_start:  # what the H2 enforces itself: the limits in force
             self.send_now(self.limit_frames())
-        self.serve_api()
+        self.api = ManagerApi(self)  # the requests (api.py)
+        self.api.serve()
 
     def limit_frames(self) -> list[can.Message]:
         lim = self.limits.in_force
@@ -296,7 +303,42 @@ class ControllerManagerNode(ManagerApi, Node):
 
     # --- management ---------------------------------------------------------------------------
 
-    def _maybe_tell(self) -> None:
+    def status(self) -> dict[str, Any]:
+        reader = self.reader  # may close meanwhile: its counters stay readable
+        return {
+            **self.manager.status(),
+            "limits": self.limits.describe(),
+            "presence": self.presence.describe(),
+            "written": self.written,
+            "safe": self.safe_sent,
+            "late_cycles": self.late_cycles,
+            "cycles_per_update": self.params.cycles_per_update,
+            "timer": {  # planned set-points on the kernel's timer (timed.py)
+                "sending": self.timed is not None,
+                "runs": self.timed_runs,
+                "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
+                "lapses": self.timed_lapses,
+                "refused": self.timed_refused,
+                # slots computed through the manager, and the cycle replayed (0: none yet)
+                "computed": self.timed.computed if self.timed else 0,
+                "plan_cpu_ms": round(self.timed.plan_cpu_s * 1e3, 1) if self.timed else 0,
+                "repeating": self.timed.plan.period or 0
+                if self.timed and self.timed.plan.cycle_from is not None
+                else 0,
+            },
+            "maccepa_written": self.mc_written,
+            "maccepa_safe": self.mc_safe_sent,
+            "malformed": dict(self.malformed),
+            "reading": self.reader is not None,
+            "reader_opens": self.reader_opens,
+            "read_ids": self.read_ids,
+            "receive": reader.counters() if reader is not None else None,
+            "watchdog_word": self.arming.counters() if self.arming is not None else None,
+            "loop_cpu": self.clock.counters(),
+            "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
+        }
+
+    def maybe_tell(self) -> None:
         """Publish the controllers' states if they changed (or the refresh is due): one
         comparison per cycle otherwise."""
         if self._told == self.manager.version and (
@@ -329,7 +371,7 @@ class ControllerManagerNode(ManagerApi, Node):
             self._abort_timed()
             self.manager.joints_disabled(joints, why)
             self._send(frames)
-        self._maybe_tell()
+        self.maybe_tell()
         return frames
 
     def stop_boards(self, boards: set[int], why: str) -> list[can.Message]:
@@ -339,7 +381,7 @@ class ControllerManagerNode(ManagerApi, Node):
             self._abort_timed()
             self.manager.boards_stopped(boards, why)
             self._send(frames)
-        self._maybe_tell()
+        self.maybe_tell()
         return frames
 
     def stop_all(self, why: str) -> None:
@@ -347,9 +389,9 @@ class ControllerManagerNode(ManagerApi, Node):
         with self.io_lock:
             self._abort_timed()
             self._safe(self.manager.stop_all(why))
-        self._maybe_tell()
+        self.maybe_tell()
 
-    def _not_armed(self) -> str | None:
+    def not_armed(self) -> str | None:
         return self.arming.check() if self.arming is not None else None
 
     def run(self, stop: threading.Event) -> None:
@@ -368,8 +410,8 @@ class ControllerManagerNode(ManagerApi, Node):
             # 50 ms deadline tripped the watchdog at every gait start) come before the first
             # set-point, and _send says "not idle" before that one goes out.
             self.beat(not (busy and self.manager.driving()))
-            self.check_presence()
-            self._maybe_tell()
+            self.api.check_presence()
+            self.maybe_tell()
             clock.mark("beat")
             if not busy:  # a request (load, switch) wakes it at once
                 self.wake.wait(IDLE_BEAT_S)
@@ -401,7 +443,7 @@ class ControllerManagerNode(ManagerApi, Node):
             clock.mark("frames")
             if time.monotonic() - self.last_angle_mono > timeout:
                 self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
-                self.manager.idle(self._not_armed())
+                self.manager.idle(self.not_armed())
             if not self.manager.busy():
                 self._close_reader()
             clock.mark("rest")
@@ -411,7 +453,7 @@ class ControllerManagerNode(ManagerApi, Node):
     def _time(self) -> None:
         """Every active controller is planned: from now their set-points go out on a timer,
         planned a few slots ahead, and this loop wakes only to renew the lease."""
-        state, not_armed = self.last_state, self._not_armed()
+        state, not_armed = self.last_state, self.not_armed()
         if state is None or not_armed:
             return
         p, can_cfg = self.params, self.ctx.config.can
@@ -495,8 +537,8 @@ class ControllerManagerNode(ManagerApi, Node):
         self.beat(False)
         self._keep_timed()
         self.beat(False)
-        self.check_presence()
-        self._maybe_tell()
+        self.api.check_presence()
+        self.maybe_tell()
 
     def _keep_timed(self) -> None:
         """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
@@ -504,7 +546,7 @@ class ControllerManagerNode(ManagerApi, Node):
         timed = self.timed
         if timed is None:
             return
-        not_armed = self._not_armed()
+        not_armed = self.not_armed()
         if not_armed or self.manager.version != self.timed_version or not self.manager.plannable():
             self._untime(orderly=not not_armed)
             return
@@ -722,7 +764,7 @@ class ControllerManagerNode(ManagerApi, Node):
             elif isinstance(d, h2.JointAngles):
                 if not self._warm():  # nothing is active while cold: activations wait
                     self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
-                    self.manager.idle(self._not_armed())
+                    self.manager.idle(self.not_armed())
                     continue
                 if i != newest:  # read late, a newer cycle behind it: see _cycle
                     self.skipped += 1
@@ -784,7 +826,7 @@ class ControllerManagerNode(ManagerApi, Node):
             state,
             stamp,
             period,
-            self._not_armed(),
+            self.not_armed(),
             switches=not timed,
             part=UNPLANNED if timed else None,
         )
