@@ -31,7 +31,7 @@ def load(
     its ``module:Class``."""
     eps = [ep for ep in entry_points(group=group) if ep.name == name]
     if not eps:
-        known = ", ".join(sorted((listed or (lambda: names(group)))())) or "none installed"
+        known = ", ".join(sorted(listed() if listed else names(group))) or "none installed"
         raise PluginError(f"unknown {what} {name!r} (available: {known})")
     try:
         cls = eps[0].load()

@@ -209,6 +209,29 @@ def collect(bus: Receiver, seconds: float, ids: set[int] | None = None) -> list[
     return out
 
 
+class FrameStream:
+    """``frames`` sent every ``period_s`` on ``bus`` from a thread, as a device's periodic
+    stream (pausable: ``sending``); ``close`` stops it and shuts the bus down."""
+
+    def __init__(self, bus: can.BusABC, frames: list[can.Message], period_s: float = 0.01) -> None:
+        self.bus, self.frames, self.period_s = bus, frames, period_s
+        self.sending, self.stop = threading.Event(), threading.Event()
+        self.sending.set()
+        self.t = threading.Thread(target=self._run, daemon=True)
+        self.t.start()
+
+    def _run(self) -> None:
+        while not self.stop.wait(self.period_s):
+            if self.sending.is_set():
+                for f in self.frames:
+                    self.bus.send(f)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.t.join()
+        self.bus.shutdown()
+
+
 class DrainedBus:
     """A listener on a sim-bus group, read continuously by a thread into a queue, with an exact
     loss count.

@@ -8,14 +8,13 @@ test's thread on the sim bus, as the H2 is the simulator's."""
 from __future__ import annotations
 
 import subprocess
-import threading
 from collections.abc import Iterator
 
 import can
 import pytest
 from exolink.canbus import open_bus
 
-from benchmarks.harness import EXOLINK, Appliance, DrainedBus, collect, wait_for
+from benchmarks.harness import EXOLINK, Appliance, DrainedBus, FrameStream, collect, wait_for
 
 RIG_DBC = """VERSION ""
 
@@ -77,40 +76,24 @@ def rig_package(lab_package) -> None:  # type: ignore[no-untyped-def]
     lab_package("lab_rig", entry, {"lab_rig.py": RIG_PY, "rig.dbc": RIG_DBC})
 
 
-class RigBoard:
-    """The rig's angle frame every 10 ms from a thread, pausable."""
-
-    def __init__(self, bus: can.BusABC) -> None:
-        self.bus = bus
-        self.sending, self.stop = threading.Event(), threading.Event()
-        self.sending.set()
-        self.t = threading.Thread(target=self._run, daemon=True)
-        self.t.start()
-
-    def _run(self) -> None:
-        frame = can.Message(arbitration_id=ANGLE_ID, data=bytes([100, 0]), is_extended_id=False)
-        while not self.stop.wait(0.01):
-            if self.sending.is_set():
-                self.bus.send(frame)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.t.join()
-
-
 @pytest.fixture
-def rig(write_config, spawn, rig_package, mbus) -> Iterator[tuple[Appliance, RigBoard]]:  # type: ignore[no-untyped-def]
+def rig(write_config, spawn, rig_package, mbus) -> Iterator[tuple[Appliance, FrameStream]]:  # type: ignore[no-untyped-def]
     # one node, whatever the device: the timing monitor, on the rig's ids (a laptop finds the
     # appliance by its nodes' tokens)
-    monitor = {"name": "timing_monitor", "plugin": "timing_monitor", "params": {"ids": [512, 513]}}
+    monitor = {
+        "name": "timing_monitor",
+        "plugin": "timing_monitor",
+        "params": {"ids": [ANGLE_ID, COMMAND_ID]},
+    }
     cfg = write_config(nodes=[monitor], hardware="rig", watchdog={"h2_silence_ms": 300})
     app = Appliance(cfg, spawn)
-    board = RigBoard(open_bus(app.cfg.can))
+    # the rig's angle frame every 10 ms
+    angle = can.Message(arbitration_id=ANGLE_ID, data=bytes([100, 0]), is_extended_id=False)
+    board = FrameStream(open_bus(app.cfg.can), [angle])
     try:
         yield app, board
     finally:
         board.close()
-        board.bus.shutdown()
 
 
 def offs(frames: list[can.Message]) -> list[bytes]:
@@ -118,7 +101,7 @@ def offs(frames: list[can.Message]) -> list[bytes]:
 
 
 def test_a_toy_rig_runs_under_the_supervisor_with_no_edit_to_it(
-    rig: tuple[Appliance, RigBoard], mbus: DrainedBus
+    rig: tuple[Appliance, FrameStream], mbus: DrainedBus
 ) -> None:
     app, board = rig
     app.arm()

@@ -19,7 +19,7 @@ from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2, maccepa
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
 
-from benchmarks.harness import wait_for
+from benchmarks.harness import FrameStream, wait_for
 
 H2 = hardware.load("h2")  # the device the watchdog guards here
 
@@ -55,34 +55,16 @@ class StalledReader(can.BusABC):
         super().shutdown()
 
 
-class H2Board:
+def h2_board(channel: str, bus: can.BusABC | None = None, *also: can.Message) -> FrameStream:
     """Joint angles (and any other frames) at 100 Hz from another thread, pausable."""
-
-    def __init__(self, channel: str, bus: can.BusABC | None = None, *also: can.Message) -> None:
-        self.bus = bus if bus is not None else can.Bus(interface="virtual", channel=channel)
-        self.frames = [ANGLES, *also]
-        self.sending = threading.Event()
-        self.sending.set()
-        self.stop = threading.Event()
-        self.t = threading.Thread(target=self._run, daemon=True)
-        self.t.start()
-
-    def _run(self) -> None:
-        while not self.stop.wait(0.01):
-            if self.sending.is_set():
-                for f in self.frames:
-                    self.bus.send(f)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.t.join()
-        self.bus.shutdown()
+    bus = bus if bus is not None else can.Bus(interface="virtual", channel=channel)
+    return FrameStream(bus, [ANGLES, *also])
 
 
 @pytest.fixture
-def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Watchdog, StalledReader, H2Board]]:
+def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Watchdog, StalledReader, FrameStream]]:
     channel = f"wd-{request.node.name}"
-    board = H2Board(channel)
+    board = h2_board(channel)
     reader = StalledReader(channel)
     states: list[WatchdogState] = []
     frames = FrameReader(
@@ -208,7 +190,7 @@ def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_
     (reads per frame << 1); the silence still trips; disarmed, a motion frame is answered."""
     cfg = CanConfig(interface="udp_multicast", channel=group)
     maccepa_b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
-    board = H2Board(group, open_bus(cfg), maccepa_b0)  # real sockets, as on the board
+    board = h2_board(group, open_bus(cfg), maccepa_b0)  # real sockets, as on the board
     reader = open_reader(cfg, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL])
     wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, lambda _s: None, H2)
     wd.start()

@@ -26,9 +26,8 @@ RANGES = {
     "l_knee": (0, 100),
     "l_ankle": (-20, 20),
 }
-Choices = OrderedDict[
-    int, str | NamedSignalValue
-]  # a signal's named values, as cantools types them
+# a signal's named values, as cantools types them
+Choices = OrderedDict[int, str | NamedSignalValue]
 MODES: Choices = OrderedDict(
     [(1, "position"), (2, "stiffness"), (3, "torque"), (4, "disabled"), (5, "stopped")]
 )

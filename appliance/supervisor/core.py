@@ -92,9 +92,8 @@ class _Stop(threading.Event):
 class Supervisor:
     def __init__(self, cfg: ApplianceConfig) -> None:
         self.cfg = cfg
-        self.device = hardware.load(
-            cfg.hardware
-        )  # the hardware guarded (a bad name: nothing starts)
+        # the hardware guarded (exolink.hardware): an unknown name starts nothing
+        self.device = hardware.load(cfg.hardware)
         self.log = structlog.get_logger().bind(node="supervisor")
         # The loop sleeps until its next deadline; whatever moves one closer sets this.
         self.wake = Wakeup()
@@ -132,8 +131,9 @@ class Supervisor:
                 canlink.check_overlay()
             if cfg.can.bring_up:
                 canlink.bring_up_apart(cfg.can)  # pyroute2 in a child, never resident here
-        # On SocketCAN the kernel's broadcast manager watches ids 110 and 70 for the watchdog
-        # (exolink.cyclic) and its own socket only sends; the simulated bus has no such thing.
+        # On SocketCAN the kernel's broadcast manager watches the device's pulse and command
+        # frames for the watchdog (exolink.cyclic) and its own socket only sends; the simulated
+        # bus has no such thing.
         watches: list[CyclicWatch] = []
         reopen = None
         try:
@@ -147,7 +147,7 @@ class Supervisor:
                 )
                 watches.append(reopen())  # the first now: no can-bcm fails the start here
                 self.reader = open_reader(cfg.can, [])
-            else:  # angle frames never wake it (read by their silence deadline); id 70 does
+            else:  # the pulse never wakes it (read by its silence deadline); a command does
                 self.reader = open_reader(
                     cfg.can, [dev.pulse_id, dev.command_id], wake_on=[dev.command_id]
                 )
@@ -159,7 +159,7 @@ class Supervisor:
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE, raw=True)
-        # the kernel's watches of ids 110 and 70 (none on the simulated bus)
+        # the kernel's watches of the pulse and the command frame (none on the simulated bus)
         angles = watches[0] if watches else None
         control = watches[1] if len(watches) > 1 else None
         self.watchdog = Watchdog(
