@@ -62,6 +62,8 @@ class Rig:
         if m is ANGLE:
             return Seen.PULSE, ""
         mode = m.decode(bytes(msg.data), decode_choices=False)["mode"]
+        if mode > 2:  # a lab's bug on purpose: its judge raises on a mode the DBC lacks
+            raise ValueError(f"rig: mode {mode}")
         return (Seen.MOTION, "") if mode != 0 else (Seen.OTHER, "")
 '''
 
@@ -127,6 +129,15 @@ def test_a_toy_rig_runs_under_the_supervisor_with_no_edit_to_it(
         move = bytes([1, 0x64, 0])  # position 10.0 deg
         bus.send(can.Message(arbitration_id=COMMAND_ID, data=move, is_extended_id=False))
         wait_for(lambda: app.status()["watchdog"]["violations"] == before + 1, timeout=5)
+        assert OFF in offs(collect(mbus, 0.3, {COMMAND_ID}))
+        # a command frame the rig's own judge raises on: counted, taken as motion (answered
+        # with the safe action), and the watchdog's reader lives on
+        mbus.q.queue.clear()
+        bus.send(
+            can.Message(arbitration_id=COMMAND_ID, data=bytes([9, 0, 0]), is_extended_id=False)
+        )
+        wait_for(lambda: app.status()["watchdog"]["violations"] == before + 2, timeout=5)
+        assert app.status()["watchdog"]["malformed"]["513 device judge raised ValueError"] == 1
         assert OFF in offs(collect(mbus, 0.3, {COMMAND_ID}))
         # a frame of the rig's id with a length its DBC does not have: counted, not fatal
         bus.send(can.Message(arbitration_id=ANGLE_ID, data=bytes(5), is_extended_id=False))

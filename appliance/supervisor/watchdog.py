@@ -277,7 +277,7 @@ class Watchdog:
                 )
             return
         at = self._arrival(ev.frame)
-        seen, why = self.device.judge(ev.frame)
+        seen, why = self._see(ev.frame)
         # A malformed frame ends the good stream from its arrival; the kernel's timer takes it
         # as life, so the silence is judged here from then on (``_check_silence``).
         was_alive, self._pulse_alive = self._pulse_alive, seen is Seen.PULSE
@@ -402,7 +402,7 @@ class Watchdog:
     def _judge(self, msg: Frame) -> None:
         at = self._arrival(msg)
         self._check_silence(at)
-        seen, why = self.device.judge(msg)
+        seen, why = self._see(msg)
         if seen is Seen.MALFORMED:
             self._malformed(msg, why)
         elif seen is Seen.PULSE:
@@ -416,6 +416,21 @@ class Watchdog:
                 after_ms=round((at - self._left_armed_at) * 1000, 1),
             )
             self.send_safe_action()
+
+    def _see(self, msg: Frame) -> tuple[Seen, str]:
+        """The device's word on ``msg``. Its ``judge`` must not raise, but a lab's new device
+        may: an exception must not end the thread that guards the motors. The frame is counted
+        malformed, and one with the command's id is taken as motion (the safe action sent for
+        nothing costs little; an unjudged command let through while not armed could move a
+        joint)."""
+        try:
+            return self.device.judge(msg)
+        except Exception as exc:  # any bug in a device's judge
+            reason = f"device judge raised {type(exc).__name__}"
+            if msg.arbitration_id != self.device.command_id:
+                return Seen.MALFORMED, reason
+            self._malformed(msg, reason)
+            return Seen.MOTION, reason
 
     def _malformed(self, msg: Frame, reason: str) -> None:
         if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
