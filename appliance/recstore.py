@@ -112,6 +112,13 @@ class Store:
         # throttles every node, motion included.
         self.hash_pace = Pace(bytes_per_s * HASH_PACE)
 
+    def set_limits(self, reserve_bytes: int, bytes_per_s: float) -> None:
+        """A run-time change of the reserve and the fetches' pace (``exolink params``): the
+        card is shared, and a lab raises the pace at the end of the day, nothing moving."""
+        self.reserve_bytes = reserve_bytes
+        self.pace.bytes_per_s = bytes_per_s
+        self.hash_pace.bytes_per_s = bytes_per_s * HASH_PACE
+
     # --- what is there ---------------------------------------------------------------------
 
     def _files(self) -> Iterator[tuple[str, os.stat_result]]:

@@ -271,6 +271,32 @@ def test_booted_onto_a_full_card_the_recorder_says_so_and_opens_nothing(  # type
     assert list(small_card.glob("*.mcap")) == []
 
 
+def test_the_reserve_changes_at_run_time_and_a_recording_under_it_stops(  # type: ignore[no-untyped-def]
+    write_config, spawn, tmp_path
+) -> None:
+    """What the qemu-booted card's test fills the card with: the reserve raised over the free
+    space while recording (exolink params, admin) stops it as a full card does."""
+    rec = tmp_path / "rec"
+    app = Appliance(write_config(nodes=nodes(rec, fsync_interval_s=0.2)), spawn)
+    assert app.cli("record", "start").returncode == 0
+    free_mb = json.loads(app.cli("record", "list", "--json").stdout)["card"]["free"] >> 20
+    r = app.cli("params", "recorder", "--set", "reserve_mb", str(free_mb + 1))
+    assert r.returncode == 0 and f"recorder.reserve_mb = {free_mb + 1}" in r.stdout, r.stderr
+    wait_for(lambda: "card full" in app.cli("record", "status").stdout, timeout=10)
+    [path] = sorted(rec.glob("*.mcap"))
+    assert info(path).integrity["summary_crc"] == "checked"  # closed and indexed
+    # Only the reserve and the pace change at run time; anything else is refused, unchanged.
+    r = app.cli("params", "recorder", "--set", "compression", "lz4")
+    assert r.returncode == 5 and "only reserve_mb, fetch_mb_s change at run time" in r.stderr
+    r = app.cli("params", "recorder")
+    assert json.loads(r.stdout)["compression"] == "zstd", r.stdout
+    assert app.cli("params", "recorder", "--set", "fetch_mb_s", "4").returncode == 0
+    assert app.cli("params", "recorder", "--set", "reserve_mb", "1").returncode == 0
+    r = app.cli("record", "start")  # room again
+    assert r.returncode == 0, r.stderr
+    assert app.cli("record", "stop").returncode == 0
+
+
 def test_names_from_the_network_stay_in_the_directory(tmp_path: Path) -> None:
     """The store on its own: every odd name is refused before any path is made of it."""
     d = tmp_path / "rec"

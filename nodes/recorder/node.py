@@ -46,6 +46,10 @@ RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the fi
 CARD_CHECK_S = 1.0  # how often the card's free space is read (one statvfs)
 
 
+# What ``exolink params recorder --set`` may change while the node runs (apply_params).
+RUNTIME_PARAMS = ("reserve_mb", "fetch_mb_s")
+
+
 class Recorder(Node):
     Params = RecorderParams
     # SD cards pause writes for a second or more while they erase; fsync in the writer loop waits
@@ -298,8 +302,22 @@ class Recorder(Node):
             f"unknown recordings action {str(action)[:40]!r} (list, stat, fetch, delete)"
         )
 
-    def _reserve_bytes(self) -> int:
-        return int(self.params.reserve_mb * 2**20)
+    def _reserve_bytes(self, params: RecorderParams | None = None) -> int:
+        return int((params or self.params).reserve_mb * 2**20)
+
+    def apply_params(self, new: RecorderParams) -> None:
+        """The reserve and the fetches' pace change at run time (the next second's card check
+        applies the reserve: a recording under it stops cleanly); the rest shape the files
+        and subscriptions, and need a restart."""
+        fixed = msgspec.structs.replace(
+            new, reserve_mb=self.params.reserve_mb, fetch_mb_s=self.params.fetch_mb_s
+        )
+        if fixed != self.params:
+            raise CommandRefused(
+                f"{self.name}: only {', '.join(RUNTIME_PARAMS)} change at run time; "
+                "set the others in the config and restart the node"
+            )
+        self.store.set_limits(self._reserve_bytes(new), new.fetch_mb_s * 1e6)
 
     def _card_text(self) -> str:
         c = self.card
