@@ -12,6 +12,7 @@ the card's boot.scr).
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from mcap.reader import make_reader
 
 from appliance import config
 
@@ -353,6 +355,9 @@ def _boot(image: Path, d: Path, edit: Callable[[dict], dict], log: str) -> Itera
     fat = f"{img}@@{int(CONF['BOOT_START_MIB']) * MIB}"
     settings = mcat(fat, "exolink-settings.yaml").decode()
     settings = settings.replace("simulate: false", "simulate: true")
+    logins = "logins: [operator, observer]"
+    assert logins in settings
+    settings = settings.replace(logins, "logins: [admin, operator, observer]")  # admin deletes
     (d / "exolink-settings.yaml").write_text(settings)
     subprocess.run(["mcopy", "-o", "-i", fat, str(d / "exolink-settings.yaml"), "::/"], check=True)
     spec = f"{img}?offset={partition_table(img)['partitions'][1]['start'] * 512}"
@@ -426,8 +431,10 @@ def _beating(node: dict) -> bool:
     )
 
 
-@pytest.mark.timeout(1500)
-def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -> None:
+@pytest.mark.timeout(3000)
+def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes_and_takes_recordings(
+    booted: dict,
+) -> None:
     c: Console = booted["console"]
     report: dict[str, float] = {}
     report["setup_done_s"] = c.wait_for(r"Finished exolink-setup\.service", 600)
@@ -479,6 +486,104 @@ def test_boot_reaches_the_supervisor_and_a_laptop_sees_its_nodes(booted: dict) -
     out = REPO / "build/image/boot-report.json"
     out.write_text(json.dumps(report, indent=2) + "\n")
     sys.stderr.write(f"boot report: {json.dumps(report)}\n")
+    _a_trial_days_recordings(booted)
+
+
+def _laptop(booted: dict, role: str) -> Callable[..., subprocess.CompletedProcess[str]]:
+    """The CLI on the laptop with the card's login file for ``role`` (copied off the card)."""
+    login = booted["dir"] / f"exolink-{role}.json5"
+    login.write_bytes(mcat(booted["fat"], login.name))
+    at = ["--at", f"tcp/127.0.0.1:{booted['port']}", "--zenoh-config", str(login)]
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        cmd = [sys.executable, "-m", "exolink.cli.main", *args, *at, "--timeout", "30"]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+
+    return run
+
+
+def _a_trial_days_recordings(booted: dict) -> None:
+    """From the laptop, by role: record, list, fetch (sha256 against the board's, read back
+    by the mcap library), delete; then the card filled on purpose (the reserve raised to 2 MiB
+    under the free space while recording: the card's own data fills the rest) and what the
+    recorder and status do. Timings in build/image/recording-report.json."""
+    obs, op, admin = (_laptop(booted, r) for r in ("observer", "operator", "admin"))
+    report: dict[str, object] = {}
+
+    def listing() -> dict:
+        r = obs("record", "list", "--json")
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)  # type: ignore[no-any-return]
+
+    def fetch(name: str, into: Path) -> tuple[str, float]:
+        t = time.monotonic()
+        r = op("record", "fetch", name, "-o", str(into))
+        took = time.monotonic() - t
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        said = re.search(r"sha256 ([0-9a-f]{64}) checked", r.stdout)
+        assert said, r.stdout
+        got = hashlib.sha256((into / name).read_bytes()).hexdigest()
+        assert got == said[1]  # the laptop's own sum against the board's
+        return got, took
+
+    r = op("record", "start", "--label", "subject=S01")
+    assert r.returncode == 0, r.stderr
+    time.sleep(30)
+    r = op("record", "stop")
+    assert r.returncode == 0 and "idle" in r.stdout, (r.stdout, r.stderr)
+    [entry] = [f for f in listing()["files"] if f["state"] == "closed"]
+    name, laptop = entry["name"], booted["dir"] / "laptop"
+    r = obs("record", "fetch", name, "-o", str(laptop))
+    assert r.returncode == 5 and "needs the operator role" in r.stderr, r.stderr
+    board_sum, took = fetch(name, laptop)
+    assert (laptop / name).stat().st_size == entry["size"]
+    with (laptop / name).open("rb") as f:  # an independent reader: the mcap library
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    topics = {c.topic: summary.statistics.channel_message_counts.get(i, 0)
+              for i, c in summary.channels.items()}  # fmt: skip
+    assert topics.get("/h2/joint_states", 0) > 100, topics
+    report.update(file_bytes=entry["size"], fetch_s=round(took, 1), joint_states=topics["/h2/joint_states"],
+                  fetch_kb_s=round(entry["size"] / took / 1000, 1), sha256=board_sum)  # fmt: skip
+    r = op("record", "delete", name)
+    assert r.returncode == 5 and "needs the admin role" in r.stderr, r.stderr
+    r = admin("record", "delete", name)
+    assert r.returncode == 0 and f"deleted {name}" in r.stdout, (r.stdout, r.stderr)
+    assert name not in [f["name"] for f in listing()["files"]]
+
+    # The card filled on purpose.
+    free = listing()["card"]["free"]
+    reserve_mb = round(free / MIB - 2, 2)
+    r = admin("params", "recorder", "--set", "reserve_mb", str(reserve_mb))
+    assert r.returncode == 0, r.stderr
+    t = time.monotonic()
+    r = op("record", "start")
+    assert r.returncode == 0, r.stderr
+    deadline = t + 900
+    while "card full" not in (st := op("record", "status")).stdout:
+        assert time.monotonic() < deadline, st.stdout
+        time.sleep(5)
+    report.update(reserve_mb=reserve_mb, free_at_start_mb=round(free / MIB, 2),
+                  card_full_after_s=round(time.monotonic() - t, 1))  # fmt: skip
+    status = json.loads(op("record", "status", "--json").stdout)
+    assert status["state"] == "error" and status["error"].startswith("card full: "), status
+    assert "recording stopped" in status["error"] and "closed" in status["error"], status
+    report["recorder_said"] = status["error"]
+    r = op("record", "start")
+    assert r.returncode == 5 and "card full" in r.stderr, r.stderr
+    report["record_start_refused"] = r.stderr.strip()
+    shown = obs("status").stdout
+    assert "error: card full" in shown and "MiB free of" in shown, shown
+    report["status_line"] = next(line for line in shown.splitlines() if "card" in line)
+    every = json.loads(obs("status", "--json").stdout)["nodes"]
+    assert all(_beating(n) for n in every), every  # nothing else failed for it
+    [full] = [f for f in listing()["files"] if f["state"] == "closed"]
+    fetch(full["name"], laptop)  # closed and whole: fetched and checked
+    with (laptop / full["name"]).open("rb") as f:
+        assert make_reader(f).get_summary() is not None  # indexed
+    out = REPO / "build/image/recording-report.json"
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    sys.stderr.write(f"recording report: {json.dumps(report)}\n")
 
 
 @pytest.mark.timeout(1200)
