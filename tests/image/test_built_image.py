@@ -526,12 +526,16 @@ def _a_trial_days_recordings(booted: dict) -> None:
         assert got == said[1]  # the laptop's own sum against the board's
         return got, took
 
+    r = op("record", "stop")  # the board records from its boot (autostart): ended here
+    assert r.returncode == 0, r.stderr
+    before = {f["name"] for f in listing()["files"]}
     r = op("record", "start", "--label", "subject=S01")
     assert r.returncode == 0, r.stderr
     time.sleep(30)
     r = op("record", "stop")
     assert r.returncode == 0 and "idle" in r.stdout, (r.stdout, r.stderr)
-    [entry] = [f for f in listing()["files"] if f["state"] == "closed"]
+    [entry] = [f for f in listing()["files"] if f["name"] not in before]
+    assert entry["state"] == "closed", entry
     name, laptop = entry["name"], booted["dir"] / "laptop"
     r = obs("record", "fetch", name, "-o", str(laptop))
     assert r.returncode == 5 and "needs the operator role" in r.stderr, r.stderr
@@ -577,7 +581,8 @@ def _a_trial_days_recordings(booted: dict) -> None:
     report["status_line"] = next(line for line in shown.splitlines() if "card" in line)
     every = json.loads(obs("status", "--json").stdout)["nodes"]
     assert all(_beating(n) for n in every), every  # nothing else failed for it
-    [full] = [f for f in listing()["files"] if f["state"] == "closed"]
+    [full] = [f for f in listing()["files"] if f["name"] not in before]
+    assert full["state"] == "closed", full
     fetch(full["name"], laptop)  # closed and whole: fetched and checked
     with (laptop / full["name"]).open("rb") as f:
         assert make_reader(f).get_summary() is not None  # indexed
