@@ -17,7 +17,7 @@ LINT_TYPES = MYPYPATH=$(CURDIR)/$(IMPORT_TREE) $(BIN)/mypy -p exolink
 # Host apt-get waits for a dpkg lock held by another apt run instead of failing at once.
 APT_WAIT := -o DPkg::Lock::Timeout=600
 
-.PHONY: install sim dist test browser test-kernel test-image image bundle image-lock test-image-built test-update overlays lint format bench bench-board lock dbc msgs clean
+.PHONY: install sim dist test browser uboot test-kernel test-image image bundle image-lock test-image-built test-update overlays lint format bench bench-board lock dbc msgs clean
 
 install: $(STAMP)
 
@@ -44,7 +44,15 @@ browser:
 	@command -v chromium >/dev/null || { echo "chromium missing: installing Debian's"; \
 	  apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq chromium; }
 
-test: $(STAMP) browser
+# Debian's qemu_arm U-Boot and the card tools: tests/test_bootscript.py runs the card's boot script
+# in U-Boot under qemu (it skips, saying what is missing, without them).
+uboot:
+	bash image/need.sh qemu-system-arm:qemu-system-arm mkimage:u-boot-tools mkfs.vfat:dosfstools \
+	  mcopy:mtools mtype:mtools mkfs.ext4:e2fsprogs sfdisk:fdisk
+	@test -f /usr/lib/u-boot/qemu_arm/u-boot.bin || { echo "u-boot-qemu missing: installing Debian's"; \
+	  apt-get $(APT_WAIT) update -qq && apt-get $(APT_WAIT) install -y -qq u-boot-qemu; }
+
+test: $(STAMP) browser uboot
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(LINT_IMPORTS)
