@@ -288,12 +288,14 @@ def main() -> int:
         sys.stdout.write(json.dumps({"error": f"no main pid for {args.unit}"}) + "\n")
         return 1
     nodes = [n for n in args.nodes.split(",") if n]
-    pids = find_appliance(sup, nodes)
     calibration_ms = calibrate()
     if args.go:
         sys.stdout.write("PROBE_READY\n")
         sys.stdout.flush()
         sys.stdin.readline()
+    # At the window's start: a node restarted between the probe's start and the word (a
+    # hung-kill at the arm) is then measured, not lost from the table.
+    pids = find_appliance(sup, nodes)
     first = snapshot(pids, args.channel, pss=False)
     sys.stdout.write(f"PROBE_T0 {json.dumps(sorted(pids))}\n")
     sys.stdout.flush()
