@@ -101,8 +101,6 @@ class Store:
     ) -> None:
         self.dir = directory
         self.writing = writing
-        self.reserve_bytes = reserve_bytes
-        self.pace = Pace(bytes_per_s)
         self._lock = threading.Lock()
         self._sums: dict[str, tuple[int, int, int, str]] = {}  # name -> (ino, size, mtime, sum)
         self._hashing: dict[str, int] = {}  # name -> bytes hashed so far
@@ -110,11 +108,12 @@ class Store:
         # Hashing is paced too (HASH_PACE times the fetches' pace): a 1 GB file at full speed
         # took the board's core for most of a minute, and under the service's CPU quota that
         # throttles every node, motion included.
-        self.hash_pace = Pace(bytes_per_s * HASH_PACE)
+        self.pace, self.hash_pace = Pace(0.0), Pace(0.0)
+        self.set_limits(reserve_bytes, bytes_per_s)
 
     def set_limits(self, reserve_bytes: int, bytes_per_s: float) -> None:
-        """A run-time change of the reserve and the fetches' pace (``exolink params``): the
-        card is shared, and a lab raises the pace at the end of the day, nothing moving."""
+        """The reserve and the fetches' pace, at the start and at run time (``exolink params``:
+        the card is shared, and a lab raises the pace at the end of the day, nothing moving)."""
         self.reserve_bytes = reserve_bytes
         self.pace.bytes_per_s = bytes_per_s
         self.hash_pace.bytes_per_s = bytes_per_s * HASH_PACE

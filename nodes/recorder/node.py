@@ -309,9 +309,8 @@ class Recorder(Node):
         """The reserve and the fetches' pace change at run time (the next second's card check
         applies the reserve: a recording under it stops cleanly); the rest shape the files
         and subscriptions, and need a restart."""
-        fixed = msgspec.structs.replace(
-            new, reserve_mb=self.params.reserve_mb, fetch_mb_s=self.params.fetch_mb_s
-        )
+        kept = {k: getattr(self.params, k) for k in RUNTIME_PARAMS}
+        fixed = msgspec.structs.replace(new, **kept)
         if fixed != self.params:
             raise CommandRefused(
                 f"{self.name}: only {', '.join(RUNTIME_PARAMS)} change at run time; "
