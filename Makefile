@@ -6,11 +6,11 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml requirements.lock | cksum | cut -d' ' -f1)
 PYTEST_ARGS ?=
 # The layer contracts (pyproject's [tool.importlinter]) on the package as installed: exolink/ is
-# appliance/ and exolink/nodes/ is nodes/. The editable install maps nodes/ by an import hook
-# that import-linter cannot walk (it saw no node module), so it reads a tree of links laid out so.
+# appliance/exolink/ and exolink/nodes/ is nodes/. The editable install maps nodes/ by an import
+# hook that import-linter cannot walk (it saw no node module), so it reads a tree of links laid out so.
 IMPORT_TREE := $(VENV)/import-tree
 LINT_IMPORTS = rm -rf $(IMPORT_TREE) && mkdir -p $(IMPORT_TREE)/exolink && \
-	ln -s $(CURDIR)/appliance/* $(IMPORT_TREE)/exolink/ && ln -s $(CURDIR)/nodes $(IMPORT_TREE)/exolink/nodes && \
+	ln -s $(CURDIR)/appliance/exolink/* $(IMPORT_TREE)/exolink/ && ln -s $(CURDIR)/nodes $(IMPORT_TREE)/exolink/nodes && \
 	PYTHONPATH=$(CURDIR)/$(IMPORT_TREE) $(BIN)/lint-imports
 # Types (settings in pyproject's [tool.mypy]) on the same tree, after LINT_IMPORTS made it.
 LINT_TYPES = MYPYPATH=$(CURDIR)/$(IMPORT_TREE) $(BIN)/mypy -p exolink
@@ -130,7 +130,7 @@ lock:
 dbc: $(STAMP)
 	$(BIN)/python -m exolink.protocol.make_dbc
 
-# Regenerate appliance/msgs/type_hashes.json after editing a .msg file (checked by the tests).
+# Regenerate appliance/exolink/msgs/type_hashes.json after editing a .msg file (checked by the tests).
 msgs: $(STAMP)
 	$(BIN)/python -c 'from exolink import messaging; print(messaging.write_hash_table(), "types")'
 

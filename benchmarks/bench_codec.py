@@ -11,6 +11,7 @@ from typing import Any
 
 import can
 import cantools
+
 from exolink.protocol import dbc, h2
 
 COLD_PREPARE = """

@@ -16,10 +16,9 @@ import random
 import time
 from typing import Any
 
+from benchmarks.harness import Appliance, DrainedBus, motion_nodes, pct
 from exolink.messaging import rpc
 from exolink.protocol import h2
-
-from benchmarks.harness import Appliance, DrainedBus, motion_nodes, pct
 
 # Under rpc.RATE_PER_S with the holder's presence renewals (up to 4 a second) on the same login.
 PACE_S = 2.0 / rpc.RATE_PER_S

@@ -25,9 +25,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from exolink.protocol import h2, maccepa
-
 from benchmarks.harness import Appliance, DrainedBus, cpu_s, pct
+from exolink.protocol import h2, maccepa
 
 JOINTS3 = ["r_knee", "l_knee", "r_hip"]
 

@@ -19,9 +19,9 @@ import urllib.request
 from typing import Any
 
 import yaml
-from exolink.config import bundled
 
 from benchmarks.harness import EXOLINK, Appliance, cpu_s, free_port, pct, pss_mb
+from exolink.config import bundled
 
 RATE_HZ = 25.0  # `exolink dashboard`'s default
 BOARD_RATE_HZ = 10.0  # the board node's default (board.yaml)

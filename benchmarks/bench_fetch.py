@@ -11,11 +11,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from exolink import messaging, recstore
 from exolink.nodes.recorder import RecorderParams
 
 from benchmarks.bench_recorder import joint_states, write
 from benchmarks.harness import Appliance, cpu_s
+from exolink import messaging, recstore
 
 
 def _nodes(directory: Path, fetch_mb_s: float) -> list[dict[str, Any]]:

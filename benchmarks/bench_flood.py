@@ -14,11 +14,11 @@ import time
 from typing import Any
 
 import can
+
+from benchmarks.harness import group
 from exolink.canbus import open_bus
 from exolink.config import CanConfig
 from exolink.protocol import h2
-
-from benchmarks.harness import group
 
 # A reader as h2_reader runs it: batches from a FrameReader, each frame decoded. On SIGTERM it
 # reads what is still queued, then reports.

@@ -13,8 +13,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from exolink import cdr, messaging
 from exolink.nodes.recorder import McapFile, RecorderParams
+
+from exolink import cdr, messaging
 from exolink.protocol import h2
 
 T0 = 1_700_000_000_000_000_000

@@ -9,10 +9,9 @@ import argparse
 import time
 from typing import Any
 
-from exolink import messaging, roles
-
 from benchmarks import estop
 from benchmarks.harness import Appliance
+from exolink import messaging, roles
 
 TRIM_WAIT_S = 12.0
 

@@ -14,9 +14,8 @@ import multiprocessing
 import time
 from typing import Any
 
-from exolink.protocol import h2
-
 from benchmarks.harness import Appliance, DrainedBus, pct
+from exolink.protocol import h2
 
 
 def _burn(stop: Any) -> None:

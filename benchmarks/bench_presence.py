@@ -16,9 +16,8 @@ import subprocess
 import time
 from typing import Any
 
-from exolink.protocol import h2
-
 from benchmarks.harness import EXOLINK, Appliance, DrainedBus, motion_nodes, pct
+from exolink.protocol import h2
 
 LOST_MS = 2000  # watchdog.operator_lost_ms, as shipped
 PLAYER = {

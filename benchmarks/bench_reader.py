@@ -10,12 +10,12 @@ import time
 from typing import Any
 
 import yaml
+
+from benchmarks.harness import Appliance, cpu_s, free_port, group, pct, pss_mb
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import CanConfig, bundled
 from exolink.protocol import h2
-
-from benchmarks.harness import Appliance, cpu_s, free_port, group, pct, pss_mb
 
 RUNTIME = [sys.executable, "-m", "exolink.runtime"]
 LATENCY_SUBSCRIBER = r"""
@@ -95,6 +95,7 @@ def max_rate(quick: bool) -> dict[str, Any]:
     """Cycles of 110/120/130 at rising rates into a reader process; zero loss = every cycle published."""
     g, port = group(), free_port()
     import yaml
+
     from exolink.config import bundled
 
     data = yaml.safe_load(bundled("sim").read_text())

@@ -10,12 +10,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from exolink import messaging, recording
 from exolink.nodes.recorder import McapFile, RecorderParams
-from exolink.recording import info
 from mcap.reader import make_reader
 
 from benchmarks.harness import Appliance
+from exolink import messaging, recording
+from exolink.recording import info
 
 JS = "sensor_msgs/msg/JointState"
 

@@ -11,9 +11,8 @@ import threading
 import time
 from typing import Any
 
-from exolink import messaging, rosgraph
-
 from benchmarks.harness import Appliance, cpu_s, free_port, pct
+from exolink import messaging, rosgraph
 
 COLD_TOKENS = """
 import json, sys, time
@@ -59,6 +58,7 @@ def token_cost(quick: bool) -> dict[str, Any]:
     """A fresh interpreter (cold imports) declaring a node and publishers with and without
     their graph tokens, against a router of its own."""
     import zenoh
+
     from exolink.config import ZenohConfig
 
     at = f"tcp/127.0.0.1:{free_port()}"

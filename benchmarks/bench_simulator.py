@@ -11,9 +11,9 @@ import time
 from typing import Any
 
 import numpy as np
-from exolink.protocol import h2, maccepa
 
 from benchmarks.harness import EXOLINK, DrainedBus, cpu_s, group, pct
+from exolink.protocol import h2, maccepa
 
 
 def run(quick: bool) -> dict[str, Any]:

@@ -11,10 +11,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from benchmarks.harness import Appliance, DrainedBus, pct, pss_mb
 from exolink import messaging
 from exolink.protocol import h2
-
-from benchmarks.harness import Appliance, DrainedBus, pct, pss_mb
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},

@@ -36,6 +36,7 @@ from typing import Any
 
 import can
 import zenoh
+
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import CanConfig

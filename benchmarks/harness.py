@@ -32,6 +32,7 @@ import numpy as np
 import structlog
 import yaml
 import zenoh
+
 from exolink import messaging
 from exolink.canbus import Frame, open_reader
 from exolink.config import CanConfig, bundled, load

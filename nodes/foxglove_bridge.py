@@ -25,6 +25,7 @@ from typing import Any
 import foxglove
 import msgspec
 import zenoh
+
 from exolink import messaging, rosgraph
 from exolink.node import Node
 

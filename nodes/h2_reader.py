@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Annotated, Any, Literal
 
 import msgspec
+
 from exolink import cdr, messaging
 from exolink.canbus import Cadence, Frame, open_reader
 from exolink.node import Node

@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal
 
 import can
 import msgspec
+
 from exolink import cdr, messaging
 from exolink.canbus import Cadence, Frame, open_reader
 from exolink.canfilter import Drop

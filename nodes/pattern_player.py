@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
+
 from exolink import cdr, roles
 from exolink.arming import ArmingState
 from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE

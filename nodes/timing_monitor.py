@@ -16,6 +16,7 @@ from array import array
 from typing import Annotated, Any
 
 import msgspec
+
 from exolink.canbus import open_reader
 from exolink.canfilter import Drop
 from exolink.messaging import CommandRefused

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import can
 import pytest
-from exolink.canbus import FrameReader
-from exolink.supervisor import canlink
 
 from benchmarks import harness
 from benchmarks.harness import DrainedBus, Spawner, connect, wait_for
+from exolink.canbus import FrameReader
+from exolink.supervisor import canlink
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 import yaml
-from exolink import boardsetup, messaging
-from exolink.config import ConfigError, ZenohConfig, bundled, load
 
 from benchmarks.harness import free_port
+from exolink import boardsetup, messaging
+from exolink.config import ConfigError, ZenohConfig, bundled, load
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "services/boot/exolink-settings.yaml"

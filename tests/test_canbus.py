@@ -11,6 +11,7 @@ from pathlib import Path
 import can
 import pytest
 from conftest import read_cycle
+
 from exolink.canbus import SO_TIMESTAMPNS, BatchReceiver, open_bus, open_reader
 from exolink.config import CanConfig
 from exolink.simbus import sim_source

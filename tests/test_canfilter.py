@@ -13,14 +13,15 @@ import time
 
 import can
 import pytest
+from exolink.nodes.controller_manager import drop_rules, one_socket
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from exolink import canfilter
 from exolink.canbus import CAN_FRAME, open_bus, open_reader
 from exolink.canfilter import Drop, Predicate
 from exolink.config import CanConfig
-from exolink.nodes.controller_manager import drop_rules, one_socket
 from exolink.protocol import h2, maccepa
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 RULES = [Drop(70, 6, byte=1, keep=frozenset({4, 5})), Drop(70, 8), Drop(75, 6)]
 

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from exolink import messaging
-from exolink.cli.main import parse
-from exolink.client import DEFAULT_AT
 from exolink.nodes.recorder import McapFile, RecorderParams
 
 from benchmarks.harness import EXOLINK, Appliance
+from exolink import messaging
+from exolink.cli.main import parse
+from exolink.client import DEFAULT_AT
 
 JS = "sensor_msgs/msg/JointState"
 WD = "exolink_msgs/msg/WatchdogEvent"

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 import yaml
+from exolink.nodes.pattern_player import load_pattern, parse_pattern
+
+from benchmarks.harness import EXOLINK, Appliance
 from exolink.cli.main import parse
 from exolink.config import bundled
 from exolink.jointlimits import Limits, default_max, default_min
-from exolink.nodes.pattern_player import load_pattern, parse_pattern
 from exolink.protocol import ProtocolError, h2
-
-from benchmarks.harness import EXOLINK, Appliance
 
 HEADER = "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle"
 LIMITS = Limits.of(default_min(), default_max(), [127] * 6, [100] * 6, "test")

@@ -7,10 +7,10 @@ from __future__ import annotations
 import time
 
 import pytest
-from exolink import clock
-from exolink.cli import clock as cli_clock
 
 from benchmarks.harness import Appliance
+from exolink import clock
+from exolink.cli import clock as cli_clock
 
 
 def test_the_shortest_round_trip_sets_the_offset() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
 from exolink.config import ConfigError, bundled, load, node_params, parse
 
 GOOD = """\

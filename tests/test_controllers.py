@@ -15,16 +15,16 @@ from typing import Any, NamedTuple
 
 import pytest
 from conftest import bus_sockets
+from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
+from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.nodes.controller_manager.node import LEASE_PAST_TRIP_MS
+
+from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_for
 from exolink import messaging, roles
 from exolink.config import ConfigError, load
 from exolink.controller import State
 from exolink.jointlimits import Limits, default_max, default_min
-from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
-from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
-from exolink.nodes.controller_manager.node import LEASE_PAST_TRIP_MS
 from exolink.protocol import h2
-
-from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_for
 
 SITTING = State((40, 60, 0, 40, 60, 0), (0,) * 6)
 
@@ -145,8 +145,9 @@ def manager_limits() -> Limits:
 def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation() -> None:
     """It may be the answer that was lost: the player asks for the gait's deactivation (the
     manager handles requests in order) and refuses the start."""
-    from exolink.messaging import CommandRefused
     from exolink.nodes import pattern_player as pp
+
+    from exolink.messaging import CommandRefused
 
     manager = ManagerStandIn()
     with pytest.raises(CommandRefused, match="nothing answers"):
@@ -396,9 +397,10 @@ def test_gait_pattern_moves_between_rows_and_the_default_pattern_fits_the_shippe
     """The gait controller writes where the pattern is between rows, so the default pattern at
     speed 10 moves its knees 4 deg per 10 ms cycle, inside the shipped configs' step limit
     (8 deg per 20 ms row at once would not be); interpolate: false holds each row."""
-    from exolink.config import bundled, load
     from exolink.nodes.controller_manager.builtin import GaitParams, GaitPattern
     from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
+
+    from exolink.config import bundled, load
 
     rows = [[10, 20, 0, 0, 0, 0], [20, 28, 0, 0, 0, 0]]
     for interpolate, mid in ((True, {"r_hip/position": 15, "r_knee/position": 24}), (False, None)):

@@ -9,18 +9,18 @@ from typing import Any
 
 import can
 import pytest
-from exolink.controller import BoardState, State
-from exolink.jointlimits import Limits, default_max, default_min
-from exolink.maccepalimits import BoardLimits
 from exolink.nodes.controller_manager.manager import (
     MACCEPA_REFRESH_CYCLES,
     Manager,
     ManagerRefused,
     Switch,
 )
-from exolink.protocol import maccepa
 
 from benchmarks.harness import Appliance, collect, wait_for
+from exolink.controller import BoardState, State
+from exolink.jointlimits import Limits, default_max, default_min
+from exolink.maccepalimits import BoardLimits
+from exolink.protocol import maccepa
 
 BOARD0 = BoardState(0, (10, 12, 0, 0), (0, 30, 0, 0), (0, 0, 12))
 STATE = State((40, 60, 0, 40, 60, 0), (0,) * 6, None, {0: BOARD0})
@@ -348,8 +348,9 @@ def test_board_0_frames_on_id_70_are_not_malformed_for_a_manager_without_boards(
     manager that drives no board skips board 0's frames instead of counting them malformed (the
     board proxy's manager counted 93 in its first second); a 7-byte id-70 frame still counts."""
     import structlog
-    from exolink.canbus import Frame
     from exolink.nodes.controller_manager import ControllerManagerNode
+
+    from exolink.canbus import Frame
     from exolink.protocol import h2
 
     node = ControllerManagerNode.__new__(ControllerManagerNode)  # _decode alone: no transport

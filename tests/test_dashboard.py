@@ -20,12 +20,12 @@ import c3d
 import pytest
 import yaml
 from conftest import REPO
-from exolink.config import bundled
-from exolink.dashboard import commands
-from exolink.protocol import h2
 from test_roles import board_logins
 
 from benchmarks.harness import Appliance, collect, free_port, wait_for
+from exolink.config import bundled
+from exolink.dashboard import commands
+from exolink.protocol import h2
 
 SHOTS = REPO / "build" / "screenshots"
 TOKEN = "X-Exolink-Token"  # the header the page sends its token in
@@ -515,8 +515,9 @@ def test_live_data_is_subscribed_only_while_a_page_is_open(tmp_path, write_confi
 
     The board's node answers to the board's own names by default: served on 127.0.0.2 (not a
     loopback name it knows), the address a request came in on; `<device>.local` (sim.local)."""
-    from exolink import messaging
     from websockets.sync.client import connect
+
+    from exolink import messaging
 
     port = free_port()
     base = f"http://127.0.0.2:{port}/"

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import wait_alive
+from rosbags.typesys import Stores, get_typestore
+
+from benchmarks.harness import EXOLINK, collect, connect, wait_for
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import load
 from exolink.holder import Holder
 from exolink.protocol import h2
-from rosbags.typesys import Stores, get_typestore
-
-from benchmarks.harness import EXOLINK, collect, connect, wait_for
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},

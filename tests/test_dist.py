@@ -22,7 +22,7 @@ def shipped(rel: str) -> str | None:
         return None
     if rel.endswith(".py") and not (REPO / rel).with_name("__init__.py").exists():
         return None  # a script beside data (nodes/patterns/make_default.py), not a module
-    return f"exolink/{rest}" if top == "appliance" else f"exolink/nodes/{rest}"
+    return rest if top == "appliance" else f"exolink/nodes/{rest}"  # appliance/exolink/...
 
 
 def test_wheel_has_the_cli_and_its_data(tmp_path: Path) -> None:

@@ -12,8 +12,9 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from exolink import messaging, srvtypes
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from exolink import messaging, srvtypes
 
 PKG = Path(__file__).resolve().parents[1] / "ros2" / "exolink_msgs"
 TABLE = json.loads(messaging.TYPE_HASHES.read_text())

@@ -12,6 +12,7 @@ import subprocess
 import sys
 
 import can
+
 from exolink.canbus import open_bus
 from exolink.config import CanConfig
 

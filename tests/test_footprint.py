@@ -8,9 +8,9 @@ import json
 from pathlib import Path
 
 import yaml
-from exolink.plugins import available
 
 from benchmarks.harness import Appliance, wait_for
+from exolink.plugins import available
 
 # Nodes whose every dependency is light: no rosbags (generic CDR) and hence no numpy.
 LEAN = {

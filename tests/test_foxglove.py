@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from exolink import messaging
-from exolink.config import bundled
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from websockets.sync.client import connect
 
 from benchmarks.harness import Appliance, free_port, wait_for
+from exolink import messaging
+from exolink.config import bundled
 
 # The SDK server speaks the protocol under its current name; older clients ask for
 # foxglove.websocket.v1 (same messages).

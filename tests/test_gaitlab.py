@@ -20,14 +20,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from exolink import gaitlab
-from exolink.config import bundled
-from exolink.protocol.h2 import JOINTS
-from exolink.recording import RecordingError, info
 from test_recording import recordings, rosbags_decode
 
 from benchmarks.bench_gaitlab import synthetic
 from benchmarks.harness import EXOLINK, Appliance
+from exolink import gaitlab
+from exolink.config import bundled
+from exolink.protocol.h2 import JOINTS
+from exolink.recording import RecordingError, info
 
 C3D = pytest.importorskip("c3d")  # the independent reader (dev extra)
 

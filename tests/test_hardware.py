@@ -12,9 +12,9 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from exolink.canbus import open_bus
 
 from benchmarks.harness import EXOLINK, Appliance, DrainedBus, FrameStream, collect, wait_for
+from exolink.canbus import open_bus
 
 RIG_DBC = """VERSION ""
 

@@ -15,9 +15,9 @@ import time
 from typing import Any
 
 import pytest
-from exolink.protocol import h2
 
 from benchmarks.harness import EXOLINK, Appliance, collect, motion_nodes, wait_for
+from exolink.protocol import h2
 
 LOST_MS = 2000  # watchdog.operator_lost_ms, as shipped
 NODES = [

@@ -16,9 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from exolink import messaging
 
 from benchmarks.harness import Appliance, connect, wait_for
+from exolink import messaging
 
 CRITICAL = ["h2_reader", "pattern_player", "controller_manager"]
 NODES = [

@@ -5,7 +5,6 @@ and never costs the cycle's other frames."""
 from __future__ import annotations
 
 from exolink.protocol import maccepa
-
 from nodes.maccepa_bridge import BoardCycle
 
 

@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import bus_sockets
-from exolink import messaging
-from exolink.jointlimits import Limits, default_max, default_min
 from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern, period_s
-from exolink.protocol import ProtocolError, h2, maccepa
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
+from exolink import messaging
+from exolink.jointlimits import Limits, default_max, default_min
+from exolink.protocol import ProtocolError, h2, maccepa
 
 NODES = [
     {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},

@@ -22,13 +22,13 @@ from typing import Any
 import pytest
 import structlog
 import yaml
+from test_roles import board_logins
+
+from benchmarks.harness import Appliance, motion_nodes, wait_for
 from exolink import messaging, roles
 from exolink.config import NodeConfig, bundled
 from exolink.protocol import h2
 from exolink.supervisor import processes
-from test_roles import board_logins
-
-from benchmarks.harness import Appliance, motion_nodes, wait_for
 
 NODES = motion_nodes()  # as shipped
 BOUND_S = 2.0  # an e-stop's way to the bus took 5-15 s beside these clients before

@@ -12,10 +12,11 @@ import can
 import msgspec
 import pytest
 import zenoh
+from structlog.testing import capture_logs
+
 from exolink import config, messaging
 from exolink.node import Node
 from exolink.runtime import NodeRunner
-from structlog.testing import capture_logs
 
 
 class SlowStart(Node):

@@ -9,10 +9,11 @@ import struct
 import can
 import cantools
 import pytest
-from exolink.protocol import ProtocolError, dbc, h2, maccepa
-from exolink.protocol.make_dbc import render
 from hypothesis import given
 from hypothesis import strategies as st
+
+from exolink.protocol import ProtocolError, dbc, h2, maccepa
+from exolink.protocol.make_dbc import render
 
 H2_DB = cantools.database.load_file(str(dbc.bundled("h2")))
 MC_DB = cantools.database.load_file(str(dbc.bundled("maccepa")))

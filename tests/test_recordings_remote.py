@@ -13,14 +13,14 @@ import time
 from pathlib import Path
 
 import pytest
-from exolink import messaging, recstore, roles
-from exolink.client import Remote
-from exolink.dashboard.hub import Hub
-from exolink.recording import info
 from test_recording import nodes
 from test_roles import _guarded
 
 from benchmarks.harness import EXOLINK, Appliance, wait_for
+from exolink import messaging, recstore, roles
+from exolink.client import Remote
+from exolink.dashboard.hub import Hub
+from exolink.recording import info
 
 
 def sha256(path: Path) -> str:

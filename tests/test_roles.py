@@ -12,11 +12,11 @@ from typing import Any
 
 import pytest
 import yaml
-from exolink import boardsetup, messaging, roles
-from exolink.config import bundled
 from mcap.reader import make_reader
 
 from benchmarks.harness import Appliance, wait_for
+from exolink import boardsetup, messaging, roles
+from exolink.config import bundled
 
 DEVICE = "sim"
 

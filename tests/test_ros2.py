@@ -13,10 +13,10 @@ from typing import Any
 import pytest
 import xxhash
 import yaml
-from exolink import messaging
-from exolink.config import bundled
 
 from benchmarks.harness import Appliance, wait_for
+from exolink import messaging
+from exolink.config import bundled
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
 

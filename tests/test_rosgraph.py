@@ -8,10 +8,10 @@ import struct
 import pytest
 import xxhash
 import zenoh
-from exolink import messaging, rosgraph
-from exolink.config import ApplianceConfig, ZenohConfig
 
 from benchmarks.harness import free_port, wait_for
+from exolink import messaging, rosgraph
+from exolink.config import ApplianceConfig, ZenohConfig
 
 
 def test_qos_strings_leave_out_rmw_zenohs_defaults() -> None:

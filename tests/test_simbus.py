@@ -13,6 +13,7 @@ import time
 import can
 import pytest
 from can.interfaces.udp_multicast.utils import pack_message
+
 from exolink.canbus import open_bus, open_reader
 from exolink.config import CanConfig
 from exolink.simbus import SIM_PORT, SimBus, sim_source

@@ -12,9 +12,9 @@ from collections.abc import Iterator
 import can
 import pytest
 from exolink.nodes.simulator import SimParams, Simulator
-from exolink.protocol import h2, maccepa
 
 from benchmarks.harness import collect, wait_for
+from exolink.protocol import h2, maccepa
 
 
 class Harness:

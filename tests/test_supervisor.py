@@ -10,10 +10,10 @@ import subprocess
 
 import can
 import pytest
-from exolink import messaging
-from exolink.protocol import h2
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
+from exolink import messaging
+from exolink.protocol import h2
 
 NODES = [
     {"name": "simulator", "plugin": "simulator"},

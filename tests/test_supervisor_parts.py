@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+from benchmarks.harness import free_port
 from exolink.config import NodeConfig, Priority, TriggerConfig
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.osproc import apply_priority, proc_usage
 from exolink.supervisor.systemd import Notifier
-
-from benchmarks.harness import free_port
 
 
 def test_overlay_check(tmp_path: Path) -> None:
@@ -180,6 +180,7 @@ def test_simulated_buses_on_different_groups_do_not_hear_each_other(group: str) 
     # Found when a leftover `exolink up --sim` on the default group made a test's bus see
     # foreign disable frames: Linux hands a 0.0.0.0-bound socket every group joined on the host.
     import can
+
     from exolink.canbus import open_bus
     from exolink.config import CanConfig
 
@@ -395,6 +396,7 @@ def test_a_stop_whose_node_is_never_reaped_returns_and_says_why(monkeypatch) -> 
     kernel does not let go (D state, which cannot be made here): a process handle whose wait
     never returns, pointing at this test's own pid so the kernel's state can be read."""
     import structlog
+
     from exolink.supervisor import processes
 
     monkeypatch.setattr(processes, "REAP_WAIT_S", 0.1)
@@ -430,11 +432,12 @@ def test_junk_on_a_nodes_diagnostics_is_counted_not_believed_and_logged_once() -
     """Anyone on the network may put on a node's diagnostics key: a payload that is no
     DiagnosticArray leaves the supervisor's view of the node (what `exolink status` shows) as
     it was, is counted, and is logged at its first and every 1000th occurrence, not at each."""
+    from structlog.testing import capture_logs
+
     from exolink import cdr, messaging
     from exolink.config import bundled, parse
     from exolink.supervisor.core import Supervisor
     from exolink.supervisor.processes import NodeProcess
-    from structlog.testing import capture_logs
 
     sup = Supervisor(parse(bundled("sim").read_text(), "sim.yaml"))
     cfg = sup.cfg.node("recorder")

@@ -9,11 +9,12 @@ import time
 
 import can
 import pytest
+from exolink.nodes.controller_manager.manager import Manager, Switch
+from exolink.nodes.controller_manager.timed import Timed
+
 from exolink.controller import State
 from exolink.cyclic import ThreadLease
 from exolink.jointlimits import Limits, LimitsConfig
-from exolink.nodes.controller_manager.manager import Manager, Switch
-from exolink.nodes.controller_manager.timed import Timed
 from exolink.protocol import h2
 
 ID, PERIOD, LEASE = 0x46, 0.010, 6

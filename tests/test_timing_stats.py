@@ -68,8 +68,9 @@ def test_only_keeps_one_motors_set_points_and_refuses_other_ids() -> None:
     the same rules, test_canfilter), other ids untouched; ``only`` for an unmonitored id or
     more ids than the filter takes is a bad config."""
     import msgspec
-    from exolink.canfilter import Predicate
     from exolink.nodes.timing_monitor import TimingParams
+
+    from exolink.canfilter import Predicate
 
     p = msgspec.convert(
         {"ids": [70, 110], "only": [{"id": 70, "dlc": 6, "first_byte": [1]}]}, TimingParams

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+
 from exolink import messaging, roles, update
 from exolink.cli import update as cli_update
 from exolink.client import Refused

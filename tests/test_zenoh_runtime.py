@@ -7,10 +7,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from benchmarks.harness import Appliance, wait_for
 from exolink import messaging
 from exolink.config import ZenohConfig
-
-from benchmarks.harness import Appliance, wait_for
 
 
 def _threads(pid: int) -> list[str]:

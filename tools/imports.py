@@ -16,7 +16,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # The package's folders as pyproject.toml maps them (package-dir).
-PACKAGES = {"exolink": ROOT / "appliance", "exolink.nodes": ROOT / "nodes"}
+PACKAGES = {"exolink": ROOT / "appliance" / "exolink", "exolink.nodes": ROOT / "nodes"}
 
 
 @dataclass(frozen=True)

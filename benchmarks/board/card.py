@@ -26,6 +26,7 @@ from typing import Any
 
 import structlog
 import yaml
+
 from exolink import config
 
 log = structlog.get_logger("bench-board")

@@ -17,9 +17,9 @@ from collections.abc import Callable
 from typing import Any
 
 import structlog
-from exolink import messaging
 
 from benchmarks.board import scenario
+from exolink import messaging
 
 log = structlog.get_logger("bench-board")
 

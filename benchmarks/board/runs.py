@@ -20,14 +20,14 @@ from typing import Any
 
 import structlog
 import yaml
-from exolink import messaging
-from exolink.config import bundled
 
 from benchmarks.board import card as cardlib
 from benchmarks.board import ladder as ladderlib
 from benchmarks.board import profile, scenario
 from benchmarks.board.guest import Guest
 from benchmarks.harness import free_port
+from exolink import messaging
+from exolink.config import bundled
 
 log = structlog.get_logger("bench-board")
 

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import structlog
+
 from exolink import messaging, phaseclock
 
 log = structlog.get_logger("bench-board")

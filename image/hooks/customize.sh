@@ -30,7 +30,7 @@ say "configuration and units (services/)"
 cp -a services/etc/. "$R/etc/"
 install -d -m 0750 "$R/etc/exolink"
 sed 's|^  # config_file: /etc/exolink/zenoh.json5 .*|  config_file: /etc/exolink/zenoh.json5   # written by exolink-setup from the card|' \
-  appliance/configs/board.yaml > "$R/etc/exolink/appliance.yaml"
+  appliance/exolink/configs/board.yaml > "$R/etc/exolink/appliance.yaml"
 grep -q '^  config_file: /etc/exolink/zenoh.json5' "$R/etc/exolink/appliance.yaml"
 echo '{}' > "$R/etc/exolink/zenoh.json5"
 ch chown -R root:exolink /etc/exolink && ch chmod 0640 /etc/exolink/appliance.yaml /etc/exolink/zenoh.json5

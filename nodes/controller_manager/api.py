@@ -21,12 +21,13 @@ from typing import Any, Protocol, TypeVar
 
 import can
 import structlog
+from exolink.nodes.controller_manager.intent import IntentRefused, OperatorLimits, Presence
+from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+
 from exolink import cdr, roles
 from exolink.maccepalimits import GAINS, KINDS, target
 from exolink.messaging import Caller, CommandRefused, Unlogged
 from exolink.node import NodeContext
-from exolink.nodes.controller_manager.intent import IntentRefused, OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
 

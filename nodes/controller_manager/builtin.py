@@ -19,6 +19,7 @@ import time
 from typing import Annotated, Any, Literal
 
 import msgspec
+
 from exolink.controller import (
     Controller,
     Refused,

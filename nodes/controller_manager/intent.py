@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import structlog
+
 from exolink.jointlimits import Limits
 from exolink.protocol import h2
 

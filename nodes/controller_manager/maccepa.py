@@ -13,9 +13,10 @@ import time
 from typing import Annotated, Any, Literal
 
 import msgspec
+from exolink.nodes.controller_manager.builtin import NO_EXTRA_READS, expire
+
 from exolink.controller import BoardLimits, Controller, Refused, State, maccepa_interface
 from exolink.maccepalimits import GAINS, BoardId, target
-from exolink.nodes.controller_manager.builtin import NO_EXTRA_READS, expire
 
 
 class MaccepaGains(msgspec.Struct, forbid_unknown_fields=True, frozen=True):

@@ -20,6 +20,7 @@ from typing import Any
 
 import msgspec
 import structlog
+
 from exolink.controller import INTERFACES, MACCEPA_INTERFACES, Controller, Refused, SafeStop, State
 from exolink.jointlimits import POSITION, STIFFNESS, TORQUE, Limits
 from exolink.maccepalimits import GAINS, BoardLimits, board_of

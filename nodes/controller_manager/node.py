@@ -55,16 +55,6 @@ from typing import Annotated, Any, Literal
 
 import can
 import msgspec
-from exolink import cdr, logs
-from exolink.arming import ArmingState
-from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
-from exolink.canfilter import Drop
-from exolink.config import ConfigError
-from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
-from exolink.cyclic import open_lease
-from exolink.jointlimits import POSITION
-from exolink.maccepalimits import BoardLimits, target
-from exolink.node import Node
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import (
@@ -75,6 +65,17 @@ from exolink.nodes.controller_manager.manager import (
     ManagerRefused,
 )
 from exolink.nodes.controller_manager.timed import Timed
+
+from exolink import cdr, logs
+from exolink.arming import ArmingState
+from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
+from exolink.canfilter import Drop
+from exolink.config import ConfigError
+from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
+from exolink.cyclic import open_lease
+from exolink.jointlimits import POSITION
+from exolink.maccepalimits import BoardLimits, target
+from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
 

@@ -21,9 +21,10 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 
 import structlog
+from exolink.nodes.controller_manager.manager import PLANNED, Cycle, Manager
+
 from exolink.controller import State
 from exolink.cyclic import Lease
-from exolink.nodes.controller_manager.manager import PLANNED, Cycle, Manager
 from exolink.protocol import h2
 
 log = structlog.get_logger()

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import zenoh
+
 from exolink import messaging, roles, rosgraph
 
 # Topics subscribed one by one, learnt from graph tokens, which any login may declare (roles:

@@ -6,9 +6,10 @@ import os
 import time
 from pathlib import Path
 
-from exolink import __version__, messaging, recording
 from exolink.nodes.recorder.params import RecorderParams
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
+
+from exolink import __version__, messaging, recording
 
 
 class McapFile:

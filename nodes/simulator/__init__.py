@@ -23,11 +23,12 @@ from typing import Annotated, Any, cast
 
 import can
 import msgspec
+from exolink.nodes.simulator.boards import H2Board, MaccepaBoard
+
 from exolink import roles
 from exolink.canbus import FrameReader, open_reader
 from exolink.messaging import CommandRefused
 from exolink.node import Node
-from exolink.nodes.simulator.boards import H2Board, MaccepaBoard
 from exolink.protocol import h2, maccepa
 
 FAULTS = ("none", "silent", "malformed", "flood")

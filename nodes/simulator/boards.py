@@ -10,6 +10,7 @@ import random
 from dataclasses import dataclass, field
 
 import can
+
 from exolink.protocol import h2, maccepa
 
 MODE = h2.MODES

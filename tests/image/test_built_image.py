@@ -29,7 +29,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from appliance import config
+from exolink import config
 
 pytestmark = [pytest.mark.image, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[2]

@@ -13,6 +13,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+
 from exolink import boardsetup
 
 pytestmark = pytest.mark.kernel

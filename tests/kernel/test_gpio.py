@@ -8,6 +8,7 @@ import time
 from datetime import timedelta
 
 import pytest
+
 from exolink.config import TriggerConfig
 from exolink.supervisor import trigger
 

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import can
 import pytest
-from exolink.cyclic import CyclicLease
-from exolink.protocol import h2
 
 from benchmarks.harness import EXOLINK, motion_nodes
+from exolink.cyclic import CyclicLease
+from exolink.protocol import h2
 
 pytestmark = pytest.mark.kernel
 ID, PERIOD, LEASE = 0x46, 0.010, 6
@@ -280,6 +280,7 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
     the manager mid-gait. No set-point may reach the bus more than 60 ms after the watchdog's
     first disable frame."""
     import yaml
+
     from exolink.config import bundled
 
     data = yaml.safe_load(bundled("sim").read_text())

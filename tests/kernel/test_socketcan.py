@@ -16,13 +16,13 @@ import can
 import pytest
 import yaml
 from conftest import read_cycle
-from exolink.canbus import CAN_FRAME, FrameWriter, id_filters, open_bus, open_reader
-from exolink.config import CanConfig, bundled
 from exolink.nodes.simulator import SimParams, Simulator
-from exolink.protocol import h2
-from exolink.supervisor import canlink
 
 from benchmarks.harness import EXOLINK, wait_for
+from exolink.canbus import CAN_FRAME, FrameWriter, id_filters, open_bus, open_reader
+from exolink.config import CanConfig, bundled
+from exolink.protocol import h2
+from exolink.supervisor import canlink
 
 pytestmark = pytest.mark.kernel
 

@@ -1,0 +1,590 @@
+"""What the dashboard knows of one appliance, and the one way it sends commands.
+
+Data arrives at 100 Hz on Zenoh; the page needs a few tens of frames a second. The data topics'
+subscribers keep only their newest samples in Zenoh's own ring buffer (Rust: no Python runs per
+sample); a tick at the display rate takes the newest of each topic, decodes it and sends one JSON
+frame to every page. So the server's cost follows the display rate, not the data rate (what
+matters on the board), and a slow page never queues 100 Hz of data. Rates come from the
+publishers' sequence numbers (the rmw_zenoh attachment), not from counting samples.
+
+Events a person must not miss (watchdog state, trigger edges, pattern state) go out at once.
+The supervisor's status (nodes, bus, watchdog details) is polled once a second.
+
+Commands go out on the laptop client's session and login (exolink.client.Remote), parsed by
+the CLI's own parser (exolink.dashboard.commands): a refusal is the appliance's own text, and a
+command the parser refuses is never sent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import json
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import structlog
+import zenoh
+
+from exolink import cdr, clock, messaging, recstore, roles
+from exolink import nodes as node_plugins
+from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
+from exolink.client import Refused, Remote
+from exolink.dashboard.commands import Command, CommandError, parse
+from exolink.holder import Holder, HoldRefused, describe
+from exolink.protocol import h2
+from exolink.recording import decode, info, iter_messages
+
+log = structlog.get_logger("exolink.dashboard")
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
+TRIGGER = "exolink_msgs/msg/TriggerEvent"
+PATTERN_STATE = "exolink_msgs/msg/PatternState"
+# Samples a data subscriber keeps between ticks (the newest win): one per topic it matches,
+# with room for MACCEPA boards' three topics each.
+RING = 64
+
+
+def _cache_dir() -> Path:
+    """Where a laptop's dashboard keeps the recordings it fetched for download and plots."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "exolink" / "recordings"
+
+
+def _patterns_dir() -> Path:
+    """The bundled patterns: the pattern page plots a pattern the player names by a file here."""
+    return Path(node_plugins.__file__).resolve().parent / "patterns"
+
+
+class Hub:
+    """One appliance connection shared by every page: subscriptions, decimation, commands."""
+
+    def __init__(self, remote: Remote, rate_hz: float = 25.0, status_period_s: float = 1.0):
+        self.remote = remote
+        self.rate_hz = rate_hz
+        self.status_period_s = status_period_s
+        self.role = remote.user if remote.user in roles.ROLES else roles.ADMIN
+        self.clients: set[Any] = set()
+        self._rings: list[Any] = []  # data subscribers with a ring buffer, drained per tick
+        self._seq: dict[str, int] = {}  # topic -> newest publisher sequence number seen
+        self._names: dict[str, tuple[str, str]] = {}  # key -> (topic, type), parsed once
+        self._follows: dict[str, tuple[Any, set[Any]]] = {}  # node -> (log subscriber, pages)
+        self._subs: list[Any] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self.status: dict[str, Any] | None = None
+        self.status_error: str | None = None
+        self.record: dict[str, Any] | None = None
+        self._fetching = threading.Lock()  # recordings fetched for pages, one at a time
+        self.pattern: dict[str, Any] | None = None
+        self.watchdog: dict[str, Any] | None = None
+        self.trigger: dict[str, Any] | None = None
+        # Motion held from this dashboard: taken when a page first asks for motion and nobody
+        # holds it, renewed while a page is open (exolink.holder).
+        self.holder: Holder | None = None
+        self._watched = asyncio.Event()  # a page is open: subscribe, decode and poll
+
+    # --- lifecycle ------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        await asyncio.to_thread(self._subscribe)
+        self._tasks = [
+            asyncio.create_task(self._tick(), name="dashboard-tick"),
+            asyncio.create_task(self._poll_status(), name="dashboard-status"),
+            asyncio.create_task(self._poll_record(), name="dashboard-record"),
+        ]
+
+    async def stop(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        await asyncio.to_thread(self._unsubscribe)
+
+    def _subscribe(self) -> None:
+        r = self.remote
+        device = r.device  # discovered here, in a thread: it waits for the appliance
+        s = r.session
+
+        def key(topic: str, typename: str) -> str:
+            return messaging.topic_key(r.domain, r.ns, topic, typename)
+
+        self._subs.append(
+            s.declare_subscriber(key(WATCHDOG_TOPIC, WATCHDOG_TYPE), self._on_watchdog)
+        )
+        self._subs.append(s.declare_subscriber(key("trigger", TRIGGER), self._on_trigger))
+        self._subs.append(
+            s.declare_subscriber(key("pattern_state", PATTERN_STATE), self._on_pattern)
+        )
+        log.info("dashboard_connected", device=device, at=r.at, role=self.role)
+
+    def _open_rings(self) -> None:
+        """The 100 Hz data topics, subscribed only while a page is open: otherwise the router
+        forwards ~300 samples/s here and the tick drains them for nobody (measured:
+        docs/performance.md)."""
+        r = self.remote
+        for selector in (
+            messaging.topic_key(r.domain, r.ns, "joint_states", JOINT_STATE),
+            messaging.topic_key(r.domain, r.ns, "foot_switches", FOOT_SWITCHES),
+            messaging.topic_selector(r.domain, r.ns, "maccepa/*/*"),
+        ):
+            self._rings.append(
+                r.session.declare_subscriber(selector, zenoh.handlers.RingChannel(RING))
+            )
+
+    def _close_rings(self) -> None:
+        for sub in self._rings:
+            with contextlib.suppress(Exception):  # the session may already be closed
+                sub.undeclare()
+        self._rings.clear()
+
+    def _unsubscribe(self) -> None:
+        for sub in self._subs + self._rings:
+            with contextlib.suppress(Exception):  # the session may already be closed
+                sub.undeclare()
+        for sub, _pages in self._follows.values():
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._follows.clear()
+        self._subs.clear()
+        self._rings.clear()
+        self._release_hold()
+
+    # --- Zenoh callbacks (Zenoh's threads: keep them short) -------------------------------
+
+    def _emit(self, message: dict[str, Any]) -> None:
+        """From a Zenoh thread: send an event to every page now."""
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._broadcast, message)
+
+    def _on_watchdog(self, sample: Any) -> None:
+        try:
+            state, reason, detail, frames = cdr.watchdog_event(sample.payload.to_bytes())
+        except ValueError:
+            return
+        self.watchdog = {"state": state, "reason": reason, "detail": detail, "frames": frames}
+        self._emit({"t": "watchdog", **self.watchdog})
+
+    def _on_trigger(self, sample: Any) -> None:
+        try:
+            msg = messaging.deserialize(sample.payload.to_bytes(), TRIGGER)
+        except Exception:
+            return
+        self.trigger = {
+            "stamp_ns": messaging.stamp_ns(msg.stamp),
+            "count": int(msg.count),
+            "edge": msg.edge,
+        }
+        self._emit({"t": "trigger", **self.trigger})
+
+    def _on_pattern(self, sample: Any) -> None:
+        try:
+            msg = messaging.deserialize(sample.payload.to_bytes(), PATTERN_STATE)
+        except Exception:
+            return
+        self.pattern = {
+            "state": msg.state,
+            "reason": msg.reason,
+            "index": int(msg.index),
+            "length": int(msg.length),
+            "speed": int(msg.speed),
+            "period_ms": round(float(msg.period_ms), 3),
+            "selected": [j for j, s in zip(h2.JOINTS, msg.selected, strict=True) if s],
+            "file": msg.file,
+            "operator": msg.operator,
+            "timing": msg.timing_mode,
+        }
+        self._emit({"t": "pattern", **self.pattern})
+
+    # --- pages ----------------------------------------------------------------------------
+
+    def hello(self) -> dict[str, Any]:
+        """What a page gets first: who we are, what we may do, what is known so far."""
+        return {
+            "t": "hello",
+            "device": self.remote.device,
+            "at": self.remote.at,
+            "role": self.role,
+            "joints": list(h2.JOINTS),
+            "ranges": {j: list(h2.RANGES[j]) for j in h2.JOINTS},
+            "rate_hz": self.rate_hz,
+            "status": self.status,
+            "status_error": self.status_error,
+            "watchdog": self.watchdog,
+            "trigger": self.trigger,
+            "pattern": self.pattern,
+            "record": self.record,
+        }
+
+    def attach(self, ws: Any) -> None:
+        self.clients.add(ws)
+        self._watched.set()
+
+    def detach(self, ws: Any) -> None:
+        self.clients.discard(ws)
+        self.follow(ws, None)
+        if not self.clients:
+            # Nobody is watching: what this dashboard started must not go on without its
+            # operator: the manager stops it and trips once the renewals have stopped.
+            if self.holder is not None:
+                self.holder.abandon()
+            self._watched.clear()
+
+    def follow(self, ws: Any, node: str | None) -> None:
+        """Send ``node``'s log lines to this page as they come (None: stop). One subscriber
+        per followed node, shared by the pages following it; the board's access control gives
+        the log keys to admin logins only (`exolink logs -f` does the same)."""
+        for name, (sub, pages) in list(self._follows.items()):
+            if ws in pages and name != node:
+                pages.discard(ws)
+                if not pages:
+                    with contextlib.suppress(Exception):
+                        sub.undeclare()
+                    del self._follows[name]
+        if node is None or not node.isidentifier():
+            return
+        if node not in self._follows:
+            key = messaging.mgmt_key(self.remote.device, "log", node)
+            sub = self.remote.session.declare_subscriber(key, self._log_line(node))
+            self._follows[node] = (sub, set())
+        self._follows[node][1].add(ws)
+
+    def _log_line(self, node: str) -> Callable[[Any], None]:
+        def on(sample: Any) -> None:
+            line = sample.payload.to_bytes().decode(errors="replace")
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.call_soon_threadsafe(self._send_log, node, line)
+
+        return on
+
+    def _send_log(self, node: str, line: str) -> None:
+        pages = self._follows.get(node, (None, set()))[1]
+        text = json.dumps({"t": "log", "node": node, "line": line})
+        for ws in list(pages):
+            if not ws.closed:
+                asyncio.ensure_future(ws.send_str(text)).add_done_callback(_ignore_result)
+
+    def _hold(self) -> None:
+        """Hold motion for the page that asks for it, unless this dashboard holds it already
+        or someone else does (then that holder watches it; the manager refuses motion when
+        nobody does)."""
+        if self.role == roles.OBSERVER or (self.holder is not None and self.holder.holding):
+            return
+
+        def call(body: dict[str, Any]) -> dict[str, Any]:
+            key = messaging.mgmt_key(self.remote.device, "controllers")
+            return messaging.request(
+                self.remote.session, key, body, self.remote.timeout, self.remote.user
+            )
+
+        def ended(why: str) -> None:  # taken over by another holder: the pages are told
+            self._emit({"t": "notice", "text": f"this dashboard no longer holds motion: {why}"})
+
+        holder = Holder(call, describe("exolink dashboard"), ended)
+        try:
+            holder.acquire()
+        except (HoldRefused, messaging.Unreachable) as exc:
+            log.info("dashboard_not_holding", reason=str(exc))
+            return
+        self.holder = holder
+        log.info("dashboard_holding_motion")
+
+    def _release_hold(self) -> None:
+        if self.holder is not None:
+            self.holder.release()
+            self.holder = None
+
+    def _broadcast(self, message: dict[str, Any]) -> None:
+        if not self.clients:
+            return
+        text = json.dumps(message, separators=(",", ":"))
+        for ws in list(self.clients):
+            if ws.closed:
+                self.clients.discard(ws)
+                continue
+            # send_str only queues on a healthy socket; a stalled page is dropped, not waited for
+            task = asyncio.ensure_future(ws.send_str(text))
+            task.add_done_callback(_ignore_result)
+
+    # --- decimation -----------------------------------------------------------------------
+
+    async def _tick(self) -> None:
+        period = 1.0 / self.rate_hz
+        next_at = time.monotonic()
+        rate_at, rate_seq = time.monotonic(), dict(self._seq)
+        rates: dict[str, float] = {}
+        while True:
+            if not self.clients:  # nobody to draw for: no subscription, no wake-ups
+                self._close_rings()
+                await self._watched.wait()
+                self._open_rings()
+                next_at = rate_at = time.monotonic()
+                rate_seq = dict(self._seq)
+            next_at += period
+            await asyncio.sleep(max(0.0, next_at - time.monotonic()))
+            if time.monotonic() - next_at > period:  # fell behind (a busy CPU): skip, not burst
+                next_at = time.monotonic()
+            newest = self._drain()
+            now = time.monotonic()
+            if now - rate_at >= 1.0:
+                rates = {
+                    k: round(max(0, v - rate_seq.get(k, v)) / (now - rate_at), 1)
+                    for k, v in self._seq.items()
+                }
+                rate_at, rate_seq = now, dict(self._seq)
+            if not self.clients:
+                continue  # nobody to draw for: nothing decoded
+            frame = self._frame(newest)
+            if frame is not None or rates:
+                self._broadcast({"t": "live", **(frame or {}), "rates": rates})
+
+    def _drain(self) -> dict[str, tuple[str, Any]]:
+        """The newest sample of each data topic since the last tick: topic -> (type, sample)."""
+        newest: dict[str, tuple[str, Any]] = {}
+        for sub in self._rings:
+            while (sample := sub.try_recv()) is not None:
+                key = str(sample.key_expr)
+                if (named := self._names.get(key)) is None:
+                    try:
+                        topic, typename = messaging.parse_key(key)
+                    except ValueError:
+                        continue
+                    # h2/maccepa/b0/state -> maccepa/b0/state
+                    named = self._names[key] = (topic.split("/", 1)[-1], typename)
+                name, typename = named
+                newest[name] = (typename, sample)
+                if sample.attachment is not None:
+                    with contextlib.suppress(ValueError):
+                        self._seq[name] = messaging.decode_attachment(sample.attachment.to_bytes())[
+                            0
+                        ]
+        return newest
+
+    def _frame(self, newest: dict[str, tuple[str, Any]]) -> dict[str, Any] | None:
+        if not newest:
+            return None
+        out: dict[str, Any] = {"now_ns": time.time_ns()}
+        for name, (typename, sample) in newest.items():
+            payload = sample.payload.to_bytes()
+            try:
+                if name == "joint_states":
+                    out["js"] = _joint_state(payload)
+                elif name == "foot_switches":
+                    out["fs"] = _foot_switches(payload)
+                elif name.startswith("maccepa/"):
+                    board_topic = name.removeprefix("maccepa/")  # b0/state
+                    out.setdefault("maccepa", {})[board_topic] = _plain(
+                        messaging.deserialize(payload, typename)
+                    )
+            except Exception as exc:  # one bad sample must not stop the page
+                log.warning("dashboard_decode_failed", topic=name, error=str(exc))
+        return out
+
+    # --- polling --------------------------------------------------------------------------
+
+    async def _poll_status(self) -> None:
+        while True:
+            await self._watched.wait()  # polled for open pages only (a status costs the supervisor)
+            try:
+                t0 = time.time()
+                status = await asyncio.to_thread(self.remote.call, "status")
+                self.status, self.status_error = _with_clock_offset(status, t0, time.time()), None
+            except (Refused, messaging.Unreachable) as exc:
+                self.status_error = str(exc)
+            self._broadcast({"t": "status", "status": self.status, "error": self.status_error})
+            await asyncio.sleep(self.status_period_s)
+
+    async def _poll_record(self) -> None:
+        while True:
+            await self._watched.wait()
+            try:
+                reply = await asyncio.to_thread(
+                    self._call, ("record",), {"action": "status"}, min(self.remote.timeout, 1.0)
+                )
+                reply.pop("ok", None)
+                self.record = reply
+            except (Refused, messaging.Unreachable) as exc:
+                self.record = {"error": str(exc)}
+            self._broadcast({"t": "record", **self.record})
+            await asyncio.sleep(2.0)
+
+    # --- commands -------------------------------------------------------------------------
+
+    def _call(self, path: tuple[str, ...], body: dict[str, Any], timeout: float) -> dict[str, Any]:
+        key = messaging.mgmt_key(self.remote.device, *path)
+        reply = messaging.request(self.remote.session, key, body, timeout, self.remote.user)
+        if not reply.get("ok"):
+            raise Refused(str(reply.get("error", "refused")))
+        return reply
+
+    async def command(self, argv: list[str], confirmed: bool = False) -> dict[str, Any]:
+        """An `exolink` command line from a page: the reply, the refusal, or a question.
+
+        Motion asks first: without ``confirmed`` the answer is what would be sent, not sent.
+        """
+        try:
+            cmd = parse(argv)
+        except CommandError as exc:
+            log.info("dashboard_command_refused", argv=argv, reason=str(exc))
+            return {"ok": False, "error": str(exc)}
+        if cmd.motion and not confirmed:
+            return {"ok": False, "confirm": f"{cmd.text}: this moves a joint. Send it?"}
+        return await self.send(cmd)
+
+    async def send(self, cmd: Command) -> dict[str, Any]:
+        body = dict(cmd.body)
+        if cmd.motion or (cmd.path == ("maccepa",) and body.get("kind") == "gains"):
+            await asyncio.to_thread(self._hold)
+        timeout = cmd.timeout_s or self.remote.timeout
+        try:
+            reply = await asyncio.to_thread(self._call, cmd.path, body, timeout)
+        except Refused as exc:
+            log.info("dashboard_command_refused", command=cmd.text, reason=str(exc))
+            return {"ok": False, "error": str(exc), "command": cmd.text}
+        except messaging.Unreachable as exc:
+            return {"ok": False, "error": f"appliance unreachable: {exc}", "command": cmd.text}
+        reply.pop("ok", None)
+        log.info("dashboard_command", command=cmd.text)
+        if cmd.path == ("watchdog",):
+            self.watchdog = {k: reply.get(k) for k in ("state", "reason", "detail")}
+            self._broadcast({"t": "watchdog", **self.watchdog})
+        return {"ok": True, "reply": reply, "command": cmd.text}
+
+    async def query(self, path: tuple[str, ...], body: dict[str, Any]) -> dict[str, Any]:
+        """A read for a page (logs, params): the appliance checks the role."""
+        try:
+            reply = await asyncio.to_thread(self._call, path, body, self.remote.timeout)
+        except (Refused, messaging.Unreachable) as exc:
+            return {"ok": False, "error": str(exc)}
+        return reply
+
+    def recording(self, board_path: str) -> Path:
+        """A recording the recorder names, as a file here to serve or plot: asked for through
+        the recorder's ``recordings`` (this dashboard's login must be allowed to fetch, and the
+        file must be closed: roles.RECORDINGS, exolink.recstore), then the file itself when it
+        is on this machine (the board's own dashboard; the sim), else fetched into a cache
+        (chunked, resumed, checked as `exolink record fetch`). recstore.Refused and
+        StoreError say why not."""
+        name = recstore.plain_name(Path(board_path).name)
+        ask = recstore.Patient(self._recordings_request)
+        st = ask({"action": "stat", "name": name})
+        local = Path(board_path)
+        if local.is_file() and local.stat().st_size == st["size"]:
+            return local
+        with self._fetching:  # two pages asking for one file must not share its .part
+            cache = _cache_dir() / self.remote.device
+            cache.mkdir(parents=True, exist_ok=True)
+            return recstore.fetch(ask, name, cache).path
+
+    def _recordings_request(self, body: dict[str, Any]) -> dict[str, Any]:
+        key = messaging.mgmt_key(self.remote.device, "recordings")
+        return messaging.request(self.remote.session, key, body, 5.0, self.remote.user)
+
+    def pattern_points(self, name: str) -> list[list[int]] | None:
+        """The set-points of a pattern the player names, when it is one of the bundled files
+        (looked up by file name only: a name from the network never opens another file)."""
+        base = _patterns_dir()
+        path = base / Path(name).name
+        if not name or path.suffix != ".csv" or not path.is_file():
+            return None
+        rows = list(csv.reader(path.read_text(encoding="utf-8-sig").splitlines()))
+        header = [c.strip() for c in rows[0]]
+        if sorted(header) != sorted(h2.JOINTS):
+            return None
+        order = [header.index(j) for j in h2.JOINTS]
+        return [[int(r[i]) for i in order] for r in rows[1:] if len(r) == 6]
+
+
+def recording_plot(path: str, max_points: int = 2000) -> dict[str, Any]:
+    """A finished recording's joint angles (deg, every n-th message up to max_points) and its
+    trigger edges, seconds from the first message: the Recording page's plot."""
+    i = info(path)
+    topics = [t for t in i.topics if t.endswith("/joint_states") and "/replay/" not in t]
+    if not topics:
+        return {"t": [], "pos_deg": [], "triggers_s": [], "joints": []}
+    step = max(1, i.topics[topics[0]]["count"] // max_points)
+    t: list[float] = []
+    pos: list[list[float]] = []
+    names: list[str] = []
+    for n, (schema, _channel, m) in enumerate(iter_messages(path, topics=topics[:1])):
+        if n % step:
+            continue
+        msg = decode(schema, m.data)
+        t.append(messaging.stamp_ns(msg.header.stamp) / 1e9)
+        pos.append([round(math.degrees(v), 2) for v in msg.position.tolist()])
+        names = names or list(msg.name)
+    t0 = t[0] if t else 0.0
+    return {
+        "t": [round(x - t0, 3) for x in t],
+        "joints": names,
+        "pos_deg": [list(col) for col in zip(*pos, strict=True)] if pos else [],
+        "triggers_s": [round(x / 1e9 - t0, 3) for x in i.triggers],
+    }
+
+
+def _ignore_result(task: asyncio.Future[Any]) -> None:
+    if not task.cancelled():
+        task.exception()  # a page gone mid-send: its socket's close handler removes it
+
+
+def _joint_state(payload: bytes) -> dict[str, Any]:
+    msg = messaging.deserialize(payload, JOINT_STATE)
+    return {
+        "stamp_ns": messaging.stamp_ns(msg.header.stamp),
+        "name": list(msg.name),
+        "pos_deg": [round(math.degrees(v), 2) for v in msg.position.tolist()],
+        "eff_nm": [round(v, 3) for v in msg.effort.tolist()],
+    }
+
+
+def _foot_switches(payload: bytes) -> dict[str, Any]:
+    msg = messaging.deserialize(payload, FOOT_SWITCHES)
+    return {
+        "stamp_ns": messaging.stamp_ns(msg.header.stamp),
+        "r_heel": bool(msg.r_heel),
+        "r_toe": bool(msg.r_toe),
+        "l_heel": bool(msg.l_heel),
+        "l_toe": bool(msg.l_toe),
+        "battery_raw": int(msg.battery_raw),
+        "battery_volts": round(float(msg.battery_volts), 2),
+    }
+
+
+def _plain(msg: Any) -> dict[str, Any]:
+    """A small message (a MACCEPA board's state) as plain fields, without its header."""
+    out: dict[str, Any] = {}
+    for k in msg.__dataclass_fields__:
+        if k.startswith("__"):  # rosbags' __msgtype__
+            continue
+        if k == "header":
+            out["stamp_ns"] = messaging.stamp_ns(msg.header.stamp)
+            continue
+        v = getattr(msg, k)
+        out[k] = v.tolist() if hasattr(v, "tolist") else v
+    return out
+
+
+def _with_clock_offset(status: dict[str, Any], t0: float, t1: float) -> dict[str, Any]:
+    """The board's clock minus this laptop's, from the status round trip (exolink.clock: the
+    page warns when the board's time cannot be trusted for a trial's recordings)."""
+    c = status.get("clock")
+    if isinstance(c, dict) and isinstance(c.get("now"), int | float):
+        off = clock.Offset(c["now"] - (t0 + t1) / 2, (t1 - t0) / 2)
+        c.update(offset_ms=round(off.offset_s * 1e3, 1), error_ms=round(off.error_s * 1e3, 1))
+        c["warning"] = (
+            "not synchronised"
+            if clock.unset(c)
+            else f"{off.offset_s * 1e3:+.0f} ms off this laptop"
+            if off.off()
+            else ""
+        )
+    return status

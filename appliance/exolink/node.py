@@ -1,0 +1,149 @@
+"""The node base class: typed params, configure -> run -> shutdown, and the loop's ``beat()``.
+
+What runs a node (its process, session, heartbeat, signals) is ``exolink.runtime``; this module
+stays light because every plugin imports it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar, TypeVar
+
+import msgspec
+import structlog
+import zenoh
+
+from exolink import messaging
+from exolink.config import ApplianceConfig
+from exolink.liveness import Beater
+
+HEARTBEAT_PERIOD_S = 0.1  # the heartbeat thread's shortest period (see beat_period_s)
+TELEMETRY_PERIOD_S = 1.0  # the heartbeat on Zenoh: for people, not the watchdog
+R = TypeVar("R")
+# How an owned resource is released, in this order of preference: our readers, publishers and
+# arming views close; a Zenoh declaration undeclares; a python-can bus shuts down; a server
+# (Foxglove's) stops.
+_RELEASE = ("close", "undeclare", "shutdown", "stop")
+
+
+def beat_period_s(deadline_s: float) -> float:
+    """How often the runtime's heartbeat thread vouches for a loop that beat within ``stall_s``:
+    three times per liveness deadline, between 0.1 and 1 s. Each wake costs ~1 ms of the
+    board's one core (benchmarks/board/units.py: a sleep-and-wake): at a fixed 10 Hz, eight
+    nodes' threads took ~10 % of it while their loops already beat the supervisor themselves."""
+    return min(TELEMETRY_PERIOD_S, max(HEARTBEAT_PERIOD_S, deadline_s / 3))
+
+
+HEARTBEAT_TOPIC = "heartbeat"
+HEARTBEAT_TYPE = "exolink_msgs/msg/Heartbeat"
+
+
+class NoParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    pass
+
+
+@dataclass
+class NodeContext:
+    name: str
+    config: ApplianceConfig
+    session: zenoh.Session
+    messaging: messaging.Messaging
+    log: structlog.typing.FilteringBoundLogger
+
+
+class Node:
+    """Subclass, set ``Params`` to a msgspec Struct, implement ``run``.
+
+    ``configure`` opens what the node needs (buses, publishers, queryables) through ``own``
+    and may raise to refuse to start; ``run`` loops until ``stop`` is set, calling ``beat()``
+    at least every ``stall_s``; ``shutdown`` does what must happen while everything is still
+    open (a motion node's safe action) and must not raise. The runtime then releases what the
+    node owns, last opened first, also when ``configure`` raised half way: no node checks
+    which of its attributes exist.
+    """
+
+    Params: ClassVar[type[msgspec.Struct]] = NoParams
+    stall_s: ClassVar[float] = 0.5
+    # While the loop says it is idle (``beat(idle=True)``): it beats at least this often, and
+    # the supervisor holds it to the appliance's default deadline (see exolink.liveness).
+    idle_stall_s: ClassVar[float] = 0.4
+
+    def __init__(self, ctx: NodeContext, params: Any) -> None:
+        self.ctx = ctx
+        self.params = params
+        self.log = ctx.log
+        self._last_beat = time.monotonic()
+        self.liveness = Beater(None)  # the runtime connects it to the supervisor's pipe
+        self._owned = contextlib.ExitStack()
+
+    def own(self, resource: R) -> R:
+        """``resource``, released by the runtime after ``shutdown`` (``release``)."""
+        for method in _RELEASE:
+            fn = getattr(resource, method, None)
+            if callable(fn):
+                self._owned.callback(self._release_one, fn, type(resource).__name__)
+                return resource
+        raise TypeError(f"{type(resource).__name__} has none of {', '.join(_RELEASE)}")
+
+    def _release_one(self, fn: Callable[[], Any], what: str) -> None:
+        """One failed release must not keep the others open."""
+        try:
+            fn()
+        except Exception as exc:  # logged: the rest are still released
+            self.log.warning("release_failed", resource=what, error=str(exc))
+
+    def release(self) -> None:
+        """Release everything ``own`` was given, last first (idempotent)."""
+        self._owned.close()
+
+    @property
+    def name(self) -> str:
+        return self.ctx.name
+
+    def beat(self, idle: bool = False) -> None:
+        """The loop is alive: also straight to the supervisor, so a node whose loop beats every
+        cycle (a motion node) is judged on its own deadline, not the heartbeat thread's period.
+        ``idle``: it has nothing to drive until its next beat that is not (exolink.liveness)."""
+        now = time.monotonic()
+        self._last_beat = now
+        self.liveness.beat(now, idle)
+
+    @property
+    def last_beat(self) -> float:
+        return self._last_beat
+
+    def healthy(self) -> bool:
+        limit = self.idle_stall_s if self.liveness.idle else self.stall_s
+        return time.monotonic() - self._last_beat < limit
+
+    def configure(self) -> None:
+        pass
+
+    def run(self, stop: threading.Event) -> None:
+        raise NotImplementedError
+
+    def shutdown(self) -> None:
+        pass
+
+    def set_param(self, key: str, value: Any) -> Any:
+        """Change one param at run time; nodes that allow it override ``apply_params``."""
+        data = msgspec.to_builtins(self.params)
+        if key not in data:
+            raise messaging.CommandRefused(
+                f"{self.name} has no param {key!r} (has: {', '.join(data)})"
+            )
+        data[key] = value
+        try:
+            new = msgspec.convert(data, type(self.params))
+        except msgspec.ValidationError as exc:
+            raise messaging.CommandRefused(f"{self.name}.{key}: {exc}") from None
+        self.apply_params(new)
+        self.params = new
+        return getattr(new, key)
+
+    def apply_params(self, new: Any) -> None:
+        raise messaging.CommandRefused(f"{self.name} does not change params at run time")

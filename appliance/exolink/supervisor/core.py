@@ -1,0 +1,692 @@
+"""The supervisor (``exolink up``): safe state first, then nodes, watchdog and management API.
+
+Start order is the safety order: validate the whole config (nothing starts on an error), bring up
+CAN, send the safe action on the watchdog's own socket, open the Zenoh router, then spawn nodes.
+Stop order is the reverse with the safe action first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import gc
+import json
+import math
+import os
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+import structlog
+import yaml
+
+from exolink import cdr, hardware, liveness, logs, messaging, update
+from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
+from exolink.canbus import open_reader
+from exolink.clock import BoardClock
+from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
+from exolink.runtime import profiled, stop_on_signals
+from exolink.supervisor import canlink, trigger
+from exolink.supervisor.api import ManagementApi
+from exolink.supervisor.forking import Zygote, become_subreaper
+from exolink.supervisor.memory import MemoryTrim
+from exolink.supervisor.osproc import apply_priority, kill_strays, proc_state
+from exolink.supervisor.processes import Exit, NodeProcess, relay
+from exolink.supervisor.ros2api import Ros2Api
+from exolink.supervisor.systemd import Notifier
+from exolink.supervisor.watchdog import Watchdog, WatchdogState
+from exolink.wakeup import Wakeup
+
+if TYPE_CHECKING:
+    from exolink.cyclic import CyclicWatch
+
+MAX_SLEEP_S = 0.25  # the loop looks at least this often, whatever its deadlines say
+SWEEP_S = 1.0  # and at every node at least this often (_check_nodes)
+STRAY_SWEEP_S = 5.0  # and for node processes it does not count as any node's (_kill_strays)
+STARTING_SLEEP_S = 0.02  # while a node awaits its first beat (its priority comes with it)
+HEALTH_PERIOD_S = 2.0
+SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU starved of it)
+STATE_PERIOD_S = 1.0
+TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
+DIAGNOSTICS_TYPE = messaging.DIAGNOSTICS_TYPE
+TRIM_PERIOD_S = 10.0
+TRIM_GROWTH_MB = 8.0
+PAGE_SIZE = os.sysconf("SC_PAGE_SIZE")
+BAD_SAMPLE_KINDS = 64  # distinct "<topic>: <error>" counted one by one (_bad_sample)
+BAD_SAMPLE_CHARS = 160
+BAD_SAMPLE_OTHER = "other kinds"
+
+
+def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
+    """``--sim``: the same appliance on a udp_multicast bus with the simulator and a fake trigger."""
+    can = msgspec.structs.replace(
+        cfg.can,
+        interface="udp_multicast",
+        channel=cfg.can.channel if cfg.can.simulated else SIM_MULTICAST_GROUP,
+        bring_up=False,
+        require_overlay=False,
+    )
+    trig = msgspec.structs.replace(cfg.trigger, source="simulated", output=None)
+    nodes = list(cfg.nodes)
+    if not any(n.plugin == "simulator" for n in nodes):
+        params = {"maccepa_boards": list(cfg.watchdog.maccepa_boards)}
+        nodes.insert(0, NodeConfig(name="simulator", plugin="simulator", params=params))
+    return msgspec.structs.replace(cfg, can=can, trigger=trig, nodes=nodes)
+
+
+class _Stop(threading.Event):
+    """Set on a stop request; wakes the supervisor's loop too."""
+
+    def __init__(self, wake: Wakeup) -> None:
+        super().__init__()
+        self._wake = wake
+
+    def set(self) -> None:
+        super().set()
+        self._wake.set()
+
+
+class Supervisor:
+    def __init__(self, cfg: ApplianceConfig) -> None:
+        self.cfg = cfg
+        # the hardware guarded (exolink.hardware): an unknown name starts nothing
+        self.device = hardware.load(cfg.hardware)
+        self.log = structlog.get_logger().bind(node="supervisor")
+        # The loop sleeps until its next deadline; whatever moves one closer sets this.
+        self.wake = Wakeup()
+        self._sweep_at = 0.0  # when _check_nodes next looks at every node
+        self._expired: set[str] = set()  # nodes whose deadline timer ran out (liveness)
+        self.stop_event = _Stop(self.wake)
+        self.stopping = False
+        self.notifier = Notifier()
+        self.trigger_count = 0
+        self.bad_samples: dict[str, int] = {}  # "<topic>: <error>" -> count (see _bad_sample)
+        self.last_trigger_ns: int | None = None
+        self.health: canlink.LinkHealth | None = None
+        self.link: canlink.LinkMonitor | None = None
+        self._decls: list[Any] = []
+        self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
+        self.nodes: dict[str, NodeProcess] = {}
+        self.memory = MemoryTrim()
+        self.node_api: dict[str, dict[str, int]] = {}  # each node's Admission counters
+        self.clock = BoardClock(Path(state_dir(cfg, self._workdir)), cfg.clock.from_laptop)
+        # Bundles from an admin laptop (exolink.update; on the board /var/lib/exolink/update,
+        # where the root agent picks them up) and this boot's healthy mark, left once.
+        self.update = update.Receiver(update.local_dir(self._workdir))
+        self._healthy_marked = False
+
+    # --- start-up ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        cfg, dev = self.cfg, self.device
+        runtime = messaging.zenoh_runtime(cfg.zenoh)  # before any session: nodes inherit it
+        if runtime is not None:
+            self.log.info("zenoh_runtime", setting=runtime)
+        self.zygote = self._start_zygote()  # a fork: before any socket, session or thread
+        if cfg.can.interface == "socketcan":
+            if cfg.can.require_overlay:
+                canlink.check_overlay()
+            if cfg.can.bring_up:
+                canlink.bring_up_apart(cfg.can)  # pyroute2 in a child, never resident here
+        # On SocketCAN the kernel's broadcast manager watches the device's pulse and command
+        # frames for the watchdog (exolink.cyclic) and its own socket only sends; the simulated
+        # bus has no such thing.
+        watches: list[CyclicWatch] = []
+        reopen = None
+        try:
+            if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
+                from exolink.cyclic import CyclicWatch
+
+                limit_s = cfg.watchdog.h2_silence_ms / 1e3
+                watches.append(CyclicWatch(cfg.can.channel, dev.pulse_id, limit_s))
+                reopen = functools.partial(
+                    CyclicWatch, cfg.can.channel, dev.command_id, mask=dev.command_mask
+                )
+                watches.append(reopen())  # the first now: no can-bcm fails the start here
+                self.reader = open_reader(cfg.can, [])
+            else:  # the pulse never wakes it (read by its silence deadline); a command does
+                self.reader = open_reader(
+                    cfg.can, [dev.pulse_id, dev.command_id], wake_on=[dev.command_id]
+                )
+        except BaseException:
+            for w in watches:
+                w.close()
+            raise
+        self.bus = self.reader.bus
+        self.session = messaging.open_hub_session(cfg)
+        self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
+        self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE, raw=True)
+        # the kernel's watches of the pulse and the command frame (none on the simulated bus)
+        angles = watches[0] if watches else None
+        control = watches[1] if len(watches) > 1 else None
+        self.watchdog = Watchdog(
+            cfg.watchdog, self.reader, self._publish_watchdog, dev, angles, control, reopen=reopen
+        )
+        self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
+        self.watchdog.start()  # safe action before anything else can move
+        self._check_bus()  # before READY: a link already bad is known at start
+        if cfg.can.interface == "socketcan":
+            self._link_thread = threading.Thread(target=self._link_loop, daemon=True, name="link")
+            self._link_thread.start()
+        # CDR from exolink.cdr: no typestore (rosbags, numpy: ~13 MB, seconds of start on the A8)
+        self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE, raw=True)
+        self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE, raw=True)
+        self.api = ManagementApi(self)
+        self._decls += self.api.serve(self.msg)
+        self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
+        diag_key = self.msg.key("nodes/*/diagnostics", DIAGNOSTICS_TYPE)
+        api_key = self.msg.key(messaging.API_TOPIC.format(node="*"), messaging.API_TYPE)
+        self._decls.append(self.session.declare_subscriber(api_key, self._on_node_api))
+        self._decls.append(
+            self.session.declare_subscriber(
+                diag_key,
+                lambda s: self._node_diagnostics(str(s.key_expr), s.payload.to_bytes()),
+            )
+        )
+        self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
+        self.trigger_out = trigger.open_output(cfg.trigger)
+        config_path = self._workdir / "appliance.yaml"
+        config_path.write_text(yaml.safe_dump(_config_data(cfg, self._workdir), sort_keys=False))
+        for ncfg in cfg.nodes:
+            node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
+            node.zygote = self.zygote
+            node.deadlines = (cfg.deadline_s(ncfg), cfg.deadline_s(ncfg, idle=True))
+            self.nodes[ncfg.name] = node
+            if ncfg.enabled:
+                node.start()
+        self.log.info(
+            "supervisor_running",
+            device=cfg.device,
+            nodes=[n.name for n in cfg.nodes if n.enabled],
+            listen=cfg.zenoh.listen,
+            bus=f"{cfg.can.interface}:{cfg.can.channel}",
+        )
+        self.notifier.ready()
+
+    def _start_zygote(self) -> Zygote | None:
+        """Nodes fork from a pre-imported runtime (fast restarts, shared pages) unless
+        EXOLINK_SPAWN=exec asks for a fresh interpreter per node (tests that hook its start)."""
+        try:
+            become_subreaper()
+        except OSError as exc:
+            self.log.warning("subreaper_unavailable", error=str(exc))
+        if os.environ.get("EXOLINK_SPAWN") == "exec":
+            return None
+        try:
+            zygote = Zygote()
+        except OSError as exc:
+            self.log.warning("zygote_unavailable", error=str(exc), fallback="exec")
+            return None
+        gc.freeze()  # this process' objects, shared with the zygote: no collector writes to them
+        return zygote
+
+    # --- events from other threads ----------------------------------------------------------
+
+    def _on_exit(self, ex: Exit) -> None:
+        """A spawn's exit, under its node's lock (NodeProcess._wait): nothing starts a
+        successor while this runs, so the state set here is this spawn's own."""
+        node = self.nodes[ex.node]
+        what = ex.signal or f"exit code {ex.code}"
+        if self.stopping:
+            return
+        if not ex.current:  # a restart replaced it already: its successor's state stands
+            self.log.info("node_old_spawn_exited", node_name=ex.node, pid=ex.pid, how=what)
+            return
+        if ex.deliberate:  # a stop or restart asked it to go (and tripped, if critical)
+            self.log.info("node_stopped", node_name=ex.node, pid=ex.pid, how=what)
+            if node.state == "stopping":
+                node.state = "stopped"
+            node.due_at = 0.0
+            return
+        if node.cfg.critical:
+            self.watchdog.trip("critical node exited", f"{ex.node}: {what}")
+        self.log.warning("node_exited", node_name=ex.node, how=what, pid=ex.pid)
+        if node.failed_by_policy(ex.code):
+            if not node.schedule_restart(time.monotonic()):
+                self.log.error(
+                    "node_failed_permanently",
+                    node_name=ex.node,
+                    restarts=node.restarts,
+                    window_s=node.cfg.restart.window_s,
+                )
+        else:
+            node.state = "exited"
+        node.due_at = 0.0
+        self.wake.set()  # a restart may be due before the loop's next deadline
+
+    def _on_line(self, name: str, line: str) -> None:
+        relay(self.log, name, line)
+        with contextlib.suppress(
+            Exception
+        ):  # a closed session at shutdown must not kill the reader thread
+            self.session.put(self.msg.mgmt("log", name), line.encode())
+
+    def _node_up(self, node: NodeProcess, now: float) -> None:
+        """A spawn's first liveness beat: it imported and configured, its loop runs."""
+        node.start_s = (node.heartbeat_at or now) - node.started_at  # the beat's own time
+        if (pid := node.pid) is not None:
+            apply_priority(node.cfg, pid)  # only now: see plain_priority
+        self.log.info("node_up", node_name=node.name, start_s=round(node.start_s, 2))
+
+    def _on_edge(self, edge: trigger.Edge) -> None:
+        self.trigger_count += 1
+        self.last_trigger_ns = edge.stamp_ns
+        t = self.cfg.trigger
+        rising = "rising" if edge.rising else "falling"
+        payload = cdr.trigger_event(
+            edge.stamp_ns, rising, t.chip, t.line, self.trigger_count, edge.source
+        )
+        self.pub_trigger.put(payload, edge.stamp_ns)
+        self.log.info(
+            "trigger",
+            count=self.trigger_count,
+            rising=edge.rising,
+            source=edge.source,
+            stamp_ns=edge.stamp_ns,
+        )
+
+    def _publish_watchdog(self, s: WatchdogState) -> None:
+        self.pub_wd.put(
+            cdr.watchdog_event_msg(s.since_ns, s.state, s.reason, s.detail, s.frames_sent)
+        )
+
+    # --- periodic checks --------------------------------------------------------------------
+
+    def _check_nodes(self, now: float) -> None:
+        """The nodes whose deadline (a heartbeat's, a restart's) has come, and every node each
+        SWEEP_S; between sweeps a node's beats wait in its pipe until its own deadline nears.
+        A short deadline (the controller manager's 50 ms) wakes the loop often, so a wake
+        judges only the nodes that are due (measured: docs/performance.md)."""
+        grace = self.cfg.watchdog.start_grace_ms / 1000
+        nodes: Any = self.nodes.values()
+        beating = None  # a due node's pipe is read as it is judged: no select first
+        if now >= self._sweep_at:
+            self._sweep_at = now + SWEEP_S
+            beating = liveness.with_beats(n.channel for n in nodes if n.channel)
+        else:
+            nodes = [n for n in nodes if n.due_at <= now]
+        for node in nodes:
+            with node.lock:
+                late = self._judge_node(node, now, grace, beating)
+            if not late:
+                continue
+            hb, deadline = node.heartbeat_at, self.cfg.deadline_s(node.cfg, node.idle)
+            detail = (
+                f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
+                if hb is not None
+                else f"{node.name}: no heartbeat {grace:g} s after start"
+            )
+            if node.cfg.critical and self.watchdog.armed:
+                self.watchdog.trip("heartbeat late", detail)
+            # A hung node is killed so its sockets close: a broadcast-manager task it set up in the
+            # kernel would otherwise go on sending. The restart policy brings it back.
+            self.log.error(
+                "node_hung_killed", node_name=node.name, detail=detail, threads=self._threads_now()
+            )
+            node.kill()
+
+    def _threads_now(self) -> dict[str, str]:
+        """Each node's main thread as the kernel sees it when one is found hung: runnable (R)
+        while it missed its deadline says the core was busy with others; sleeping in a futex,
+        that it waited for a lock (the GIL); elsewhere, where it blocked."""
+        out = {}
+        for n in self.nodes.values():
+            if (pid := n.pid) is not None:
+                out[n.name] = proc_state(pid)
+        return out
+
+    def _judge_node(
+        self, node: NodeProcess, now: float, grace: float, beating: set[Any] | None
+    ) -> bool:
+        """Under ``node.lock``: a due restart, the beats in its pipe (``beating``: the pipes
+        known to hold some; None: read it), and whether it is late; ``due_at`` is set to when
+        it next needs a look (a state change by another thread sets it to 0)."""
+        if node.state == "backoff" and now >= node.next_start:
+            self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
+            node.start()
+        late, expired = False, node.name in self._expired
+        self._expired.discard(node.name)
+        if node.state == "running" and node.pid is not None:
+            if (beating is None or node.channel in beating) and node.poll_liveness(now):
+                self._node_up(node, now)
+            hb = node.heartbeat_at
+            if hb is None:
+                late = now - node.started_at > grace
+            else:
+                late = now - hb > self.cfg.deadline_s(node.cfg, node.idle)
+        node.due_at = self._due(node, now, grace, expired)
+        return late
+
+    def _due(self, node: NodeProcess, now: float, grace: float, expired: bool = False) -> float:
+        """When ``node`` next needs a look, given what the loop knows of it now (inf: only the
+        sweeps look; a state change sets ``due_at`` to 0). A node that sets its deadline timer
+        (exolink.liveness) is looked at when the timer runs out; one whose timer is not set,
+        or ran out though its pipe holds a later beat, by polling its deadline."""
+        if node.state == "backoff":
+            return node.next_start
+        if node.state != "running":
+            return math.inf
+        hb = node.heartbeat_at
+        if hb is None:  # starting: its first beat brings its priority
+            return min(now + STARTING_SLEEP_S, node.started_at + grace)
+        longest = max(self.cfg.deadline_s(node.cfg), self.cfg.deadline_s(node.cfg, idle=True))
+        if not expired and node.channel is not None and node.channel.armed(longest):
+            return math.inf
+        due = hb + self.cfg.deadline_s(node.cfg, node.idle)  # the beats in its pipe read then
+        if node.idle:  # its first beat that is not idle is judged on time
+            due = min(due, now + self.cfg.deadline_s(node.cfg))
+        return due
+
+    def _node_diagnostics(self, key: str, payload: bytes) -> None:
+        """The worst status a node reports (e.g. the recorder's disk full) shows in `exolink status`."""
+        parts = key.split("/")
+        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
+        node = self.nodes.get(name)
+        if node is None:
+            return
+        try:
+            statuses = cdr.diagnostic_statuses(payload)
+        except ValueError as exc:  # anyone may put on the key: checked, never trusted
+            self._bad_sample(f"nodes/{name}/diagnostics", exc)
+            return
+        node.note_diagnostics(statuses)  # a bus reader's receive losses (rx_*) for status
+        worst = max(statuses, key=lambda st: st.level, default=None)
+        if worst is not None:
+            level = {0: "ok", 1: "warn", 2: "error"}.get(int(worst.level), "stale")
+            node.health = f"{level}: {worst.message}" if level != "ok" else "ok"
+
+    def _on_node_api(self, sample: Any) -> None:
+        """A node's refusals of requests (messaging.API_TOPIC), for `exolink status`."""
+        parts = str(sample.key_expr).split("/")
+        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
+        if name not in self.nodes:
+            return
+        try:
+            counts = json.loads(cdr.string_of(sample.payload.to_bytes()))
+            if not (
+                isinstance(counts, dict)
+                and set(counts) <= set(messaging.Admission.REASONS)
+                and all(isinstance(n, int) and n >= 0 for n in counts.values())
+            ):
+                raise ValueError("not a node's refusal counts")
+        except ValueError as exc:  # anyone may put on the key: checked, never trusted
+            self._bad_sample(f"nodes/{name}/api", exc)
+            return
+        self.node_api[name] = counts
+
+    def described(self, node: NodeProcess) -> dict[str, Any]:
+        """A node as the API shows it: its own description and the requests it refused."""
+        info = node.describe()
+        if refused := self.node_api.get(node.name):
+            info["api_refused"] = refused
+        return info
+
+    def _bad_sample(self, topic: str, exc: ValueError) -> None:
+        """A sample the supervisor cannot read, counted by topic and error and logged rarely
+        (``logs.rarely``), as malformed CAN frames are. The error may quote what was sent and
+        the topic holds a node name from the key: both are cut, and past BAD_SAMPLE_KINDS
+        kinds the rest are counted under one."""
+        key = messaging.clip(f"{topic}: {exc}", BAD_SAMPLE_CHARS)
+        if key not in self.bad_samples and len(self.bad_samples) >= BAD_SAMPLE_KINDS:
+            key = BAD_SAMPLE_OTHER
+        n = self.bad_samples[key] = self.bad_samples.get(key, 0) + 1
+        if logs.rarely(n):
+            self.log.warning("bad_sample", kind=key, count=n)
+
+    def _check_bus(self) -> None:
+        if self.cfg.can.interface != "socketcan":
+            return
+        if self.link is None:
+            self.link = canlink.LinkMonitor(self.cfg.can.channel)
+        try:
+            self.health = self.link.health()
+        except canlink.CanLinkError as exc:
+            self.health = canlink.LinkHealth("down")
+            self.log.error("can_link_missing", error=str(exc))
+        h = self.health
+        if h.state == "bus-off" or (
+            h.state == "error-passive" and self.cfg.watchdog.trip_on_bus_error_passive
+        ):
+            self.watchdog.trip(
+                f"can {h.state}", f"{self.cfg.can.channel} tx errors {h.txerr}, rx errors {h.rxerr}"
+            )
+
+    def take_beats(self) -> None:
+        """Every node's beats read now, for an answer about them (arming, status): between
+        sweeps the loop reads a pipe only when its node's deadline timer runs out."""
+        now = time.monotonic()
+        for node in self.nodes.values():
+            with node.lock:
+                if node.state == "running" and node.pid is not None and node.poll_liveness(now):
+                    self._node_up(node, now)
+
+    def arm_blockers(self) -> list[str]:
+        out = []
+        self.take_beats()
+        now = time.monotonic()
+        for n in self.nodes.values():
+            if not (n.cfg.critical and n.cfg.enabled):
+                continue
+            if n.state != "running":
+                out.append(f"critical node {n.name} is {n.state}")
+            elif n.heartbeat_at is None or now - n.heartbeat_at > self.cfg.deadline_s(
+                n.cfg, n.idle
+            ):
+                out.append(f"critical node {n.name} has no recent heartbeat")
+        silent = self.watchdog.silent_for()
+        limit = self.cfg.watchdog.h2_silence_ms / 1000
+        behind = self.watchdog.behind_s()
+        if behind > limit:  # the bus may stream: the watchdog cannot see it in time
+            out.append(
+                f"the watchdog reads the bus {behind:.1f} s late (CPU saturated): it cannot "
+                f"judge {self.device.pulse} silence"
+            )
+        elif silent is None or silent > limit:
+            out.append(
+                f"no {self.device.pulse} on the bus"
+                if silent is None
+                else f"no {self.device.pulse} for {silent:.1f} s"
+            )
+        if self.health is not None and self.health.bad:
+            out.append(f"CAN bus is {self.health.state}")
+        if self.update.installing:
+            out.append("an update is being installed: the board reboots when it is in")
+        return out
+
+    def _mark_healthy(self) -> None:
+        """The first armable state of this boot (every critical node beating, the bus seen):
+        the root agent may now mark the booted slot good (exolink.update). Until then a new slot
+        is on trial and U-Boot falls back to the old one when its attempts run out."""
+        if self._healthy_marked or self.arm_blockers():
+            return
+        self._healthy_marked = True
+        try:
+            self.update.mark_healthy()
+        except OSError as exc:
+            self.log.error("update_healthy_mark_failed", error=str(exc))
+
+    def run(self) -> int:
+        """The periodic checks, each when it is due: the loop sleeps until the nearest deadline
+        (a heartbeat's, a restart's, a trip's repeat, ...), never longer than MAX_SLEEP_S, and
+        another thread that moves a deadline closer wakes it. A 100 Hz tick cost the supervisor
+        its largest share of one A8 core with nothing due."""
+        next_state = time.monotonic()
+        ping = self.notifier.ping_interval_s
+        next_ping = next_stray = time.monotonic()
+        while not self.stop_event.is_set():
+            now = time.monotonic()
+            self.watchdog.check()
+            self._check_nodes(now)
+            if now >= next_stray:
+                next_stray = now + STRAY_SWEEP_S
+                self._kill_strays()
+            if now >= next_state:
+                next_state = now + STATE_PERIOD_S
+                self._publish_watchdog(self.watchdog.snapshot())
+                self._publish_diagnostics()
+                self.memory.check(now)
+                self._mark_healthy()
+            if ping and now >= next_ping:  # only a loop that runs keeps systemd's watchdog quiet
+                next_ping = now + ping
+                self.notifier.ping()
+            if (took := time.monotonic() - now) > SLOW_LOOP_S:
+                self.log.warning("supervisor_loop_slow", took_s=round(took, 3))
+            due = min(
+                self._next_due(now),
+                next_state,
+                next_ping if ping else next_state,
+            )
+            timers = {
+                n.channel.timer: n
+                for n in self.nodes.values()
+                if n.channel is not None and n.state == "running"
+            }
+            _, ready = self.wake.wait_any(max(0.001, due - time.monotonic()), list(timers))
+            for fd in ready:
+                self._timer_ran_out(timers[fd], fd)
+        return 0
+
+    def _own_pids(self) -> set[int]:
+        """The processes the supervisor watches: each node's current spawn and the ones being
+        stopped, and the zygote."""
+        pids = set()
+        if self.zygote is not None:
+            pids.add(self.zygote.proc.pid)
+        for node in self.nodes.values():
+            with node.lock:  # a spawn in progress holds it: its pid is known once it is free
+                pids |= node.stopping_pids
+                if node.proc is not None:
+                    pids.add(node.proc.pid)
+        return pids
+
+    def _kill_strays(self) -> None:
+        for pid, name in kill_strays(self._own_pids):
+            self.log.error(
+                "stray_node_killed",
+                pid=pid,
+                process=name,
+                why="a node process no node counts as its own: it ran unwatched",
+            )
+
+    def _timer_ran_out(self, node: NodeProcess, fd: int) -> None:
+        """A node's deadline timer ran out: judged at once (its pipe says whether it beat
+        meanwhile). The descriptor is read only if it is still this node's timer."""
+        with node.lock:
+            if node.channel is not None and node.channel.timer == fd and node.channel.expired():
+                self._expired.add(node.name)
+                node.due_at = 0.0
+
+    def _next_due(self, now: float) -> float:
+        """The nearest deadline of the nodes (their ``due_at``) and the watchdog."""
+        return min(
+            now + MAX_SLEEP_S,
+            self.watchdog.next_due(),
+            min((n.due_at for n in self.nodes.values()), default=math.inf),
+        )
+
+    def _link_loop(self) -> None:
+        """The CAN link's state and error counters, off the safety loop: woken by the driver's
+        error frame at a state change (a bus-off trips at once) and every HEALTH_PERIOD_S for
+        the link's up/down (sysfs). A bus-off link also silences the H2, which the watchdog
+        trips on within h2_silence_ms anyway."""
+        while not self.stop_event.is_set():
+            link = self.link
+            if link is None:
+                self.stop_event.wait(HEALTH_PERIOD_S)
+            else:
+                link.wait(HEALTH_PERIOD_S)
+            if not self.stop_event.is_set():
+                self._check_bus()
+
+    def _publish_diagnostics(self) -> None:
+        wd = self.watchdog.snapshot()
+        values: dict[str, Any] = {
+            "watchdog": wd.state,
+            "reason": wd.reason,
+            "trips": wd.trips,
+            "trigger_count": self.trigger_count,
+        }
+        if self.health is not None:
+            values |= {
+                "bus_state": self.health.state,
+                "txerr": self.health.txerr,
+                "rxerr": self.health.rxerr,
+            }
+        now = time.time_ns()
+        level = "error" if wd.state == "tripped" else "ok"
+        self.pub_diag.put(
+            cdr.diagnostics(
+                now, "supervisor", messaging.LEVELS[level], wd.state, self.cfg.device, values
+            ),
+            now,
+        )
+
+    # --- shutdown ---------------------------------------------------------------------------
+
+    def shutdown(self) -> None:
+        """Safe action first, then the nodes, then the rest."""
+        self.stopping = True
+        self.notifier.stopping()
+        if hasattr(self, "watchdog"):
+            self.watchdog.trip("supervisor shutdown")
+        threads = [threading.Thread(target=n.stop) for n in self.nodes.values()]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if (zygote := getattr(self, "zygote", None)) is not None:
+            zygote.close()
+        for src in (getattr(self, "trigger_src", None), getattr(self, "trigger_out", None)):
+            if src is not None:
+                src.close()
+        if hasattr(self, "watchdog"):
+            self.watchdog.close()
+        for d in self._decls:
+            with contextlib.suppress(Exception):
+                d.undeclare()
+        if hasattr(self, "ros2"):
+            with contextlib.suppress(Exception):
+                self.ros2.close()
+        if hasattr(self, "msg"):
+            self.msg.close()
+        if hasattr(self, "session"):
+            self.session.close()
+        if hasattr(self, "bus"):
+            self.bus.shutdown()
+        if (link := getattr(self, "_link_thread", None)) is not None:
+            link.join(2)
+        if self.link is not None:
+            self.link.close()
+        shutil.rmtree(self._workdir, ignore_errors=True)
+        self.log.info("supervisor_stopped")
+
+
+def state_dir(cfg: ApplianceConfig, workdir: Path) -> str:
+    """The config's state directory, else one in the supervisor's working directory."""
+    return cfg.state_dir or str(workdir / "state")
+
+
+def _config_data(cfg: ApplianceConfig, workdir: Path) -> dict[str, Any]:
+    """The config the nodes read: the file's, with a state directory (the operator's limits)
+    in the supervisor's working directory when the file names none."""
+    data: dict[str, Any] = msgspec.to_builtins(cfg)
+    data.pop("source", None)
+    data["state_dir"] = state_dir(cfg, workdir)
+    return data
+
+
+def run(cfg: ApplianceConfig) -> int:
+    """Blocking entry point of ``exolink up``."""
+    sup = Supervisor(cfg)
+
+    stop_on_signals(sup.stop_event, sup.log)
+    try:
+        sup.start()
+        with profiled("supervisor"):  # its loop, when EXOLINK_PROFILE_DIR says so
+            return sup.run()
+    finally:
+        sup.shutdown()
