@@ -22,7 +22,7 @@ import msgspec
 
 from exolink import cdr, messaging
 from exolink.canbus import Cadence, Frame, open_reader
-from exolink.canfilter import Drop
+from exolink.canbus.filters import Drop
 from exolink.node import Node
 from exolink.protocol import maccepa
 

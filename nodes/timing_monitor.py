@@ -18,7 +18,7 @@ from typing import Annotated, Any
 import msgspec
 
 from exolink.canbus import open_reader
-from exolink.canfilter import Drop
+from exolink.canbus.filters import Drop
 from exolink.messaging import CommandRefused
 from exolink.node import Node
 
@@ -120,7 +120,7 @@ class TimingParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         default_factory=lambda: [70, 110]
     )
     # Of these ids, only frames of this length (and first byte) are monitored; the others never
-    # reach the monitor (exolink.canfilter: the kernel drops them on SocketCAN). E.g.
+    # reach the monitor (exolink.canbus.filters: the kernel drops them on SocketCAN). E.g.
     # [{id: 70, dlc: 6, first_byte: [1]}]: motor 1's set-points only, not the other joints' nor
     # MACCEPA board 0's status on the same id (a third of the frames with the gait on 4 joints).
     only: list[Only] = []

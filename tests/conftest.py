@@ -104,7 +104,7 @@ def mbus(group: str) -> Iterator[DrainedBus]:
 
 def bus_sockets(pid: int) -> int:
     """The sim-bus sockets (bound to its UDP port) a process holds, from /proc."""
-    from exolink.simbus import SIM_PORT
+    from exolink.canbus.simbus import SIM_PORT
 
     inodes = set()
     for fd in Path(f"/proc/{pid}/fd").iterdir():

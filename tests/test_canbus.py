@@ -13,8 +13,8 @@ import pytest
 from conftest import read_cycle
 
 from exolink.canbus import SO_TIMESTAMPNS, BatchReceiver, open_bus, open_reader
+from exolink.canbus.simbus import sim_source
 from exolink.config import CanConfig
-from exolink.simbus import sim_source
 
 
 def _raw_to_group(group: str, data: bytes, source: str) -> None:

@@ -1,4 +1,4 @@
-"""Content filters (exolink.canfilter): the BPF program the kernel runs on a SocketCAN reader's
+"""Content filters (exolink.canbus.filters): the BPF program the kernel runs on a SocketCAN reader's
 socket drops exactly the frames the Python rules drop, and readers on the simulated bus drop the
 same frames. The nodes' rules keep what each one acts on.
 
@@ -17,9 +17,9 @@ from exolink.nodes.controller_manager import drop_rules, one_socket
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from exolink import canfilter
 from exolink.canbus import CAN_FRAME, open_bus, open_reader
-from exolink.canfilter import Drop, Predicate
+from exolink.canbus import filters as canfilter
+from exolink.canbus.filters import Drop, Predicate
 from exolink.config import CanConfig
 from exolink.protocol import h2, maccepa
 

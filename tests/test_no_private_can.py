@@ -1,5 +1,5 @@
 """No module of the appliance or its nodes reads a python-can private attribute: what the
-appliance needs of a bus is python-can's public API or the sim bus's own (exolink.simbus).
+appliance needs of a bus is python-can's public API or the sim bus's own (exolink.canbus.simbus).
 
 Private names are every ``_name`` (not dunder) python-can's own source uses as an attribute or
 defines in a class body. Flagged in our code: ``obj._name`` on anything but ``self``/``cls``,

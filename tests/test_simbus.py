@@ -15,8 +15,8 @@ import pytest
 from can.interfaces.udp_multicast.utils import pack_message
 
 from exolink.canbus import open_bus, open_reader
+from exolink.canbus.simbus import SIM_PORT, SimBus, sim_source
 from exolink.config import CanConfig
-from exolink.simbus import SIM_PORT, SimBus, sim_source
 
 PEER = r"""
 import json, sys, time
@@ -63,7 +63,7 @@ def test_can_bus_in_another_process_talks_to_the_appliance_reader(group: str, na
         assert peer.returncode == 0
         res = json.loads(out.strip().splitlines()[-1])
         assert res == {
-            "cls": "exolink.simbus.SimBus",
+            "cls": "exolink.canbus.simbus.SimBus",
             "got": [[70, "4602"], [70, "4602"]],
             "valid": True,
         }

@@ -1,4 +1,4 @@
-"""Planned set-points on a leased timer: ``exolink.cyclic.ThreadLease`` on python-can's real
+"""Planned set-points on a leased timer: ``exolink.canbus.bcm.ThreadLease`` on python-can's real
 virtual bus (the kernel's broadcast manager is tested in the UML guest: tests/kernel/), and the
 controller manager's plan (nodes/controller_manager/timed.py) through the real ``Manager``."""
 
@@ -12,8 +12,8 @@ import pytest
 from exolink.nodes.controller_manager.manager import Manager, Switch
 from exolink.nodes.controller_manager.timed import Timed
 
+from exolink.canbus.bcm import ThreadLease
 from exolink.controller import State
-from exolink.cyclic import ThreadLease
 from exolink.jointlimits import Limits, LimitsConfig
 from exolink.protocol import h2
 

@@ -70,7 +70,7 @@ def test_only_keeps_one_motors_set_points_and_refuses_other_ids() -> None:
     import msgspec
     from exolink.nodes.timing_monitor import TimingParams
 
-    from exolink.canfilter import Predicate
+    from exolink.canbus.filters import Predicate
 
     p = msgspec.convert(
         {"ids": [70, 110], "only": [{"id": 70, "dlc": 6, "first_byte": [1]}]}, TimingParams

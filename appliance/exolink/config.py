@@ -25,7 +25,7 @@ PositiveMs = Annotated[int, msgspec.Meta(ge=1, le=600_000)]
 BoardId = Annotated[int, msgspec.Meta(ge=0, le=9)]
 
 SIM_MULTICAST_GROUP = "239.74.163.2"
-# The simulated bus is python-can's interface ``exolink_sim`` (exolink.simbus). Its datagrams are
+# The simulated bus is python-can's interface ``exolink_sim`` (exolink.canbus.simbus). Its datagrams are
 # python-can's udp_multicast ones, and configs may name it ``udp_multicast``: the same bus.
 SIM_INTERFACE = "exolink_sim"
 INTERFACE_ALIASES = {"udp_multicast": SIM_INTERFACE}
@@ -59,7 +59,7 @@ class CanConfig(_Strict, frozen=True):
 
     @property
     def simulated(self) -> bool:
-        """The simulated bus (exolink.simbus), by either of its names."""
+        """The simulated bus (exolink.canbus.simbus), by either of its names."""
         return self.bus_interface == SIM_INTERFACE
 
 

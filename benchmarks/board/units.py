@@ -205,12 +205,12 @@ def _can_send(channel: str, seconds: float) -> None:
 def _can_receive(channel: str, seconds: float, drop: bool) -> None:
     """A reader of CAN_UNIT_ID on this CPU that takes its frames every 100 ms, one ``recv``
     each (``drop``: the same socket with a content filter that drops them all in the kernel,
-    exolink.canfilter): prints its frames and CPU seconds over ``seconds``."""
+    exolink.canbus.filters): prints its frames and CPU seconds over ``seconds``."""
     s = _can_socket(channel)
     s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, struct.pack("=II", CAN_UNIT_ID, 0x7FF))
     s.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)  # as the appliance's readers
     if drop:
-        from exolink import canfilter
+        from exolink.canbus import filters as canfilter
 
         canfilter.attach(s, [canfilter.Drop(CAN_UNIT_ID, 8)])
     s.setblocking(False)

@@ -69,10 +69,10 @@ from exolink.nodes.controller_manager.timed import Timed
 from exolink import cdr, logs
 from exolink.arming import ArmingState
 from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
-from exolink.canfilter import Drop
+from exolink.canbus.bcm import open_lease
+from exolink.canbus.filters import Drop
 from exolink.config import ConfigError
 from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
-from exolink.cyclic import open_lease
 from exolink.jointlimits import POSITION
 from exolink.maccepalimits import BoardLimits, target
 from exolink.node import Node
@@ -190,7 +190,7 @@ def one_socket(interface: str, read_ids: list[int], board_ids: set[int]) -> bool
 
 
 def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
-    """What the manager's reader never needs of the ids it reads (exolink.canfilter: the kernel
+    """What the manager's reader never needs of the ids it reads (exolink.canbus.filters: the kernel
     drops them on SocketCAN). Of the H2's joint control only a disable or stop matters here (the
     gait's set-points come from this process and are never read back; the MACCEPA bridge and
     the timing monitor read them); board 0's status shares id 70 and matters only when board 0

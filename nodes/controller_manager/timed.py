@@ -1,5 +1,5 @@
 """Set-points planned ahead and sent on a timer the manager does not run: the kernel's
-broadcast manager on SocketCAN (``exolink.cyclic.CyclicLease``), a thread elsewhere.
+broadcast manager on SocketCAN (``exolink.canbus.bcm.CyclicLease``), a thread elsewhere.
 
 While every active controller is ``planned`` (its outputs are a function of time: the gait
 pattern, a trajectory), the manager computes each slot's set-points a few slots ahead, through
@@ -23,8 +23,8 @@ from collections.abc import Callable, Iterator, Mapping
 import structlog
 from exolink.nodes.controller_manager.manager import PLANNED, Cycle, Manager
 
+from exolink.canbus.bcm import Lease
 from exolink.controller import State
-from exolink.cyclic import Lease
 from exolink.protocol import h2
 
 log = structlog.get_logger()

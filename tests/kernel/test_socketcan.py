@@ -434,7 +434,7 @@ def test_content_filters_drop_in_the_kernel_what_a_reader_never_needs(vcan0: str
     (6 bytes, mode 1) and board 0's status (8 bytes) never reach a reader whose rules drop them;
     a disable (mode 4), another length and the other ids do, in order. The kernel's socket
     filter drops them (nothing in Python: ``filtered`` 0), and not as losses: ``dropped`` 0."""
-    from exolink.canfilter import Drop
+    from exolink.canbus.filters import Drop
 
     rules = [Drop(70, 6, byte=1, keep=frozenset({4, 5})), Drop(70, 8)]
     reader = open_reader(
@@ -469,11 +469,11 @@ def _angles(length: int = ANGLES_LEN) -> can.Message:
 
 
 def test_kernel_timer_tells_only_the_start_a_length_change_and_silence(vcan0: str) -> None:
-    """The broadcast manager's receive op (exolink.cyclic): a steady stream of the id reaches
+    """The broadcast manager's receive op (exolink.canbus.bcm): a steady stream of the id reaches
     user space once; a frame of another length is reported (then the return to the contract's); frames of
     other ids, or the id as an extended frame, neither report nor keep it alive; the silence is
     one timeout; the stream's return is reported with its kernel time."""
-    from exolink.cyclic import CyclicWatch
+    from exolink.canbus.bcm import CyclicWatch
 
     tx = listener(vcan0)
     # Generous for one UML CPU on a shared host (the guest was seen to stop for 143 ms).
@@ -518,8 +518,8 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
     import threading
 
     from exolink import hardware
+    from exolink.canbus.bcm import CyclicWatch
     from exolink.config import WatchdogConfig
-    from exolink.cyclic import CyclicWatch
     from exolink.supervisor.watchdog import Watchdog
 
     limit_s = 1.0  # wide for the UML guest, as write_config's

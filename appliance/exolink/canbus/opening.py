@@ -1,7 +1,7 @@
 """The one place that opens a python-can bus from configuration, and a reader on it.
 
 A node only wakes for its own ids: SocketCAN gets kernel receive filters, and so does the
-simulated bus (python-can's interface ``exolink_sim``: exolink.simbus); the in-process virtual
+simulated bus (python-can's interface ``exolink_sim``: exolink.canbus.simbus); the in-process virtual
 bus filters in python-can. ``open_reader`` puts a ``FrameReader`` (canbus.reader) on one bus or
 two (a waking one and a quiet one); ``Cadence`` is how a node reading a periodic stream sets the
 reader's ``every_s`` and its read timeouts.
@@ -13,7 +13,7 @@ import socket
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from exolink import canfilter
+from exolink.canbus import filters as canfilter
 from exolink.canbus.frames import id_filters
 from exolink.canbus.reader import FrameReader
 from exolink.canbus.sockets import bus_socket
@@ -34,7 +34,7 @@ def open_bus(
     receive_own_messages: bool = False,
 ) -> can.BusABC:
     """Open the configured bus through python-can (the simulated bus is its interface
-    ``exolink_sim``, exolink.simbus); failures name the interface and the likely fix.
+    ``exolink_sim``, exolink.canbus.simbus); failures name the interface and the likely fix.
     ``filters`` None: every frame; ``[]``: none (a bus that only sends)."""
     import can
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
-from exolink import canfilter
+from exolink.canbus import filters as canfilter
 from exolink.canbus.frames import (
     CAN_EFF_FLAG,
     CAN_ERR_FLAG,
@@ -69,7 +69,7 @@ class FrameReader:
     works from kernel timestamps) trades that latency for CPU. Never longer than the caller's
     timeout; 0 (default) wakes for each frame.
 
-    ``drop``: content filters (``exolink.canfilter``), frames of its ids it never needs: the
+    ``drop``: content filters (``exolink.canbus.filters``), frames of its ids it never needs: the
     kernel's socket filter on SocketCAN, these rules in Python on the other buses (``filtered``).
     """
 
@@ -327,7 +327,7 @@ class FrameReader:
     def _drain(self, sock: socket.socket) -> tuple[list[Frame], bool]:
         """Every frame queued on ``sock`` now, up to a batch (True: it stopped there, more may
         be queued); never blocks. Kernel receive times (SO_TIMESTAMPNS, set by python-can and
-        exolink.simbus); a frame without one gets the time it was read."""
+        exolink.canbus.simbus); a frame without one gets the time it was read."""
         rx = self._rx[sock]
         if rx.msg_size == CAN_FRAME.size:
             return self._drain_socketcan(rx)

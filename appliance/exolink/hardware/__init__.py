@@ -40,7 +40,7 @@ class Device(Protocol):
     pulse_id: int  # the periodic frame whose silence trips the watchdog
     command_id: int  # the frame that moves the device
     # The command frame's bits whose change the kernel's watch reports (SocketCAN's broadcast
-    # manager, exolink.cyclic): those that tell motion from its absence.
+    # manager, exolink.canbus.bcm): those that tell motion from its absence.
     command_mask: bytes
 
     def safe_action(self, cfg: WatchdogConfig) -> list[can.Message]:

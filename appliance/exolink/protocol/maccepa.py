@@ -108,7 +108,7 @@ def dlc_of(frame_id: int) -> int | None:
 def h2_shaped(ids: Iterable[int]) -> list[tuple[int, int]]:
     """(id, length) of the H2 frames on these MACCEPA ids (the H2 uses 70, 75, 80 and 85, which
     are boards 0 and 5's status and board 0 and 5's duty ids): a frame of that length there is
-    the H2's, not a board's (a reader of board frames need not receive it: exolink.canfilter)."""
+    the H2's, not a board's (a reader of board frames need not receive it: exolink.canbus.filters)."""
     out = []
     for i in ids:
         theirs, ours = h2.dlc_of(i), dlc_of(i)

@@ -42,7 +42,7 @@ from exolink.supervisor.watchdog import Watchdog, WatchdogState
 from exolink.wakeup import Wakeup
 
 if TYPE_CHECKING:
-    from exolink.cyclic import CyclicWatch
+    from exolink.canbus.bcm import CyclicWatch
 
 MAX_SLEEP_S = 0.25  # the loop looks at least this often, whatever its deadlines say
 SWEEP_S = 1.0  # and at every node at least this often (_check_nodes)
@@ -133,13 +133,13 @@ class Supervisor:
             if cfg.can.bring_up:
                 canlink.bring_up_apart(cfg.can)  # pyroute2 in a child, never resident here
         # On SocketCAN the kernel's broadcast manager watches the device's pulse and command
-        # frames for the watchdog (exolink.cyclic) and its own socket only sends; the simulated
+        # frames for the watchdog (exolink.canbus.bcm) and its own socket only sends; the simulated
         # bus has no such thing.
         watches: list[CyclicWatch] = []
         reopen = None
         try:
             if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
-                from exolink.cyclic import CyclicWatch
+                from exolink.canbus.bcm import CyclicWatch
 
                 limit_s = cfg.watchdog.h2_silence_ms / 1e3
                 watches.append(CyclicWatch(cfg.can.channel, dev.pulse_id, limit_s))

@@ -25,7 +25,7 @@ ten wake-ups a second while the H2 streams, none per frame); not armed, a joint-
 every half silence limit so that arming sees fresh H2 data. Arming, disarming and trips wake it
 through a pipe (exolink.wakeup) to switch between the two.
 
-On SocketCAN no frame is read at all: the kernel's broadcast manager (exolink.cyclic) times the
+On SocketCAN no frame is read at all: the kernel's broadcast manager (exolink.canbus.bcm) times the
 angle frames and this thread hears only of a silence, a resumption or a frame whose length
 changed (a silence while armed trips at once); on id 70 it hears of a frame whose mode byte or
 length differs from the last one's: the first motion frame after the safe action (which the op
@@ -64,7 +64,7 @@ from exolink.hardware import Device, Seen
 from exolink.wakeup import Wakeup
 
 if TYPE_CHECKING:
-    from exolink.cyclic import CyclicWatch, Event
+    from exolink.canbus.bcm import CyclicWatch, Event
 
 REPEAT_AFTER_S = (0.05, 0.25)
 STALL_BACKSTOP_S = 0.5

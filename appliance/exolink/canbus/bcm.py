@@ -35,7 +35,9 @@ import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, NamedTuple, Protocol
 
-from exolink.canbus import CAN_FRAME, SO_TIMESTAMPNS, CanOpenError, Frame
+from exolink.canbus.frames import CAN_FRAME, Frame
+from exolink.canbus.opening import CanOpenError
+from exolink.canbus.sockets import SO_TIMESTAMPNS
 
 if TYPE_CHECKING:
     import can
