@@ -15,7 +15,8 @@ from exolink.nodes.recorder import RecorderParams
 
 from benchmarks.bench_recorder import joint_states, write
 from benchmarks.harness import Appliance, cpu_s
-from exolink import messaging, recstore
+from exolink import messaging
+from exolink.recordings import store as recstore
 
 
 def _nodes(directory: Path, fetch_mb_s: float) -> list[dict[str, Any]]:

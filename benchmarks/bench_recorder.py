@@ -14,8 +14,9 @@ from exolink.nodes.recorder import McapFile, RecorderParams
 from mcap.reader import make_reader
 
 from benchmarks.harness import Appliance
-from exolink import messaging, recording
-from exolink.recording import info
+from exolink import messaging
+from exolink.recordings import readback as recording
+from exolink.recordings.readback import info
 
 JS = "sensor_msgs/msg/JointState"
 

@@ -27,7 +27,7 @@ from benchmarks.harness import EXOLINK, Appliance
 from exolink import gaitlab
 from exolink.config import bundled
 from exolink.protocol.h2 import JOINTS
-from exolink.recording import RecordingError, info
+from exolink.recordings.readback import RecordingError, info
 
 C3D = pytest.importorskip("c3d")  # the independent reader (dev extra)
 

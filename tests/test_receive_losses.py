@@ -11,7 +11,7 @@ from benchmarks.harness import Appliance, wait_for
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.protocol import h2
-from exolink.recording import info
+from exolink.recordings.readback import info
 
 
 def test_stalled_reader_losses_in_status_and_recording(write_config, spawn, tmp_path) -> None:  # type: ignore[no-untyped-def]

@@ -20,7 +20,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from benchmarks.harness import EXOLINK, Appliance, collect, motion_nodes, wait_for
 from exolink import clock, messaging, rosgraph
 from exolink.protocol import h2
-from exolink.recording import RecordingError, export_csv, info
+from exolink.recordings.readback import RecordingError, export_csv, info
 
 JS_KEY = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
 
@@ -532,7 +532,7 @@ def test_a_file_marks_commands_the_rule_does_not_know(tmp_path: Path) -> None:
     rule; no mark takes a command topic off it."""
     from mcap.writer import Writer
 
-    from exolink.recording import held_back, replay_topic
+    from exolink.recordings.readback import held_back, replay_topic
 
     path = tmp_path / "marked.mcap"
     with path.open("wb") as f:

@@ -175,7 +175,7 @@ def test_chunk_numbers_and_times_name_the_loss(recording: Path, damaged) -> None
     c3 = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)[3]
     start, end = c3.chunk_start_offset, c3.chunk_start_offset + c3.chunk_length
     assert f"chunk 3 at {start}..{end}" in r.stderr
-    from exolink.mcapcheck import iso
+    from exolink.recordings.check import iso
 
     assert f"log time {iso(c3.message_start_time)} .. {iso(c3.message_end_time)}" in r.stderr
     inside = [m for m in original if c3.message_start_time <= m[1] <= c3.message_end_time]

@@ -17,10 +17,11 @@ from test_recording import nodes
 from test_roles import _guarded
 
 from benchmarks.harness import EXOLINK, Appliance, wait_for
-from exolink import messaging, recstore, roles
+from exolink import messaging, roles
 from exolink.client import Remote
 from exolink.dashboard.hub import Hub
-from exolink.recording import info
+from exolink.recordings import store as recstore
+from exolink.recordings.readback import info
 
 
 def sha256(path: Path) -> str:

@@ -23,7 +23,7 @@ stops cleanly (the file closed and indexed) with an ERROR diagnostic ("card full
 one starts, so the card never fills and nothing else on the board (logs, the journal) fails for
 it. A disk full all the same (a smaller reserve than one second of data, another writer) stops
 it too; earlier files are never reopened.
-The recorder also serves its directory to laptops (``recordings``: exolink.recstore): it alone
+The recorder also serves its directory to laptops (``recordings``: exolink.recordings.store): it alone
 knows which file it is writing, and that one is never handed out nor deleted.
 
 - ``node``: the node: commands, the intake, the writer loop, diagnostics, receive counters;

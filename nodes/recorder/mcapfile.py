@@ -9,14 +9,15 @@ from pathlib import Path
 from exolink.nodes.recorder.params import RecorderParams
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
-from exolink import __version__, messaging, recording
+from exolink import __version__, messaging
+from exolink.recordings import readback as recording
 
 
 class McapFile:
     """One open MCAP file with its schemas and channels registered on first use.
 
     Each channel's metadata marks whether its topic is a command (``exolink.command``: "true" or
-    "false", by exolink.recording.command_topic): ``exolink play`` never republishes a command.
+    "false", by exolink.recordings.readback.command_topic): ``exolink play`` never republishes a command.
 
     Nothing here may import: the writer loop opens files, and an import on it (mcap and its
     compressors took seconds under emulation) stalls its heartbeat until the supervisor kills it.
@@ -31,7 +32,7 @@ class McapFile:
         self.path = path
         self.f = path.open("xb")  # never overwrite a recording
         # CRCs of every chunk, of the data section and of the summary: readers tell a damaged
-        # file from a good one (exolink.recording.check), at one crc32 pass over what is written.
+        # file from a good one (exolink.recordings.readback.check), at one crc32 pass over what is written.
         self.w = Writer(
             self.f,
             chunk_size=p.chunk_size,

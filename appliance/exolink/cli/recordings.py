@@ -10,12 +10,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from exolink import gaitlab, logs, recstore
+from exolink import gaitlab, logs
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.options import Leaves, common, decimal, guard, integer
 from exolink.client import Refused, Remote, remote
-from exolink.mcapcheck import iso
-from exolink.recording import (
+from exolink.recordings import store as recstore
+from exolink.recordings.check import iso
+from exolink.recordings.readback import (
     COMMANDS,
     REPLAY_PREFIX,
     RecordingError,
@@ -25,7 +26,7 @@ from exolink.recording import (
     play,
     recover,
 )
-from exolink.recstore import DEFAULT_CHUNK, StoreError
+from exolink.recordings.store import DEFAULT_CHUNK, StoreError
 
 
 def _labels(items: list[str]) -> dict[str, str]:

@@ -32,14 +32,15 @@ from typing import Any
 import structlog
 import zenoh
 
-from exolink import cdr, clock, messaging, recstore, roles
+from exolink import cdr, clock, messaging, roles
 from exolink import nodes as node_plugins
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.client import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.holder import Holder, HoldRefused, describe
 from exolink.protocol import h2
-from exolink.recording import decode, info, iter_messages
+from exolink.recordings import store as recstore
+from exolink.recordings.readback import decode, info, iter_messages
 
 log = structlog.get_logger("exolink.dashboard")
 
@@ -470,7 +471,7 @@ class Hub:
     def recording(self, board_path: str) -> Path:
         """A recording the recorder names, as a file here to serve or plot: asked for through
         the recorder's ``recordings`` (this dashboard's login must be allowed to fetch, and the
-        file must be closed: roles.RECORDINGS, exolink.recstore), then the file itself when it
+        file must be closed: roles.RECORDINGS, exolink.recordings.store), then the file itself when it
         is on this machine (the board's own dashboard; the sim), else fetched into a cache
         (chunked, resumed, checked as `exolink record fetch`). recstore.Refused and
         StoreError say why not."""

@@ -24,10 +24,11 @@ from typing import Any
 import structlog
 from aiohttp import WSMsgType, web
 
-from exolink import gaitlab, recstore
+from exolink import gaitlab
 from exolink.dashboard import hub as hub_module
 from exolink.dashboard.hub import Hub
-from exolink.recording import RecordingError
+from exolink.recordings import store as recstore
+from exolink.recordings.readback import RecordingError
 
 log = structlog.get_logger("exolink.dashboard")
 STATIC = Path(__file__).resolve().parent / "static"

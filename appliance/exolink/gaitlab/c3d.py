@@ -8,7 +8,7 @@ from typing import Any
 
 from exolink.gaitlab.model import FOOT_OFF, FOOT_STRIKE, RESAMPLING, TRIGGER, Trial
 from exolink.gaitlab.output import _parent, _partial, _replace
-from exolink.mcapcheck import RecordingError, iso
+from exolink.recordings.check import RecordingError, iso
 
 EXTRA = "gaitlab"  # pip install 'exolink[gaitlab]': the C3D writer (ezc3d), laptop side only
 C3D_MAX_FRAMES = 65534  # the header's 16-bit frame count (65535 trips some readers)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from exolink.gaitlab.model import RESAMPLING, Trial
 from exolink.gaitlab.output import _partial, _replace
-from exolink.mcapcheck import RecordingError, iso
+from exolink.recordings.check import RecordingError, iso
 
 MODELS = ("rajagopal", "gait2392")
 # H2 joint -> (OpenSim coordinate, sign for rajagopal, sign for gait2392)

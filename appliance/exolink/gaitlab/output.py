@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from exolink.mcapcheck import RecordingError
+from exolink.recordings.check import RecordingError
 
 
 def _partial(out: Path) -> Path:

@@ -20,8 +20,8 @@ from exolink.gaitlab.model import (
     Trial,
 )
 from exolink.gaitlab.resample import foot_events, hold, nearest
-from exolink.mcapcheck import RecordingError
-from exolink.recording import decode, info, iter_messages, message_time_ns
+from exolink.recordings.check import RecordingError
+from exolink.recordings.readback import decode, info, iter_messages, message_time_ns
 
 log = structlog.get_logger("exolink.gaitlab")
 

@@ -6,7 +6,7 @@ statistics), as the MCAP format provides. ``check`` reads the whole file and che
 a damaged file is named by where (chunk, byte offset, log time range), never read as if whole.
 The mcap library parses every record and checks chunk CRCs; what it does not do is written here:
 the data-section and summary CRCs of a seeking reader, reading on past a damaged record (finding
-the next record start), and naming the loss. ``exolink.recording`` (info, export, play, recover)
+the next record start), and naming the loss. ``exolink.recordings.readback`` (info, export, play, recover)
 builds on it.
 """
 

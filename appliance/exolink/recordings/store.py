@@ -43,7 +43,7 @@ MAX_NAME = 255
 HASH_BLOCK = 1 << 20
 HASH_PACE = 4  # the board hashes this many times faster than it serves a fetch
 RECORDING, CLOSED = "recording", "closed"
-_log = structlog.get_logger("exolink.recstore")
+_log = structlog.get_logger("exolink.recordings.store")
 
 
 class StoreError(Exception):

@@ -4,7 +4,7 @@ Everything decodes with the schema stored in the file (rosbags parses the ros2ms
 recording stays readable after the project's own message definitions change.
 
 Nothing is read on trust: ``info``, ``export`` and ``play`` check every CRC of the file first
-(``exolink.mcapcheck``): a damaged file is a RecordingError naming where, never data that differs
+(``exolink.recordings.check``): a damaged file is a RecordingError naming where, never data that differs
 from what was recorded; ``recover`` keeps what is intact and says what it lost.
 """
 
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from exolink import roles, rosgraph
-from exolink.mcapcheck import Loss, RecordingError, Walk, _open, check, verify
+from exolink.recordings.check import Loss, RecordingError, Walk, _open, check, verify
 
 TRIGGER_SUFFIX = "/trigger"
 JOINT_STATE = "sensor_msgs/msg/JointState"
