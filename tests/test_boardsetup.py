@@ -14,7 +14,8 @@ import pytest
 import yaml
 
 from benchmarks.harness import free_port
-from exolink import boardsetup, messaging
+from exolink import messaging
+from exolink.board import setup as boardsetup
 from exolink.config import ConfigError, ZenohConfig, bundled, load
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""The board's clock against a laptop's (exolink.clock): the offset, its warnings, refusals of
+"""The board's clock against a laptop's (exolink.board.clock): the offset, its warnings, refusals of
 a step, and what a recording says of its clock. Stepping a real clock: tests/kernel/test_wall_clock.py
 (a recording's clock: tests/test_recording.py; the host's clock is never stepped here: the sim appliance has clock.from_laptop false)."""
 
@@ -9,7 +9,7 @@ import time
 import pytest
 
 from benchmarks.harness import Appliance
-from exolink import clock
+from exolink.board import clock
 from exolink.cli import clock as cli_clock
 
 

@@ -18,7 +18,8 @@ from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from benchmarks.harness import EXOLINK, Appliance, collect, motion_nodes, wait_for
-from exolink import clock, messaging, rosgraph
+from exolink import messaging, rosgraph
+from exolink.board import clock
 from exolink.protocol import h2
 from exolink.recordings.readback import RecordingError, export_csv, info
 
@@ -106,8 +107,10 @@ def test_walking_session_recorded_exactly(write_config, spawn, tmp_path) -> None
     assert i.metadata["exolink.labels"] == {"subject": "S01", "session": "walk"}
     # which clock stamped it, as the kernel says (this host: no laptop ever steps its clock)
     synced = clock.kernel().synchronised
-    assert i.metadata["exolink.clock"]["synchronised"] == str(synced).lower()
-    assert i.metadata["exolink.clock"]["source"] == ("time server" if synced else "unsynchronised")
+    assert i.metadata["exolink.board.clock"]["synchronised"] == str(synced).lower()
+    assert i.metadata["exolink.board.clock"]["source"] == (
+        "time server" if synced else "unsynchronised"
+    )
     assert (
         i.metadata["exolink"]["device"] == "sim"
         and "device: sim" in i.metadata["exolink.config"]["yaml"]

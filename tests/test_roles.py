@@ -15,7 +15,8 @@ import yaml
 from mcap.reader import make_reader
 
 from benchmarks.harness import Appliance, wait_for
-from exolink import boardsetup, messaging, roles
+from exolink import messaging, roles
+from exolink.board import setup as boardsetup
 from exolink.config import bundled
 
 DEVICE = "sim"

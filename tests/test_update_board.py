@@ -1,4 +1,4 @@
-"""Updates (exolink.update): the supervisor's side of taking a bundle (sizes, order, checksum,
+"""Updates (exolink.board.update): the supervisor's side of taking a bundle (sizes, order, checksum,
 header, refused while armed, the role each action needs), the laptop's checks of a file, and
 RAUC's custom boot backend (image/rauc/rauc-boot-backend) on a scratch state file. The install,
 the reboot and the fallback need the card under qemu: tests/image/test_update.py.
@@ -17,7 +17,8 @@ from typing import Any
 
 import pytest
 
-from exolink import messaging, roles, update
+from exolink import messaging, roles
+from exolink.board import update
 from exolink.cli import update as cli_update
 from exolink.client import Refused
 from exolink.supervisor.api import ManagementApi
@@ -209,7 +210,7 @@ def test_a_running_appliance_refuses_an_update_while_armed_and_arming_while_inst
     write_config, spawn, tmp_path: Path
 ) -> None:  # type: ignore[no-untyped-def]
     """The sim appliance, the real CLI over Zenoh: what the board's safety rests on. No RAUC
-    here: the request stays in the supervisor's folder (exolink.update.local_dir)."""
+    here: the request stays in the supervisor's folder (exolink.board.update.local_dir)."""
     from benchmarks.harness import Appliance, motion_nodes
 
     app = Appliance(write_config(nodes=motion_nodes(deadline_ms=300, h2_timeout_ms=300)), spawn)

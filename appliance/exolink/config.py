@@ -129,7 +129,7 @@ class RestartPolicy(_Strict, frozen=True):
 
 class ClockConfig(_Strict, frozen=True):
     # Take the wall clock from an operator's laptop when no time server disciplines it (a
-    # BeagleBone has no battery-backed clock: exolink.clock). False on a simulator, whose clock is
+    # BeagleBone has no battery-backed clock: exolink.board.clock). False on a simulator, whose clock is
     # its host's.
     from_laptop: bool = False
 

@@ -9,7 +9,7 @@ Zenoh has already proven it. What a role may do is then decided here (``allows``
 - ``observer``: data, status, e-stop, the list of recordings on the card.
 - ``operator``: also arm and disarm, hold motion (presence), joint commands, patterns,
   recording and fetching recordings, trigger, setting the board's clock from the laptop's
-  (exolink.clock).
+  (exolink.board.clock).
 - ``admin``: also node start/stop/restart, params, logs, simulator faults, deleting recordings.
 - ``exolink``: the appliance's own processes (the login in /etc/exolink/zenoh.json5, readable by
   the service only); they declare queryables and publish data, which no laptop login may.

@@ -20,7 +20,8 @@ from exolink.nodes.recorder.inbox import Inbox
 from exolink.nodes.recorder.mcapfile import McapFile
 from exolink.nodes.recorder.params import RecorderParams, Stats
 
-from exolink import __version__, cdr, clock, messaging, roles
+from exolink import __version__, cdr, messaging, roles
+from exolink.board import clock
 from exolink.messaging import CommandRefused, Unlogged
 from exolink.node import Node
 from exolink.recordings import store as recstore
@@ -370,8 +371,8 @@ class Recorder(Node):
                 "file_index": str(self.index),
             },
             "exolink.labels": dict(self.labels),
-            # which clock stamped this file (a board with no time server: exolink.clock)
-            "exolink.clock": clock.recorded(self.ctx.config.state_dir),
+            # which clock stamped this file (a board with no time server: exolink.board.clock)
+            "exolink.board.clock": clock.recorded(self.ctx.config.state_dir),
             "exolink.config": {"yaml": self.config_yaml},
         }
 

@@ -75,7 +75,7 @@ def test_unit_retries_missing_hardware_but_not_a_bad_config() -> None:
 
 
 def test_unit_lets_the_supervisor_read_and_set_the_clock() -> None:
-    """exolink.clock reads adjtimex on every status and steps the clock for a laptop: both are
+    """exolink.board.clock reads adjtimex on every status and steps the clock for a laptop: both are
     in systemd's @clock set, which @system-service leaves out and ProtectClock forbids. A
     supervisor without them was killed by the kernel (SIGSYS) at its first status on the proxy."""
     unit = (REPO / "services/etc/systemd/system/exolink.service").read_text()
@@ -132,8 +132,8 @@ def test_update_units_are_enabled_and_run_the_agent_as_root() -> None:
     ):
         text = (system / unit).read_text()
         assert f"exolink update-agent {action}" in text and "User=" not in text
-    # The supervisor writes its requests where the path units look (exolink.update.UPDATE_DIR).
-    from exolink import update
+    # The supervisor writes its requests where the path units look (exolink.board.update.UPDATE_DIR).
+    from exolink.board import update
 
     for unit in ("exolink-update.path", "exolink-mark-good.path"):
         [path] = re.findall(r"PathExists=(\S+)", (system / unit).read_text())

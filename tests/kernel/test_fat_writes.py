@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from exolink import boardsetup
+from exolink.board import setup as boardsetup
 
 pytestmark = pytest.mark.kernel
 

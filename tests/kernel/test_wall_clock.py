@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from exolink import clock
+from exolink.board import clock
 
 pytestmark = pytest.mark.kernel
 

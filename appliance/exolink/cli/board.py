@@ -55,7 +55,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_board_setup(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from exolink import boardsetup  # the board's own setup: `board-setup` only
+    from exolink.board import setup as boardsetup  # the board's own setup: `board-setup` only
 
     logs.setup("board-setup")
     boot = Path(args.boot)

@@ -1,7 +1,7 @@
 """`exolink clock [sync]`: how far the board's clock is from this laptop's, and setting it.
 
 A board at a site with no time server stamps its recordings with the wrong time; this laptop's
-clock is the reference (exolink.clock). ``exolink status`` shows the same line.
+clock is the reference (exolink.board.clock). ``exolink status`` shows the same line.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import sys
 import time
 from typing import Any
 
-from exolink import clock
+from exolink.board import clock
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
 

@@ -3,7 +3,7 @@
 The bundle (``make bundle``: a RAUC bundle signed with the lab's key) goes to the supervisor in
 chunks; the board checks it (sha256 here, the signature by RAUC there), installs it into the other
 A/B slot, reboots into it and keeps it only once every critical node beats; otherwise U-Boot falls
-back to the old slot by itself (exolink.update). Refused while the exoskeleton is armed. This
+back to the old slot by itself (exolink.board.update). Refused while the exoskeleton is armed. This
 command waits for the outcome (``--no-wait`` returns once the board has the bundle).
 
 ``exolink update-agent`` is the board's root side, run by systemd (not by hand).
@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from exolink import logs, messaging, update
+from exolink import logs, messaging
+from exolink.board import update
 from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
@@ -155,7 +156,7 @@ def cmd_update(args: argparse.Namespace) -> int:
 
 
 def cmd_update_agent(args: argparse.Namespace) -> int:
-    """The board's root side (systemd units; exolink.update)."""
+    """The board's root side (systemd units; exolink.board.update)."""
     logs.setup("update-agent")
     action = {
         "install": update.agent_install,
@@ -180,6 +181,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="seconds to wait for the outcome through the reboot (0: return once sent)",
     )
     p.set_defaults(func=cmd_update)
-    p = sub.add_parser("update-agent", help="board side, run by systemd as root (exolink.update)")
+    p = sub.add_parser(
+        "update-agent", help="board side, run by systemd as root (exolink.board.update)"
+    )
     p.add_argument("action", choices=["install", "boot-check", "mark-good"])
     p.set_defaults(func=cmd_update_agent)

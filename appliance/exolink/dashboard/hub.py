@@ -32,9 +32,10 @@ from typing import Any
 import structlog
 import zenoh
 
-from exolink import cdr, clock, messaging, roles
+from exolink import cdr, messaging, roles
 from exolink import nodes as node_plugins
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
+from exolink.board import clock
 from exolink.client import Refused, Remote
 from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.holder import Holder, HoldRefused, describe
@@ -575,7 +576,7 @@ def _plain(msg: Any) -> dict[str, Any]:
 
 
 def _with_clock_offset(status: dict[str, Any], t0: float, t1: float) -> dict[str, Any]:
-    """The board's clock minus this laptop's, from the status round trip (exolink.clock: the
+    """The board's clock minus this laptop's, from the status round trip (exolink.board.clock: the
     page warns when the board's time cannot be trusted for a trial's recordings)."""
     c = status.get("clock")
     if isinstance(c, dict) and isinstance(c.get("now"), int | float):

@@ -11,8 +11,9 @@ import os
 import threading
 from typing import Any, Protocol
 
-from exolink import messaging, roles, update
-from exolink.clock import BoardClock, ClockRefused
+from exolink import messaging, roles
+from exolink.board import update
+from exolink.board.clock import BoardClock, ClockRefused
 from exolink.config import ApplianceConfig
 from exolink.messaging import CommandRefused
 from exolink.supervisor import canlink, trigger
@@ -202,7 +203,7 @@ class ManagementApi:
 
     def clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
         """The board's clock (any role: a laptop measures its offset from ``now``), or a step
-        to an operator laptop's time (exolink.clock: refused while armed or synchronised)."""
+        to an operator laptop's time (exolink.board.clock: refused while armed or synchronised)."""
         clock, action = self.sup.clock, req.get("action")
         if action == "step":
             try:
@@ -219,7 +220,7 @@ class ManagementApi:
         return clock.status()
 
     def update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
-        """A new root file system from an admin laptop, in chunks (exolink.update): ``begin``
+        """A new root file system from an admin laptop, in chunks (exolink.board.update): ``begin``
         (size, sha256, name), ``chunk`` (offset, base64 data), ``commit``, ``abort``; no action
         is the software status (any role). Refused while armed: installing ends in a reboot,
         never under a walking patient; once committed, arming is refused until the reboot."""

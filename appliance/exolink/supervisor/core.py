@@ -24,10 +24,11 @@ import msgspec
 import structlog
 import yaml
 
-from exolink import cdr, hardware, liveness, logs, messaging, update
+from exolink import cdr, hardware, liveness, logs, messaging
 from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
+from exolink.board import update
+from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
-from exolink.clock import BoardClock
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
@@ -114,7 +115,7 @@ class Supervisor:
         self.memory = MemoryTrim()
         self.node_api: dict[str, dict[str, int]] = {}  # each node's Admission counters
         self.clock = BoardClock(Path(state_dir(cfg, self._workdir)), cfg.clock.from_laptop)
-        # Bundles from an admin laptop (exolink.update; on the board /var/lib/exolink/update,
+        # Bundles from an admin laptop (exolink.board.update; on the board /var/lib/exolink/update,
         # where the root agent picks them up) and this boot's healthy mark, left once.
         self.update = update.Receiver(update.local_dir(self._workdir))
         self._healthy_marked = False
@@ -499,7 +500,7 @@ class Supervisor:
 
     def _mark_healthy(self) -> None:
         """The first armable state of this boot (every critical node beating, the bus seen):
-        the root agent may now mark the booted slot good (exolink.update). Until then a new slot
+        the root agent may now mark the booted slot good (exolink.board.update). Until then a new slot
         is on trial and U-Boot falls back to the old one when its attempts run out."""
         if self._healthy_marked or self.arm_blockers():
             return

@@ -36,7 +36,7 @@ from typing import Any
 
 import structlog
 
-log = structlog.get_logger("exolink.update")
+log = structlog.get_logger("exolink.board.update")
 
 UPDATE_DIR = Path("/var/lib/exolink/update")
 INCOMING = "incoming.raucb"

@@ -15,7 +15,7 @@ and, when the board's clock is not synchronised by a time server, steps it.
   host's).
 - The last step is kept in ``state_dir/clock.json`` with the kernel's boot id, so a reboot
   (which loses the step) is told apart from it; the recorder writes what the clock was into each
-  file (``exolink.clock`` metadata).
+  file (``exolink.board.clock`` metadata).
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ import structlog
 from exolink import roles
 from exolink.config import ConfigError, DeviceName, decode_yaml, parse
 
-log = structlog.get_logger("exolink.boardsetup")
+log = structlog.get_logger("exolink.board.setup")
 
 SETTINGS_FILE = "exolink-settings.yaml"
 
