@@ -36,7 +36,7 @@ import zenoh
 from exolink import messaging
 from exolink.canbus import Frame, open_reader
 from exolink.config import CanConfig, bundled, load
-from exolink.holder import Holder
+from exolink.control.holder import Holder
 
 log = structlog.get_logger("harness")
 

@@ -30,9 +30,9 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from exolink import cdr, roles
-from exolink.arming import ArmingState
-from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
-from exolink.jointlimits import Limits
+from exolink.control.arming import ArmingState
+from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
+from exolink.limits.joints import Limits
 from exolink.messaging import Caller, CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2

@@ -16,7 +16,7 @@ from exolink.nodes.pattern_player import load_pattern, parse_pattern
 from benchmarks.harness import EXOLINK, Appliance
 from exolink.cli.main import parse
 from exolink.config import bundled
-from exolink.jointlimits import Limits, default_max, default_min
+from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import ProtocolError, h2
 
 HEADER = "r_hip,r_knee,r_ankle,l_hip,l_knee,l_ankle"

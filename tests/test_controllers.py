@@ -22,8 +22,8 @@ from exolink.nodes.controller_manager.node import LEASE_PAST_TRIP_MS
 from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_for
 from exolink import messaging, roles
 from exolink.config import ConfigError, load
-from exolink.controller import State
-from exolink.jointlimits import Limits, default_max, default_min
+from exolink.control.controller import State
+from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import h2
 
 SITTING = State((40, 60, 0, 40, 60, 0), (0,) * 6)
@@ -434,7 +434,7 @@ def msgspec_convert(data: dict[str, Any], cls: type) -> Any:
 # A lab's own controller package, installed the way pip would (a dist-info with entry points on
 # the path): how the tests get a controller that fails on demand, through the real plugin story.
 LAB_PLUGIN = '''
-from exolink.controller import Controller, NoParams
+from exolink.control.controller import Controller, NoParams
 
 
 class Raiser(Controller):
@@ -1061,7 +1061,7 @@ def test_pattern_through_the_manager_follows_the_managers_stops(gait, mbus) -> N
     so on controllers/activity (the whole list, read here by rosbags as a ROS 2 laptop would),
     and the player's state follows from the manager, with its reason."""
     from exolink import messaging
-    from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
+    from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 
     app = gait
     pid = app.node("pattern_player")["pid"]

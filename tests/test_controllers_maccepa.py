@@ -17,9 +17,9 @@ from exolink.nodes.controller_manager.manager import (
 )
 
 from benchmarks.harness import Appliance, collect, wait_for
-from exolink.controller import BoardState, State
-from exolink.jointlimits import Limits, default_max, default_min
-from exolink.maccepalimits import BoardLimits
+from exolink.control.controller import BoardState, State
+from exolink.limits.joints import Limits, default_max, default_min
+from exolink.limits.maccepa import BoardLimits
 from exolink.protocol import maccepa
 
 BOARD0 = BoardState(0, (10, 12, 0, 0), (0, 30, 0, 0), (0, 0, 12))
@@ -125,7 +125,7 @@ def test_timeout_stop_and_not_armed_stop_the_board() -> None:
 # --- on the simulator, with the watchdog --------------------------------------------------------
 
 LAB_PLUGIN = '''
-from exolink.controller import Controller
+from exolink.control.controller import Controller
 
 
 class BoardRaiser(Controller):

@@ -21,7 +21,7 @@ from benchmarks.harness import EXOLINK, collect, connect, wait_for
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import load
-from exolink.holder import Holder
+from exolink.control.holder import Holder
 from exolink.protocol import h2
 
 NODES = [

@@ -20,7 +20,7 @@ from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern, period_s
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging
-from exolink.jointlimits import Limits, default_max, default_min
+from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import ProtocolError, h2, maccepa
 
 NODES = [

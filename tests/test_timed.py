@@ -13,8 +13,8 @@ from exolink.nodes.controller_manager.manager import Manager, Switch
 from exolink.nodes.controller_manager.timed import Timed
 
 from exolink.canbus.bcm import ThreadLease
-from exolink.controller import State
-from exolink.jointlimits import Limits, LimitsConfig
+from exolink.control.controller import State
+from exolink.limits.joints import Limits, LimitsConfig
 from exolink.protocol import h2
 
 ID, PERIOD, LEASE = 0x46, 0.010, 6

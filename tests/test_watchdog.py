@@ -223,7 +223,7 @@ def test_a_nodes_view_of_the_watchdog_counts_its_words_and_the_longest_wait() ->
     """What `pattern status` and `controllers list` show as watchdog_word: a stale view (no word
     for 3 s) is told apart from a tripped watchdog by these. The transport is a stand-in: only
     the bookkeeping is under test (the word's way over Zenoh is in test_motion)."""
-    from exolink.arming import ArmingState
+    from exolink.control.arming import ArmingState
 
     class Msg:
         def subscribe_raw(self, *_a: object, **_k: object) -> None:

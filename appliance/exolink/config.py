@@ -16,7 +16,7 @@ import msgspec
 import yaml
 
 from exolink.entrypoints import PluginError, node_params_type
-from exolink.jointlimits import Limits, LimitsConfig
+from exolink.limits.joints import Limits, LimitsConfig
 
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 NodeName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,39}$")]
@@ -155,7 +155,7 @@ class ApplianceConfig(_Strict, frozen=True, kw_only=True):
     zenoh: ZenohConfig = ZenohConfig()
     trigger: TriggerConfig = TriggerConfig()
     watchdog: WatchdogConfig = WatchdogConfig()
-    # The lab's joint limits: every motion obeys them, whoever asks (exolink.jointlimits).
+    # The lab's joint limits: every motion obeys them, whoever asks (exolink.limits.joints).
     limits: LimitsConfig = LimitsConfig()
     clock: ClockConfig = ClockConfig()
     # Where the appliance keeps what an operator set at run time (stricter joint limits), so it

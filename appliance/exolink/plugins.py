@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from functools import cache
 
-from exolink.controller import Controller
+from exolink.control.controller import Controller
 from exolink.entrypoints import CONTROLLERS, NODES, PluginError, load, names
 from exolink.node import Node
 

@@ -25,7 +25,7 @@ from exolink.nodes.controller_manager.intent import IntentRefused, OperatorLimit
 from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
 
 from exolink import cdr, roles
-from exolink.maccepalimits import GAINS, KINDS, target
+from exolink.limits.maccepa import GAINS, KINDS, target
 from exolink.messaging import Caller, CommandRefused, Unlogged
 from exolink.node import NodeContext
 from exolink.plugins import controller_types

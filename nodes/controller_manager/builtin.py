@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from exolink.controller import (
+from exolink.control.controller import (
     Controller,
     Refused,
     SafeStop,

@@ -28,7 +28,7 @@ from typing import Any
 
 import structlog
 
-from exolink.jointlimits import Limits
+from exolink.limits.joints import Limits
 from exolink.protocol import h2
 
 log = structlog.get_logger()

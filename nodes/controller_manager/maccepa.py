@@ -15,8 +15,8 @@ from typing import Annotated, Any, Literal
 import msgspec
 from exolink.nodes.controller_manager.builtin import NO_EXTRA_READS, expire
 
-from exolink.controller import BoardLimits, Controller, Refused, State, maccepa_interface
-from exolink.maccepalimits import GAINS, BoardId, target
+from exolink.control.controller import BoardLimits, Controller, Refused, State, maccepa_interface
+from exolink.limits.maccepa import GAINS, BoardId, target
 
 
 class MaccepaGains(msgspec.Struct, forbid_unknown_fields=True, frozen=True):

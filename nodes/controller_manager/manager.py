@@ -21,10 +21,17 @@ from typing import Any
 import msgspec
 import structlog
 
-from exolink.controller import INTERFACES, MACCEPA_INTERFACES, Controller, Refused, SafeStop, State
-from exolink.jointlimits import POSITION, STIFFNESS, TORQUE, Limits
-from exolink.maccepalimits import GAINS, BoardLimits, board_of
-from exolink.maccepalimits import target as board_name
+from exolink.control.controller import (
+    INTERFACES,
+    MACCEPA_INTERFACES,
+    Controller,
+    Refused,
+    SafeStop,
+    State,
+)
+from exolink.limits.joints import POSITION, STIFFNESS, TORQUE, Limits
+from exolink.limits.maccepa import GAINS, BoardLimits, board_of
+from exolink.limits.maccepa import target as board_name
 from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol.h2 import JOINTS, PERIOD_S
 

@@ -67,14 +67,14 @@ from exolink.nodes.controller_manager.manager import (
 from exolink.nodes.controller_manager.timed import Timed
 
 from exolink import cdr, logs
-from exolink.arming import ArmingState
 from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
 from exolink.canbus.bcm import open_lease
 from exolink.canbus.filters import Drop
 from exolink.config import ConfigError
-from exolink.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
-from exolink.jointlimits import POSITION
-from exolink.maccepalimits import BoardLimits, target
+from exolink.control.arming import ArmingState
+from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
+from exolink.limits.joints import POSITION
+from exolink.limits.maccepa import BoardLimits, target
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa

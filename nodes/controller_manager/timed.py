@@ -24,7 +24,7 @@ import structlog
 from exolink.nodes.controller_manager.manager import PLANNED, Cycle, Manager
 
 from exolink.canbus.bcm import Lease
-from exolink.controller import State
+from exolink.control.controller import State
 from exolink.protocol import h2
 
 log = structlog.get_logger()

@@ -16,7 +16,7 @@ from exolink.cli.options import Leaves, common, decimal, frame_id, guard, intege
 from exolink.cli.remote import hold
 from exolink.client import remote
 from exolink.config import ZenohConfig
-from exolink.holder import Holder, HoldRefused, describe
+from exolink.control.holder import Holder, HoldRefused, describe
 
 # --- pattern ----------------------------------------------------------------------------------
 

@@ -34,11 +34,11 @@ import zenoh
 
 from exolink import cdr, messaging, roles
 from exolink import nodes as node_plugins
-from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.board import clock
 from exolink.client import Refused, Remote
+from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
+from exolink.control.holder import Holder, HoldRefused, describe
 from exolink.dashboard.commands import Command, CommandError, parse
-from exolink.holder import Holder, HoldRefused, describe
 from exolink.protocol import h2
 from exolink.recordings import store as recstore
 from exolink.recordings.readback import decode, info, iter_messages
@@ -89,7 +89,7 @@ class Hub:
         self.watchdog: dict[str, Any] | None = None
         self.trigger: dict[str, Any] | None = None
         # Motion held from this dashboard: taken when a page first asks for motion and nobody
-        # holds it, renewed while a page is open (exolink.holder).
+        # holds it, renewed while a page is open (exolink.control.holder).
         self.holder: Holder | None = None
         self._watched = asyncio.Event()  # a page is open: subscribe, decode and poll
 

@@ -25,11 +25,11 @@ import structlog
 import yaml
 
 from exolink import cdr, hardware, liveness, logs, messaging
-from exolink.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.board import update
 from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
 from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
+from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.api import ManagementApi

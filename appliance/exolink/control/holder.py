@@ -18,7 +18,7 @@ from typing import Any
 
 import structlog
 
-log = structlog.get_logger("exolink.holder")
+log = structlog.get_logger("exolink.control.holder")
 Call = Callable[[dict[str, Any]], dict[str, Any]]  # a `controllers` request -> its reply
 
 

@@ -14,9 +14,9 @@ from typing import Any, ClassVar
 
 import msgspec
 
-from exolink.jointlimits import Limits
-from exolink.maccepalimits import KINDS as MACCEPA_INTERFACES
-from exolink.maccepalimits import BoardLimits, target
+from exolink.limits.joints import Limits
+from exolink.limits.maccepa import KINDS as MACCEPA_INTERFACES
+from exolink.limits.maccepa import BoardLimits, target
 from exolink.protocol.h2 import JOINTS
 
 # The controller manager publishes every change of a controller's state here (the whole list,

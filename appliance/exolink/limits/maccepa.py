@@ -1,9 +1,9 @@
 """The limits every MACCEPA output of the controller manager passes, per configured board.
 
-The H2's joints have ``exolink.jointlimits``; a MACCEPA board has no angle contract of its own
+The H2's joints have ``exolink.limits.joints``; a MACCEPA board has no angle contract of its own
 (its set-point is whatever its selected on-board controller reads: lever degrees or a
 velocity), so the lab states what it allows here, once per board, in the controller manager's
-params. A controller refuses a command outside these (``exolink.controller.Controller.boards``
+params. A controller refuses a command outside these (``exolink.control.controller.Controller.boards``
 gives it them), and the manager saturates whatever a controller returns to them anyway, so a
 buggy plugin still cannot send a set-point the lab did not allow.
 """
