@@ -15,8 +15,9 @@ from typing import Any
 
 from exolink.nodes.recorder import McapFile, RecorderParams
 
-from exolink import cdr, messaging
+from exolink import messaging
 from exolink.protocol import h2
+from exolink.wire import cdr
 
 T0 = 1_700_000_000_000_000_000
 GAIT_S = 1.2  # one stride

@@ -12,7 +12,8 @@ import time
 from typing import Any
 
 from benchmarks.harness import Appliance, cpu_s, free_port, pct
-from exolink import messaging, rosgraph
+from exolink import messaging
+from exolink.wire import rosgraph
 
 COLD_TOKENS = """
 import json, sys, time
@@ -20,7 +21,7 @@ import dataclasses, itertools, struct, threading  # what any node imports anyway
 import structlog, zenoh
 from exolink import config
 t = time.perf_counter()
-from exolink import rosgraph  # what the graph adds: xxhash and the module
+from exolink.wire import rosgraph  # what the graph adds: xxhash and the module
 imported = (time.perf_counter() - t) * 1e3
 from exolink import messaging
 from exolink.config import ApplianceConfig, ZenohConfig

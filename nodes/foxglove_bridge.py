@@ -7,7 +7,7 @@ rosbags generates, as the recorder writes into MCAP files) and the CDR payload e
 travelled, stamped with the publisher's source timestamp from the attachment. Replays under
 ``<domain>/replay`` are not live and are left out.
 
-Channels come from the ROS 2 graph (the publishers' liveliness tokens, ``exolink.rosgraph``), not
+Channels come from the ROS 2 graph (the publishers' liveliness tokens, ``exolink.wire.rosgraph``), not
 from data: the bridge subscribes to a topic's data only while a Foxglove client subscribes to its
 channel. Without a client it receives nothing (an idle bridge subscribed to everything costs CPU
 for nobody: docs/performance.md).
@@ -26,8 +26,9 @@ import foxglove
 import msgspec
 import zenoh
 
-from exolink import messaging, rosgraph
+from exolink import messaging
 from exolink.node import Node
+from exolink.wire import rosgraph
 
 
 class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):

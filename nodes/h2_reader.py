@@ -12,7 +12,7 @@ lost. Malformed frames are counted and skipped. Counters go out on ``diagnostics
 
 The hot path of the whole appliance (300 frames/s on one Cortex-A8 core): frames are read in
 batches straight from the socket (``canbus.FrameReader``) and published from CDR templates
-(``exolink.cdr``), so this process never loads rosbags or numpy.
+(``exolink.wire.cdr``), so this process never loads rosbags or numpy.
 """
 
 from __future__ import annotations
@@ -25,11 +25,12 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from exolink import cdr, messaging
+from exolink import messaging
 from exolink.canbus import Cadence, Frame, open_reader
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import h2
+from exolink.wire import cdr
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"

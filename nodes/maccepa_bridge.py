@@ -20,11 +20,12 @@ from typing import Annotated, Any, Literal
 import can
 import msgspec
 
-from exolink import cdr, messaging
+from exolink import messaging
 from exolink.canbus import Cadence, Frame, open_reader
 from exolink.canbus.filters import Drop
 from exolink.node import Node
 from exolink.protocol import maccepa
+from exolink.wire import cdr
 
 BOARD_PERIOD_S = 0.01
 STALE_S = 0.5

@@ -29,13 +29,14 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from exolink import cdr, roles
+from exolink import roles
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.limits.joints import Limits
 from exolink.messaging import Caller, CommandRefused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
+from exolink.wire import cdr
 
 DEFAULT_PATTERN = Path(__file__).with_name("patterns") / "normal_walking.csv"
 STATE_TYPE = "exolink_msgs/msg/PatternState"

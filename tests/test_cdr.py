@@ -12,8 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from exolink import cdr, messaging, srvtypes
+from exolink import messaging
 from exolink.protocol import h2
+from exolink.wire import cdr, srvtypes
 
 NS = st.integers(min_value=0, max_value=(2**31 - 1) * 10**9)  # Time.sec is an int32
 F64 = st.floats(allow_nan=False, width=64)

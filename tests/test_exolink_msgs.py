@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from exolink import messaging, srvtypes
+from exolink import messaging
+from exolink.wire import srvtypes
 
 PKG = Path(__file__).resolve().parents[1] / "ros2" / "exolink_msgs"
 TABLE = json.loads(messaging.TYPE_HASHES.read_text())

@@ -18,7 +18,7 @@ LEAN = {
     "pattern_player",
     "timing_monitor",
     "maccepa_bridge",
-}  # exolink.cdr, no typestore
+}  # exolink.wire.cdr, no typestore
 HEAVY = ("numpy", "rosbags", "mcap", "zstandard")
 
 
@@ -88,7 +88,7 @@ def test_each_node_imports_only_its_own_plugin(write_config, spawn, tmp_path, mo
     rec = set(json.loads((out / "recorder.json").read_text()))
     assert "mcap.writer" in rec
     assert not {m for m in rec if m.split(".")[0] in ("rosbags", "numpy")}, "recorder: typestore"
-    # Nor a typestore: its messages are exolink.cdr's, its ROS 2 services load rosbags at their
+    # Nor a typestore: its messages are exolink.wire.cdr's, its ROS 2 services load rosbags at their
     # first call (none here): numpy and rosbags were ~13 MB of its memory.
     heavy = sorted(m for m in sup if m.split(".")[0] in HEAVY)
     assert not heavy, f"the supervisor imported {heavy[:5]}"

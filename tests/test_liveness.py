@@ -92,12 +92,12 @@ def test_a_channel_closed_meanwhile_does_not_stop_the_others_beats() -> None:
 
 
 def test_a_wakeup_ends_a_wait_from_another_thread_and_only_once() -> None:
-    """The supervisor loop's alarm (exolink.wakeup): a set before the wait ends it at once, a
+    """The supervisor loop's alarm (exolink.supervisor.wakeup): a set before the wait ends it at once, a
     set during it ends it early, a wait without one runs out; a set is consumed by the wait
     that saw it, and the pipe opens only on first use (after the zygote's fork)."""
     import threading
 
-    from exolink.wakeup import Wakeup
+    from exolink.supervisor.wakeup import Wakeup
 
     w = Wakeup()
     assert w._fds is None

@@ -18,10 +18,11 @@ from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from benchmarks.harness import EXOLINK, Appliance, collect, motion_nodes, wait_for
-from exolink import messaging, rosgraph
+from exolink import messaging
 from exolink.board import clock
 from exolink.protocol import h2
 from exolink.recordings.readback import RecordingError, export_csv, info
+from exolink.wire import rosgraph
 
 JS_KEY = messaging.topic_key(0, "h2", "joint_states", "sensor_msgs/msg/JointState")
 

@@ -10,8 +10,9 @@ import xxhash
 import zenoh
 
 from benchmarks.harness import free_port, wait_for
-from exolink import messaging, rosgraph
+from exolink import messaging
 from exolink.config import ApplianceConfig, ZenohConfig
+from exolink.wire import rosgraph
 
 
 def test_qos_strings_leave_out_rmw_zenohs_defaults() -> None:

@@ -434,10 +434,11 @@ def test_junk_on_a_nodes_diagnostics_is_counted_not_believed_and_logged_once() -
     it was, is counted, and is logged at its first and every 1000th occurrence, not at each."""
     from structlog.testing import capture_logs
 
-    from exolink import cdr, messaging
+    from exolink import messaging
     from exolink.config import bundled, parse
     from exolink.supervisor.core import Supervisor
     from exolink.supervisor.processes import NodeProcess
+    from exolink.wire import cdr
 
     sup = Supervisor(parse(bundled("sim").read_text(), "sim.yaml"))
     cfg = sup.cfg.node("recorder")

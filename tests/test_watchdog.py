@@ -15,11 +15,12 @@ import can
 import pytest
 
 from benchmarks.harness import FrameStream, wait_for
-from exolink import cdr, hardware
+from exolink import hardware
 from exolink.canbus import FrameReader, open_bus, open_reader
 from exolink.config import CanConfig, WatchdogConfig
 from exolink.protocol import h2, maccepa
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
+from exolink.wire import cdr
 
 H2 = hardware.load("h2")  # the device the watchdog guards here
 

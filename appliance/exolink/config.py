@@ -87,7 +87,7 @@ class ZenohConfig(_Strict, frozen=True):
     connect: list[str] = msgspec.field(default_factory=list)
     multicast_scouting: bool = False
     # The ROS 2 distro whose rmw_zenoh laptops run: Humble's has no type hashes in its keys
-    # (TypeHashNotSupported) and a 24-byte GID; Jazzy, Kilted and Rolling agree (exolink.rosgraph).
+    # (TypeHashNotSupported) and a 24-byte GID; Jazzy, Kilted and Rolling agree (exolink.wire.rosgraph).
     ros_distro: Literal["jazzy", "kilted", "rolling", "humble"] = "jazzy"
     # Path to a Zenoh JSON5 file with credentials / TLS, merged over the settings above.
     config_file: str | None = None

@@ -14,7 +14,7 @@ key the way exolink's CLI does. Every call lands in the command log, by ``ros2``
 client's GID.
 
 Type hashes of services come from the table ``make msgs`` writes (rosbags is slow to import on
-the board); exolink.srvtypes.service_fielddefs is what both the table and the CDR use.
+the board); exolink.wire.srvtypes.service_fielddefs is what both the table and the CDR use.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ from typing import Any
 import structlog
 import zenoh
 
-from exolink import logs, messaging, roles, rosgraph
+from exolink import logs, messaging, roles
+from exolink.wire import rosgraph
 
 _log = structlog.get_logger("exolink.ros2")
 

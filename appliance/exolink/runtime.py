@@ -25,7 +25,7 @@ import msgspec
 import structlog
 import zenoh
 
-from exolink import cdr, liveness, logs, messaging, roles
+from exolink import liveness, logs, messaging, roles
 from exolink.config import ApplianceConfig, load, node_params
 from exolink.errors import run_guarded
 from exolink.node import (
@@ -37,6 +37,7 @@ from exolink.node import (
     beat_period_s,
 )
 from exolink.plugins import find_node_class
+from exolink.wire import cdr
 
 STALL_LOG_EVERY_S = 10.0
 

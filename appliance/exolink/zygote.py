@@ -29,7 +29,6 @@ import traceback
 from typing import Any, NoReturn
 
 import exolink.canbus
-import exolink.cdr
 import exolink.errors
 import exolink.liveness
 import exolink.logs
@@ -38,6 +37,7 @@ import exolink.plugins
 import exolink.protocol.h2
 import exolink.protocol.maccepa
 import exolink.runtime
+import exolink.wire.cdr
 
 _PID = struct.Struct("=i")
 MAX_REQUEST = 1 << 16

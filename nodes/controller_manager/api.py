@@ -24,12 +24,13 @@ import structlog
 from exolink.nodes.controller_manager.intent import IntentRefused, OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
 
-from exolink import cdr, roles
+from exolink import roles
 from exolink.limits.maccepa import GAINS, KINDS, target
 from exolink.messaging import Caller, CommandRefused, Unlogged
 from exolink.node import NodeContext
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
+from exolink.wire import cdr
 
 R = TypeVar("R")
 

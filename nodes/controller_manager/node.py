@@ -66,7 +66,7 @@ from exolink.nodes.controller_manager.manager import (
 )
 from exolink.nodes.controller_manager.timed import Timed
 
-from exolink import cdr, logs
+from exolink import logs
 from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
 from exolink.canbus.bcm import open_lease
 from exolink.canbus.filters import Drop
@@ -78,6 +78,7 @@ from exolink.limits.maccepa import BoardLimits, target
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
+from exolink.wire import cdr
 
 BEAT_S = 0.02
 # Nothing active: the loop beats idle this often (exolink.liveness: then held to the appliance's

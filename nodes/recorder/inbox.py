@@ -9,9 +9,11 @@ from typing import Any
 
 import zenoh
 
-from exolink import messaging, roles, rosgraph
+from exolink import messaging, roles
 
 # Topics subscribed one by one, learnt from graph tokens, which any login may declare (roles:
+from exolink.wire import rosgraph
+
 # "ros graph"); each costs a subscription (its inbox, the router's work). The appliance's own
 # sessions have a budget of their own, so tokens from elsewhere never crowd out what the
 # appliance publishes; other sessions (by the zid their tokens name) are bounded each and

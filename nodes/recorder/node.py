@@ -20,11 +20,12 @@ from exolink.nodes.recorder.inbox import Inbox
 from exolink.nodes.recorder.mcapfile import McapFile
 from exolink.nodes.recorder.params import RecorderParams, Stats
 
-from exolink import __version__, cdr, messaging, roles
+from exolink import __version__, messaging, roles
 from exolink.board import clock
 from exolink.messaging import CommandRefused, Unlogged
 from exolink.node import Node
 from exolink.recordings import store as recstore
+from exolink.wire import cdr
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 # How often the loop takes what the inbox holds. Each take is a wake-up (~1 ms of the board's

@@ -10,7 +10,8 @@ from __future__ import annotations
 import threading
 import time
 
-from exolink import cdr, messaging
+from exolink import messaging
+from exolink.wire import cdr
 
 WATCHDOG_TOPIC = "watchdog"
 WATCHDOG_TYPE = "exolink_msgs/msg/WatchdogEvent"

@@ -32,7 +32,7 @@ from typing import Any
 import structlog
 import zenoh
 
-from exolink import cdr, messaging, roles
+from exolink import messaging, roles
 from exolink import nodes as node_plugins
 from exolink.board import clock
 from exolink.client import Refused, Remote
@@ -42,6 +42,7 @@ from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.protocol import h2
 from exolink.recordings import store as recstore
 from exolink.recordings.readback import decode, info, iter_messages
+from exolink.wire import cdr
 
 log = structlog.get_logger("exolink.dashboard")
 

@@ -3,8 +3,8 @@ management keys ``exolink/<device>/...``."""
 
 from __future__ import annotations
 
-from exolink import rosgraph
 from exolink.messaging.types import dds_name, type_hash
+from exolink.wire import rosgraph
 
 
 def topic_key(

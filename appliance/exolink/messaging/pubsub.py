@@ -13,7 +13,7 @@ from typing import Any, Protocol
 
 import zenoh
 
-from exolink import roles, rosgraph
+from exolink import roles
 from exolink.config import ZenohConfig
 from exolink.messaging.bundles import bundle_key, bundled_data_key, decode_bundle, encode_bundle
 from exolink.messaging.keys import mgmt_key, topic_key
@@ -32,6 +32,7 @@ from exolink.messaging.rpc import (
 )
 from exolink.messaging.sessions import Unreachable
 from exolink.messaging.types import prepare
+from exolink.wire import rosgraph
 
 ATTACHMENT = struct.Struct("<qqB16s")  # Jazzy and later; rosgraph reads Humble's too
 
@@ -124,7 +125,7 @@ def decode_attachment(raw: bytes) -> tuple[int, int, bytes]:
 
 
 class Publisher:
-    """A typed publisher: node code hands it message objects (or, from an ``exolink.cdr``
+    """A typed publisher: node code hands it message objects (or, from an ``exolink.wire.cdr``
     template, their CDR bytes), never keys or attachments."""
 
     def __init__(
@@ -245,7 +246,7 @@ class Messaging:
 
     With ``ros_node`` (every appliance process names one) the session is also that ROS 2 node
     in the graph rmw_zenoh laptops read: each publisher and subscription declared here gets its
-    graph token and its GID from it (exolink.rosgraph); ``close`` takes the node out.
+    graph token and its GID from it (exolink.wire.rosgraph); ``close`` takes the node out.
     """
 
     def __init__(self, session: zenoh.Session, cfg: Scope, ros_node: str | None = None) -> None:
@@ -326,7 +327,7 @@ class Messaging:
     def subscribe_raw(
         self, topic: str, typename: str, callback: Callable[..., None], timed: bool = False
     ) -> zenoh.Subscriber:
-        """CDR bytes to a decoder of the caller's (exolink.cdr): no typestore in the process.
+        """CDR bytes to a decoder of the caller's (exolink.wire.cdr): no typestore in the process.
         ``timed``: also the time the publisher put it (ns since the epoch, from the sample's
         attachment; 0 without a readable one)."""
         self._token(rosgraph.SUBSCRIPTION, topic, typename, None)

@@ -15,8 +15,9 @@ from typing import Any, Protocol
 import structlog
 import zenoh
 
-from exolink import cdr, logs, roles
+from exolink import logs, roles
 from exolink.messaging.sessions import Unreachable
+from exolink.wire import cdr
 
 
 class Putter(Protocol):

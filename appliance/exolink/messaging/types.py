@@ -8,7 +8,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from exolink import srvtypes
+from exolink.wire import srvtypes
 
 MSG_DIR = Path(__file__).parents[1] / "msgs"  # exolink/msgs
 # Every type's RIHS01 hash, written by `make msgs` and checked against rosbags by the tests: a

@@ -20,8 +20,9 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from exolink import roles, rosgraph
+from exolink import roles
 from exolink.recordings.check import Loss, RecordingError, Walk, _open, check, verify
+from exolink.wire import rosgraph
 
 TRIGGER_SUFFIX = "/trigger"
 JOINT_STATE = "sensor_msgs/msg/JointState"

@@ -20,8 +20,8 @@ from exolink.supervisor import canlink, trigger
 from exolink.supervisor.forking import Zygote
 from exolink.supervisor.memory import MemoryTrim, rss_mb
 from exolink.supervisor.processes import NodeProcess
+from exolink.supervisor.wakeup import Wakeup
 from exolink.supervisor.watchdog import ArmRefused, Watchdog
-from exolink.wakeup import Wakeup
 
 Route = tuple[Any, messaging.Needs]
 

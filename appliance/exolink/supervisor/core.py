@@ -24,7 +24,7 @@ import msgspec
 import structlog
 import yaml
 
-from exolink import cdr, hardware, liveness, logs, messaging
+from exolink import hardware, liveness, logs, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
@@ -39,8 +39,9 @@ from exolink.supervisor.osproc import apply_priority, kill_strays, proc_state
 from exolink.supervisor.processes import Exit, NodeProcess, relay
 from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
+from exolink.supervisor.wakeup import Wakeup
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
-from exolink.wakeup import Wakeup
+from exolink.wire import cdr
 
 if TYPE_CHECKING:
     from exolink.canbus.bcm import CyclicWatch
@@ -173,7 +174,7 @@ class Supervisor:
         if cfg.can.interface == "socketcan":
             self._link_thread = threading.Thread(target=self._link_loop, daemon=True, name="link")
             self._link_thread.start()
-        # CDR from exolink.cdr: no typestore (rosbags, numpy: ~13 MB, seconds of start on the A8)
+        # CDR from exolink.wire.cdr: no typestore (rosbags, numpy: ~13 MB, seconds of start on the A8)
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE, raw=True)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE, raw=True)
         self.api = ManagementApi(self)

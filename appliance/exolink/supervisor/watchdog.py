@@ -23,7 +23,7 @@ kernel timestamps); armed, it sleeps until the silence deadline of the last angl
 ten wake-ups a second while the H2 streams, none per frame); not armed, a joint-control frame
 (id 70) wakes it at once, since a motion frame then must be answered now, and it looks at least
 every half silence limit so that arming sees fresh H2 data. Arming, disarming and trips wake it
-through a pipe (exolink.wakeup) to switch between the two.
+through a pipe (exolink.supervisor.wakeup) to switch between the two.
 
 On SocketCAN no frame is read at all: the kernel's broadcast manager (exolink.canbus.bcm) times the
 angle frames and this thread hears only of a silence, a resumption or a frame whose length
@@ -61,7 +61,7 @@ from exolink import logs
 from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
 from exolink.hardware import Device, Seen
-from exolink.wakeup import Wakeup
+from exolink.supervisor.wakeup import Wakeup
 
 if TYPE_CHECKING:
     from exolink.canbus.bcm import CyclicWatch, Event
