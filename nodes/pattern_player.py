@@ -33,7 +33,7 @@ from exolink import roles
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.limits.joints import Limits
-from exolink.messaging import Caller, CommandRefused
+from exolink.messaging import Caller, Refused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 from exolink.wire import cdr
@@ -199,7 +199,7 @@ class PatternPlayer(Node):
             "status": lambda _r, _c: None,
         }.get(action)
         if handler is None:
-            raise CommandRefused(
+            raise Refused(
                 f"unknown pattern action {action!r} (start, stop, pause, restart, speed, "
                 "select, disable, load, status)"
             )
@@ -231,11 +231,11 @@ class PatternPlayer(Node):
     def _start(self, _req: dict[str, Any], caller: Caller) -> None:
         with self.lock:
             if not any(self.selected):
-                raise CommandRefused(
+                raise Refused(
                     "no joint selected: select joints first (pattern select r_hip r_knee ...)"
                 )
             if self.arming is not None and (why := self.arming.check()):
-                raise CommandRefused(why)
+                raise Refused(why)
             self.operator = caller.login
             self.state, self.reason = "running", ""
             self._t0, self._i0 = time.monotonic(), self.index
@@ -265,7 +265,7 @@ class PatternPlayer(Node):
         }
         try:
             self.ctx.messaging.command("controllers", body=body, timeout_s=ENGAGE_WAIT_S)
-        except CommandRefused as exc:
+        except Refused as exc:
             if str(exc).startswith("nothing answers"):  # its answer may be what was lost
                 self._disengage()
             with self.lock:
@@ -292,7 +292,7 @@ class PatternPlayer(Node):
     def _pause(self, _req: dict[str, Any], _caller: Caller) -> None:
         with self.lock:
             if self.state != "running":
-                raise CommandRefused(f"cannot pause: pattern is {self.state}")
+                raise Refused(f"cannot pause: pattern is {self.state}")
             self._halt("paused")
         self._deactivate()
 
@@ -307,7 +307,7 @@ class PatternPlayer(Node):
     def _speed(self, req: dict[str, Any], _caller: Caller) -> None:
         level = req.get("speed")
         if isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= 10:
-            raise CommandRefused(f"speed must be a whole level 1..10, got {level!r}")
+            raise Refused(f"speed must be a whole level 1..10, got {level!r}")
         with self.lock:
             running = self.state == "running"
         if running:  # the manager checks the pattern's steps at the new speed first
@@ -320,18 +320,16 @@ class PatternPlayer(Node):
     def _joints(self, req: dict[str, Any]) -> list[int]:
         names = req.get("joints")
         if not isinstance(names, list) or not names:
-            raise CommandRefused(
-                "give one or more joints (r_hip r_knee r_ankle l_hip l_knee l_ankle)"
-            )
+            raise Refused("give one or more joints (r_hip r_knee r_ankle l_hip l_knee l_ankle)")
         try:
             return [h2.motor_id(n) - 1 for n in names]
         except ProtocolError as exc:
-            raise CommandRefused(str(exc)) from None
+            raise Refused(str(exc)) from None
 
     def _select(self, req: dict[str, Any], _caller: Caller) -> None:
         with self.lock:
             if self.state != "stopped":
-                raise CommandRefused(
+                raise Refused(
                     f"stop the pattern before changing the selection (it is {self.state})"
                 )
             idx = self._joints(req)
@@ -364,9 +362,7 @@ class PatternPlayer(Node):
     def _load(self, req: dict[str, Any], _caller: Caller) -> None:
         with self.lock:
             if self.state != "stopped":
-                raise CommandRefused(
-                    f"stop the pattern before loading another (it is {self.state})"
-                )
+                raise Refused(f"stop the pattern before loading another (it is {self.state})")
             p = self.params
             try:
                 if "content" in req:  # uploaded by the operator's CLI from the laptop
@@ -380,7 +376,7 @@ class PatternPlayer(Node):
                     path = pattern_in(p.patterns_dir, str(req.get("file", "")))
                     self.pattern = load_pattern(path, self.limits)
             except ProtocolError as exc:
-                raise CommandRefused(str(exc)) from None
+                raise Refused(str(exc)) from None
             self.index = 0
 
     # --- the manager ----------------------------------------------------------------------
@@ -398,7 +394,7 @@ class PatternPlayer(Node):
         """``_deactivate`` where nobody waits for its answer (logged instead)."""
         try:
             self._deactivate()
-        except CommandRefused as exc:
+        except Refused as exc:
             self.log.error("pattern_disengage_unanswered", error=str(exc))
 
     def _follow_manager(self, stop: threading.Event) -> None:
@@ -433,7 +429,7 @@ class PatternPlayer(Node):
         the pattern's safety is the manager's and the watchdog's, not this display's)."""
         try:
             gait = self._manager({"action": "state", "name": GAIT})
-        except CommandRefused as exc:
+        except Refused as exc:
             self.log.warning("manager_status_unavailable", error=str(exc))
             return None
         if gait.get("state") is None:

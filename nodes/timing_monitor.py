@@ -19,7 +19,7 @@ import msgspec
 
 from exolink.canbus import open_reader
 from exolink.canbus.filters import Drop
-from exolink.messaging import CommandRefused
+from exolink.messaging import Refused
 from exolink.node import Node
 
 HIST_EDGES_US = [0, 10, 20, 50, 100, 200, 500, 1000, 5000]
@@ -176,20 +176,20 @@ class TimingMonitor(Node):
     def on_query(self, req: dict[str, Any]) -> dict[str, Any]:
         fid, byte0, dlc = req.get("id"), req.get("byte0"), req.get("dlc")
         if not isinstance(fid, int) or fid not in self.params.ids:
-            raise CommandRefused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
+            raise Refused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
         only = self.params.only_for(fid)
         if only is not None and (
             (dlc is not None and dlc != only.dlc)
             or (byte0 is not None and only.first_byte and byte0 not in only.first_byte)
         ):
-            raise CommandRefused(
+            raise Refused(
                 f"id {fid} is monitored only for dlc {only.dlc}"
                 + (f" and first byte {only.first_byte}" if only.first_byte else "")
                 + " (params.only)"
             )
         seconds = float(req.get("seconds", 0))
         if not 0 <= seconds <= 600:
-            raise CommandRefused("seconds must be 0..600")
+            raise Refused("seconds must be 0..600")
         since = time.time()
         if seconds:  # measure fresh frames only, once the loop has read the window's last ones
             time.sleep(seconds + READ_EVERY_S + 0.05)

@@ -108,11 +108,11 @@ class ManagerStandIn:
         self.asked: list[tuple[str, Any, float]] = []
 
     def command(self, *_path: str, body: dict[str, Any], timeout_s: float, tolerate=()):  # type: ignore[no-untyped-def]
-        from exolink.messaging import CommandRefused
+        from exolink.messaging import Refused
 
         self.asked.append((body["action"], body.get("within_s"), timeout_s))
         if body["action"] == "load":
-            raise CommandRefused("nothing answers at controllers: no answer within 5 s")
+            raise Refused("nothing answers at controllers: no answer within 5 s")
         return {"ok": True}
 
 
@@ -147,10 +147,10 @@ def test_a_gait_start_the_manager_did_not_answer_is_followed_by_its_deactivation
     manager handles requests in order) and refuses the start."""
     from exolink.nodes import pattern_player as pp
 
-    from exolink.messaging import CommandRefused
+    from exolink.messaging import Refused
 
     manager = ManagerStandIn()
-    with pytest.raises(CommandRefused, match="nothing answers"):
+    with pytest.raises(Refused, match="nothing answers"):
         player_on(manager)._engage()
     within = pp.ENGAGE_WAIT_S - pp.ENGAGE_MARGIN_S
     assert manager.asked == [

@@ -114,17 +114,17 @@ def test_update_is_refused_while_armed_and_says_why(tmp_path: Path) -> None:
     data = bundle_bytes()
     req = {"action": "begin", "size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
     caller = messaging.Caller("admin")
-    with pytest.raises(messaging.CommandRefused, match="armed: an update ends in a reboot"):
+    with pytest.raises(messaging.Refused, match="armed: an update ends in a reboot"):
         _sup(tmp_path, armed=True).update(req, caller)
     api = _sup(tmp_path, armed=False)
     assert api.update(req, caller)["offset"] == 0
     b64 = base64.b64encode(data).decode()
     api.update({"action": "chunk", "offset": 0, "data": b64}, caller)
     api.sup.watchdog.armed = True  # armed between the last chunk and the commit
-    with pytest.raises(messaging.CommandRefused, match="Disarm first"):
+    with pytest.raises(messaging.Refused, match="Disarm first"):
         api.update({"action": "commit"}, caller)
     assert not (tmp_path / update.REQUEST).exists()
-    with pytest.raises(messaging.CommandRefused, match="unknown update action 'frob'"):
+    with pytest.raises(messaging.Refused, match="unknown update action 'frob'"):
         api.update({"action": "frob"}, caller)
 
 

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from exolink import messaging
+from exolink.refusal import Refused
 
 DEFAULT_AT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 3.0
@@ -80,10 +81,6 @@ class Remote:
 
     def close(self) -> None:
         self.session.close()
-
-
-class Refused(Exception):
-    pass
 
 
 @contextmanager

@@ -12,6 +12,8 @@ import argparse
 import sys
 from collections.abc import Callable
 
+from exolink.refusal import Refused
+
 EXIT_USAGE, EXIT_CONFIG, EXIT_UNREACHABLE, EXIT_REFUSED = 2, 3, 4, 5
 # Apart from a bad config: CAN or GPIO missing may pass (a driver still probing at boot), so
 # systemd restarts on it; a bad config never fixes itself, so systemd must not (exolink.service).
@@ -50,7 +52,7 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
         return fail(str(exc), EXIT_HARDWARE)
     except Unreachable as exc:
         return fail(f"appliance unreachable: {exc}", EXIT_UNREACHABLE)
-    except ProtocolError as exc:
+    except (ProtocolError, Refused) as exc:
         return fail(f"refused: {exc}", EXIT_REFUSED)
     except KeyboardInterrupt:
         return 130

@@ -133,17 +133,15 @@ class Node:
         """Change one param at run time; nodes that allow it override ``apply_params``."""
         data = msgspec.to_builtins(self.params)
         if key not in data:
-            raise messaging.CommandRefused(
-                f"{self.name} has no param {key!r} (has: {', '.join(data)})"
-            )
+            raise messaging.Refused(f"{self.name} has no param {key!r} (has: {', '.join(data)})")
         data[key] = value
         try:
             new = msgspec.convert(data, type(self.params))
         except msgspec.ValidationError as exc:
-            raise messaging.CommandRefused(f"{self.name}.{key}: {exc}") from None
+            raise messaging.Refused(f"{self.name}.{key}: {exc}") from None
         self.apply_params(new)
         self.params = new
         return getattr(new, key)
 
     def apply_params(self, new: Any) -> None:
-        raise messaging.CommandRefused(f"{self.name} does not change params at run time")
+        raise messaging.Refused(f"{self.name} does not change params at run time")

@@ -153,7 +153,7 @@ def run_json(handler: Callable[[dict[str, Any]], dict[str, Any] | None], request
     it (ok, or the refusal's text)."""
     try:
         return {"ok": True, **(handler(request) or {})}
-    except (messaging.CommandRefused, roles.Forbidden, messaging.Unreachable) as exc:
+    except (messaging.Refused, roles.Forbidden, messaging.Unreachable) as exc:
         return {"ok": False, "error": str(exc)}
     except Exception as exc:  # a caller never waits on a handler bug
         return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}

@@ -21,12 +21,12 @@ from typing import Any, Protocol, TypeVar
 
 import can
 import structlog
-from exolink.nodes.controller_manager.intent import IntentRefused, OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
+from exolink.nodes.controller_manager.manager import Manager, Switch
 
 from exolink import roles
 from exolink.limits.maccepa import GAINS, KINDS, target
-from exolink.messaging import Caller, CommandRefused, Unlogged
+from exolink.messaging import Caller, Refused, Unlogged
 from exolink.node import NodeContext
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -59,7 +59,7 @@ def _deadline(req: dict[str, Any]) -> float | None:
     if within is None:
         return None
     if not isinstance(within, int | float) or isinstance(within, bool) or not 0 < within <= 10:
-        raise CommandRefused(f"within_s must be a number of seconds in (0, 10], not {within!r}")
+        raise Refused(f"within_s must be a number of seconds in (0, 10], not {within!r}")
     return time.monotonic() + within
 
 
@@ -109,7 +109,7 @@ class ManagerApi:
         """Refused unless motion may start now: armed, a holder present, the limits known."""
         for why in (self.node.not_armed(), self.node.presence.check(), self.node.limits.check()):
             if why:
-                raise CommandRefused(why)
+                raise Refused(why)
 
     # --- controllers --------------------------------------------------------------------------
 
@@ -121,45 +121,39 @@ class ManagerApi:
 
     def _controllers(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
         action = req.get("action", "list")
-        try:
-            if action == "list":
-                return self.node.status()
-            if action == "state":
-                return self.node.manager.state_of(str(req.get("name", "")))
-            if action == "types":
-                return {"types": controller_types()}
-            if action == "hold":
-                return self._hold(req, caller)
-            if action == "release":
-                return self._release(req)
-            if action == "load":
-                return self._load(req)
-            if action == "unload":
-                self.node.manager.unload(str(req.get("name", "")))
-                return {}
-            if action == "command":
-                name = str(req.get("name", ""))
-                if name in self.node.manager.active():  # it moves a joint now
-                    self.may_move()
-                body = {k: v for k, v in req.items() if k not in ("action", "name")}
-                return self.node.manager.command(name, body)
-            if action in ("activate", "deactivate", "switch"):
-                return self._switch(action, req)
-        except ManagerRefused as exc:
-            raise CommandRefused(str(exc)) from None
-        raise CommandRefused(
+        if action == "list":
+            return self.node.status()
+        if action == "state":
+            return self.node.manager.state_of(str(req.get("name", "")))
+        if action == "types":
+            return {"types": controller_types()}
+        if action == "hold":
+            return self._hold(req, caller)
+        if action == "release":
+            return self._release(req)
+        if action == "load":
+            return self._load(req)
+        if action == "unload":
+            self.node.manager.unload(str(req.get("name", "")))
+            return {}
+        if action == "command":
+            name = str(req.get("name", ""))
+            if name in self.node.manager.active():  # it moves a joint now
+                self.may_move()
+            body = {k: v for k, v in req.items() if k not in ("action", "name")}
+            return self.node.manager.command(name, body)
+        if action in ("activate", "deactivate", "switch"):
+            return self._switch(action, req)
+        raise Refused(
             f"unknown controllers action {action!r} "
             "(list, types, state, load, unload, activate, deactivate, switch, command, hold, "
             "release)"
         )
 
     def _hold(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        try:
-            out = self.node.presence.hold(
-                req.get("holder"), caller.login, req.get("what"), bool(req.get("take_over"))
-            )
-        except IntentRefused as exc:
-            raise CommandRefused(str(exc)) from None
+        out = self.node.presence.hold(
+            req.get("holder"), caller.login, req.get("what"), bool(req.get("take_over"))
+        )
         reply = {
             **out,
             "driving": self.node.manager.active(),
@@ -183,7 +177,7 @@ class ManagerApi:
         now inactive."""
         params = req.get("params") or {}
         if not isinstance(params, dict):
-            raise CommandRefused("params must be an object")
+            raise Refused("params must be an object")
         name, kind = str(req.get("name", "")), str(req.get("type", ""))
         activate = bool(req.get("activate"))
         until = _deadline(req)
@@ -200,7 +194,7 @@ class ManagerApi:
             return slot.status()
         try:
             active = self._switch("activate", {"names": [name]}, until)
-        except CommandRefused:
+        except Refused:
             self.node.manager.put_back(slot, old)  # nothing half-done: as before the request
             raise
         return {**slot.status(), **active}
@@ -217,7 +211,7 @@ class ManagerApi:
         def names(key: str) -> list[str]:
             v = req.get(key, [])
             if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-                raise CommandRefused(f"{key} must be a list of controller names")
+                raise Refused(f"{key} must be a list of controller names")
             return v
 
         if action == "switch":
@@ -232,16 +226,14 @@ class ManagerApi:
             sw.deactivate += [n for n in held if n not in sw.deactivate]
         wait = SWITCH_WAIT_S if until is None else until - time.monotonic()
         if wait <= 0:
-            raise CommandRefused("the request's within_s ran out before its switch")
+            raise Refused("the request's within_s ran out before its switch")
         self.node.manager.request(sw)
         self.node.wake.set()
         if not sw.done.wait(wait) and self.node.manager.withdraw(sw):
-            raise CommandRefused(
-                f"no H2 cycle within {wait:.2g} s to switch at (is the H2 streaming?)"
-            )
+            raise Refused(f"no H2 cycle within {wait:.2g} s to switch at (is the H2 streaming?)")
         sw.done.wait()
         if sw.error is not None:
-            raise CommandRefused(sw.error)
+            raise Refused(sw.error)
         return {"active": self.node.manager.active()}
 
     # --- the H2's commands --------------------------------------------------------------------
@@ -259,15 +251,13 @@ class ManagerApi:
             if kind == "stream":
                 on = req.get("on")
                 if not isinstance(on, bool):
-                    raise CommandRefused("stream needs 'on': true or false")
+                    raise Refused("stream needs 'on': true or false")
                 frames = [h2.encode_stream(on)]
                 self.node.send_now(frames)
                 return {"frames": _frames(frames)}
         except ProtocolError as exc:
-            raise CommandRefused(str(exc)) from None
-        except ManagerRefused as exc:
-            raise CommandRefused(str(exc)) from None
-        raise CommandRefused(f"unknown command kind {kind!r} (joint, limits or stream)")
+            raise Refused(str(exc)) from None
+        raise Refused(f"unknown command kind {kind!r} (joint, limits or stream)")
 
     def _joint(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
         joint = req.get("joint")
@@ -283,14 +273,14 @@ class ManagerApi:
                 self._record(jc, caller)
             return {"frames": _frames(frames)}
         if joint == "all":
-            raise CommandRefused("'all' joints is only for disabled or stopped")
+            raise Refused("'all' joints is only for disabled or stopped")
         jc = h2.joint_control(joint, mode, req.get("setpoint", 0), req.get("stiffness", 0))  # type: ignore[arg-type]
         i = jc.motor - 1
         lim = self.node.limits.in_force
         by = self.node.limits.set_by
         where = f" (set by {by.login})" if by is not None else " (the config's limits:)"
         if why := lim.violation(i, mode, jc.setpoint, jc.stiffness, where=where):
-            raise CommandRefused(why)
+            raise Refused(why)
         self.may_move()
         reply = self._operator(h2.JOINTS[i], h2.MODE_NAMES[mode], jc.setpoint, jc.stiffness)
         self._record(jc, caller)
@@ -303,7 +293,7 @@ class ManagerApi:
         name, mine = f"{OPERATOR}.{joint}.{mode}", f"{OPERATOR}.{joint}."
         for key, owner in self.node.manager.owners_of(joint).items():
             if not owner.startswith(mine):
-                raise CommandRefused(
+                raise Refused(
                     f"{joint} is driven by controller {owner} ({key}): "
                     f"`exolink controllers deactivate {owner}` first"
                 )
@@ -324,16 +314,11 @@ class ManagerApi:
         else:
             got = {k: req[k] for k in ("min", "max") if k in req}
             if not got:
-                raise CommandRefused(
-                    "limits needs 'min' and/or 'max' (six angles in degrees), or 'reset'"
-                )
+                raise Refused("limits needs 'min' and/or 'max' (six angles in degrees), or 'reset'")
             checked = {k: h2.decode(h2.encode_accepted_angles(k, v)) for k, v in got.items()}
             lo = [int(a) for a in checked["min"]] if "min" in checked else None
             hi = [int(a) for a in checked["max"]] if "max" in checked else None
-        try:
-            new = self.node.limits.set(lo, hi, caller.login)
-        except IntentRefused as exc:
-            raise CommandRefused(str(exc)) from None
+        new = self.node.limits.set(lo, hi, caller.login)
         self.node.manager.set_limits(new)
         frames = self.node.limit_frames()
         self.node.send_now(frames)
@@ -354,7 +339,7 @@ class ManagerApi:
         board, kind = req.get("board"), req.get("kind")
         if board not in self.node.board_ids:
             configured = ", ".join(str(b) for b in sorted(self.node.board_ids)) or "none"
-            raise CommandRefused(
+            raise Refused(
                 f"MACCEPA board {board!r} is not driven by the controller manager "
                 f"(params.maccepa: {configured})"
             )
@@ -369,10 +354,8 @@ class ManagerApi:
                 self.may_move()
                 return self._maccepa(board, kind, req)
         except ProtocolError as exc:
-            raise CommandRefused(str(exc)) from None
-        except ManagerRefused as exc:
-            raise CommandRefused(str(exc)) from None
-        raise CommandRefused(f"unknown MACCEPA command {kind!r} (gains, setpoint, duty, stop)")
+            raise Refused(str(exc)) from None
+        raise Refused(f"unknown MACCEPA command {kind!r} (gains, setpoint, duty, stop)")
 
     def _check_maccepa(self, board: int, kind: str, req: dict[str, Any]) -> None:
         """The codec's checks (ProtocolError names what is wrong); the board's limits are the
@@ -380,14 +363,14 @@ class ManagerApi:
         lim = self.node.manager.boards[board]
         ctl = req.get("controller", lim.controller)
         if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
-            raise CommandRefused(
+            raise Refused(
                 f"{target(board)} runs its {lim.controller} controller under the controller "
                 f"manager (params.maccepa), not {ctl!r}"
             )
         if kind == "gains":
             gains = [(g, req[g]) for g in GAINS if req.get(g) is not None]
             if not gains:
-                raise CommandRefused("gains needs at least one of kp, ki, kd")
+                raise Refused("gains needs at least one of kp, ki, kd")
             for g, v in gains:
                 maccepa.encode_gain(board, g, v, lim.controller)
         else:
@@ -405,7 +388,7 @@ class ManagerApi:
         name, mine = f"{OPERATOR}.{target(board)}.{kind}", f"{OPERATOR}.{target(board)}."
         for key, owner in self.node.manager.owners_of(target(board)).items():
             if key.split("/")[1] in group and not owner.startswith(mine):
-                raise CommandRefused(
+                raise Refused(
                     f"{target(board)} is driven by controller {owner} ({key}): "
                     f"`exolink controllers deactivate {owner}` first"
                 )
@@ -449,7 +432,7 @@ class ManagerApi:
             try:
                 body = {"action": "trip", "reason": reason, "detail": detail}
                 self.node.ctx.messaging.command("watchdog", body=body, timeout_s=2.0)
-            except CommandRefused as exc:
+            except Refused as exc:
                 self.node.log.error("trip_request_failed", reason=reason, error=str(exc))
 
         threading.Thread(target=ask, daemon=True, name="trip").start()

@@ -30,6 +30,7 @@ import structlog
 
 from exolink.limits.joints import Limits
 from exolink.protocol import h2
+from exolink.refusal import Refused
 
 log = structlog.get_logger()
 INTENT_FILE = "operator-limits.json"
@@ -38,7 +39,7 @@ HOLDER_ID_CHARS = 64
 MAX_TAKEN = 16  # replaced holders remembered, to tell each at its next renewal
 
 
-class IntentRefused(Exception):
+class IntentRefused(Refused):
     """A request the operator's intent refuses; the text names why and what to do."""
 
 

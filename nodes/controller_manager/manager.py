@@ -25,7 +25,6 @@ from exolink.control.controller import (
     INTERFACES,
     MACCEPA_INTERFACES,
     Controller,
-    Refused,
     SafeStop,
     State,
 )
@@ -34,6 +33,7 @@ from exolink.limits.maccepa import GAINS, BoardLimits, board_of
 from exolink.limits.maccepa import target as board_name
 from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol.h2 import JOINTS, PERIOD_S
+from exolink.refusal import Refused
 
 log = structlog.get_logger()
 
@@ -79,7 +79,7 @@ MACCEPA_REFRESH_CYCLES = 10
 PLANNED, UNPLANNED = "planned", "unplanned"
 
 
-class ManagerRefused(Exception):
+class ManagerRefused(Refused):
     """A management request the manager refuses; the text names what is in the way."""
 
 
@@ -374,10 +374,7 @@ class Manager:
     def command(self, name: str, request: dict[str, Any]) -> dict[str, Any]:
         with self.lock:
             slot = self._slot(name)
-        try:
-            return slot.ctrl.command(request)
-        except Refused as exc:
-            raise ManagerRefused(str(exc)) from None
+        return slot.ctrl.command(request)  # a controller's Refused is the caller's
 
     def state_of(self, name: str) -> dict[str, Any]:
         """One controller's state and why it stopped: what a node that follows a controller

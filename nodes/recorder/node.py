@@ -22,7 +22,7 @@ from exolink.nodes.recorder.params import RecorderParams, Stats
 
 from exolink import __version__, messaging, roles
 from exolink.board import clock
-from exolink.messaging import CommandRefused, Unlogged
+from exolink.messaging import Refused, Unlogged
 from exolink.node import Node
 from exolink.recordings import store as recstore
 from exolink.wire import cdr
@@ -230,23 +230,23 @@ class Recorder(Node):
         if action == "start":
             labels = req.get("labels", {})
             if not isinstance(labels, dict) or not all(isinstance(v, str) for v in labels.values()):
-                raise CommandRefused("labels must be a mapping of strings (--label subject=S01)")
+                raise Refused("labels must be a mapping of strings (--label subject=S01)")
             if self.state == "recording":
-                raise CommandRefused(f"already recording to {self.file.path if self.file else '?'}")
+                raise Refused(f"already recording to {self.file.path if self.file else '?'}")
             self.card = self.store.card()
             if self.card["free"] < self.card["reserve"]:
-                raise CommandRefused(
+                raise Refused(
                     f"card full: {self._card_text()}; not recording (fetch the recordings: "
                     "exolink record sync DIR, then exolink record delete NAME)"
                 )
             self.start_recording({**self.params.labels, **labels})
         elif action == "stop":
             if self.state != "recording":
-                raise CommandRefused(f"not recording (state {self.state})")
+                raise Refused(f"not recording (state {self.state})")
             with self.lock:
                 self.state = "stopping"
         elif action != "status":
-            raise CommandRefused(f"unknown record action {action!r} (start, stop, status)")
+            raise Refused(f"unknown record action {action!r} (start, stop, status)")
         deadline = time.monotonic() + REPLY_WAIT_S
         while self._settling() and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -299,12 +299,10 @@ class Recorder(Node):
                 self.card = self.store.card()
                 return out
         except recstore.StoreError as exc:
-            raise CommandRefused(str(exc)) from None
+            raise Refused(str(exc)) from None
         except OSError as exc:
-            raise CommandRefused(f"{req.get('name')!s:.80}: {exc.strerror or exc}") from None
-        raise CommandRefused(
-            f"unknown recordings action {str(action)[:40]!r} (list, stat, fetch, delete)"
-        )
+            raise Refused(f"{req.get('name')!s:.80}: {exc.strerror or exc}") from None
+        raise Refused(f"unknown recordings action {str(action)[:40]!r} (list, stat, fetch, delete)")
 
     def _reserve_bytes(self, params: RecorderParams | None = None) -> int:
         return int((params or self.params).reserve_mb * 2**20)
@@ -316,7 +314,7 @@ class Recorder(Node):
         kept = {k: getattr(self.params, k) for k in RUNTIME_PARAMS}
         fixed = msgspec.structs.replace(new, **kept)
         if fixed != self.params:
-            raise CommandRefused(
+            raise Refused(
                 f"{self.name}: only {', '.join(RUNTIME_PARAMS)} change at run time; "
                 "set the others in the config and restart the node"
             )

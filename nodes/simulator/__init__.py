@@ -27,7 +27,7 @@ from exolink.nodes.simulator.boards import H2Board, MaccepaBoard
 
 from exolink import roles
 from exolink.canbus import FrameReader, open_reader
-from exolink.messaging import CommandRefused
+from exolink.messaging import Refused
 from exolink.node import Node
 from exolink.protocol import h2, maccepa
 
@@ -316,7 +316,7 @@ class SimulatorNode(Node):
         try:
             self.sim.inject(str(req.get("fault", "")), float(req.get("duration_s", 1.0)))
         except (TypeError, ValueError) as exc:
-            raise CommandRefused(str(exc)) from None
+            raise Refused(str(exc)) from None
         self.log.warning("fault_injected", **req)
         return {"fault": req["fault"]}
 

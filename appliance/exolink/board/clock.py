@@ -32,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from exolink.refusal import Refused
+
 CLOCK_FILE = "clock.json"
 # `exolink status` warns when the board is further than this from the laptop (the issue's bound:
 # a gait lab's frame at 100-200 Hz is 5-10 ms; 50 ms is what a trigger-aligned trial tolerates).
@@ -74,7 +76,7 @@ class _Timex(ctypes.Structure):
     ]
 
 
-class ClockRefused(Exception):
+class ClockRefused(Refused):
     """A step the board will not take; the text says why."""
 
 

@@ -36,6 +36,8 @@ from typing import Any
 
 import structlog
 
+from exolink.refusal import Refused
+
 log = structlog.get_logger("exolink.board.update")
 
 UPDATE_DIR = Path("/var/lib/exolink/update")
@@ -65,7 +67,7 @@ def local_dir(workdir: Path) -> Path:
     return workdir / "update"
 
 
-class UpdateRefused(Exception):
+class UpdateRefused(Refused):
     """A request the supervisor will not act on; the message says what was wrong."""
 
 

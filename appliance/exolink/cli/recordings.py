@@ -13,7 +13,7 @@ from typing import Any
 from exolink import gaitlab, logs
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.options import Leaves, common, decimal, guard, integer
-from exolink.client import Refused, Remote, remote
+from exolink.client import Remote, remote
 from exolink.recordings import store as recstore
 from exolink.recordings.check import iso
 from exolink.recordings.readback import (
@@ -85,10 +85,7 @@ class _Asker:
         self.patient = recstore.Patient(lambda body: r.ask("recordings", body=body))
 
     def __call__(self, body: dict[str, Any]) -> dict[str, Any]:
-        try:
-            return self.patient(body)
-        except recstore.Refused as exc:
-            raise Refused(str(exc)) from None
+        return self.patient(body)  # its refusals are the CLI's (exolink.refusal)
 
     def retried(self) -> str:
         """What this fetch asked again, or nothing."""

@@ -18,6 +18,7 @@ from exolink.limits.joints import Limits
 from exolink.limits.maccepa import KINDS as MACCEPA_INTERFACES
 from exolink.limits.maccepa import BoardLimits, target
 from exolink.protocol.h2 import JOINTS
+from exolink.refusal import Refused  # a controller refuses with it (a bad command, a bad joint)
 
 # The controller manager publishes every change of a controller's state here (the whole list,
 # exolink_msgs/ControllerActivity, as ros2_control's ~/activity); followers listen to it
@@ -34,10 +35,6 @@ class NoParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 class SafeStop(Exception):
     """Raised by ``update`` to ask for the safe action on this controller's joints (e.g. a
     forward-command timeout set to disable): it is deactivated like a failed one, logged as asked."""
-
-
-class Refused(Exception):
-    """A controller refuses a request (a bad command, a bad joint); the text reaches the caller."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,11 +18,13 @@ from typing import Any
 
 import structlog
 
+from exolink.refusal import Refused
+
 log = structlog.get_logger("exolink.control.holder")
 Call = Callable[[dict[str, Any]], dict[str, Any]]  # a `controllers` request -> its reply
 
 
-class HoldRefused(Exception):
+class HoldRefused(Refused):
     """The manager refused the hold (another holds it) or nothing answered."""
 
 

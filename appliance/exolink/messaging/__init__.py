@@ -60,7 +60,6 @@ from exolink.messaging.rpc import (
     Admission,
     Caller,
     CommandLog,
-    CommandRefused,
     Handler,
     Needs,
     RequestTooLarge,
@@ -113,6 +112,7 @@ from exolink.messaging.types import (
     typestore,
     write_hash_table,
 )
+from exolink.refusal import Refused
 
 __all__ = [
     "API_TOPIC",
@@ -147,7 +147,6 @@ __all__ = [
     "Admission",
     "Caller",
     "CommandLog",
-    "CommandRefused",
     "Handler",
     "MessageSubscription",
     "Messaging",
@@ -156,6 +155,7 @@ __all__ = [
     "OnMessage",
     "Outbox",
     "Publisher",
+    "Refused",
     "RequestTooLarge",
     "Served",
     "Unlogged",

@@ -22,7 +22,6 @@ from exolink.messaging.rpc import (
     COMMANDS_TYPE,
     Admission,
     CommandLog,
-    CommandRefused,
     Handler,
     Needs,
     Served,
@@ -32,6 +31,7 @@ from exolink.messaging.rpc import (
 )
 from exolink.messaging.sessions import Unreachable
 from exolink.messaging.types import prepare
+from exolink.refusal import Refused
 from exolink.wire import rosgraph
 
 ATTACHMENT = struct.Struct("<qqB16s")  # Jazzy and later; rosgraph reads Humble's too
@@ -387,14 +387,14 @@ class Messaging:
         timeout_s: float,
         tolerate: tuple[str, ...] = (),
     ) -> dict[str, Any]:
-        """One node asking another to act: the answer, or CommandRefused with the other's
+        """One node asking another to act: the answer, or Refused with the other's
         refusal verbatim (or that nothing answered), so the caller's own caller sees why.
         A refusal containing one of ``tolerate`` counts as done (e.g. "is not active")."""
         try:
             reply = self.request(*path, body=body, timeout_s=timeout_s)
         except Unreachable as exc:
-            raise CommandRefused(f"nothing answers at {'/'.join(path)}: {exc}") from None
+            raise Refused(f"nothing answers at {'/'.join(path)}: {exc}") from None
         error = str(reply.get("error", f"refused by {'/'.join(path)}"))
         if not reply.get("ok") and not any(t in error for t in tolerate):
-            raise CommandRefused(error)
+            raise Refused(error)
         return reply

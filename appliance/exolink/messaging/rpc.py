@@ -17,6 +17,7 @@ import zenoh
 
 from exolink import logs, roles
 from exolink.messaging.sessions import Unreachable
+from exolink.refusal import Refused
 from exolink.wire import cdr
 
 
@@ -29,10 +30,6 @@ class Putter(Protocol):
 DEFAULT_QUERY_TIMEOUT_S = 2.0
 
 # --- JSON queries (commands and management) --------------------------------------------------
-
-
-class CommandRefused(Exception):
-    """Raised by a handler to refuse a request; the text reaches the caller verbatim."""
 
 
 class Unlogged(dict[str, Any]):
@@ -301,9 +298,7 @@ class Served:
                 body = json.loads(raw or b"{}")
                 if not isinstance(body, dict):
                     self._admission.count("not_json")
-                    raise CommandRefused(
-                        f"request must be a JSON object, not a {type(body).__name__}"
-                    )
+                    raise Refused(f"request must be a JSON object, not a {type(body).__name__}")
                 parsed = body
             request = parsed
             needed = self._needs(request) if callable(self._needs) else self._needs
@@ -316,7 +311,7 @@ class Served:
                 result = self._handler(request)
             logged = logged and not isinstance(result, Unlogged)
             reply = {"ok": True, **(result or {})}
-        except (CommandRefused, roles.Forbidden) as exc:
+        except (Refused, roles.Forbidden) as exc:
             if isinstance(exc, roles.Forbidden):
                 self._admission.count("forbidden")
             reply = {"ok": False, "error": clip(str(exc))}
@@ -376,7 +371,7 @@ def serve(
     return Served(session, key, handler, needs, log, admission or Admission(), urgent)
 
 
-class RequestTooLarge(CommandRefused):
+class RequestTooLarge(Refused):
     """A request refused before it was sent (``request``): too large for the caller's login."""
 
 

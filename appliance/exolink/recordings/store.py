@@ -31,6 +31,8 @@ from typing import Any
 
 import structlog
 
+from exolink.refusal import Refused
+
 SUFFIX = ".mcap"
 PART = ".part"
 MAX_CHUNK = 1 << 20  # bytes per chunk at most (the reply: base64 in JSON, ~1.4 MB)
@@ -326,10 +328,6 @@ Ask = Callable[[dict[str, Any]], dict[str, Any]]  # one request to the board's s
 # Each chunk is asked for by offset, so asking again is all a retry is.
 TRIES = 8
 RETRY_S = 0.2
-
-
-class Refused(Exception):
-    """The board refused a request (its reply's error, verbatim)."""
 
 
 @dataclass

@@ -13,15 +13,15 @@ from typing import Any, Protocol
 
 from exolink import messaging, roles
 from exolink.board import update
-from exolink.board.clock import BoardClock, ClockRefused
+from exolink.board.clock import BoardClock
 from exolink.config import ApplianceConfig
-from exolink.messaging import CommandRefused
+from exolink.messaging import Refused
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.forking import Zygote
 from exolink.supervisor.memory import MemoryTrim, rss_mb
 from exolink.supervisor.processes import NodeProcess
 from exolink.supervisor.wakeup import Wakeup
-from exolink.supervisor.watchdog import ArmRefused, Watchdog
+from exolink.supervisor.watchdog import Watchdog
 
 Route = tuple[Any, messaging.Needs]
 
@@ -129,13 +129,13 @@ class ManagementApi:
     def _node(self, req: dict[str, Any]) -> NodeProcess:
         name, nodes = req.get("node"), self.sup.nodes
         if not isinstance(name, str) or name not in nodes:
-            raise CommandRefused(f"unknown node {_shown(name)} (configured: {', '.join(nodes)})")
+            raise Refused(f"unknown node {_shown(name)} (configured: {', '.join(nodes)})")
         return nodes[name]
 
     def control(self, req: dict[str, Any]) -> dict[str, Any]:
         node, action = self._node(req), req.get("action")
         if action not in ("start", "stop", "restart"):
-            raise CommandRefused(f"unknown action {_shown(action)} (start, stop or restart)")
+            raise Refused(f"unknown action {_shown(action)} (start, stop or restart)")
         if action != "start" and node.cfg.critical:
             # Before the process goes, whatever the order its exit is reported in: a critical
             # node down is a trip (and arming waits for it to beat again).
@@ -154,7 +154,7 @@ class ManagementApi:
         node = self._node(req)
         n = req.get("lines", 50)
         if not isinstance(n, int) or n < 1:
-            raise CommandRefused("lines must be a positive integer")
+            raise Refused("lines must be a positive integer")
         return {"lines": list(node.logs)[-n:]}
 
     def watchdog(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
@@ -166,11 +166,8 @@ class ManagementApi:
             blockers = self.sup.arm_blockers()  # reads every node's pipe: not under the lock
             with self._arming:
                 if self._estops != estops:
-                    raise CommandRefused("not armed: an e-stop came in while arming")
-                try:
-                    wd.arm(blockers)
-                except ArmRefused as exc:
-                    raise CommandRefused(str(exc)) from None
+                    raise Refused("not armed: an e-stop came in while arming")
+                wd.arm(blockers)  # ArmRefused is a refusal: its text is the reply's error
         elif action == "disarm":
             wd.disarm()
         elif action == "estop":
@@ -184,7 +181,7 @@ class ManagementApi:
             reason, detail = str(req.get("reason", "")), str(req.get("detail", ""))
             wd.trip(reason[:80] or "node request", detail[:300])
         elif action is not None:
-            raise CommandRefused(f"unknown watchdog action {_shown(action)} (arm, disarm or estop)")
+            raise Refused(f"unknown watchdog action {_shown(action)} (arm, disarm or estop)")
         s = wd.snapshot()
         return {"state": s.state, "reason": s.reason, "detail": s.detail}
 
@@ -196,9 +193,9 @@ class ManagementApi:
             if isinstance(sup.trigger_src, trigger.SimulatedTrigger):
                 sup.trigger_src.fire()
                 return {"fired_ns": sup.last_trigger_ns}
-            raise CommandRefused("no trigger output configured (trigger.output in the config)")
+            raise Refused("no trigger output configured (trigger.output in the config)")
         if action is not None:
-            raise CommandRefused(f"unknown trigger action {_shown(action)} (fire)")
+            raise Refused(f"unknown trigger action {_shown(action)} (fire)")
         return {"count": sup.trigger_count, "last_ns": sup.last_trigger_ns}
 
     def clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
@@ -206,17 +203,14 @@ class ManagementApi:
         to an operator laptop's time (exolink.board.clock: refused while armed or synchronised)."""
         clock, action = self.sup.clock, req.get("action")
         if action == "step":
-            try:
-                step = clock.step(
-                    req.get("offset_s"), req.get("error_s"), caller.login, self.sup.watchdog.armed
-                )
-            except ClockRefused as exc:
-                raise CommandRefused(str(exc)) from None
+            step = clock.step(
+                req.get("offset_s"), req.get("error_s"), caller.login, self.sup.watchdog.armed
+            )
             self.sup.log.warning(
                 "clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"}
             )
         elif action not in (None, "status"):
-            raise CommandRefused(f"unknown clock action {_shown(action)} (status or step)")
+            raise Refused(f"unknown clock action {_shown(action)} (status or step)")
         return clock.status()
 
     def update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
@@ -225,26 +219,23 @@ class ManagementApi:
         is the software status (any role). Refused while armed: installing ends in a reboot,
         never under a walking patient; once committed, arming is refused until the reboot."""
         rx, action = self.sup.update, req.get("action")
-        try:
-            if action in (None, "status"):
-                return rx.status(version())
-            if action == "abort":
-                rx.abort()
-                return rx.status(version())
-            if action in ("begin", "commit") and self.sup.watchdog.armed:
-                raise update.UpdateRefused(
-                    "the exoskeleton is armed: an update ends in a reboot, never under a walking "
-                    "patient. Disarm first (exolink watchdog disarm)"
-                )
-            if action == "begin":
-                return rx.begin(req, caller.login)
-            if action == "chunk":
-                return rx.chunk(req)
-            if action == "commit":
-                return rx.commit(caller.login)
-        except update.UpdateRefused as exc:
-            raise CommandRefused(str(exc)) from None
-        raise CommandRefused(
+        if action in (None, "status"):
+            return rx.status(version())
+        if action == "abort":
+            rx.abort()
+            return rx.status(version())
+        if action in ("begin", "commit") and self.sup.watchdog.armed:
+            raise update.UpdateRefused(
+                "the exoskeleton is armed: an update ends in a reboot, never under a walking "
+                "patient. Disarm first (exolink watchdog disarm)"
+            )
+        if action == "begin":
+            return rx.begin(req, caller.login)
+        if action == "chunk":
+            return rx.chunk(req)
+        if action == "commit":
+            return rx.commit(caller.login)
+        raise Refused(
             f"unknown update action {_shown(action)} (status, begin, chunk, commit or abort)"
         )
 

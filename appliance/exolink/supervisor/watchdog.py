@@ -61,6 +61,7 @@ from exolink import logs
 from exolink.canbus import Frame, FrameReader
 from exolink.config import WatchdogConfig
 from exolink.hardware import Device, Seen
+from exolink.refusal import Refused
 from exolink.supervisor.wakeup import Wakeup
 
 if TYPE_CHECKING:
@@ -75,8 +76,8 @@ IDLE_POLL_S = 0.1
 KERNEL_WATCH_POLL_S = 1.0
 
 
-class ArmRefused(Exception):
-    pass
+class ArmRefused(Refused):
+    """Arming refused: the blockers are named (a tripped watchdog, a node not running)."""
 
 
 @dataclass
