@@ -3,7 +3,8 @@
 A node started with ``python -m exolink.runtime`` spends ~200 ms on an x86 core (seconds on the
 board's Cortex-A8) importing the same runtime every other node imports, and keeps a private copy
 of it. The supervisor forks this process once, before it opens anything; it has imported the common runtime (Zenoh, python-can,
-structlog, msgspec, the protocol tables, never a node plugin), freezes it for the garbage
+structlog, msgspec, never a node plugin; the device's protocol tables come with the supervisor,
+which loaded its hardware before the fork), freezes it for the garbage
 collector (gc.freeze: pages stay shared, not copied on the first collection) and then forks one
 child per node on request. No Zenoh session or thread exists here before a fork: each node opens
 its own afterwards. A node is forked through a short-lived intermediate, so it is re-parented to
@@ -34,8 +35,6 @@ import exolink.liveness
 import exolink.logs
 import exolink.messaging
 import exolink.plugins
-import exolink.protocol.h2
-import exolink.protocol.maccepa
 import exolink.runtime
 import exolink.wire.cdr
 
