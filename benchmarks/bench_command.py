@@ -17,6 +17,7 @@ import time
 from typing import Any
 
 from benchmarks.harness import Appliance, DrainedBus, motion_nodes, pct
+from exolink.control import requests
 from exolink.messaging import rpc
 from exolink.protocol import h2
 
@@ -37,7 +38,7 @@ def run(quick: bool) -> dict[str, Any]:
             sp = 30 + 2 * (i % 2)
             bus.clear()
             t0 = time.time()
-            body = {"kind": "joint", "joint": "r_knee", "mode": "position", "setpoint": sp}
+            body = requests.body(requests.Joint("r_knee", "position", sp))
             reply = app.call("h2/command", body)
             t1 = time.time()
             if not reply.get("ok"):

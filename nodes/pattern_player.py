@@ -30,6 +30,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from exolink import roles
+from exolink.control import requests
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.limits.joints import Limits
@@ -347,7 +348,7 @@ class PatternPlayer(Node):
             # pattern's (the follower ignores what it says until _engage hands it the rest)
             self._engaged = 0
         for i in idx:
-            body = {"kind": "joint", "joint": h2.JOINTS[i], "mode": "disabled"}
+            body = requests.body(requests.Joint(h2.JOINTS[i], "disabled"))
             self.ctx.messaging.command("h2", "command", body=body, timeout_s=MANAGER_WAIT_S)
         if not running:
             return

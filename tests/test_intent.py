@@ -139,6 +139,22 @@ def test_torque_has_a_real_cap_and_a_rate_limit(app, mbus) -> None:  # type: ign
     app.arm_and_hold()
     r = app.cli("send", "torque", "r_knee", "127")
     assert r.returncode == 5 and "r_knee torque 127 counts is above its cap 20" in r.stderr
+    # armed and held: requests any client may send, refused by their schema with the field
+    # named (exolink.control.requests), and not one frame of them on the bus
+    mbus.q.queue.clear()
+    for body, err in [
+        ({"kind": "joint", "joint": "r_knee", "mode": "torque", "setpoint": "5"}, "`$.setpoint`"),
+        ({"kind": "joint", "joint": "r_knee", "mode": "position", "stifness": 5}, "`stifness`"),
+        ({"kind": "joint", "mode": "position", "setpoint": 5}, "missing required field `joint`"),
+        ({"kind": "stream", "on": "yes"}, "got `str` - at `$.on`"),
+        (
+            {"kind": "move", "joint": "r_knee"},
+            "unknown command kind 'move' (joint, limits, stream)",
+        ),
+    ]:
+        reply = app.call("h2/command", body)
+        assert reply["ok"] is False and err in reply["error"], (body, reply)
+    assert knee(collect(mbus, 0.3, {70}), 3) == []
     body = '{"joints": ["r_knee"], "interface": "torque"}'
     assert app.cli("controllers", "load", "t", "forward_command", "--params", body).returncode == 0
     assert app.cli("controllers", "activate", "t").returncode == 0

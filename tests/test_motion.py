@@ -276,6 +276,15 @@ def test_maccepa_gains_setpoint_followed_and_invalid_refused(app, mbus) -> None:
     ]:
         r = app.cli(*args)
         assert r.returncode == 5 and err in r.stderr, (args, r.stderr)
+    # requests as any client may send them, refused by the schema with the field named
+    # (exolink.control.requests), before anything else looks at them
+    for body, err in [
+        ({"kind": "setpoint", "board": 0, "value": "41"}, "got `str` - at `$.value`"),
+        ({"kind": "setpoint", "board": 0, "value": 41, "controler": "x"}, "field `controler`"),
+        ({"kind": "spin", "board": 0}, "unknown MACCEPA command 'spin' (gains, setpoint, duty"),
+    ]:
+        reply = app.call("maccepa", body)
+        assert reply["ok"] is False and err in reply["error"], (body, reply)
     # nothing of the refused commands: only the held set-point, re-sent every 100 ms
     held = {maccepa.decode(m) for m in collect(mbus, 0.4, set(maccepa.command_ids(range(10))))}
     assert {(type(d).__name__, d.board) for d in held} <= {("Setpoint", 0)}, held

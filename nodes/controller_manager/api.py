@@ -25,7 +25,8 @@ from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import Manager, Switch
 
 from exolink import roles
-from exolink.limits.maccepa import GAINS, KINDS, target
+from exolink.control import requests
+from exolink.limits.maccepa import GAINS, target
 from exolink.messaging import Caller, Refused, Unlogged
 from exolink.node import NodeContext
 from exolink.plugins import controller_types
@@ -242,28 +243,23 @@ class ManagerApi:
         """``exolink send``: joint control (motion held by the joint's operator controller;
         disable and stop at once, always allowed), the accepted angles (the operator's limits),
         the data stream. Nothing is sent unless the whole command is valid."""
-        kind = req.get("kind")
+        cmd = requests.decode(req, requests.H2Command, "command kind", requests.H2_KINDS)
         try:
-            if kind == "joint":
-                return self._joint(req, caller)
-            if kind == "limits":
-                return self._limits(req, caller)
-            if kind == "stream":
-                on = req.get("on")
-                if not isinstance(on, bool):
-                    raise Refused("stream needs 'on': true or false")
-                frames = [h2.encode_stream(on)]
-                self.node.send_now(frames)
-                return {"frames": _frames(frames)}
+            if isinstance(cmd, requests.Joint):
+                return self._joint(cmd, caller)
+            if isinstance(cmd, requests.Limits):
+                return self._limits(cmd, caller)
+            frames = [h2.encode_stream(cmd.on)]
+            self.node.send_now(frames)
+            return {"frames": _frames(frames)}
         except ProtocolError as exc:
             raise Refused(str(exc)) from None
-        raise Refused(f"unknown command kind {kind!r} (joint, limits or stream)")
 
-    def _joint(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        joint = req.get("joint")
-        mode = h2.mode_id(req.get("mode", ""))
+    def _joint(self, cmd: requests.Joint, caller: Caller) -> dict[str, Any]:
+        joint = cmd.joint
+        mode = h2.mode_id(cmd.mode)
         if mode in SAFE_MODES:  # can only make things safer: always, and at once
-            motors = range(1, 7) if joint == "all" else [h2.motor_id(joint)]  # type: ignore[arg-type]
+            motors = range(1, 7) if joint == "all" else [h2.motor_id(joint)]
             commands = [h2.joint_control(m, mode) for m in motors]
             what = f"{'all joints' if joint == 'all' else joint} {h2.MODE_NAMES[mode]}"
             frames = self.node.stop_joints(
@@ -274,7 +270,7 @@ class ManagerApi:
             return {"frames": _frames(frames)}
         if joint == "all":
             raise Refused("'all' joints is only for disabled or stopped")
-        jc = h2.joint_control(joint, mode, req.get("setpoint", 0), req.get("stiffness", 0))  # type: ignore[arg-type]
+        jc = h2.joint_control(joint, mode, cmd.setpoint or 0, cmd.stiffness or 0)
         i = jc.motor - 1
         lim = self.node.limits.in_force
         by = self.node.limits.set_by
@@ -305,14 +301,14 @@ class ManagerApi:
             self._switch("switch", {"activate": [name], "deactivate": before})
         return {"controller": name, "frames": [], **reply}
 
-    def _limits(self, req: dict[str, Any], caller: Caller) -> Any:
+    def _limits(self, cmd: requests.Limits, caller: Caller) -> Any:
         """The operator's accepted angles: only narrower than the config's, kept before they
         take effect (they survive a restart), then in force for every way in and sent to the
         H2. ``reset``: back to the config's."""
-        if req.get("reset"):
+        if cmd.reset:
             lo = hi = None
         else:
-            got = {k: req[k] for k in ("min", "max") if k in req}
+            got = {k: v for k, v in (("min", cmd.min), ("max", cmd.max)) if v is not None}
             if not got:
                 raise Refused("limits needs 'min' and/or 'max' (six angles in degrees), or 'reset'")
             checked = {k: h2.decode(h2.encode_accepted_angles(k, v)) for k, v in got.items()}
@@ -336,7 +332,10 @@ class ManagerApi:
     def on_maccepa(self, req: dict[str, Any], caller: Caller) -> Any:
         """``exolink maccepa N ...``: set-point, duty and gains held by that board's operator
         controller for the kind (``operator.maccepa0.setpoint``); stop control at once."""
-        board, kind = req.get("board"), req.get("kind")
+        cmd = requests.decode(
+            req, requests.MaccepaCommand, "MACCEPA command", requests.MACCEPA_KINDS
+        )
+        board, kind = cmd.board, req["kind"]
         if board not in self.node.board_ids:
             configured = ", ".join(str(b) for b in sorted(self.node.board_ids)) or "none"
             raise Refused(
@@ -344,43 +343,44 @@ class ManagerApi:
                 f"(params.maccepa: {configured})"
             )
         try:
-            if kind == "stop":
+            if isinstance(cmd, requests.Stop):
                 frames = self.node.stop_boards(
                     {board}, f"{target(board)} stopped by {caller.login}"
                 )
                 return {"frames": _frames(frames)}
-            if kind in KINDS:
-                self._check_maccepa(board, kind, req)
-                self.may_move()
-                return self._maccepa(board, kind, req)
+            self._check_maccepa(board, kind, cmd)
+            self.may_move()
+            return self._maccepa(board, kind, cmd)
         except ProtocolError as exc:
             raise Refused(str(exc)) from None
-        raise Refused(f"unknown MACCEPA command {kind!r} (gains, setpoint, duty, stop)")
 
-    def _check_maccepa(self, board: int, kind: str, req: dict[str, Any]) -> None:
+    def _check_maccepa(
+        self, board: int, kind: str, cmd: requests.Gains | requests.Setpoint | requests.Duty
+    ) -> None:
         """The codec's checks (ProtocolError names what is wrong); the board's limits are the
         controller's and the manager's."""
         lim = self.node.manager.boards[board]
-        ctl = req.get("controller", lim.controller)
+        asked = getattr(cmd, "controller", None)  # duty has none: the board's own
+        ctl = lim.controller if asked is None else asked
         if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
             raise Refused(
                 f"{target(board)} runs its {lim.controller} controller under the controller "
                 f"manager (params.maccepa), not {ctl!r}"
             )
-        if kind == "gains":
-            gains = [(g, req[g]) for g in GAINS if req.get(g) is not None]
+        if isinstance(cmd, requests.Gains):
+            gains = [(g, v) for g in GAINS if (v := getattr(cmd, g)) is not None]
             if not gains:
                 raise Refused("gains needs at least one of kp, ki, kd")
             for g, v in gains:
                 maccepa.encode_gain(board, g, v, lim.controller)
+        elif isinstance(cmd, requests.Setpoint):
+            maccepa.encode_setpoint(board, cmd.value, lim.controller)
         else:
-            value: Any = req.get("value")  # anything: the codec refuses what is not a number
-            if kind == "setpoint":
-                maccepa.encode_setpoint(board, value, lim.controller)
-            else:
-                maccepa.encode_duty(board, value)
+            maccepa.encode_duty(board, cmd.value)
 
-    def _maccepa(self, board: int, kind: str, req: dict[str, Any]) -> dict[str, Any]:
+    def _maccepa(
+        self, board: int, kind: str, cmd: requests.Gains | requests.Setpoint | requests.Duty
+    ) -> dict[str, Any]:
         """Set-point and duty drive the board and replace each other at one cycle boundary;
         gains are their own interface (tuning while something else drives the board). An
         interface another controller owns is refused with that controller named."""
@@ -394,7 +394,11 @@ class ManagerApi:
                 )
         if name not in self.node.manager.names():
             self.node.manager.load(name, "maccepa_operator", {"board": board, "kind": kind})
-        body = {g: req.get(g) for g in GAINS} if kind == "gains" else {"value": req.get("value")}
+        body = (
+            {g: getattr(cmd, g) for g in GAINS}
+            if isinstance(cmd, requests.Gains)
+            else {"value": cmd.value}
+        )
         reply = self.node.manager.command(name, body)
         if name not in self.node.manager.active():
             before = [

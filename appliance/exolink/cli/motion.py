@@ -16,6 +16,7 @@ from exolink.cli.options import Leaves, common, decimal, frame_id, guard, intege
 from exolink.cli.remote import hold
 from exolink.client import remote
 from exolink.config import ZenohConfig
+from exolink.control import requests
 from exolink.control.holder import Holder, HoldRefused, describe
 
 # --- pattern ----------------------------------------------------------------------------------
@@ -159,14 +160,18 @@ class _FakeCfg:
 
 def maccepa_body(args: argparse.Namespace) -> dict[str, Any]:
     """The controller manager's MACCEPA request of a parsed `exolink maccepa ...` (also the dashboard's)."""
-    body: dict[str, Any] = {"board": args.board, "kind": args.kind}
+    cmd: requests.MaccepaCommand
     if args.kind == "gains":
-        body |= {"kp": args.kp, "ki": args.ki, "kd": args.kd, "controller": args.controller}
+        cmd = requests.Gains(args.board, args.kp, args.ki, args.kd, args.controller)
     elif args.kind == "setpoint":
-        body |= {"value": args.value, "controller": args.controller}
+        cmd = requests.Setpoint(args.board, args.value, args.controller)
     elif args.kind == "duty":
-        body["value"] = args.value
-    return body
+        cmd = requests.Duty(args.board, args.value)
+    elif args.kind == "stop":
+        cmd = requests.Stop(args.board)
+    else:
+        raise ValueError(f"{args.kind} is not a request to the board")
+    return requests.body(cmd)
 
 
 @guard

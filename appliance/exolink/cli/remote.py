@@ -20,6 +20,7 @@ from exolink.cli.options import Leaves, common, decimal, guard, integer, number
 from exolink.cli.units import degrees, unit
 from exolink.cli.update import describe
 from exolink.client import Refused, remote
+from exolink.control import requests
 
 
 def to_builtin(obj: Any) -> Any:
@@ -198,32 +199,19 @@ def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
 def h2_body(args: argparse.Namespace) -> dict[str, Any]:
     """The H2 command of a parsed `exolink send ...` (also what the dashboard sends)."""
     what = args.what
+    cmd: requests.H2Command
     if what in ("joint", "position", "stiffness"):
-        return {
-            "kind": "joint",
-            "joint": args.joint,
-            "mode": args.mode if what == "joint" else what,
-            "setpoint": args.value,
-            "stiffness": args.stiffness,
-        }
-    if what == "torque":
-        return {"kind": "joint", "joint": args.joint, "mode": "torque", "setpoint": args.value}
-    if what in ("disable", "stop"):
-        return {
-            "kind": "joint",
-            "joint": args.joint,
-            "mode": "disabled" if what == "disable" else "stopped",
-        }
-    if what == "limits":
-        body: dict[str, Any] = {"kind": "limits"}
-        if args.reset:
-            body["reset"] = True
-        if args.min is not None:
-            body["min"] = args.min
-        if args.max is not None:
-            body["max"] = args.max
-        return body
-    return {"kind": "stream", "on": args.state == "on"}
+        mode = args.mode if what == "joint" else what
+        cmd = requests.Joint(args.joint, mode, args.value, args.stiffness)
+    elif what == "torque":
+        cmd = requests.Joint(args.joint, "torque", args.value)
+    elif what in ("disable", "stop"):
+        cmd = requests.Joint(args.joint, "disabled" if what == "disable" else "stopped")
+    elif what == "limits":
+        cmd = requests.Limits(args.min, args.max, bool(args.reset))
+    else:
+        cmd = requests.Stream(args.state == "on")
+    return requests.body(cmd)
 
 
 @guard

@@ -36,6 +36,7 @@ from typing import Any
 import structlog
 
 from exolink import logs, messaging, roles, rosservices
+from exolink.control import requests
 from exolink.protocol import h2
 
 TRIGGER, SET_BOOL = "std_srvs/srv/Trigger", "std_srvs/srv/SetBool"
@@ -149,13 +150,7 @@ class Ros2Api:
 
 def _joint_request(r: Any, numeric_mode: bool = False) -> dict[str, Any]:
     mode = h2.MODE_NAMES.get(int(r.mode), str(r.mode)) if numeric_mode else str(r.mode)
-    return {
-        "kind": "joint",
-        "joint": str(r.joint),
-        "mode": mode,
-        "setpoint": int(r.setpoint),
-        "stiffness": int(r.stiffness),
-    }
+    return requests.body(requests.Joint(str(r.joint), mode, int(r.setpoint), int(r.stiffness)))
 
 
 def _summary(reply: dict[str, Any]) -> str:
