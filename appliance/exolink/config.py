@@ -247,7 +247,7 @@ def decode_yaml(text: str, source: str, cls: type[T]) -> tuple[T, yaml.Node | No
             f"{source}: expected a mapping at the top level, got {type(data).__name__}"
         )
     _no_duplicate_keys(root, source)
-    if "source" in cls.__struct_fields__:  # type: ignore[attr-defined]
+    if "source" in cls.__struct_fields__:
         data["source"] = source
     try:
         return msgspec.convert(data, cls), root

@@ -148,7 +148,7 @@ def outcome(reply: dict[str, Any], summary: Callable[[dict[str, Any]], str]) -> 
     return {"success": True, "message": summary(reply)}
 
 
-def run_json(handler: Callable[[dict[str, Any]], dict[str, Any] | None], request: dict[str, Any]):  # type: ignore[no-untyped-def]
+def run_json(handler: Callable[[dict[str, Any]], dict[str, Any] | None], request: dict[str, Any]):
     """A JSON API handler called in-process, its outcome shaped as ``messaging.serve`` shapes
     it (ok, or the refusal's text)."""
     try:

@@ -91,7 +91,7 @@ class Kernel:
 
 @functools.cache
 def _adjtimex() -> Callable[[Any], int]:
-    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").adjtimex  # type: ignore[no-any-return]
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").adjtimex
 
 
 def kernel() -> Kernel:

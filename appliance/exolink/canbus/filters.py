@@ -135,4 +135,4 @@ def attach(sock: socket.socket, rules: Sequence[Drop]) -> None:
     insns = program(rules)
     code = ctypes.create_string_buffer(b"".join(_INSN.pack(*i) for i in insns))
     fprog = _SockFprog(len(insns), ctypes.addressof(code))
-    sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, bytes(fprog))  # type: ignore[call-overload]
+    sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, bytes(fprog))

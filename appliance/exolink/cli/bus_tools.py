@@ -40,7 +40,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
-def describe(msg) -> str:  # type: ignore[no-untyped-def]
+def describe(msg) -> str:
     """One decoded line: H2 frames first, MACCEPA otherwise, 'unknown' for the rest."""
 
     f = h2.decode(msg)

@@ -137,7 +137,7 @@ def cmd_controllers(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     parent = common()
     p = sub.add_parser("controllers", help="controller manager: list, load, activate, switch")
     s = Leaves(p.add_subparsers(dest="action", required=True), parent)

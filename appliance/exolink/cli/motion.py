@@ -262,7 +262,7 @@ def cmd_timing(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     parent = common()
     p = sub.add_parser("pattern", help="gait pattern player")
     s = Leaves(p.add_subparsers(dest="action", required=True), parent)

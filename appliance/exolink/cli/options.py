@@ -13,7 +13,7 @@ from exolink.client import DEFAULT_AT, DEFAULT_TIMEOUT_S, Refused
 from exolink.errors import EXIT_REFUSED, fail
 
 
-def guard(func):  # type: ignore[no-untyped-def]
+def guard(func):
     def wrapped(args: argparse.Namespace) -> int:
         try:
             return int(func(args))
@@ -159,8 +159,8 @@ def resolve_appliance_options(parser: argparse.ArgumentParser, args: argparse.Na
 class Leaves:
     """Sub-subcommands that all take the appliance options (so `--at` may come last)."""
 
-    def __init__(self, sub: argparse._SubParsersAction, parent: argparse.ArgumentParser) -> None:  # type: ignore[type-arg]
+    def __init__(self, sub: argparse._SubParsersAction, parent: argparse.ArgumentParser) -> None:
         self.sub, self.parent = sub, parent
 
     def add_parser(self, name: str, **kw: Any) -> argparse.ArgumentParser:
-        return self.sub.add_parser(name, parents=[self.parent], **kw)  # type: ignore[no-any-return]
+        return self.sub.add_parser(name, parents=[self.parent], **kw)

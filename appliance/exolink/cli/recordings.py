@@ -131,7 +131,7 @@ def _fetch_one(ask: _Asker, name: str, dest: Path, chunk: int) -> None:
     )
 
 
-def _guard_store(func):  # type: ignore[no-untyped-def]
+def _guard_store(func):
     """What the laptop found wrong with a fetch (a checksum, a name) is a refusal, one line."""
 
     def wrapped(args: argparse.Namespace) -> int:
@@ -196,7 +196,7 @@ def _refused(n: int, by: dict[str, int]) -> str:
     )
 
 
-def _guard_file(func):  # type: ignore[no-untyped-def]
+def _guard_file(func):
     """A file that is missing, unreadable or not writable is one line naming it."""
 
     def wrapped(args: argparse.Namespace) -> int:
@@ -398,7 +398,7 @@ def _chunk_option(q: argparse.ArgumentParser) -> None:
     )
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     parent = common()
     p = sub.add_parser("record", help="start / stop / status of the recorder on the board")
     s = Leaves(p.add_subparsers(dest="action", required=True), parent)

@@ -222,7 +222,7 @@ def cmd_send(args: argparse.Namespace) -> int:
 # --- registration ----------------------------------------------------------------------------
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     parent = common()
 
     p = sub.add_parser("topics", parents=[parent], help="list data topics with type and rate")
@@ -529,7 +529,7 @@ def cmd_trigger(args: argparse.Namespace) -> int:
     return 0
 
 
-def register_management(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register_management(sub: argparse._SubParsersAction) -> None:
     parent = common()
     p = sub.add_parser("status", parents=[parent], help="watchdog, bus, trigger and every node")
     p.add_argument("--json", action="store_true")

@@ -166,7 +166,7 @@ def cmd_update_agent(args: argparse.Namespace) -> int:
     return int(action())
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "update",
         parents=[common()],

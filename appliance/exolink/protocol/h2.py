@@ -147,7 +147,7 @@ def decode(msg: Received) -> H2Frame | Unknown:
     spec, cls = entry
     if len(msg.data) != spec.dlc:
         return Unknown(msg.arbitration_id, "bad length", bytes(msg.data))
-    return cls._make(spec.decode(msg.data))  # type: ignore[attr-defined, no-any-return]
+    return cls._make(spec.decode(msg.data))  # type: ignore[attr-defined]
 
 
 def _message(frame: H2Frame, checked: bool = True) -> can.Message:

@@ -137,7 +137,7 @@ def decode(msg: Received) -> MaccepaFrame | Unknown:
     values = spec.decode(msg.data)
     if kind in GAIN_NAMES:
         return Gain(board, kind.lower(), values[0], values[1])
-    return _KIND[kind](board, *values)  # type: ignore[no-any-return]
+    return _KIND[kind](board, *values)
 
 
 def _board(board: int) -> int:
