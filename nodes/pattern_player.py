@@ -33,6 +33,7 @@ from exolink import roles
 from exolink.control import requests
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
+from exolink.control.gait import period_s
 from exolink.limits.joints import Limits
 from exolink.messaging import Caller, Refused
 from exolink.node import Node
@@ -70,10 +71,6 @@ GONE = ("is not active", "no controller")  # a deactivation that finds the gait 
 BEAT_S = 0.25
 STATE_EVERY = 4  # beats: the state goes out once a second, and at every change
 Joint = Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]
-
-
-def period_s(level: int) -> float:
-    return 0.020 * (11 - level)
 
 
 class PlayerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):

@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import bus_sockets
-from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern, period_s
+from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging
+from exolink.control.gait import period_s
 from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import ProtocolError, h2, maccepa
 

@@ -27,6 +27,7 @@ from exolink.control.controller import (
     State,
     interface,
 )
+from exolink.control.gait import period_s
 from exolink.protocol.h2 import JOINTS
 
 Joint = Literal["r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"]
@@ -190,10 +191,6 @@ class GaitPattern(Controller):
     t0: float | None  # the controller time of row i0 (None: the next update's)
 
     def configure(self) -> None:
-        from exolink.nodes.pattern_player import (
-            period_s,  # another plugin: a pattern controller's only
-        )
-
         _unique(self.name, list(self.params.joints))
         if self.params.start >= len(self.params.rows):
             raise ValueError(f"{self.name}: start {self.params.start} is past the last row")
