@@ -4,12 +4,14 @@ are checked by an independent listener on the bus, never by asking the superviso
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
 
 import can
 import pytest
+import yaml
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging
@@ -395,3 +397,27 @@ def test_a_node_that_refuses_to_start_says_why_in_its_logs(write_config, spawn) 
     # and the status still answers while the manager is down or starting again
     s = app.cli("status")
     assert s.returncode == 0 and "controller_manager" in s.stdout, s
+
+
+def test_an_appliance_with_no_node_running_is_found_by_the_cli(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """A laptop finds the device by liveliness tokens. With no node running (none configured
+    here; all failed or stopped on a trial day), the supervisor's own token still names it, so
+    `exolink status` answers without --device and the operator can see why."""
+    path = write_config(nodes=[])
+    endpoint = yaml.safe_load(path.read_text())["zenoh"]["listen"][0]
+    spawn("up", "-c", str(path), name="up")
+
+    def status() -> subprocess.CompletedProcess[str] | None:
+        r = subprocess.run(
+            [*EXOLINK, "status", "--json", "--at", endpoint, "--timeout", "5"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        return r if r.returncode == 0 else None
+
+    r = wait_for(status, timeout=30)
+    assert r is not None
+    shown = json.loads(r.stdout)
+    assert shown["nodes"] == [] or shown["nodes"] == {}, shown["nodes"]
+    assert shown["watchdog"]["state"] in ("disarmed", "tripped"), shown["watchdog"]

@@ -46,6 +46,7 @@ from exolink.wire import cdr
 if TYPE_CHECKING:
     from exolink.canbus.bcm import CyclicWatch
 
+SUPERVISOR = "supervisor"  # its name as a ROS 2 node, in the logs and among the nodes' tokens
 MAX_SLEEP_S = 0.25  # the loop looks at least this often, whatever its deadlines say
 SWEEP_S = 1.0  # and at every node at least this often (_check_nodes)
 STRAY_SWEEP_S = 5.0  # and for node processes it does not count as any node's (_kill_strays)
@@ -97,7 +98,7 @@ class Supervisor:
         self.cfg = cfg
         # the hardware guarded (exolink.hardware): an unknown name starts nothing
         self.device = hardware.load(cfg.hardware)
-        self.log = structlog.get_logger().bind(node="supervisor")
+        self.log = structlog.get_logger().bind(node=SUPERVISOR)
         # The loop sleeps until its next deadline; whatever moves one closer sets this.
         self.wake = Wakeup()
         self._sweep_at = 0.0  # when _check_nodes next looks at every node
@@ -160,7 +161,7 @@ class Supervisor:
             raise
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
-        self.msg = messaging.Messaging(self.session, cfg, ros_node="supervisor")
+        self.msg = messaging.Messaging(self.session, cfg, ros_node=SUPERVISOR)
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE, raw=True)
         # the kernel's watches of the pulse and the command frame (none on the simulated bus)
         angles = watches[0] if watches else None
@@ -179,6 +180,11 @@ class Supervisor:
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE, raw=True)
         self.api = ManagementApi(self)
         self._decls += self.api.serve(self.msg)
+        # Laptops find the device by these tokens (exolink.client): the supervisor's own, so an
+        # appliance whose nodes are all stopped, failed or not configured still answers
+        # `exolink status` without --device, and the operator can see why.
+        alive = self.msg.mgmt("nodes", SUPERVISOR, "alive")
+        self._decls.append(self.session.liveliness().declare_token(alive))
         self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
         diag_key = self.msg.key("nodes/*/diagnostics", DIAGNOSTICS_TYPE)
         api_key = self.msg.key(messaging.API_TOPIC.format(node="*"), messaging.API_TYPE)
@@ -688,7 +694,7 @@ def run(cfg: ApplianceConfig) -> int:
     stop_on_signals(sup.stop_event, sup.log)
     try:
         sup.start()
-        with profiled("supervisor"):  # its loop, when EXOLINK_PROFILE_DIR says so
+        with profiled(SUPERVISOR):  # its loop, when EXOLINK_PROFILE_DIR says so
             return sup.run()
     finally:
         sup.shutdown()
