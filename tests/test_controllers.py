@@ -275,6 +275,45 @@ def test_one_overrun_alone_is_counted_and_one_past_the_update_period_deactivates
     assert "longer than the update period (10 ms)" in m.slots["a"].error
 
 
+def test_a_cpu_clock_in_ticks_stops_no_controller_for_a_tick_it_touched(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """User-Mode Linux accounts a thread's CPU in 10 ms ticks: an update that straddles one
+    reads 10 ms, "longer than the update period", and a gait was stopped for it (the kernel
+    test, stop 54). The budget is judged on what was surely used: the reading less the clock's
+    step. Here each read of the clock is one tick on, so every update straddles exactly one
+    and takes no CPU otherwise."""
+    import gc
+
+    from exolink.nodes.controller_manager import manager as mgr
+
+    ticks = iter(range(10**6))
+    m = manager(budget_ms=1.0)
+    fwd(m, "a", ["r_knee"])
+    switch(m, ["a"])
+    m.command("a", {"values": {"r_knee": 61}})
+    tick = 0.0100001  # a tick as a reading shows it: the kernel test read "10.000 ms > 10 ms"
+    monkeypatch.setattr(mgr.time, "thread_time", lambda: next(ticks) * tick)
+    gc.disable()  # the collector's callback reads the clock too
+    try:
+        monkeypatch.setattr(mgr, "CPU_STEP_S", tick)  # what cpu_clock_step finds on such a clock
+        for i in range(5):
+            assert m.cycle(SITTING, i * 0.01, 0.01, None).writes
+        assert m.active() == ["a"] and m.slots["a"].overruns == 0
+        monkeypatch.setattr(mgr, "CPU_STEP_S", 0.0)  # judged on the readings alone, as before
+        out = m.cycle(SITTING, 0.05, 0.01, None)
+    finally:
+        gc.enable()
+    assert out.safe == {1} and m.active() == []
+    assert "longer than the update period (10 ms)" in m.slots["a"].error
+
+
+def test_the_cpu_clocks_step_here_is_fine() -> None:
+    from exolink.nodes.controller_manager.manager import cpu_clock_step
+
+    assert 0 < cpu_clock_step() < 0.001  # a clock in ns on this kernel, as on the board's
+
+
 def test_a_garbage_collection_is_not_the_controllers_overrun() -> None:
     """The collector runs in whichever update allocates past its threshold: its time is not
     the controller's (a full collection of 300k objects takes far more than 1 ms here)."""

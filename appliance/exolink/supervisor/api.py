@@ -82,7 +82,7 @@ class ManagementApi:
     def nodes(self, _req: dict[str, Any]) -> dict[str, Any]:
         sup = self.sup
         sup.take_beats()
-        return {"nodes": [sup.described(n) for n in sup.nodes.values()]}
+        return {"nodes": [sup.described(n) for n in list(sup.nodes.values())]}
 
     def status(self, _req: dict[str, Any]) -> dict[str, Any]:
         sup = self.sup
@@ -118,7 +118,9 @@ class ManagementApi:
                 "count": sup.trigger_count,
                 "last_ns": sup.last_trigger_ns,
             },
-            "nodes": [sup.described(n) for n in sup.nodes.values()],
+            # a copy taken at once (under the GIL): the API answers while start() still adds
+            # nodes, and iterating the dict itself then failed ("changed size during iteration")
+            "nodes": [sup.described(n) for n in list(sup.nodes.values())],
             # requests the supervisor's API handled and refused (messaging.Admission), samples
             # it could not read, and what it gave back to the kernel (memory.MemoryTrim)
             "api": sup.msg.admission.counters(),
