@@ -243,7 +243,7 @@ class ManagerApi:
         """``exolink send``: joint control (motion held by the joint's operator controller;
         disable and stop at once, always allowed), the accepted angles (the operator's limits),
         the data stream. Nothing is sent unless the whole command is valid."""
-        cmd = requests.decode(req, requests.H2Command, "command kind", requests.H2_KINDS)
+        cmd = requests.decode(req, requests.H2Command, "command kind")
         try:
             if isinstance(cmd, requests.Joint):
                 return self._joint(cmd, caller)
@@ -332,10 +332,8 @@ class ManagerApi:
     def on_maccepa(self, req: dict[str, Any], caller: Caller) -> Any:
         """``exolink maccepa N ...``: set-point, duty and gains held by that board's operator
         controller for the kind (``operator.maccepa0.setpoint``); stop control at once."""
-        cmd = requests.decode(
-            req, requests.MaccepaCommand, "MACCEPA command", requests.MACCEPA_KINDS
-        )
-        board, kind = cmd.board, req["kind"]
+        cmd = requests.decode(req, requests.MaccepaCommand, "MACCEPA command")
+        board = cmd.board
         if board not in self.node.board_ids:
             configured = ", ".join(str(b) for b in sorted(self.node.board_ids)) or "none"
             raise Refused(
@@ -348,17 +346,16 @@ class ManagerApi:
                     {board}, f"{target(board)} stopped by {caller.login}"
                 )
                 return {"frames": _frames(frames)}
-            self._check_maccepa(board, kind, cmd)
+            self._check_maccepa(cmd)
             self.may_move()
-            return self._maccepa(board, kind, cmd)
+            return self._maccepa(cmd)
         except ProtocolError as exc:
             raise Refused(str(exc)) from None
 
-    def _check_maccepa(
-        self, board: int, kind: str, cmd: requests.Gains | requests.Setpoint | requests.Duty
-    ) -> None:
+    def _check_maccepa(self, cmd: requests.Gains | requests.Setpoint | requests.Duty) -> None:
         """The codec's checks (ProtocolError names what is wrong); the board's limits are the
         controller's and the manager's."""
+        board = cmd.board
         lim = self.node.manager.boards[board]
         asked = getattr(cmd, "controller", None)  # duty has none: the board's own
         ctl = lim.controller if asked is None else asked
@@ -378,12 +375,11 @@ class ManagerApi:
         else:
             maccepa.encode_duty(board, cmd.value)
 
-    def _maccepa(
-        self, board: int, kind: str, cmd: requests.Gains | requests.Setpoint | requests.Duty
-    ) -> dict[str, Any]:
+    def _maccepa(self, cmd: requests.Gains | requests.Setpoint | requests.Duty) -> dict[str, Any]:
         """Set-point and duty drive the board and replace each other at one cycle boundary;
         gains are their own interface (tuning while something else drives the board). An
         interface another controller owns is refused with that controller named."""
+        board, kind = cmd.board, requests.kind_of(cmd)
         group = DRIVE if kind in DRIVE else ("gains",)
         name, mine = f"{OPERATOR}.{target(board)}.{kind}", f"{OPERATOR}.{target(board)}."
         for key, owner in self.node.manager.owners_of(target(board)).items():

@@ -11,7 +11,7 @@ limits (exolink.protocol, exolink.limits): a schema says what a request is, not 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, get_args
 
 import msgspec
 
@@ -57,7 +57,6 @@ class Stream(_Request, tag="stream", frozen=True):
 
 
 H2Command = Joint | Limits | Stream
-H2_KINDS = ("joint", "limits", "stream")
 
 
 # --- a MACCEPA board (``maccepa``) ------------------------------------------------------------
@@ -68,9 +67,8 @@ class Gains(_Request, tag="gains", frozen=True):
     kp: Number | None = None
     ki: Number | None = None
     kd: Number | None = None
-    controller: str | int | None = (
-        None  # the board's own controller (position / velocity, or 0 / 1)
-    )
+    # the board's own controller (position / velocity, or 0 / 1); none: the one it runs
+    controller: str | int | None = None
 
 
 class Setpoint(_Request, tag="setpoint", frozen=True):
@@ -89,16 +87,26 @@ class Stop(_Request, tag="stop", frozen=True):
 
 
 MaccepaCommand = Gains | Setpoint | Duty | Stop
-MACCEPA_KINDS = ("gains", "setpoint", "duty", "stop")
 
 
-def decode(req: dict[str, Any], kind: Any, what: str, kinds: tuple[str, ...]) -> Any:
-    """``req`` as one of the union ``kind``, or Refused naming what is wrong (an unknown kind
-    with the known ones, a field by its path)."""
-    if req.get("kind") not in kinds:
-        raise Refused(f"unknown {what} {req.get('kind')!r} ({', '.join(kinds)})")
+def kind_of(request: _Request) -> str:
+    """The request's ``kind``: its class's tag."""
+    return str(request.__struct_config__.tag)
+
+
+def kinds(union: Any) -> tuple[str, ...]:
+    """The kinds a union of requests takes, in its order (what a refusal lists)."""
+    return tuple(str(cls.__struct_config__.tag) for cls in get_args(union))
+
+
+def decode(req: dict[str, Any], union: Any, what: str) -> Any:
+    """``req`` as one of the requests in ``union``, or Refused naming what is wrong (an unknown
+    kind with the known ones, a field by its path)."""
+    known = kinds(union)
+    if req.get("kind") not in known:
+        raise Refused(f"unknown {what} {req.get('kind')!r} ({', '.join(known)})")
     try:
-        return msgspec.convert(req, kind, strict=True)
+        return msgspec.convert(req, union, strict=True)
     except msgspec.ValidationError as exc:
         raise Refused(f"{what} {req['kind']}: {exc}") from None
 
