@@ -30,12 +30,22 @@ R = TypeVar("R")
 _RELEASE = ("close", "undeclare", "shutdown", "stop")
 
 
-def beat_period_s(deadline_s: float) -> float:
-    """How often the runtime's heartbeat thread vouches for a loop that beat within ``stall_s``:
-    three times per liveness deadline, between 0.1 and 1 s. Each wake costs ~1 ms of the
-    board's one core (benchmarks/board/units.py: a sleep-and-wake): at a fixed 10 Hz, eight
-    nodes' threads took ~10 % of it while their loops already beat the supervisor themselves."""
+def beat_period_s(deadline_s: float, stall_s: float) -> float:
+    """How often the runtime's heartbeat thread wakes. It vouches for a loop that beat within
+    ``stall_s`` only when ``stall_s`` is longer than the node's liveness deadline (a loop that
+    may block past it: the recorder's fsync under a short deadline), three times per deadline,
+    at least every 0.1 s. Otherwise the loop's own beats are the only proof of life and the
+    thread wakes once a second for the telemetry: a vouch at its own time let a motion node's
+    loop hang for ``stall_s`` + deadline (90 ms for the controller manager's 50 ms) before the
+    watchdog knew, and each wake costs ~1 ms of the board's one core (benchmarks/board/units.py)."""
+    if not vouches(deadline_s, stall_s):
+        return TELEMETRY_PERIOD_S
     return min(TELEMETRY_PERIOD_S, max(HEARTBEAT_PERIOD_S, deadline_s / 3))
+
+
+def vouches(deadline_s: float, stall_s: float) -> bool:
+    """Whether the heartbeat thread beats for a loop that beat within ``stall_s``."""
+    return stall_s > deadline_s
 
 
 HEARTBEAT_TOPIC = "heartbeat"
@@ -77,6 +87,8 @@ class Node:
         self.params = params
         self.log = ctx.log
         self._last_beat = time.monotonic()
+        self._stall_limit = self.stall_s
+        self.on_stall: Callable[[float, float], None] | None = None  # (gap s, limit s)
         self.liveness = Beater(None)  # the runtime connects it to the supervisor's pipe
         self._owned = contextlib.ExitStack()
 
@@ -105,20 +117,28 @@ class Node:
         return self.ctx.name
 
     def beat(self, idle: bool = False) -> None:
-        """The loop is alive: also straight to the supervisor, so a node whose loop beats every
-        cycle (a motion node) is judged on its own deadline, not the heartbeat thread's period.
-        ``idle``: it has nothing to drive until its next beat that is not (exolink.liveness)."""
+        """The loop is alive: straight to the supervisor, so the node is judged on its loop's own
+        beats. ``idle``: it has nothing to drive until its next beat that is not
+        (exolink.liveness). A beat that ends a gap longer than the loop's stall limit reports
+        it (``on_stall``, set by the runtime: the journal's ``loop_stalled``)."""
         now = time.monotonic()
+        gap = now - self._last_beat
         self._last_beat = now
         self.liveness.beat(now, idle)
+        if gap > self._stall_limit and self.on_stall is not None:
+            self.on_stall(gap, self._stall_limit)
+        self._stall_limit = self.idle_stall_s if idle else self.stall_s
 
     @property
     def last_beat(self) -> float:
         return self._last_beat
 
     def healthy(self) -> bool:
-        limit = self.idle_stall_s if self.liveness.idle else self.stall_s
-        return time.monotonic() - self._last_beat < limit
+        return time.monotonic() - self._last_beat < self._stall_limit
+
+    def restart_stall_clock(self) -> None:
+        """From now on: what came before the loop (configure) is no stall."""
+        self._last_beat = time.monotonic()
 
     def configure(self) -> None:
         pass

@@ -35,6 +35,7 @@ from exolink.node import (
     Node,
     NodeContext,
     beat_period_s,
+    vouches,
 )
 from exolink.plugins import find_node_class
 from exolink.wire import cdr
@@ -63,57 +64,57 @@ class NodeRunner:
         self.log = log
         self._decls: list[Any] = []
         self._count = 0
+        self._stall_quiet_until = 0.0
+        self._stalls_unlogged = 0
 
     def _heartbeat(self) -> None:
+        """The telemetry (``nodes/<name>/heartbeat`` for people, the API's refusals), and, for a
+        loop whose stall limit is longer than its deadline, a vouch while it beat within it
+        (``exolink.node.beat_period_s``): every other loop is judged on its own beats alone."""
         pub = self.msg.publisher(f"nodes/{self.name}/{HEARTBEAT_TOPIC}", HEARTBEAT_TYPE, raw=True)
         api = self.msg.publisher(
             messaging.API_TOPIC.format(node=self.name), messaging.API_TYPE, raw=True
         )
         refused: dict[str, int] = {}  # as last put: nothing is put while nothing is refused
         beat = cdr.HeartbeatCdr(self.name, os.getpid())
-        period = beat_period_s(self.cfg.deadline_s(self.cfg.node(self.name)))
+        deadline = self.cfg.deadline_s(self.cfg.node(self.name))
+        vouch = vouches(deadline, self.node.stall_s)
+        period = beat_period_s(deadline, self.node.stall_s)
         next_t = next_telemetry = time.monotonic()
-        stalled_since: float | None = None  # the journal says which loop went quiet, how long
-        # At most one stalled/recovered pair per STALL_LOG_EVERY_S, the rest counted: on a
-        # saturated core a motion node's 40 ms stall limit otherwise floods the journal (and the
-        # supervisor, which relays every line).
-        quiet_until, unlogged, logging = 0.0, 0, True
         while not self.stop.is_set():
-            before = self.node.last_beat
             healthy = self.node.healthy()
-            if not healthy and stalled_since is None:
-                stalled_since = before
-                logging = time.monotonic() >= quiet_until
-                if logging:
-                    self.log.warning(
-                        "loop_stalled",
-                        limit_s=self.node.stall_s,
-                        stalls_not_logged=unlogged,
-                        loop_thread=_thread_state(threading.main_thread().native_id),
-                    )
-                    unlogged = 0
-            elif healthy and stalled_since is not None:
-                stalled_s = self.node.last_beat - stalled_since
-                if logging:
-                    self.log.warning("loop_recovered", stalled_s=round(stalled_s, 2))
-                    quiet_until = time.monotonic() + STALL_LOG_EVERY_S
-                else:
-                    unlogged += 1
-                stalled_since = None
-            if healthy:  # proof of life: only the loop's own beats within stall_s count
+            if healthy and vouch:
                 self.node.liveness.beat()
+            if healthy and time.monotonic() >= next_telemetry:
+                next_telemetry += TELEMETRY_PERIOD_S
                 self._count += 1
-                if time.monotonic() >= next_telemetry:
-                    next_telemetry += TELEMETRY_PERIOD_S
-                    now = time.time_ns()
-                    pub.put(beat.encode(now, self._count), now)
-                    if (now_refused := self.msg.admission.refused()) != refused:
-                        refused = now_refused
-                        api.put(cdr.string_msg(json.dumps(refused)), now)
+                now = time.time_ns()
+                pub.put(beat.encode(now, self._count), now)
+                if (now_refused := self.msg.admission.refused()) != refused:
+                    refused = now_refused
+                    api.put(cdr.string_msg(json.dumps(refused)), now)
             next_t += period
             self.stop.wait(max(0.0, next_t - time.monotonic()))
         pub.close()
         api.close()
+
+    def _on_stall(self, gap_s: float, limit_s: float) -> None:
+        """A loop beat again after ``gap_s`` without (its limit: ``limit_s``): logged at most once
+        per ``STALL_LOG_EVERY_S``, the rest counted; on a saturated core a motion node's 40 ms
+        limit otherwise floods the journal (and the supervisor, which relays every line). A loop
+        that never beats again is the supervisor's (``node_hung_killed``, with its threads)."""
+        now = time.monotonic()
+        if now < self._stall_quiet_until:
+            self._stalls_unlogged += 1
+            return
+        self._stall_quiet_until = now + STALL_LOG_EVERY_S
+        self.log.warning(
+            "loop_stalled",
+            stalled_s=round(gap_s, 3),
+            limit_s=limit_s,
+            stalls_not_logged=self._stalls_unlogged,
+        )
+        self._stalls_unlogged = 0
 
     def _params(self, req: dict[str, Any]) -> dict[str, Any]:
         if "set" in req:
@@ -138,6 +139,8 @@ class NodeRunner:
         # before the loop runs, whose first beat that is not idle comes before it drives
         # anything; a motion node's own 50 ms from here would kill a restarted controller
         # manager whose loop beats first a little later (docs/performance.md, exolink.liveness).
+        self.node.on_stall = self._on_stall
+        self.node.restart_stall_clock()
         self.node.beat(idle=True)
         hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         hb.start()
@@ -161,18 +164,6 @@ class NodeRunner:
                 self.session.close()
             self.log.info("node_stopped", code=code)
         return code
-
-
-def _thread_state(tid: int | None) -> str:
-    """A thread of this process as the kernel sees it now (state, wait channel): runnable (R)
-    in a stalled loop says the core was busy with others, not that the loop blocked."""
-    try:
-        with open(f"/proc/self/task/{tid}/stat") as f:
-            state = f.read().rsplit(")", 1)[1].split()[0]
-        with open(f"/proc/self/task/{tid}/wchan") as f:
-            return f"{state} {f.read().strip() or '-'}"
-    except (OSError, IndexError):
-        return "?"
 
 
 @contextlib.contextmanager
