@@ -23,6 +23,7 @@ import csv
 import re
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -184,8 +185,11 @@ class PatternPlayer(Node):
     # --- commands -------------------------------------------------------------------------
 
     def on_command(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        action = req.get("action", "status")
-        handler = {
+        if isinstance(req, dict) and "action" not in req:
+            req = {**req, "action": "status"}
+        cmd = requests.decode(req, requests.Pattern, "pattern action")
+        action = requests.tag_of(cmd)
+        handlers: dict[str, Callable[[Any, Caller], None]] = {
             "start": self._start,
             "stop": self._stop,
             "pause": self._pause,
@@ -195,13 +199,8 @@ class PatternPlayer(Node):
             "disable": self._disable,
             "load": self._load,
             "status": lambda _r, _c: None,
-        }.get(action)
-        if handler is None:
-            raise Refused(
-                f"unknown pattern action {action!r} (start, stop, pause, restart, speed, "
-                "select, disable, load, status)"
-            )
-        handler(req, caller)
+        }
+        handlers[action](cmd, caller)
         with self.lock:
             status = self.status()
         self._publish()
@@ -226,7 +225,7 @@ class PatternPlayer(Node):
             "watchdog_word": self.arming.counters() if self.arming is not None else None,
         }
 
-    def _start(self, _req: dict[str, Any], caller: Caller) -> None:
+    def _start(self, _req: Any, caller: Caller) -> None:
         with self.lock:
             if not any(self.selected):
                 raise Refused(
@@ -251,16 +250,17 @@ class PatternPlayer(Node):
                 "start": self.index,
             }
             self._engaged = 0  # until the manager has it: what it says meanwhile is of the last
-        body = {
-            "action": "load",
-            "name": GAIT,
-            "type": "gait_pattern",
-            "params": params,
-            "replace": True,
-            "activate": True,
-            "within_s": ENGAGE_WAIT_S - ENGAGE_MARGIN_S,
-            "budget_ms": GAIT_BUDGET_MS,
-        }
+        body = requests.body(
+            requests.Load(
+                GAIT,
+                "gait_pattern",
+                params,
+                activate=True,
+                replace=True,
+                budget_ms=GAIT_BUDGET_MS,
+                within_s=ENGAGE_WAIT_S - ENGAGE_MARGIN_S,
+            )
+        )
         try:
             self.ctx.messaging.command("controllers", body=body, timeout_s=ENGAGE_WAIT_S)
         except Refused as exc:
@@ -279,7 +279,7 @@ class PatternPlayer(Node):
         self._track_index()
         self.state, self.reason, self._engaged = state, reason, 0
 
-    def _stop(self, _req: dict[str, Any], _caller: Caller) -> None:
+    def _stop(self, _req: Any, _caller: Caller) -> None:
         with self.lock:
             was = self.state
             self._halt("stopped")
@@ -287,44 +287,44 @@ class PatternPlayer(Node):
         if was == "running":
             self._deactivate()
 
-    def _pause(self, _req: dict[str, Any], _caller: Caller) -> None:
+    def _pause(self, _req: Any, _caller: Caller) -> None:
         with self.lock:
             if self.state != "running":
                 raise Refused(f"cannot pause: pattern is {self.state}")
             self._halt("paused")
         self._deactivate()
 
-    def _restart(self, _req: dict[str, Any], _caller: Caller) -> None:
+    def _restart(self, _req: Any, _caller: Caller) -> None:
         with self.lock:
             self.index = 0
             running = self.state == "running"
             self._t0, self._i0 = time.monotonic(), 0
         if running:
-            self._manager({"action": "command", "name": GAIT, "index": 0})
+            self._manager(_gait_command(index=0))
 
-    def _speed(self, req: dict[str, Any], _caller: Caller) -> None:
-        level = req.get("speed")
-        if isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= 10:
+    def _speed(self, req: requests.PatternSpeed, _caller: Caller) -> None:
+        level = req.speed
+        if not 1 <= level <= 10:
             raise Refused(f"speed must be a whole level 1..10, got {level!r}")
         with self.lock:
             running = self.state == "running"
         if running:  # the manager checks the pattern's steps at the new speed first
-            self._manager({"action": "command", "name": GAIT, "speed": level})
+            self._manager(_gait_command(speed=level))
         with self.lock:
             self._track_index()
             self._t0, self._i0 = time.monotonic(), self.index
             self.speed = level
 
-    def _joints(self, req: dict[str, Any]) -> list[int]:
-        names = req.get("joints")
-        if not isinstance(names, list) or not names:
+    def _joints(self, req: requests.PatternSelect | requests.PatternDisable) -> list[int]:
+        names = req.joints
+        if not names:
             raise Refused("give one or more joints (r_hip r_knee r_ankle l_hip l_knee l_ankle)")
         try:
             return [h2.motor_id(n) - 1 for n in names]
         except ProtocolError as exc:
             raise Refused(str(exc)) from None
 
-    def _select(self, req: dict[str, Any], _caller: Caller) -> None:
+    def _select(self, req: requests.PatternSelect, _caller: Caller) -> None:
         with self.lock:
             if self.state != "stopped":
                 raise Refused(
@@ -333,7 +333,7 @@ class PatternPlayer(Node):
             idx = self._joints(req)
             self.selected = [i in idx for i in range(6)]
 
-    def _disable(self, req: dict[str, Any], _caller: Caller) -> None:
+    def _disable(self, req: requests.PatternDisable, _caller: Caller) -> None:
         """These joints disabled now (the manager sends type 4 and stops what drives them), and
         the pattern goes on with the others, if any."""
         idx = self._joints(req)
@@ -357,21 +357,21 @@ class PatternPlayer(Node):
             self._t0, self._i0 = time.monotonic(), self.index
         self._engage()
 
-    def _load(self, req: dict[str, Any], _caller: Caller) -> None:
+    def _load(self, req: requests.PatternLoad, _caller: Caller) -> None:
         with self.lock:
             if self.state != "stopped":
                 raise Refused(f"stop the pattern before loading another (it is {self.state})")
             p = self.params
             try:
-                if "content" in req:  # uploaded by the operator's CLI from the laptop
-                    content, name = req["content"], str(req.get("name", "uploaded"))
-                    if not isinstance(content, str) or len(content) > MAX_UPLOAD:
+                if req.content is not None:  # uploaded by the operator's CLI from the laptop
+                    content, name = req.content, req.name
+                    if len(content) > MAX_UPLOAD:
                         raise ProtocolError(
                             f"{name}: content must be CSV text under {MAX_UPLOAD} B"
                         )
                     self.pattern = parse_pattern(content, name, self.limits)
                 else:
-                    path = pattern_in(p.patterns_dir, str(req.get("file", "")))
+                    path = pattern_in(p.patterns_dir, req.file or "")
                     self.pattern = load_pattern(path, self.limits)
             except ProtocolError as exc:
                 raise Refused(str(exc)) from None
@@ -386,7 +386,7 @@ class PatternPlayer(Node):
 
     def _deactivate(self) -> None:
         """The gait's deactivation in the manager; one that finds it stopped counts as done."""
-        self._manager({"action": "deactivate", "names": [GAIT]}, GONE)
+        self._manager(requests.body(requests.Deactivate([GAIT])), GONE)
 
     def _disengage(self) -> None:
         """``_deactivate`` where nobody waits for its answer (logged instead)."""
@@ -426,7 +426,7 @@ class PatternPlayer(Node):
         """Why the manager no longer runs the pattern (None: it does, or it did not answer:
         the pattern's safety is the manager's and the watchdog's, not this display's)."""
         try:
-            gait = self._manager({"action": "state", "name": GAIT})
+            gait = self._manager(requests.body(requests.ControllerState(GAIT)))
         except Refused as exc:
             self.log.warning("manager_status_unavailable", error=str(exc))
             return None
@@ -483,3 +483,8 @@ class PatternPlayer(Node):
             s = self.status()
         now = time.time_ns()
         self.pub.put(cdr.pattern_state(now, s, self.selected), now)
+
+
+def _gait_command(**values: int) -> dict[str, Any]:
+    """A command to the manager's gait controller (its own fields: ``speed``, ``index``)."""
+    return {**requests.body(requests.ControllerCommand(GAIT)), **values}

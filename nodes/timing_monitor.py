@@ -21,6 +21,7 @@ from exolink.canbus import open_reader
 from exolink.canbus.filters import Drop
 from exolink.messaging import Refused
 from exolink.node import Node
+from exolink.wire import management
 
 HIST_EDGES_US = [0, 10, 20, 50, 100, 200, 500, 1000, 5000]
 MAX_STAMPS = 200_000
@@ -174,8 +175,9 @@ class TimingMonitor(Node):
         return ring.select(dlc, byte0)
 
     def on_query(self, req: dict[str, Any]) -> dict[str, Any]:
-        fid, byte0, dlc = req.get("id"), req.get("byte0"), req.get("dlc")
-        if not isinstance(fid, int) or fid not in self.params.ids:
+        ask = management.convert(req, management.Timing, "timing query")
+        fid, byte0, dlc = ask.id, ask.byte0, ask.dlc
+        if fid not in self.params.ids:
             raise Refused(f"id {fid!r} is not monitored (params.ids: {self.params.ids})")
         only = self.params.only_for(fid)
         if only is not None and (
@@ -187,7 +189,7 @@ class TimingMonitor(Node):
                 + (f" and first byte {only.first_byte}" if only.first_byte else "")
                 + " (params.only)"
             )
-        seconds = float(req.get("seconds", 0))
+        seconds = ask.seconds
         if not 0 <= seconds <= 600:
             raise Refused("seconds must be 0..600")
         since = time.time()
@@ -197,8 +199,8 @@ class TimingMonitor(Node):
         stamps = [
             t for t in self._key_stamps(fid, dlc, byte0) if not seconds or since <= t <= until
         ]
-        exp = req.get("expected_ms")
-        out = deviation_stats(stamps, None if exp is None else float(exp) / 1000)
+        exp = ask.expected_ms
+        out = deviation_stats(stamps, None if exp is None else exp / 1000)
         # Frames the kernel dropped from this monitor's full queue since it started: a record
         # with holes shows gaps that were never on the bus.
         out["socket_dropped"] = self.reader.dropped

@@ -209,6 +209,32 @@ def test_management_commands(app) -> None:  # type: ignore[no-untyped-def]
     assert '"count": 1' in app.cli("trigger").stdout
 
 
+def test_management_requests_are_refused_by_field_and_an_estop_whatever_it_holds(app, mbus) -> None:  # type: ignore[no-untyped-def]
+    """Each route decodes its request once (exolink.wire.management): a wrong type, a missing or
+    unknown field is refused by name and changes nothing. An e-stop is acted on before anything
+    else in its request is looked at."""
+    app.arm()
+    for path, body, err in [
+        ("watchdog", {"action": "arm", "force": True}, "`force`"),
+        ("watchdog", {"action": "reboot"}, "unknown watchdog action 'reboot' (arm, disarm, estop"),
+        ("control", {"action": "stop", "node": 5}, "`$.node`"),
+        ("control", {"action": "stop"}, "missing required field `node`"),
+        ("control", {"action": "kill", "node": "h2_reader"}, "(start, stop, restart)"),
+        ("logs", {"node": "h2_reader", "lines": 0}, "`$.lines`"),
+        ("clock", {"action": "step", "offset_s": "1", "error_s": 0.001}, "`$.offset_s`"),
+        ("trigger", {"action": "fire", "times": 3}, "`times`"),
+    ]:
+        reply = app.call(path, body)
+        assert reply["ok"] is False and err in reply["error"], (path, body, reply)
+    assert app.status()["watchdog"]["state"] == "armed"  # none of them changed anything
+    assert app.node("h2_reader")["state"] == "running"
+    assert app.status()["trigger"]["count"] == 0
+    collect(mbus, 0.1)
+    reply = app.call("watchdog", {"action": "estop", "by": 5, "anything": [1, 2]})
+    assert reply["state"] == "tripped" and "operator e-stop" in reply["reason"], reply
+    assert_all_disabled(collect(mbus, 0.5, {70}))
+
+
 def test_stop_of_critical_node_trips(app, mbus) -> None:  # type: ignore[no-untyped-def]
     app.arm()
     collect(mbus, 0.1)

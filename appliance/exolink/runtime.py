@@ -38,7 +38,7 @@ from exolink.node import (
     vouches,
 )
 from exolink.plugins import find_node_class
-from exolink.wire import cdr
+from exolink.wire import cdr, management
 
 STALL_LOG_EVERY_S = 10.0
 
@@ -117,9 +117,10 @@ class NodeRunner:
         self._stalls_unlogged = 0
 
     def _params(self, req: dict[str, Any]) -> dict[str, Any]:
-        if "set" in req:
-            key, value = req["set"].get("key"), req["set"].get("value")
-            return {"key": key, "value": self.node.set_param(str(key), value)}
+        ask = management.convert(req, management.Params, "params")
+        if ask.set is not None:
+            key = ask.set.key
+            return {"key": key, "value": self.node.set_param(key, ask.set.value)}
         return {"params": msgspec.to_builtins(self.node.params)}
 
     def run(self) -> int:

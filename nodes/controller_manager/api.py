@@ -31,7 +31,7 @@ from exolink.messaging import Caller, Refused, Unlogged
 from exolink.node import NodeContext
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
-from exolink.wire import cdr
+from exolink.wire import cdr, management
 
 R = TypeVar("R")
 
@@ -45,18 +45,21 @@ PRESENCE = ("hold", "release")  # answered at once, never behind a switch
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 
+def _action(request: Any, default: str | None = None) -> Any:
+    return request.get("action", default) if isinstance(request, dict) else None
+
+
 def _controllers_needs(request: dict[str, Any]) -> str:
-    return roles.OBSERVER if request.get("action", "list") in READS else roles.OPERATOR
+    return roles.OBSERVER if _action(request, "list") in READS else roles.OPERATOR
 
 
 def _presence(request: dict[str, Any]) -> bool:
-    return request.get("action") in PRESENCE
+    return _action(request) in PRESENCE
 
 
-def _deadline(req: dict[str, Any]) -> float | None:
+def _deadline(within: Any) -> float | None:
     """``within_s``: the asker waits this long for the answer, so nothing it asked for may take
     effect after that (it would then say the request failed while the manager drove on)."""
-    within = req.get("within_s")
     if within is None:
         return None
     if not isinstance(within, int | float) or isinstance(within, bool) or not 0 < within <= 10:
@@ -121,40 +124,42 @@ class ManagerApi:
             self.node.maybe_tell()
 
     def _controllers(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        action = req.get("action", "list")
-        if action == "list":
-            return self.node.status()
-        if action == "state":
-            return self.node.manager.state_of(str(req.get("name", "")))
-        if action == "types":
-            return {"types": controller_types()}
-        if action == "hold":
-            return self._hold(req, caller)
-        if action == "release":
-            return self._release(req)
-        if action == "load":
-            return self._load(req)
-        if action == "unload":
-            self.node.manager.unload(str(req.get("name", "")))
-            return {}
-        if action == "command":
-            name = str(req.get("name", ""))
-            if name in self.node.manager.active():  # it moves a joint now
-                self.may_move()
-            body = {k: v for k, v in req.items() if k not in ("action", "name")}
-            return self.node.manager.command(name, body)
-        if action in ("activate", "deactivate", "switch"):
-            return self._switch(action, req)
-        raise Refused(
-            f"unknown controllers action {action!r} "
-            "(list, types, state, load, unload, activate, deactivate, switch, command, hold, "
-            "release)"
-        )
+        if isinstance(req, dict) and "action" not in req:
+            req = {**req, "action": "list"}
+        cmd = requests.decode(req, requests.Controllers, "controllers action")
+        manager = self.node.manager
+        match cmd:
+            case requests.ControllersList():
+                return self.node.status()
+            case requests.ControllerState():
+                return manager.state_of(cmd.name)
+            case requests.ControllerTypes():
+                return {"types": controller_types()}
+            case requests.Hold():
+                return self._hold(cmd, caller)
+            case requests.Release():
+                return self._release(cmd)
+            case requests.Load():
+                return self._load(cmd)
+            case requests.Unload():
+                manager.unload(cmd.name)
+                return {}
+            case requests.ControllerCommand():
+                if cmd.name in manager.active():  # it moves a joint now
+                    self.may_move()
+                # the rest is the controller's own command, which its type checks
+                body = {k: v for k, v in req.items() if k not in ("action", "name")}
+                return manager.command(cmd.name, body)
+            case requests.Activate():
+                return self._switch(Switch(list(cmd.names), []))
+            case requests.Deactivate():
+                return self._switch(Switch([], list(cmd.names)))
+            case requests.SwitchControllers():
+                return self._switch(Switch(list(cmd.activate), list(cmd.deactivate)))
+        raise AssertionError(f"a decoded controllers request without a handler: {cmd!r}")
 
-    def _hold(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        out = self.node.presence.hold(
-            req.get("holder"), caller.login, req.get("what"), bool(req.get("take_over"))
-        )
+    def _hold(self, req: requests.Hold, caller: Caller) -> dict[str, Any]:
+        out = self.node.presence.hold(req.holder, caller.login, req.what, req.take_over)
         reply = {
             **out,
             "driving": self.node.manager.active(),
@@ -162,65 +167,46 @@ class ManagerApi:
         }
         return Unlogged(reply) if out["renewed"] else reply  # renewals: twice a second
 
-    def _release(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _release(self, req: requests.Release) -> dict[str, Any]:
         """A holder lets go: what it held stops (the safe action), without a trip."""
-        released = self.node.presence.release(req.get("holder"))
+        released = self.node.presence.release(req.holder)
         if released and self.node.manager.active():
             self.node.stop_all("its holder released motion")
         return {"released": released}
 
-    def _load(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _load(self, req: requests.Load) -> dict[str, Any]:
         """``replace``: a controller of that name is deactivated and unloaded first;
         ``activate``: the new one is activated at the next cycle (within ``within_s`` of this
         request, if given). One request instead of four (what the pattern player sends). An
         activation refused (not armed, nobody holding motion, a claim held, no cycle in time)
         leaves the controllers as they were, except that a replaced one that was active is
         now inactive."""
-        params = req.get("params") or {}
-        if not isinstance(params, dict):
-            raise Refused("params must be an object")
-        name, kind = str(req.get("name", "")), str(req.get("type", ""))
-        activate = bool(req.get("activate"))
-        until = _deadline(req)
+        name, activate, replace = req.name, req.activate, req.replace
+        until = _deadline(req.within_s)
         if activate:
             self.may_move()
-        replace = bool(req.get("replace"))
         slot = self.node.manager.prepare(
-            name, kind, params, req.get("budget_ms"), replacing=replace
+            name, req.type, dict(req.params), req.budget_ms, replacing=replace
         )
         if replace and name in self.node.manager.active():
-            self._switch("deactivate", {"names": [name]})
+            self._switch(Switch([], [name]))
         old = self.node.manager.add(slot, replace=replace)
         if not activate:
             return slot.status()
         try:
-            active = self._switch("activate", {"names": [name]}, until)
+            active = self._switch(Switch([name], []), until)
         except Refused:
             self.node.manager.put_back(slot, old)  # nothing half-done: as before the request
             raise
         return {**slot.status(), **active}
 
-    def _switch(
-        self, action: str, req: dict[str, Any], until: float | None = None
-    ) -> dict[str, Any]:
+    def _switch(self, sw: Switch, until: float | None = None) -> dict[str, Any]:
         """Applied at one cycle boundary, or refused whole. An activation supersedes the
         operator's one-off holds (``operator.*``) on the joints and boards it claims, in the
         same switch: the operator who starts a pattern means the pattern to drive.
         ``until`` (monotonic): the asker's own limit, waited for instead of SWITCH_WAIT_S, never
         passed."""
 
-        def names(key: str) -> list[str]:
-            v = req.get(key, [])
-            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-                raise Refused(f"{key} must be a list of controller names")
-            return v
-
-        if action == "switch":
-            sw = Switch(names("activate"), names("deactivate"))
-        elif action == "activate":
-            sw = Switch(names("names"), [])
-        else:
-            sw = Switch([], names("names"))
         if sw.activate:
             self.may_move()
             held = self.node.manager.superseded(sw.activate, OPERATOR + ".")
@@ -298,7 +284,7 @@ class ManagerApi:
         reply = self.node.manager.command(name, {"setpoint": setpoint, "stiffness": stiffness})
         if name not in self.node.manager.active():
             before = [n for n in self.node.manager.active() if n.startswith(mine)]
-            self._switch("switch", {"activate": [name], "deactivate": before})
+            self._switch(Switch([name], before))
         return {"controller": name, "frames": [], **reply}
 
     def _limits(self, cmd: requests.Limits, caller: Caller) -> Any:
@@ -402,7 +388,7 @@ class ManagerApi:
                 for n in self.node.manager.active()
                 if n.startswith(mine) and n.rpartition(".")[2] in group
             ]
-            self._switch("switch", {"activate": [name], "deactivate": before})
+            self._switch(Switch([name], before))
         return {"controller": name, "frames": [], **reply}
 
     # --- presence -----------------------------------------------------------------------------
@@ -430,7 +416,7 @@ class ManagerApi:
 
         def ask() -> None:
             try:
-                body = {"action": "trip", "reason": reason, "detail": detail}
+                body = requests.body(management.Trip(reason, detail))
                 self.node.ctx.messaging.command("watchdog", body=body, timeout_s=2.0)
             except Refused as exc:
                 self.node.log.error("trip_request_failed", reason=reason, error=str(exc))

@@ -24,8 +24,11 @@ from exolink import __version__, messaging, roles
 from exolink.board import clock
 from exolink.messaging import Refused, Unlogged
 from exolink.node import Node
+from exolink.recordings import requests as reqs
 from exolink.recordings import store as recstore
+from exolink.recordings.requests import with_default
 from exolink.wire import cdr
+from exolink.wire.requests import decode
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 # How often the loop takes what the inbox holds. Each take is a wake-up (~1 ms of the board's
@@ -226,11 +229,8 @@ class Recorder(Node):
     # --- commands -------------------------------------------------------------------------
 
     def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
-        action = req.get("action", "status")
-        if action == "start":
-            labels = req.get("labels", {})
-            if not isinstance(labels, dict) or not all(isinstance(v, str) for v in labels.values()):
-                raise Refused("labels must be a mapping of strings (--label subject=S01)")
+        cmd = decode(with_default(req, "status"), reqs.Record, "record action")
+        if isinstance(cmd, reqs.RecordStart):
             if self.state == "recording":
                 raise Refused(f"already recording to {self.file.path if self.file else '?'}")
             self.card = self.store.card()
@@ -239,14 +239,12 @@ class Recorder(Node):
                     f"card full: {self._card_text()}; not recording (fetch the recordings: "
                     "exolink record sync DIR, then exolink record delete NAME)"
                 )
-            self.start_recording({**self.params.labels, **labels})
-        elif action == "stop":
+            self.start_recording({**self.params.labels, **cmd.labels})
+        elif isinstance(cmd, reqs.RecordStop):
             if self.state != "recording":
                 raise Refused(f"not recording (state {self.state})")
             with self.lock:
                 self.state = "stopping"
-        elif action != "status":
-            raise Refused(f"unknown record action {action!r} (start, stop, status)")
         deadline = time.monotonic() + REPLY_WAIT_S
         while self._settling() and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -281,28 +279,26 @@ class Recorder(Node):
 
     def on_recordings(self, req: dict[str, Any]) -> dict[str, Any]:
         """A laptop's request about the files (roles.RECORDINGS says who may ask what)."""
-        action = req.get("action", "list")
+        ask = decode(with_default(req, "list"), reqs.Recordings, "recordings action")
         try:
-            if action == "list":
+            if isinstance(ask, reqs.List):
                 files = [e.as_dict() for e in self.store.entries()]
                 return {"files": files, "card": dict(self.card), "state": self.state}
-            if action == "stat":
-                return self.store.stat(req.get("name"))
-            if action == "fetch":
+            if isinstance(ask, reqs.Stat):
+                return self.store.stat(ask.name)
+            if isinstance(ask, reqs.Fetch):
                 # A chunk is a read, not a command: the command log (recorded) keeps the
                 # ``stat`` that began the fetch, not one entry per MiB.
-                return Unlogged(
-                    self.store.chunk(req.get("name"), req.get("offset"), req.get("length"))
-                )
-            if action == "delete":
-                out = self.store.delete(req.get("name"))
-                self.card = self.store.card()
-                return out
+                return Unlogged(self.store.chunk(ask.name, ask.offset, ask.length))
+            out = self.store.delete(ask.name)
+            self.card = self.store.card()
+            return out
         except recstore.StoreError as exc:
             raise Refused(str(exc)) from None
         except OSError as exc:
-            raise Refused(f"{req.get('name')!s:.80}: {exc.strerror or exc}") from None
-        raise Refused(f"unknown recordings action {str(action)[:40]!r} (list, stat, fetch, delete)")
+            raise Refused(
+                f"{getattr(ask, 'name', 'recordings')!s:.80}: {exc.strerror or exc}"
+            ) from None
 
     def _reserve_bytes(self, params: RecorderParams | None = None) -> int:
         return int((params or self.params).reserve_mb * 2**20)

@@ -14,6 +14,13 @@ from typing import Any
 from exolink.board import clock
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
+from exolink.wire import management
+from exolink.wire.requests import body
+
+
+def step_body(off: clock.Offset) -> dict[str, Any]:
+    """The board's clock stepped to this laptop's (exolink.wire.management.Step)."""
+    return body(management.Step(off.offset_s, off.error_s))
 
 
 def offset(r: Remote) -> clock.Offset:
@@ -64,7 +71,7 @@ def sync_at_arm(r: Remote) -> str:
     if st.get("source") == "laptop" and not off.off():
         return ""
     try:
-        r.call("clock", body={"action": "step", "offset_s": off.offset_s, "error_s": off.error_s})
+        r.call("clock", body=step_body(off))
     except Refused as exc:
         return f"clock    not set from this laptop: {exc}\n"
     return (
@@ -78,9 +85,7 @@ def cmd_clock(args: argparse.Namespace) -> int:
     with remote(args) as r:
         off = offset(r)
         if args.action == "sync":
-            r.call(
-                "clock", body={"action": "step", "offset_s": off.offset_s, "error_s": off.error_s}
-            )
+            r.call("clock", body=step_body(off))
             time.sleep(0.05)
             after = offset(r)
             sys.stdout.write(

@@ -10,6 +10,7 @@ from typing import Any
 
 from exolink.cli.options import Leaves, common, decimal, guard
 from exolink.client import remote
+from exolink.control import requests
 
 
 def _limits(lim: dict[str, Any]) -> list[str]:
@@ -103,23 +104,37 @@ def _params(text: str) -> dict[str, Any]:
     return data
 
 
+def controllers_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The controllers request of a parsed `exolink controllers ...`
+    (exolink.control.requests.Controllers)."""
+    a = args.action
+    req: requests.Controllers
+    if a == "load":
+        req = requests.Load(
+            args.name,
+            args.type,
+            args.params,
+            activate=args.activate,
+            replace=args.replace,
+            budget_ms=args.budget_ms,
+        )
+    elif a == "unload":
+        req = requests.Unload(args.name)
+    elif a in ("activate", "deactivate"):
+        req = (requests.Activate if a == "activate" else requests.Deactivate)(list(args.names))
+    elif a == "switch":
+        req = requests.SwitchControllers(list(args.activate), list(args.deactivate))
+    elif a == "command":  # the controller's own command: its values by joint
+        return {**requests.body(requests.ControllerCommand(args.name)), "values": dict(args.values)}
+    else:
+        req = requests.ControllerTypes() if a == "types" else requests.ControllersList()
+    return requests.body(req)
+
+
 @guard
 def cmd_controllers(args: argparse.Namespace) -> int:
     a = args.action
-    body: dict[str, Any] = {"action": a}
-    if a == "load":
-        body |= {"name": args.name, "type": args.type, "params": args.params}
-        if args.budget_ms is not None:
-            body["budget_ms"] = args.budget_ms
-        body |= {"replace": args.replace, "activate": args.activate}
-    elif a in ("unload",):
-        body["name"] = args.name
-    elif a in ("activate", "deactivate"):
-        body["names"] = args.names
-    elif a == "switch":
-        body |= {"activate": args.activate, "deactivate": args.deactivate}
-    elif a == "command":
-        body |= {"name": args.name, "values": dict(args.values)}
+    body = controllers_body(args)
     with remote(args) as r:
         reply = r.call("controllers", body=body)
     reply.pop("ok", None)

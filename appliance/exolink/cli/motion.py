@@ -18,6 +18,7 @@ from exolink.client import remote
 from exolink.config import ZenohConfig
 from exolink.control import requests
 from exolink.control.holder import Holder, HoldRefused, describe
+from exolink.wire import management
 
 # --- pattern ----------------------------------------------------------------------------------
 
@@ -33,19 +34,29 @@ def _show(s: dict[str, Any]) -> str:
 def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
     """The pattern player request of a parsed `exolink pattern ...` (also the dashboard's)."""
     action = args.action
-    body: dict[str, Any] = {"action": action}
+    req: requests.Pattern
     if action == "speed":
-        body["speed"] = args.level
+        req = requests.PatternSpeed(args.level)
     elif action in ("select", "disable"):
-        body["joints"] = args.joints
+        cls = requests.PatternSelect if action == "select" else requests.PatternDisable
+        req = cls(list(args.joints))
     elif action == "load":  # a file on this laptop is uploaded; a bare name is the board's
         local = Path(args.file)
         if local.is_file():
-            body["content"] = local.read_text(encoding="utf-8", errors="replace")
-            body["name"] = local.name
+            text = local.read_text(encoding="utf-8", errors="replace")
+            req = requests.PatternLoad(content=text, name=local.name)
         else:
-            body["file"] = args.file
-    return body
+            req = requests.PatternLoad(file=args.file)
+    else:
+        simple: dict[str, requests.Pattern] = {
+            "start": requests.PatternStart(),
+            "stop": requests.PatternStop(),
+            "pause": requests.PatternPause(),
+            "restart": requests.PatternRestart(),
+            "status": requests.PatternStatus(),
+        }
+        req = simple[action]
+    return requests.body(req)
 
 
 # `pattern start` waits for the player, which waits up to 5 s for the controller manager to
@@ -96,13 +107,15 @@ def _attached(r: Any, body: dict[str, Any], take_over: bool) -> int:
         sub = m.subscribe("pattern_state", "exolink_msgs/msg/PatternState", on_state)
         try:
             while not ended.wait(1.0):
-                s = r.call("pattern", body={"action": "status"})
+                s = r.call("pattern", body=requests.body(requests.PatternStatus()))
                 sys.stdout.write("\r" + _show(s) + "   ")
                 sys.stdout.flush()
             if holder.ended:
                 sys.stdout.write(f"\nno longer holding motion: {holder.ended}\n")
         except KeyboardInterrupt:
-            sys.stdout.write("\n" + _show(r.call("pattern", body={"action": "stop"})) + "\n")
+            sys.stdout.write(
+                "\n" + _show(r.call("pattern", body=requests.body(requests.PatternStop()))) + "\n"
+            )
         finally:
             sub.undeclare()
     finally:
@@ -230,15 +243,8 @@ def _watch(args: argparse.Namespace) -> int:
 
 def timing_body(args: argparse.Namespace) -> dict[str, Any]:
     """The timing monitor request of a parsed `exolink timing ...` (also the dashboard's)."""
-    body: dict[str, Any] = {
-        "id": args.id,
-        "seconds": args.seconds,
-        "byte0": args.motor,
-        "dlc": args.dlc,
-    }
-    if args.expected_ms is not None:
-        body["expected_ms"] = args.expected_ms
-    return body
+    ask = management.Timing(args.id, args.seconds, args.motor, args.dlc, args.expected_ms)
+    return requests.body(ask)
 
 
 @guard

@@ -14,6 +14,7 @@ from exolink import gaitlab, logs
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.options import Leaves, common, decimal, guard, integer
 from exolink.client import Remote, remote
+from exolink.recordings import requests as reqs
 from exolink.recordings import store as recstore
 from exolink.recordings.check import iso
 from exolink.recordings.readback import (
@@ -27,6 +28,7 @@ from exolink.recordings.readback import (
     recover,
 )
 from exolink.recordings.store import DEFAULT_CHUNK, StoreError
+from exolink.wire.requests import body as request_body
 
 
 def _labels(items: list[str]) -> dict[str, str]:
@@ -41,10 +43,10 @@ def _labels(items: list[str]) -> dict[str, str]:
 
 def record_body(args: argparse.Namespace) -> dict[str, Any]:
     """The recorder request of a parsed `exolink record ...`; ValueError names a bad label."""
-    body: dict[str, Any] = {"action": args.action}
     if args.action == "start":
-        body["labels"] = _labels(args.label or [])
-    return body
+        return request_body(reqs.RecordStart(_labels(args.label or [])))
+    simple = {"stop": reqs.RecordStop, "status": reqs.RecordStatus}
+    return request_body(simple[args.action]())
 
 
 @guard
@@ -102,7 +104,7 @@ def _mib(n: float) -> str:
 @guard
 def cmd_record_list(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        s = _Asker(r)({"action": "list"})
+        s = _Asker(r)(request_body(reqs.List()))
     if args.json:
         sys.stdout.write(json.dumps({"files": s["files"], "card": s["card"]}) + "\n")
         return 0
@@ -164,7 +166,7 @@ def cmd_record_sync(args: argparse.Namespace) -> int:
     dest.mkdir(parents=True, exist_ok=True)
     with remote(args) as r:
         ask = _Asker(r)
-        listing = ask({"action": "list"})["files"]
+        listing = ask(request_body(reqs.List()))["files"]
         lacking = recstore.missing(listing, dest)
         for name in lacking:
             _fetch_one(ask, name, dest, args.chunk)
@@ -182,7 +184,7 @@ def cmd_record_delete(args: argparse.Namespace) -> int:
     with remote(args) as r:
         ask = _Asker(r)
         for name in args.names:
-            d = ask({"action": "delete", "name": name})
+            d = ask(request_body(reqs.Delete(name)))
             sys.stdout.write(f"deleted {d['name']} ({_mib(d['size'])}) from the board\n")
     return 0
 

@@ -21,6 +21,7 @@ from exolink.cli.units import degrees, unit
 from exolink.cli.update import describe
 from exolink.client import Refused, remote
 from exolink.control import requests
+from exolink.wire import management
 
 
 def to_builtin(obj: Any) -> Any:
@@ -442,10 +443,27 @@ def cmd_nodes(args: argparse.Namespace) -> int:
     return 0
 
 
+def control_body(action: str, node: str) -> dict[str, Any]:
+    """A node's start, stop or restart (exolink.wire.management)."""
+    cls = {"start": management.Start, "stop": management.Stop, "restart": management.Restart}
+    return requests.body(cls[action](node))
+
+
+def watchdog_body(action: str) -> dict[str, Any]:
+    """arm, disarm or estop (exolink.wire.management)."""
+    cls = {"arm": management.Arm, "disarm": management.Disarm, "estop": management.Estop}
+    return requests.body(cls[action]())
+
+
+def trigger_body(fire: bool) -> dict[str, Any]:
+    """A pulse on the trigger output, or (False) the trigger's status."""
+    return requests.body(management.Fire()) if fire else {}
+
+
 @guard
 def cmd_control(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        n = r.call("control", body={"action": args.command, "node": args.node})["node"]
+        n = r.call("control", body=control_body(args.command, args.node))["node"]
     sys.stdout.write(f"{n['name']}: {n['state']} pid={n.get('pid')}\n")
     return 0
 
@@ -463,7 +481,8 @@ def hold(seconds: float = 0) -> None:
 @guard
 def cmd_logs(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        for line in r.call("logs", body={"node": args.node, "lines": args.lines})["lines"]:
+        ask = requests.body(management.Logs(args.node, args.lines))
+        for line in r.call("logs", body=ask)["lines"]:
             sys.stdout.write(line + "\n")
         if not args.follow:
             return 0
@@ -484,7 +503,7 @@ def cmd_logs(args: argparse.Namespace) -> int:
 
 @guard
 def cmd_watchdog(args: argparse.Namespace) -> int:
-    body = {"action": args.command}  # the e-stop's detail names this session's login
+    body = watchdog_body(args.command)  # the e-stop's detail names this session's login
     with remote(args) as r:
         if args.command == "arm":  # a board with no time server takes this laptop's first
             sys.stdout.write(clock.sync_at_arm(r))
@@ -504,7 +523,7 @@ def params_body(args: argparse.Namespace) -> dict[str, Any]:
         value = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
-    return {"set": {"key": key, "value": value}}
+    return requests.body(management.Params(management.SetParam(key, value)))
 
 
 @guard
@@ -524,7 +543,7 @@ def cmd_params(args: argparse.Namespace) -> int:
 @guard
 def cmd_trigger(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        reply = r.call("trigger", body={"action": "fire"} if args.action == "fire" else {})
+        reply = r.call("trigger", body=trigger_body(args.action == "fire"))
     sys.stdout.write(json.dumps({k: v for k, v in reply.items() if k != "ok"}) + "\n")
     return 0
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import structlog
 
+from exolink.control import requests
 from exolink.refusal import Refused
 
 log = structlog.get_logger("exolink.control.holder")
@@ -60,7 +61,7 @@ class Holder:
         return reply
 
     def _hold(self, take_over: bool = False) -> dict[str, Any]:
-        body = {"action": "hold", "holder": self.id, "what": self.what, "take_over": take_over}
+        body = requests.body(requests.Hold(self.id, self.what, take_over))
         return self._call(body)
 
     def _renew(self) -> None:
@@ -94,6 +95,6 @@ class Holder:
             self._thread.join(2)
         if not self.ended:
             try:
-                self._call({"action": "release", "holder": self.id})
+                self._call(requests.body(requests.Release(self.id)))
             except Exception as exc:  # gone already: the manager's deadline ends it anyway
                 log.warning("hold_release_failed", error=str(exc))

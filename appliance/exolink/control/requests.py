@@ -2,7 +2,7 @@
 
 The command line builds them (and the dashboard, through the command line's parser), so do the
 ROS 2 service and topic and the pattern player; the manager's handlers decode each request once
-(``decode``) and refuse what does not fit, naming the field. On the wire they stay plain JSON
+(``decode``, exolink.wire.requests) and refuse what does not fit, naming the field. On the wire they stay plain JSON
 objects whose ``kind`` names the request, so a laptop without exolink can send them too.
 Unknown fields are refused rather than ignored: a misspelt ``stifness`` must not move a joint
 with a stiffness nobody asked for. Range and unit checks stay with the codecs and the operator's
@@ -11,11 +11,14 @@ limits (exolink.protocol, exolink.limits): a schema says what a request is, not 
 
 from __future__ import annotations
 
-from typing import Any, get_args
+from typing import Any
 
 import msgspec
 
-from exolink.refusal import Refused
+from exolink.wire.requests import body as body  # the helpers every request type shares
+from exolink.wire.requests import decode as decode
+from exolink.wire.requests import tag_of as tag_of
+from exolink.wire.requests import tags
 
 # A number as the client sent it: an int stays an int (the codecs name a value as it came,
 # "duty cycle 150", not "150.0").
@@ -89,29 +92,171 @@ class Stop(_Request, tag="stop", frozen=True):
 MaccepaCommand = Gains | Setpoint | Duty | Stop
 
 
+# --- the gait pattern (``pattern``: the pattern player) ---------------------------------------
+
+
+class _PatternRequest(
+    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
+):
+    pass
+
+
+class PatternStart(_PatternRequest, tag="start", frozen=True):
+    """Play the selected joints' pattern (the caller's login holds it: its presence)."""
+
+
+class PatternStop(_PatternRequest, tag="stop", frozen=True):
+    pass
+
+
+class PatternPause(_PatternRequest, tag="pause", frozen=True):
+    pass
+
+
+class PatternRestart(_PatternRequest, tag="restart", frozen=True):
+    """From the pattern's first point."""
+
+
+class PatternStatus(_PatternRequest, tag="status", frozen=True):
+    pass
+
+
+class PatternSpeed(_PatternRequest, tag="speed", frozen=True):
+    """A level 1..10 (the player says which it takes)."""
+
+    speed: int
+
+
+class PatternSelect(_PatternRequest, tag="select", frozen=True):
+    """The joints the pattern drives, by name (or motor number as text)."""
+
+    joints: list[str]
+
+
+class PatternDisable(_PatternRequest, tag="disable", frozen=True):
+    """These joints disabled now; the pattern goes on with the others."""
+
+    joints: list[str]
+
+
+class PatternLoad(_PatternRequest, tag="load", frozen=True):
+    """A pattern file: ``content`` uploaded from the laptop (named ``name``), or ``file`` in the
+    board's pattern folder."""
+
+    content: str | None = None
+    name: str = "uploaded"
+    file: str | None = None
+
+
+Pattern = (
+    PatternStart
+    | PatternStop
+    | PatternPause
+    | PatternRestart
+    | PatternStatus
+    | PatternSpeed
+    | PatternSelect
+    | PatternDisable
+    | PatternLoad
+)
+
+
+# --- the controllers (``controllers``: the controller manager) -------------------------------
+
+
+class _ControllersRequest(
+    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
+):
+    pass
+
+
+class ControllersList(_ControllersRequest, tag="list", frozen=True):
+    pass
+
+
+class ControllerTypes(_ControllersRequest, tag="types", frozen=True):
+    pass
+
+
+class ControllerState(_ControllersRequest, tag="state", frozen=True):
+    name: str
+
+
+class Hold(_ControllersRequest, tag="hold", frozen=True):
+    """Take or renew the hold on motion (``holder``: the client's own id; ``what``: shown to
+    others; ``take_over``: from whoever holds it)."""
+
+    holder: str
+    what: str | None = None
+    take_over: bool = False
+
+
+class Release(_ControllersRequest, tag="release", frozen=True):
+    holder: str
+
+
+class Load(_ControllersRequest, tag="load", frozen=True):
+    """A controller ``name`` of ``type`` with its ``params`` (checked by its type); ``replace``
+    one of that name, ``activate`` it at the next cycle, within ``within_s`` of the request."""
+
+    name: str
+    type: str
+    params: dict[str, Any] = {}
+    activate: bool = False
+    replace: bool = False
+    budget_ms: Number | None = None
+    # seconds in (0, 10]: the manager checks it with a message that names the range
+    within_s: Any = None
+
+
+class Unload(_ControllersRequest, tag="unload", frozen=True):
+    name: str
+
+
+class Activate(_ControllersRequest, tag="activate", frozen=True):
+    names: list[str]
+
+
+class Deactivate(_ControllersRequest, tag="deactivate", frozen=True):
+    names: list[str]
+
+
+class SwitchControllers(_ControllersRequest, tag="switch", frozen=True):
+    """One switch at one cycle boundary: these activated, those deactivated, or neither."""
+
+    activate: list[str] = []
+    deactivate: list[str] = []
+
+
+class ControllerCommand(
+    msgspec.Struct, tag_field="action", tag="command", omit_defaults=True, frozen=True
+):
+    """A command to controller ``name``: the rest of the request is the controller's own, which
+    its type checks (a forward command's ``values``, the gait's ``speed`` or ``index``)."""
+
+    name: str
+
+
+Controllers = (
+    ControllersList
+    | ControllerTypes
+    | ControllerState
+    | Hold
+    | Release
+    | Load
+    | Unload
+    | Activate
+    | Deactivate
+    | SwitchControllers
+    | ControllerCommand
+)
+
+
 def kind_of(request: _Request) -> str:
     """The request's ``kind``: its class's tag."""
-    return str(request.__struct_config__.tag)
+    return tag_of(request)
 
 
 def kinds(union: Any) -> tuple[str, ...]:
     """The kinds a union of requests takes, in its order (what a refusal lists)."""
-    return tuple(str(cls.__struct_config__.tag) for cls in get_args(union))
-
-
-def decode(req: dict[str, Any], union: Any, what: str) -> Any:
-    """``req`` as one of the requests in ``union``, or Refused naming what is wrong (an unknown
-    kind with the known ones, a field by its path)."""
-    known = kinds(union)
-    if req.get("kind") not in known:
-        raise Refused(f"unknown {what} {req.get('kind')!r} ({', '.join(known)})")
-    try:
-        return msgspec.convert(req, union, strict=True)
-    except msgspec.ValidationError as exc:
-        raise Refused(f"{what} {req['kind']}: {exc}") from None
-
-
-def body(request: _Request) -> dict[str, Any]:
-    """The JSON object a request travels as."""
-    out: dict[str, Any] = msgspec.to_builtins(request)
-    return out
+    return tags(union)

@@ -16,7 +16,7 @@ from typing import Any
 from exolink.cli import parser as cli_parser
 from exolink.cli.motion import START_TIMEOUT_S, maccepa_body, pattern_body, timing_body
 from exolink.cli.recordings import record_body
-from exolink.cli.remote import h2_body, params_body
+from exolink.cli.remote import control_body, h2_body, params_body, trigger_body, watchdog_body
 
 
 class CommandError(Exception):
@@ -106,12 +106,12 @@ def _route(argv: tuple[str, ...], args: argparse.Namespace) -> Command:
             raise CommandError(str(exc)) from None
         return Command(argv, ("record",), body, False)
     if cmd in ("arm", "disarm", "estop"):
-        return Command(argv, ("watchdog",), {"action": cmd}, False)
+        return Command(argv, ("watchdog",), watchdog_body(cmd), False)
     if cmd in ("start", "stop", "restart"):
-        return Command(argv, ("control",), {"action": cmd, "node": args.node}, False)
+        return Command(argv, ("control",), control_body(cmd, args.node), False)
     if cmd == "params":
         return Command(argv, ("nodes", args.node, "params"), params_body(args), False)
     if cmd == "trigger":
-        return Command(argv, ("trigger",), {"action": "fire"} if args.action else {}, False)
+        return Command(argv, ("trigger",), trigger_body(bool(args.action)), False)
     # timing: the monitor measures for `seconds` before it answers
     return Command(argv, ("timing",), timing_body(args), False, timeout_s=args.seconds + 5)

@@ -40,9 +40,11 @@ from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.control.holder import Holder, HoldRefused, describe
 from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.protocol import h2
+from exolink.recordings import requests as reqs
 from exolink.recordings import store as recstore
 from exolink.recordings.readback import decode, info, iter_messages
 from exolink.wire import cdr
+from exolink.wire.requests import body as request_body
 
 log = structlog.get_logger("exolink.dashboard")
 
@@ -411,7 +413,10 @@ class Hub:
             await self._watched.wait()
             try:
                 reply = await asyncio.to_thread(
-                    self._call, ("record",), {"action": "status"}, min(self.remote.timeout, 1.0)
+                    self._call,
+                    ("record",),
+                    request_body(reqs.RecordStatus()),
+                    min(self.remote.timeout, 1.0),
                 )
                 reply.pop("ok", None)
                 self.record = reply
@@ -479,7 +484,7 @@ class Hub:
         StoreError say why not."""
         name = recstore.plain_name(Path(board_path).name)
         ask = recstore.Patient(self._recordings_request)
-        st = ask({"action": "stat", "name": name})
+        st = ask(request_body(reqs.Stat(name)))
         local = Path(board_path)
         if local.is_file() and local.stat().st_size == st["size"]:
             return local

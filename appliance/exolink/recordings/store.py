@@ -31,7 +31,9 @@ from typing import Any
 
 import structlog
 
+from exolink.recordings import requests as reqs
 from exolink.refusal import Refused
+from exolink.wire.requests import body
 
 SUFFIX = ".mcap"
 PART = ".part"
@@ -389,7 +391,7 @@ def fetch(
     name = plain_name(name)
     chunk = max(1, min(chunk, MAX_CHUNK))
     t0 = time.monotonic()
-    st = ask({"action": "stat", "name": name})
+    st = ask(body(reqs.Stat(name)))
     size = int(st["size"])
     final, part = dest / name, dest / (name + PART)
     if final.is_file() and final.stat().st_size == size:
@@ -404,9 +406,7 @@ def fetch(
         out.truncate(have)
         out.seek(have)
         while have < size:
-            r = ask(
-                {"action": "fetch", "name": name, "offset": have, "length": min(chunk, size - have)}
-            )
+            r = ask(body(reqs.Fetch(name, have, min(chunk, size - have))))
             if int(r.get("size", -1)) != size or int(r.get("offset", -1)) != have:
                 raise StoreError(f"{name} changed on the board during the fetch; fetch it again")
             data = base64.b64decode(r["data"], validate=True)
@@ -441,7 +441,7 @@ def _wait_sum(ask: Ask, name: str, st: dict[str, Any], wait_s: float) -> str:
         if now > deadline:
             raise StoreError(f"{name}: the board's sha256 made no progress in {wait_s:g} s")
         time.sleep(0.5)
-        st = ask({"action": "stat", "name": name})
+        st = ask(body(reqs.Stat(name)))
     digest = str(st["sha256"])
     if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
         raise StoreError(f"{name}: the board's sha256 {digest[:80]!r} is not one")

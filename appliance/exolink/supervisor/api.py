@@ -22,6 +22,8 @@ from exolink.supervisor.memory import MemoryTrim, rss_mb
 from exolink.supervisor.processes import NodeProcess
 from exolink.supervisor.wakeup import Wakeup
 from exolink.supervisor.watchdog import Watchdog
+from exolink.wire import management
+from exolink.wire.requests import decode, tag_of
 
 Route = tuple[Any, messaging.Needs]
 
@@ -128,16 +130,15 @@ class ManagementApi:
             "memory": {"rss_mb": round(rss_mb(), 1), "trims": sup.memory.trims},
         }
 
-    def _node(self, req: dict[str, Any]) -> NodeProcess:
-        name, nodes = req.get("node"), self.sup.nodes
-        if not isinstance(name, str) or name not in nodes:
+    def _node(self, name: str) -> NodeProcess:
+        nodes = self.sup.nodes
+        if name not in nodes:
             raise Refused(f"unknown node {_shown(name)} (configured: {', '.join(nodes)})")
         return nodes[name]
 
     def control(self, req: dict[str, Any]) -> dict[str, Any]:
-        node, action = self._node(req), req.get("action")
-        if action not in ("start", "stop", "restart"):
-            raise Refused(f"unknown action {_shown(action)} (start, stop or restart)")
+        cmd = decode(req, management.NodeControl, "node action")
+        node, action = self._node(cmd.node), tag_of(cmd)
         if action != "start" and node.cfg.critical:
             # Before the process goes, whatever the order its exit is reported in: a critical
             # node down is a trip (and arming waits for it to beat again).
@@ -153,16 +154,17 @@ class ManagementApi:
         return {"node": self.sup.described(node)}
 
     def logs(self, req: dict[str, Any]) -> dict[str, Any]:
-        node = self._node(req)
-        n = req.get("lines", 50)
-        if not isinstance(n, int) or n < 1:
-            raise Refused("lines must be a positive integer")
-        return {"lines": list(node.logs)[-n:]}
+        ask = management.convert(req, management.Logs, "logs")
+        return {"lines": list(self._node(ask.node).logs)[-ask.lines :]}
 
     def watchdog(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
         """``caller``: the login Zenoh proved, which the e-stop's detail names (a ``by`` in the
         request is the client's own text and is not used)."""
-        wd, action = self.sup.watchdog, req.get("action")
+        wd = self.sup.watchdog
+        # An e-stop first, as it came: nothing else in the request is looked at.
+        action = "estop" if _is_estop(req) else None
+        if action is None and not management.status_asked(req):
+            action = tag_of(decode(req, management.Watchdog, "watchdog action"))
         if action == "arm":
             estops = self._estops
             blockers = self.sup.arm_blockers()  # reads every node's pipe: not under the lock
@@ -180,39 +182,33 @@ class ManagementApi:
                 self._estops += 1
             wd.trip("operator e-stop", f"by {caller.login}")
         elif action == "trip":  # the appliance's own nodes (the motion holder lost)
-            reason, detail = str(req.get("reason", "")), str(req.get("detail", ""))
-            wd.trip(reason[:80] or "node request", detail[:300])
-        elif action is not None:
-            raise Refused(f"unknown watchdog action {_shown(action)} (arm, disarm or estop)")
+            trip = decode(req, management.Trip, "watchdog action")
+            wd.trip(trip.reason[:80] or "node request", trip.detail[:300])
         s = wd.snapshot()
         return {"state": s.state, "reason": s.reason, "detail": s.detail}
 
     def trigger(self, req: dict[str, Any]) -> dict[str, Any]:
-        sup, action = self.sup, req.get("action")
-        if action == "fire":
+        sup = self.sup
+        if not management.status_asked(req):
+            decode(req, management.Trigger, "trigger action")  # fire is the one there is
             if sup.trigger_out is not None:
                 return {"fired_ns": sup.trigger_out.fire()}
             if isinstance(sup.trigger_src, trigger.SimulatedTrigger):
                 sup.trigger_src.fire()
                 return {"fired_ns": sup.last_trigger_ns}
             raise Refused("no trigger output configured (trigger.output in the config)")
-        if action is not None:
-            raise Refused(f"unknown trigger action {_shown(action)} (fire)")
         return {"count": sup.trigger_count, "last_ns": sup.last_trigger_ns}
 
     def clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
         """The board's clock (any role: a laptop measures its offset from ``now``), or a step
         to an operator laptop's time (exolink.board.clock: refused while armed or synchronised)."""
-        clock, action = self.sup.clock, req.get("action")
-        if action == "step":
-            step = clock.step(
-                req.get("offset_s"), req.get("error_s"), caller.login, self.sup.watchdog.armed
-            )
+        clock = self.sup.clock
+        if not management.status_asked(req):
+            ask = decode(req, management.Clock, "clock action")
+            step = clock.step(ask.offset_s, ask.error_s, caller.login, self.sup.watchdog.armed)
             self.sup.log.warning(
                 "clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"}
             )
-        elif action not in (None, "status"):
-            raise Refused(f"unknown clock action {_shown(action)} (status or step)")
         return clock.status()
 
     def update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
@@ -254,8 +250,9 @@ def version() -> str:
 
 
 def _is_estop(req: dict[str, Any]) -> bool:
-    """An e-stop is acted on at once, whatever the rate of its login or the queue before it."""
-    return req.get("action") == "estop"
+    """An e-stop is acted on at once, whatever the rate of its login or the queue before it,
+    and whatever else its request holds."""
+    return isinstance(req, dict) and req.get("action") == "estop"
 
 
 def _shown(value: Any) -> str:
@@ -266,7 +263,7 @@ def _shown(value: Any) -> str:
 def _watchdog_needs(req: dict[str, Any]) -> str:
     """E-stop is every login's; arming and disarming are the operator's; a trip with a reason
     of its own only the appliance's nodes'."""
-    action = req.get("action")
+    action = req.get("action") if isinstance(req, dict) else None
     if action == "trip":
         return roles.APPLIANCE_USER
     return roles.OPERATOR if action in ("arm", "disarm") else roles.OBSERVER

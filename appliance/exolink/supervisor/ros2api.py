@@ -38,6 +38,9 @@ import structlog
 from exolink import logs, messaging, roles, rosservices
 from exolink.control import requests
 from exolink.protocol import h2
+from exolink.recordings import requests as reqs
+from exolink.wire import management
+from exolink.wire.requests import body as request_body
 
 TRIGGER, SET_BOOL = "std_srvs/srv/Trigger", "std_srvs/srv/SetBool"
 JOINT_SRV, NODE_SRV = "exolink_msgs/srv/SendJointCommand", "exolink_msgs/srv/NodeControl"
@@ -59,22 +62,28 @@ class Ros2Api:
         self.joints_pending = self.joints_dropped = 0
         wd = sup.api.watchdog
         routes: dict[str, tuple[str, Callable[[Any], dict[str, Any]]]] = {
-            "estop": (TRIGGER, self._local(wd, lambda _r: {"action": "estop"})),
-            "arm": (TRIGGER, self._local(wd, lambda _r: {"action": "arm"})),
-            "disarm": (TRIGGER, self._local(wd, lambda _r: {"action": "disarm"})),
+            "estop": (TRIGGER, self._local(wd, lambda _r: request_body(management.Estop()))),
+            "arm": (TRIGGER, self._local(wd, lambda _r: request_body(management.Arm()))),
+            "disarm": (TRIGGER, self._local(wd, lambda _r: request_body(management.Disarm()))),
             "record": (
                 SET_BOOL,
-                self._remote(("record",), lambda r: {"action": "start" if r.data else "stop"}),
+                self._remote(
+                    ("record",),
+                    lambda r: request_body(reqs.RecordStart() if r.data else reqs.RecordStop()),
+                ),
             ),
-            "pattern/stop": (TRIGGER, self._remote(("pattern",), lambda _r: {"action": "stop"})),
+            "pattern/stop": (
+                TRIGGER,
+                self._remote(("pattern",), lambda _r: requests.body(requests.PatternStop())),
+            ),
             "pattern/pause": (
                 TRIGGER,
-                self._remote(("pattern",), lambda _r: {"action": "pause"}),
+                self._remote(("pattern",), lambda _r: requests.body(requests.PatternPause())),
             ),
             "joint_command": (JOINT_SRV, self._remote(("h2", "command"), _joint_request)),
             "node_control": (
                 NODE_SRV,
-                self._local(sup.api.control, lambda r: {"node": r.node, "action": r.action}),
+                self._local(sup.api.control, lambda r: {"action": r.action, "node": r.node}),
             ),
         }
         self.services = [

@@ -1,0 +1,70 @@
+"""The recorder's requests, one schema each: ``record`` (start, stop, status) and ``recordings``
+(list, stat, fetch, delete).
+
+The command line, the dashboard and the ROS 2 service build them; the recorder decodes each
+once (exolink.wire.requests) and refuses what does not fit, naming the field. A request without
+``action`` asks ``record`` for its status and ``recordings`` for the list. The store keeps its
+own checks of names, offsets and lengths (exolink.recordings.store): it is the card's boundary
+whoever calls it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+
+class _Action(
+    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
+):
+    pass
+
+
+class RecordStart(_Action, tag="start", frozen=True):
+    """A new recording; ``labels`` go into its metadata beside the config's."""
+
+    labels: dict[str, str] = {}
+
+
+class RecordStop(_Action, tag="stop", frozen=True):
+    pass
+
+
+class RecordStatus(_Action, tag="status", frozen=True):
+    pass
+
+
+Record = RecordStart | RecordStop | RecordStatus
+
+
+class List(_Action, tag="list", frozen=True):
+    pass
+
+
+class Stat(_Action, tag="stat", frozen=True):
+    """A closed file's size and sha256 (None while it is computed)."""
+
+    name: str
+
+
+class Fetch(_Action, tag="fetch", frozen=True):
+    """``length`` bytes at ``offset`` of a closed file, base64."""
+
+    name: str
+    offset: int
+    length: int
+
+
+class Delete(_Action, tag="delete", frozen=True):
+    name: str
+
+
+Recordings = List | Stat | Fetch | Delete
+
+
+def with_default(req: Any, action: str) -> Any:
+    """A request without ``action`` as one for ``action`` (the route's default)."""
+    if isinstance(req, dict) and "action" not in req:
+        return {**req, "action": action}
+    return req

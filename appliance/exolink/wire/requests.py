@@ -1,0 +1,52 @@
+"""What every typed request shares: a msgspec tagged union per route, decoded once by its handler.
+
+On the wire a request stays a plain JSON object (a laptop without exolink can send one), whose
+tag field names which request it is (``kind`` for motion, ``action`` for management). Decoding
+refuses what does not fit and names it: an unknown tag with the known ones, a field by its path.
+Unknown fields are refused rather than ignored (a misspelt field must not be silently dropped),
+except where a schema says otherwise (the e-stop: nothing may keep it from stopping).
+"""
+
+from __future__ import annotations
+
+from typing import Any, get_args
+
+import msgspec
+
+from exolink.refusal import Refused
+
+
+def tag_of(request: msgspec.Struct) -> str:
+    """The request's tag (its ``kind`` or ``action``): its class's."""
+    return str(request.__struct_config__.tag)
+
+
+def tags(union: Any) -> tuple[str, ...]:
+    """The tags a union of requests takes, in its order (what a refusal lists)."""
+    return tuple(str(cls.__struct_config__.tag) for cls in get_args(union) or (union,))
+
+
+def tag_field(union: Any) -> str:
+    """The field that names the request (``kind``, ``action``)."""
+    first = (get_args(union) or (union,))[0]
+    return str(first.__struct_config__.tag_field)
+
+
+def decode(req: dict[str, Any], union: Any, what: str) -> Any:
+    """``req`` as one of the requests in ``union``, or Refused naming what is wrong."""
+    field, known = tag_field(union), tags(union)
+    if not isinstance(req, dict):
+        raise Refused(f"a {what} is a JSON object, got {type(req).__name__}")
+    tag = req.get(field)
+    if tag not in known:
+        raise Refused(f"unknown {what} {tag!r} ({', '.join(known)})")
+    try:
+        return msgspec.convert(req, union, strict=True)
+    except msgspec.ValidationError as exc:
+        raise Refused(f"{what} {tag}: {exc}") from None
+
+
+def body(request: msgspec.Struct) -> dict[str, Any]:
+    """The JSON object a request travels as."""
+    out: dict[str, Any] = msgspec.to_builtins(request)
+    return out
