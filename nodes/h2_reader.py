@@ -1,4 +1,6 @@
-"""H2 reader [thesis: H2ros]: CAN ids 110/120/130 -> ``joint_states`` and ``foot_switches``.
+"""H2 reader [thesis: H2ros]: CAN ids 110/120/130 -> ``joint_states`` and ``foot_switches``; with
+``maccepa_boards``, those boards' status frames -> ``maccepa/b<N>/state`` from the same read
+(exolink.hardware.maccepa), so one process reads the bus.
 
 ``foot_switches`` goes out when the switches or the battery count change, stamped with that
 frame's kernel time (no transition is lost or moved), and at least every
@@ -27,6 +29,9 @@ import msgspec
 
 from exolink import messaging
 from exolink.canbus import Cadence, Frame, open_reader
+from exolink.canbus.filters import Drop
+from exolink.config import ConfigError, node_params
+from exolink.hardware import maccepa as maccepa_state
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import h2
@@ -59,6 +64,11 @@ class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
     # Foot switches + battery: on change, and at least this often (s); 0: every cycle.
     foot_switches_refresh_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 1.0
+    # MACCEPA boards whose state this reader publishes too (maccepa/b<N>/state, as the MACCEPA
+    # bridge does: exolink.hardware.maccepa), from the same socket and read: the bus in one
+    # process, one wake-up and one beat per read on the board's one core instead of two
+    # (docs/performance.md). Not with the bridge reading the same boards (checked at start).
+    maccepa_boards: list[Annotated[int, msgspec.Meta(ge=0, le=9)]] = []
 
 
 @dataclass
@@ -102,22 +112,32 @@ class H2Reader(Node):
         m = self.ctx.messaging
         wake = self.params.wake_on_id
         self.cadence = Cadence(h2.PERIOD_S, self.params.cycles_per_read)
+        bundled = self.params.cycles_per_read > 1  # a read's samples: one bundle per topic
+        self.out = messaging.Outbox()  # a read's samples go out together, after its frames
+        boards = self._boards()
+        self.pub_boards = {
+            b: self.own(
+                m.publisher(maccepa_state.topic(b), maccepa_state.STATE, raw=True, bundled=bundled)
+            )
+            for b in boards
+        }
+        self.boards = maccepa_state.BoardStates(
+            boards, lambda b, payload, ns: self.out.add(self.pub_boards[b], payload, ns)
+        )
         self.reader = self.own(
             open_reader(
                 self.ctx.config.can,
-                h2.DATA_IDS,
+                [*h2.DATA_IDS, *sorted(self.boards.ids)],
                 every_s=self.cadence.every_s,
                 wake_on=[wake] if wake else None,
                 stale_s=self.params.stale_after_s,
+                # the H2's own frames on a board's ids (joint control on board 0's 70)
+                drop=[Drop(i, n) for i, n in self.boards.drops()],
             )
         )
         self.bus = self.reader.bus
         # Read in batches, joint_states reaches the recorder as one bundle per read
-        self.pub_js = self.own(
-            m.publisher(
-                "joint_states", JOINT_STATE, raw=True, bundled=self.params.cycles_per_read > 1
-            )
-        )
+        self.pub_js = self.own(m.publisher("joint_states", JOINT_STATE, raw=True, bundled=bundled))
         self.pub_fs = self.own(m.publisher("foot_switches", FOOT_SWITCHES, raw=True))
         self.pub_diag = self.own(
             m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
@@ -130,7 +150,6 @@ class H2Reader(Node):
         self._reported_out_of_range = 0
         self._reported_dropped: float = 0  # frames: the stale count may come as a float
         self.fs = cdr.FootSwitchesCdr()
-        self.out = messaging.Outbox()  # a read's samples go out together, after its frames
         self._last_feet: tuple[h2.FootSwitches, float] | None = None  # the last published, when
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
@@ -148,8 +167,25 @@ class H2Reader(Node):
         self.out.add(self.pub_js, payload, ns)
         self.stats.published_joint_states += 1
 
+    def _boards(self) -> list[int]:
+        """The MACCEPA boards this reader publishes; refused when an enabled bridge reads one
+        of them too (two publishers of one board's state)."""
+        boards = list(self.params.maccepa_boards)
+        for n in self.ctx.config.nodes:
+            if n.plugin == "maccepa_bridge" and n.enabled and boards:
+                theirs = set(getattr(node_params(self.ctx.config, n.name), "boards", []))
+                if both := sorted(theirs & set(boards)):
+                    raise ConfigError(
+                        f"{self.name} params: maccepa_boards {both} are also read by the "
+                        f"enabled {n.name}: one of them publishes a board's state"
+                    )
+        return boards
+
     def handle(self, msg: Frame | Any) -> None:
         """One frame; never raises for bad input (counted instead)."""
+        if msg.arbitration_id in self.boards.ids:
+            self.boards.handle(msg)
+            return
         frame = h2.decode(msg)
         ts = msg.timestamp
         st = self.stats
@@ -212,6 +248,11 @@ class H2Reader(Node):
             "node": self.name,  # a wildcard query's replies say whose they are
             **asdict(st),
             "joint_states_out": self.pub_js.counters(),
+            "maccepa": {
+                "boards": self.boards.boards,
+                "published": self.boards.published,
+                "malformed": self.boards.malformed,
+            },
             "loop_cpu": self.clock.counters(),
         }
 

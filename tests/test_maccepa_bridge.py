@@ -1,11 +1,19 @@
-"""The MACCEPA bridge's cycle assembly, without a transport: a board's sensors, positions and
-controller frames become one MaccepaState per 10 ms cycle; a lost frame is marked, never hidden,
-and never costs the cycle's other frames."""
+"""The MACCEPA boards' state (exolink.hardware.maccepa: the bridge's and the h2 reader's): a
+board's sensors, positions and controller frames become one MaccepaState per 10 ms cycle; a
+lost frame is marked, never hidden, and never costs the cycle's other frames. First without a
+transport, then published by the h2 reader from its own read."""
 
 from __future__ import annotations
 
+import itertools
+import statistics
+import time
+from typing import Any
+
+from benchmarks.harness import Appliance, wait_for
+from exolink import messaging
+from exolink.hardware.maccepa import BoardCycle
 from exolink.protocol import maccepa
-from nodes.maccepa_bridge import BoardCycle
 
 
 def sensors(v: int) -> maccepa.Sensors:
@@ -53,3 +61,63 @@ def test_a_lost_frame_keeps_its_last_values_and_sets_its_stale_bit() -> None:
 def test_a_bridge_that_starts_mid_cycle_marks_what_it_never_saw() -> None:
     cycle = BoardCycle()
     assert cycle.add(controller(30), 1.002) == [(1.002, 3, [0] * 8 + [30, 31, 32])]
+
+
+# --- the boards read by the h2 reader (maccepa_boards): the whole bus in one process -----------
+
+READER_NODES = [
+    {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
+    {
+        "name": "h2_reader",
+        "plugin": "h2_reader",
+        "critical": True,
+        "params": {"maccepa_boards": [0], "cycles_per_read": 4},  # as the board's bridge read
+    },
+]
+
+
+def _states(app: Appliance, seconds: float) -> list[Any]:
+    """maccepa/b0/state as a laptop gets it, for ``seconds``."""
+    s = messaging.open_client_session(app.at)
+    got: list[Any] = []
+    key = messaging.topic_key(0, "h2", "maccepa/b0/state", "exolink_msgs/msg/MaccepaState")
+    sub = s.declare_subscriber(
+        key,
+        lambda x: got.append(
+            messaging.deserialize(x.payload.to_bytes(), "exolink_msgs/msg/MaccepaState")
+        ),
+    )
+    try:
+        wait_for(lambda: got, timeout=10)
+        time.sleep(seconds)
+    finally:
+        sub.undeclare()
+        s.close()
+    return list(got)
+
+
+def test_the_h2_reader_publishes_the_boards_state_from_its_own_read(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """One message per 10 ms board cycle with all three of its frames, in order, beside
+    joint_states, from the one process (no bridge configured); the MACCEPA frames are counted
+    apart from the H2's and none is malformed."""
+    app = Appliance(write_config(nodes=READER_NODES), spawn)
+    got = _states(app, 1.0)
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got]
+    assert len(stamps) >= 60 and stamps == sorted(stamps)
+    assert 9e6 < statistics.median(b - a for a, b in itertools.pairwise(stamps)) < 11e6
+    assert [m.stale for m in got[1:]] == [0] * (len(got) - 1)
+    assert {m.board for m in got} == {0}
+    stats = app.call("nodes/h2_reader/stats")
+    assert stats["maccepa"]["boards"] == [0] and stats["maccepa"]["malformed"] == 0, stats
+    assert stats["maccepa"]["published"] >= len(got)
+    assert stats["published_joint_states"] > 0 and stats["unknown"] == 0, stats
+
+
+def test_a_board_read_by_both_the_reader_and_the_bridge_is_refused(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
+    """Two publishers of one board's state: the reader refuses to start (a config error's exit
+    code) and says why."""
+    bridge = {"name": "maccepa_bridge", "plugin": "maccepa_bridge", "params": {"boards": [0]}}
+    app = Appliance(write_config(nodes=[*READER_NODES, bridge]), spawn, wait_nodes=False)
+    wait_for(lambda: app.node("h2_reader")["last_exit"] == "exit 3", timeout=20)
+    r = app.cli("logs", "h2_reader")
+    assert "maccepa_boards [0] are also read by the enabled maccepa_bridge" in r.stdout + r.stderr

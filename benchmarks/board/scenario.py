@@ -74,8 +74,9 @@ def bench_config(
     without: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """The appliance config under test: ``base`` (the image's appliance.yaml or board.yaml) with
-    the bench's bus, a simulated trigger, the simulator node on CPU 1, one MACCEPA board, the
-    timing monitor on and the watchdog ``timings`` (TIMINGS, every node's own deadline included)
+    the bench's bus, a simulated trigger, the simulator node on CPU 1, one MACCEPA board (read by
+    the h2 reader, or by the bridge for a config without ``maccepa_boards``), the timing monitor
+    on and the watchdog ``timings`` (TIMINGS, every node's own deadline included)
     with the given start grace. ``without``: non-critical nodes left off (what the rest needs
     when CPU 0 is saturated); a critical one is refused, since nothing arms without it."""
     cfg = json.loads(json.dumps(base))  # deep copy
@@ -95,13 +96,20 @@ def bench_config(
         maccepa_boards=[0],
     )
     nodes = [n for n in cfg.get("nodes", []) if n.get("plugin") != "simulator"]
+    # The board is read where the config reads boards: by the h2 reader when its params name
+    # maccepa_boards (board.yaml since the bus is read in one process), else by the bridge.
+    in_reader = any(
+        n["plugin"] == "h2_reader" and "maccepa_boards" in (n.get("params") or {}) for n in nodes
+    )
     for n in nodes:
-        if n["plugin"] in ("maccepa_bridge", "timing_monitor"):
+        if n["plugin"] == "timing_monitor" or (n["plugin"] == "maccepa_bridge" and not in_reader):
             n["enabled"] = True
         if n["name"] in without:
             n["enabled"] = False
         if n["plugin"] == "maccepa_bridge":
             n["params"] = {**n.get("params", {}), "boards": [0]}
+        if n["plugin"] == "h2_reader" and in_reader:
+            n["params"] = {**n.get("params", {}), "maccepa_boards": [0]}
         if n["plugin"] == "timing_monitor":
             n["params"] = {**n.get("params", {}), "ids": [70, 110]}
         if n["plugin"] == "recorder":

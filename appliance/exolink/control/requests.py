@@ -117,8 +117,8 @@ class PatternRestart(_PatternRequest, tag="restart", frozen=True):
     """From the pattern's first point."""
 
 
-class PatternStatus(_PatternRequest, tag="status", frozen=True):
-    pass
+class PatternStatus(_PatternRequest, tag="status", forbid_unknown_fields=False, frozen=True):
+    """A read: it takes any other field (nothing in it could be misread)."""
 
 
 class PatternSpeed(_PatternRequest, tag="speed", frozen=True):
@@ -170,15 +170,17 @@ class _ControllersRequest(
     pass
 
 
-class ControllersList(_ControllersRequest, tag="list", frozen=True):
-    pass
+class ControllersList(_ControllersRequest, tag="list", forbid_unknown_fields=False, frozen=True):
+    """A read: it takes any other field (nothing in it could be misread)."""
 
 
-class ControllerTypes(_ControllersRequest, tag="types", frozen=True):
-    pass
+class ControllerTypes(_ControllersRequest, tag="types", forbid_unknown_fields=False, frozen=True):
+    """A read, as ``list``."""
 
 
-class ControllerState(_ControllersRequest, tag="state", frozen=True):
+class ControllerState(_ControllersRequest, tag="state", forbid_unknown_fields=False, frozen=True):
+    """A read, as ``list``."""
+
     name: str
 
 

@@ -4,7 +4,8 @@ a given one does, and the frames of its safe action. The supervisor and the watc
 "the device" only; a new exoskeleton is a new ``Device`` registered under the
 ``exolink.hardware`` entry point (config: ``hardware: <name>``), not edits to them.
 
-Implementations: ``h2`` (the H2 with MACCEPA boards on one bus: exolink.hardware.h2).
+Implementations: ``h2`` (the H2 with MACCEPA boards on one bus: exolink.hardware.h2). The
+boards' frames as their state, for the nodes that read them: exolink.hardware.maccepa.
 """
 
 from __future__ import annotations

@@ -31,15 +31,15 @@ class RecordStop(_Action, tag="stop", frozen=True):
     pass
 
 
-class RecordStatus(_Action, tag="status", frozen=True):
-    pass
+class RecordStatus(_Action, tag="status", forbid_unknown_fields=False, frozen=True):
+    """A read: it takes any other field (nothing in it could be misread)."""
 
 
 Record = RecordStart | RecordStop | RecordStatus
 
 
-class List(_Action, tag="list", frozen=True):
-    pass
+class List(_Action, tag="list", forbid_unknown_fields=False, frozen=True):
+    """A read, as ``record status``."""
 
 
 class Stat(_Action, tag="stat", frozen=True):

@@ -3,8 +3,9 @@
 On the wire a request stays a plain JSON object (a laptop without exolink can send one), whose
 tag field names which request it is (``kind`` for motion, ``action`` for management). Decoding
 refuses what does not fit and names it: an unknown tag with the known ones, a field by its path.
-Unknown fields are refused rather than ignored (a misspelt field must not be silently dropped),
-except where a schema says otherwise (the e-stop: nothing may keep it from stopping).
+Unknown fields are refused rather than ignored where a request acts (a misspelt field must not
+be silently dropped), not in a read (a list, a status: nothing in it could be misread), and
+never in an e-stop (nothing may keep it from stopping).
 """
 
 from __future__ import annotations
