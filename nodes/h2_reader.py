@@ -133,6 +133,8 @@ class H2Reader(Node):
                 stale_s=self.params.stale_after_s,
                 # the H2's own frames on a board's ids (joint control on board 0's 70)
                 drop=[Drop(i, n) for i, n in self.boards.drops()],
+                # a wake's frames in one read: 3 a cycle from the H2, 3 from each board
+                batch=self.cadence.batch(len(h2.DATA_IDS) + len(self.boards.ids)),
             )
         )
         self.bus = self.reader.bus

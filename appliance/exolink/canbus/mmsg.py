@@ -17,7 +17,8 @@ from typing import Any
 from exolink.canbus.sockets import SO_TIMESTAMPNS
 
 _TIMESPEC = struct.Struct("@ll")
-BATCH = 64  # frames read per socket and wake-up at most
+BATCH = 64  # frames read per socket and wake-up at most, unless a reader asks for more
+MAX_BATCH = 1024
 
 
 class _IoVec(ctypes.Structure):
@@ -66,11 +67,10 @@ def _batch_struct(n: int, entry: str) -> struct.Struct:
     return struct.Struct("=" + entry * n)
 
 
-def mmsg_buffers(size: int, ctl_size: int) -> tuple[Any, Any, Any, Any]:
-    """``BATCH`` message headers for recvmmsg / sendmmsg, each with one ``size``-byte buffer
+def mmsg_buffers(size: int, ctl_size: int, n: int = BATCH) -> tuple[Any, Any, Any, Any]:
+    """``n`` message headers for recvmmsg / sendmmsg, each with one ``size``-byte buffer
     (and a ``ctl_size``-byte control buffer, 0: none), allocated once: (data, control, iovecs,
     headers)."""
-    n = BATCH
     data = ctypes.create_string_buffer(n * size)
     ctl = ctypes.create_string_buffer(max(1, n * ctl_size))
     iov, msgs = (_IoVec * n)(), (MMsgHdr * n)()
@@ -91,7 +91,7 @@ _STAMP_LEN = _CMSG_HDR.size + _TIMESPEC.size  # a control message that holds a t
 
 
 class BatchReceiver:
-    """Every datagram queued on a socket, up to ``BATCH``, in one ``recvmmsg`` call.
+    """Every datagram queued on a socket, up to ``batch``, in one ``recvmmsg`` call.
 
     A ``recvmsg`` per frame costs a system call and a tuple of Python objects per frame; on
     a slow core (qemu TCG in `make bench-board`) the kernel's side of a call is where the time
@@ -99,11 +99,13 @@ class BatchReceiver:
     has no ``recvmmsg``: libc's, through ctypes, into buffers allocated once per socket.
     Returns (data, kernel receive time or None) pairs; raises OSError as ``recvmsg`` would."""
 
-    def __init__(self, sock: socket.socket, msg_size: int = MSG_SIZE) -> None:
+    def __init__(self, sock: socket.socket, msg_size: int = MSG_SIZE, batch: int = BATCH) -> None:
+        if not 1 <= batch <= MAX_BATCH:
+            raise ValueError(f"a receive batch is 1..{MAX_BATCH} datagrams, got {batch}")
         self.fd = sock.fileno()
-        n = BATCH
+        self.batch = n = batch
         self.msg_size = msg_size
-        self._data, self._ctl, self._iov, self._msgs = mmsg_buffers(msg_size, _CTL_SIZE)
+        self._data, self._ctl, self._iov, self._msgs = mmsg_buffers(msg_size, _CTL_SIZE, n)
         self._addr = ctypes.addressof(self._msgs)
         self._view = memoryview(self._data).cast("B")
         self._ctl_view = memoryview(self._ctl).cast("B")
@@ -117,7 +119,7 @@ class BatchReceiver:
         hdrs = self._hdrs
         for at in self._ctl_len_at[: self._used]:
             _SIZE_T.pack_into(hdrs, at, _CTL_SIZE)
-        n = _recvmmsg(self.fd, self._addr, BATCH, socket.MSG_DONTWAIT, None)
+        n = _recvmmsg(self.fd, self._addr, self.batch, socket.MSG_DONTWAIT, None)
         if n < 0:
             err = ctypes.get_errno()
             self._used = 0

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 from exolink.canbus import filters as canfilter
 from exolink.canbus.frames import id_filters
+from exolink.canbus.mmsg import BATCH
 from exolink.canbus.reader import FrameReader
 from exolink.canbus.sockets import bus_socket
 from exolink.config import CanConfig
@@ -96,6 +97,11 @@ class Cadence(NamedTuple):
         select)."""
         return (self.cycles + 0.25) * self.period_s if self.cycles > 1 else 0.0
 
+    def batch(self, frames_per_cycle: int) -> int:
+        """FrameReader's ``batch`` for a stream of ``frames_per_cycle`` frames a period: a
+        wake's cycles and two more, at least the default (canbus.mmsg.BATCH)."""
+        return max(BATCH, (self.cycles + 2) * frames_per_cycle)
+
     def timeout(self, found: bool) -> float:
         """The next read's timeout: while frames flow, a cycle whose waking frame was lost is
         read one and a half periods late at most; a quiet bus is looked at every ``idle_s``."""
@@ -110,6 +116,7 @@ def open_reader(
     wake_on: Iterable[int] | None = None,
     stale_s: float = 0.0,
     drop: Sequence[canfilter.Drop] = (),
+    batch: int = BATCH,
 ) -> FrameReader:
     """A bus for receiving ``ids`` (all if None), read in batches; ``.bus`` sends, ``close()``
     closes. ``rcvbuf``: the receive queue to ask for, in bytes (default: ``RCVBUF_BYTES``);
@@ -117,18 +124,19 @@ def open_reader(
     wake the reader, the others are read with them (FrameReader's ``quiet``; a bus without
     sockets, the in-process virtual one, wakes for every id); ``stale_s``: skip (and count)
     frames read later than that after arrival (0: never); ``drop``: frames of these ids never
-    delivered (canfilter: the kernel's socket filter on SocketCAN)."""
+    delivered (canfilter: the kernel's socket filter on SocketCAN); ``batch``: frames read per
+    socket and read at most (``Cadence.batch``)."""
     drop = canfilter.check(drop)
+    kw: dict[str, Any] = {"rcvbuf": rcvbuf, "every_s": every_s, "stale_s": stale_s, "drop": drop}
+    kw["batch"] = batch
     if ids is None or wake_on is None:
-        return _one_bus_reader(cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s, drop=drop)
+        return _one_bus_reader(cfg, ids, **kw)
     waking = sorted(set(wake_on) & set(ids))
     rest = sorted(set(ids) - set(waking))
     bus = open_bus(cfg, filters=id_filters(waking if waking and rest else ids))
     if bus_socket(bus) is None:  # nothing to wake on (the virtual bus): one reader of all ids
         bus.set_filters(id_filters(ids))
-        return _reader_or_shutdown(
-            bus, cfg, ids, rcvbuf=rcvbuf, every_s=every_s, stale_s=stale_s, drop=drop
-        )
+        return _reader_or_shutdown(bus, cfg, ids, **kw)
     if not waking or not rest:
         bus.shutdown()
         raise ValueError(
@@ -140,17 +148,7 @@ def open_reader(
         bus.shutdown()
         raise
     try:
-        return FrameReader(
-            bus,
-            cfg,
-            ids,
-            rcvbuf=rcvbuf,
-            every_s=every_s,
-            quiet=quiet,
-            stale_s=stale_s,
-            wake_ids=waking,
-            drop=drop,
-        )
+        return FrameReader(bus, cfg, ids, quiet=quiet, wake_ids=waking, **kw)
     except BaseException:
         quiet.shutdown()
         bus.shutdown()

@@ -71,6 +71,10 @@ class FrameReader:
 
     ``drop``: content filters (``exolink.canbus.filters``), frames of its ids it never needs: the
     kernel's socket filter on SocketCAN, these rules in Python on the other buses (``filtered``).
+
+    ``batch``: frames read per socket and read at most (``Cadence.batch``: what one wake of a
+    batched reader brings; a read that stops short is followed at once by another, a whole
+    iteration of its node's loop more).
     """
 
     def __init__(
@@ -85,6 +89,7 @@ class FrameReader:
         stale_s: float = 0.0,
         wake_ids: Iterable[int] = (),
         drop: Sequence[canfilter.Drop] = (),
+        batch: int = BATCH,
     ) -> None:
         self.bus = bus
         self.wake_ids = frozenset(wake_ids)  # with ``quiet``: the ids ``bus`` reads
@@ -130,7 +135,9 @@ class FrameReader:
             self._unpackb = msgpack.unpackb
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)
         size = CAN_FRAME.size if in_kernel else MSG_SIZE
-        self._rx = {s: BatchReceiver(s, size) for s in (self._sock, self._quiet) if s is not None}
+        self._rx = {
+            s: BatchReceiver(s, size, batch) for s in (self._sock, self._quiet) if s is not None
+        }
         self._cfg = cfg
         # Content filters (canfilter): the kernel's on SocketCAN, else these rules in Python.
         if in_kernel and drop:
@@ -340,7 +347,7 @@ class FrameReader:
             frame = parse(raw, ts)
             if frame is not None:
                 out.append(frame)
-        return out, len(got) == BATCH
+        return out, len(got) == rx.batch
 
     def _drain_socketcan(self, rx: BatchReceiver) -> tuple[list[Frame], bool]:
         """_drain for SocketCAN: the whole batch parsed by one ``iter_unpack``; a standard
@@ -371,7 +378,7 @@ class FrameReader:
                 )
             else:
                 append(Frame(ts, can_id, payload[:dlc], False, False, False))
-        return out, n == BATCH
+        return out, n == rx.batch
 
     def _parse_udp(self, raw: bytes, ts: float) -> Frame | None:
         try:
