@@ -394,8 +394,11 @@ def test_a_reader_asks_for_a_batch_that_holds_its_wake(group: str) -> None:
     from exolink.canbus import Cadence
 
     assert Cadence(0.01, 10).batch(6) == 72 and Cadence(0.01, 10).batch(3) == 64
-    with pytest.raises(ValueError, match="1..1024"):
-        BatchReceiver(socket.socket(socket.AF_INET, socket.SOCK_DGRAM), 16, 0)
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock,
+        pytest.raises(ValueError, match=r"1\.\.1024"),
+    ):
+        BatchReceiver(sock, 16, 0)
     cfg = CanConfig(interface="udp_multicast", channel=group)
     tx = open_bus(cfg)
     with open_reader(cfg, [110, 120, 130, 50, 60, 70], batch=72) as reader:
