@@ -250,3 +250,20 @@ def test_a_refusal_names_raucs_reason_before_openssls_stack() -> None:
     only_openssl = subprocess.CompletedProcess([], 1, "", stderr.splitlines()[1] + "\n")
     assert "padding check failed" in update._rauc_error(only_openssl)
     assert update._rauc_error(subprocess.CompletedProcess([], 7, "", "")) == "rauc exited 7"
+
+
+def test_the_update_folder_is_the_boards_only_where_its_agent_is_installed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A machine with /var/lib/exolink but no root agent (a laptop that once ran the board's
+    config) kept every appliance's update requests in one folder: one test's install request
+    then kept the others from arming."""
+    shared = tmp_path / "var-lib-exolink" / "update"
+    shared.parent.mkdir()
+    agent = tmp_path / "exolink-update.path"
+    monkeypatch.setattr(update, "UPDATE_DIR", shared)
+    monkeypatch.setattr(update, "AGENT_UNIT", agent)
+    work = tmp_path / "work"
+    assert update.local_dir(work) == work / "update"
+    agent.write_text("[Path]\n")
+    assert update.local_dir(work) == shared

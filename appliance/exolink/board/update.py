@@ -41,6 +41,9 @@ from exolink.refusal import Refused
 log = structlog.get_logger("exolink.board.update")
 
 UPDATE_DIR = Path("/var/lib/exolink/update")
+# The root agent's path unit (services/etc/systemd/system/, installed by the image): where it
+# exists, the agent watches UPDATE_DIR for install requests.
+AGENT_UNIT = Path("/etc/systemd/system/exolink-update.path")
 INCOMING = "incoming.raucb"
 REQUEST = "install.request"
 STATE = "state.json"
@@ -60,9 +63,12 @@ TRIAL_UNIT = "exolink-update-trial"
 
 
 def local_dir(workdir: Path) -> Path:
-    """``UPDATE_DIR`` on a board (where the root agent looks), else a folder of the supervisor's
-    working directory (``make sim`` on a laptop: uploads work, nothing installs them)."""
-    if UPDATE_DIR.parent.is_dir() and os.access(UPDATE_DIR.parent, os.W_OK):
+    """``UPDATE_DIR`` on a board (the root agent installed: it looks there), else a folder of
+    the supervisor's working directory (``make sim`` on a laptop: uploads work, nothing installs
+    them). Not by ``/var/lib/exolink`` alone: a laptop that once ran the board's config has it,
+    and every appliance there, each test's included, then shared one update folder (one's
+    install request kept the others from arming)."""
+    if AGENT_UNIT.exists() and UPDATE_DIR.parent.is_dir() and os.access(UPDATE_DIR.parent, os.W_OK):
         return UPDATE_DIR
     return workdir / "update"
 
