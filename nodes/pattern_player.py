@@ -40,6 +40,7 @@ from exolink.messaging import Caller, Refused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
 from exolink.wire import cdr
+from exolink.wire.requests import with_default
 
 DEFAULT_PATTERN = Path(__file__).with_name("patterns") / "normal_walking.csv"
 STATE_TYPE = "exolink_msgs/msg/PatternState"
@@ -185,9 +186,7 @@ class PatternPlayer(Node):
     # --- commands -------------------------------------------------------------------------
 
     def on_command(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        if isinstance(req, dict) and "action" not in req:
-            req = {**req, "action": "status"}
-        cmd = requests.decode(req, requests.Pattern, "pattern action")
+        cmd = requests.decode(with_default(req, "status"), requests.Pattern, "pattern action")
         action = requests.tag_of(cmd)
         handlers: dict[str, Callable[[Any, Caller], None]] = {
             "start": self._start,

@@ -32,6 +32,7 @@ from exolink.node import NodeContext
 from exolink.plugins import controller_types
 from exolink.protocol import ProtocolError, h2, maccepa
 from exolink.wire import cdr, management
+from exolink.wire.requests import action_of, with_default
 
 R = TypeVar("R")
 
@@ -45,16 +46,12 @@ PRESENCE = ("hold", "release")  # answered at once, never behind a switch
 JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 
-def _action(request: Any, default: str | None = None) -> Any:
-    return request.get("action", default) if isinstance(request, dict) else None
-
-
 def _controllers_needs(request: dict[str, Any]) -> str:
-    return roles.OBSERVER if _action(request, "list") in READS else roles.OPERATOR
+    return roles.OBSERVER if action_of(request, "list") in READS else roles.OPERATOR
 
 
 def _presence(request: dict[str, Any]) -> bool:
-    return _action(request) in PRESENCE
+    return action_of(request) in PRESENCE
 
 
 def _deadline(within: Any) -> float | None:
@@ -124,8 +121,7 @@ class ManagerApi:
             self.node.maybe_tell()
 
     def _controllers(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
-        if isinstance(req, dict) and "action" not in req:
-            req = {**req, "action": "list"}
+        req = with_default(req, "list")
         cmd = requests.decode(req, requests.Controllers, "controllers action")
         manager = self.node.manager
         match cmd:

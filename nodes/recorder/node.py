@@ -26,9 +26,8 @@ from exolink.messaging import Refused, Unlogged
 from exolink.node import Node
 from exolink.recordings import requests as reqs
 from exolink.recordings import store as recstore
-from exolink.recordings.requests import with_default
 from exolink.wire import cdr
-from exolink.wire.requests import decode
+from exolink.wire.requests import decode, with_default
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 # How often the loop takes what the inbox holds. Each take is a wake-up (~1 ms of the board's

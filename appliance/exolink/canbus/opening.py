@@ -127,8 +127,13 @@ def open_reader(
     delivered (canfilter: the kernel's socket filter on SocketCAN); ``batch``: frames read per
     socket and read at most (``Cadence.batch``)."""
     drop = canfilter.check(drop)
-    kw: dict[str, Any] = {"rcvbuf": rcvbuf, "every_s": every_s, "stale_s": stale_s, "drop": drop}
-    kw["batch"] = batch
+    kw: dict[str, Any] = {
+        "rcvbuf": rcvbuf,
+        "every_s": every_s,
+        "stale_s": stale_s,
+        "drop": drop,
+        "batch": batch,
+    }
     if ids is None or wake_on is None:
         return _one_bus_reader(cfg, ids, **kw)
     waking = sorted(set(wake_on) & set(ids))

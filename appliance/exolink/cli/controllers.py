@@ -11,6 +11,7 @@ from typing import Any
 from exolink.cli.options import Leaves, common, decimal, guard
 from exolink.client import remote
 from exolink.control import requests
+from exolink.wire.requests import classes
 
 
 def _limits(lim: dict[str, Any]) -> list[str]:
@@ -121,13 +122,13 @@ def controllers_body(args: argparse.Namespace) -> dict[str, Any]:
     elif a == "unload":
         req = requests.Unload(args.name)
     elif a in ("activate", "deactivate"):
-        req = (requests.Activate if a == "activate" else requests.Deactivate)(list(args.names))
+        req = classes(requests.Controllers)[a](list(args.names))
     elif a == "switch":
         req = requests.SwitchControllers(list(args.activate), list(args.deactivate))
     elif a == "command":  # the controller's own command: its values by joint
         return {**requests.body(requests.ControllerCommand(args.name)), "values": dict(args.values)}
-    else:
-        req = requests.ControllerTypes() if a == "types" else requests.ControllersList()
+    else:  # list, types
+        req = classes(requests.Controllers)[a]()
     return requests.body(req)
 
 

@@ -19,6 +19,7 @@ from exolink.config import ZenohConfig
 from exolink.control import requests
 from exolink.control.holder import Holder, HoldRefused, describe
 from exolink.wire import management
+from exolink.wire.requests import classes
 
 # --- pattern ----------------------------------------------------------------------------------
 
@@ -38,8 +39,7 @@ def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
     if action == "speed":
         req = requests.PatternSpeed(args.level)
     elif action in ("select", "disable"):
-        cls = requests.PatternSelect if action == "select" else requests.PatternDisable
-        req = cls(list(args.joints))
+        req = classes(requests.Pattern)[action](list(args.joints))
     elif action == "load":  # a file on this laptop is uploaded; a bare name is the board's
         local = Path(args.file)
         if local.is_file():
@@ -48,14 +48,7 @@ def pattern_body(args: argparse.Namespace) -> dict[str, Any]:
         else:
             req = requests.PatternLoad(file=args.file)
     else:
-        simple: dict[str, requests.Pattern] = {
-            "start": requests.PatternStart(),
-            "stop": requests.PatternStop(),
-            "pause": requests.PatternPause(),
-            "restart": requests.PatternRestart(),
-            "status": requests.PatternStatus(),
-        }
-        req = simple[action]
+        req = classes(requests.Pattern)[action]()  # start, stop, pause, restart, status
     return requests.body(req)
 
 

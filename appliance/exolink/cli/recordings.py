@@ -29,6 +29,7 @@ from exolink.recordings.readback import (
 )
 from exolink.recordings.store import DEFAULT_CHUNK, StoreError
 from exolink.wire.requests import body as request_body
+from exolink.wire.requests import classes
 
 
 def _labels(items: list[str]) -> dict[str, str]:
@@ -45,8 +46,7 @@ def record_body(args: argparse.Namespace) -> dict[str, Any]:
     """The recorder request of a parsed `exolink record ...`; ValueError names a bad label."""
     if args.action == "start":
         return request_body(reqs.RecordStart(_labels(args.label or [])))
-    simple = {"stop": reqs.RecordStop, "status": reqs.RecordStatus}
-    return request_body(simple[args.action]())
+    return request_body(classes(reqs.Record)[args.action]())
 
 
 @guard

@@ -22,6 +22,7 @@ from exolink.cli.update import describe
 from exolink.client import Refused, remote
 from exolink.control import requests
 from exolink.wire import management
+from exolink.wire.requests import classes
 
 
 def to_builtin(obj: Any) -> Any:
@@ -445,14 +446,12 @@ def cmd_nodes(args: argparse.Namespace) -> int:
 
 def control_body(action: str, node: str) -> dict[str, Any]:
     """A node's start, stop or restart (exolink.wire.management)."""
-    cls = {"start": management.Start, "stop": management.Stop, "restart": management.Restart}
-    return requests.body(cls[action](node))
+    return requests.body(classes(management.NodeControl)[action](node))
 
 
 def watchdog_body(action: str) -> dict[str, Any]:
     """arm, disarm or estop (exolink.wire.management)."""
-    cls = {"arm": management.Arm, "disarm": management.Disarm, "estop": management.Estop}
-    return requests.body(cls[action]())
+    return requests.body(classes(management.Watchdog)[action]())
 
 
 def trigger_body(fire: bool) -> dict[str, Any]:

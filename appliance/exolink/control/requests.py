@@ -15,10 +15,10 @@ from typing import Any
 
 import msgspec
 
+from exolink.wire.requests import Action, tags
 from exolink.wire.requests import body as body  # the helpers every request type shares
 from exolink.wire.requests import decode as decode
 from exolink.wire.requests import tag_of as tag_of
-from exolink.wire.requests import tags
 
 # A number as the client sent it: an int stays an int (the codecs name a value as it came,
 # "duty cycle 150", not "150.0").
@@ -95,51 +95,45 @@ MaccepaCommand = Gains | Setpoint | Duty | Stop
 # --- the gait pattern (``pattern``: the pattern player) ---------------------------------------
 
 
-class _PatternRequest(
-    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
-):
-    pass
-
-
-class PatternStart(_PatternRequest, tag="start", frozen=True):
+class PatternStart(Action, tag="start", frozen=True):
     """Play the selected joints' pattern (the caller's login holds it: its presence)."""
 
 
-class PatternStop(_PatternRequest, tag="stop", frozen=True):
+class PatternStop(Action, tag="stop", frozen=True):
     pass
 
 
-class PatternPause(_PatternRequest, tag="pause", frozen=True):
+class PatternPause(Action, tag="pause", frozen=True):
     pass
 
 
-class PatternRestart(_PatternRequest, tag="restart", frozen=True):
+class PatternRestart(Action, tag="restart", frozen=True):
     """From the pattern's first point."""
 
 
-class PatternStatus(_PatternRequest, tag="status", forbid_unknown_fields=False, frozen=True):
+class PatternStatus(Action, tag="status", forbid_unknown_fields=False, frozen=True):
     """A read: it takes any other field (nothing in it could be misread)."""
 
 
-class PatternSpeed(_PatternRequest, tag="speed", frozen=True):
+class PatternSpeed(Action, tag="speed", frozen=True):
     """A level 1..10 (the player says which it takes)."""
 
     speed: int
 
 
-class PatternSelect(_PatternRequest, tag="select", frozen=True):
+class PatternSelect(Action, tag="select", frozen=True):
     """The joints the pattern drives, by name (or motor number as text)."""
 
     joints: list[str]
 
 
-class PatternDisable(_PatternRequest, tag="disable", frozen=True):
+class PatternDisable(Action, tag="disable", frozen=True):
     """These joints disabled now; the pattern goes on with the others."""
 
     joints: list[str]
 
 
-class PatternLoad(_PatternRequest, tag="load", frozen=True):
+class PatternLoad(Action, tag="load", frozen=True):
     """A pattern file: ``content`` uploaded from the laptop (named ``name``), or ``file`` in the
     board's pattern folder."""
 
@@ -164,27 +158,21 @@ Pattern = (
 # --- the controllers (``controllers``: the controller manager) -------------------------------
 
 
-class _ControllersRequest(
-    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
-):
-    pass
-
-
-class ControllersList(_ControllersRequest, tag="list", forbid_unknown_fields=False, frozen=True):
+class ControllersList(Action, tag="list", forbid_unknown_fields=False, frozen=True):
     """A read: it takes any other field (nothing in it could be misread)."""
 
 
-class ControllerTypes(_ControllersRequest, tag="types", forbid_unknown_fields=False, frozen=True):
+class ControllerTypes(Action, tag="types", forbid_unknown_fields=False, frozen=True):
     """A read, as ``list``."""
 
 
-class ControllerState(_ControllersRequest, tag="state", forbid_unknown_fields=False, frozen=True):
+class ControllerState(Action, tag="state", forbid_unknown_fields=False, frozen=True):
     """A read, as ``list``."""
 
     name: str
 
 
-class Hold(_ControllersRequest, tag="hold", frozen=True):
+class Hold(Action, tag="hold", frozen=True):
     """Take or renew the hold on motion (``holder``: the client's own id; ``what``: shown to
     others; ``take_over``: from whoever holds it)."""
 
@@ -193,11 +181,11 @@ class Hold(_ControllersRequest, tag="hold", frozen=True):
     take_over: bool = False
 
 
-class Release(_ControllersRequest, tag="release", frozen=True):
+class Release(Action, tag="release", frozen=True):
     holder: str
 
 
-class Load(_ControllersRequest, tag="load", frozen=True):
+class Load(Action, tag="load", frozen=True):
     """A controller ``name`` of ``type`` with its ``params`` (checked by its type); ``replace``
     one of that name, ``activate`` it at the next cycle, within ``within_s`` of the request."""
 
@@ -211,28 +199,26 @@ class Load(_ControllersRequest, tag="load", frozen=True):
     within_s: Any = None
 
 
-class Unload(_ControllersRequest, tag="unload", frozen=True):
+class Unload(Action, tag="unload", frozen=True):
     name: str
 
 
-class Activate(_ControllersRequest, tag="activate", frozen=True):
+class Activate(Action, tag="activate", frozen=True):
     names: list[str]
 
 
-class Deactivate(_ControllersRequest, tag="deactivate", frozen=True):
+class Deactivate(Action, tag="deactivate", frozen=True):
     names: list[str]
 
 
-class SwitchControllers(_ControllersRequest, tag="switch", frozen=True):
+class SwitchControllers(Action, tag="switch", frozen=True):
     """One switch at one cycle boundary: these activated, those deactivated, or neither."""
 
     activate: list[str] = []
     deactivate: list[str] = []
 
 
-class ControllerCommand(
-    msgspec.Struct, tag_field="action", tag="command", omit_defaults=True, frozen=True
-):
+class ControllerCommand(Action, tag="command", forbid_unknown_fields=False, frozen=True):
     """A command to controller ``name``: the rest of the request is the controller's own, which
     its type checks (a forward command's ``values``, the gait's ``speed`` or ``index``)."""
 

@@ -10,45 +10,37 @@ whoever calls it.
 
 from __future__ import annotations
 
-from typing import Any
-
-import msgspec
+from exolink.wire.requests import Action
 
 
-class _Action(
-    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
-):
-    pass
-
-
-class RecordStart(_Action, tag="start", frozen=True):
+class RecordStart(Action, tag="start", frozen=True):
     """A new recording; ``labels`` go into its metadata beside the config's."""
 
     labels: dict[str, str] = {}
 
 
-class RecordStop(_Action, tag="stop", frozen=True):
+class RecordStop(Action, tag="stop", frozen=True):
     pass
 
 
-class RecordStatus(_Action, tag="status", forbid_unknown_fields=False, frozen=True):
+class RecordStatus(Action, tag="status", forbid_unknown_fields=False, frozen=True):
     """A read: it takes any other field (nothing in it could be misread)."""
 
 
 Record = RecordStart | RecordStop | RecordStatus
 
 
-class List(_Action, tag="list", forbid_unknown_fields=False, frozen=True):
+class List(Action, tag="list", forbid_unknown_fields=False, frozen=True):
     """A read, as ``record status``."""
 
 
-class Stat(_Action, tag="stat", frozen=True):
+class Stat(Action, tag="stat", frozen=True):
     """A closed file's size and sha256 (None while it is computed)."""
 
     name: str
 
 
-class Fetch(_Action, tag="fetch", frozen=True):
+class Fetch(Action, tag="fetch", frozen=True):
     """``length`` bytes at ``offset`` of a closed file, base64."""
 
     name: str
@@ -56,15 +48,8 @@ class Fetch(_Action, tag="fetch", frozen=True):
     length: int
 
 
-class Delete(_Action, tag="delete", frozen=True):
+class Delete(Action, tag="delete", frozen=True):
     name: str
 
 
 Recordings = List | Stat | Fetch | Delete
-
-
-def with_default(req: Any, action: str) -> Any:
-    """A request without ``action`` as one for ``action`` (the route's default)."""
-    if isinstance(req, dict) and "action" not in req:
-        return {**req, "action": action}
-    return req

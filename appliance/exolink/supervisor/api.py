@@ -23,7 +23,7 @@ from exolink.supervisor.processes import NodeProcess
 from exolink.supervisor.wakeup import Wakeup
 from exolink.supervisor.watchdog import Watchdog
 from exolink.wire import management
-from exolink.wire.requests import decode, tag_of
+from exolink.wire.requests import action_of, decode, tag_of
 
 Route = tuple[Any, messaging.Needs]
 
@@ -162,9 +162,10 @@ class ManagementApi:
         request is the client's own text and is not used)."""
         wd = self.sup.watchdog
         # An e-stop first, as it came: nothing else in the request is looked at.
-        action = "estop" if _is_estop(req) else None
+        action, cmd = ("estop", None) if _is_estop(req) else (None, None)
         if action is None and not management.status_asked(req):
-            action = tag_of(decode(req, management.Watchdog, "watchdog action"))
+            cmd = decode(req, management.Watchdog, "watchdog action")
+            action = tag_of(cmd)
         if action == "arm":
             estops = self._estops
             blockers = self.sup.arm_blockers()  # reads every node's pipe: not under the lock
@@ -181,9 +182,8 @@ class ManagementApi:
             with self._arming:
                 self._estops += 1
             wd.trip("operator e-stop", f"by {caller.login}")
-        elif action == "trip":  # the appliance's own nodes (the motion holder lost)
-            trip = decode(req, management.Trip, "watchdog action")
-            wd.trip(trip.reason[:80] or "node request", trip.detail[:300])
+        elif isinstance(cmd, management.Trip):  # the appliance's own nodes (the holder lost)
+            wd.trip(cmd.reason[:80] or "node request", cmd.detail[:300])
         s = wd.snapshot()
         return {"state": s.state, "reason": s.reason, "detail": s.detail}
 
@@ -252,7 +252,7 @@ def version() -> str:
 def _is_estop(req: dict[str, Any]) -> bool:
     """An e-stop is acted on at once, whatever the rate of its login or the queue before it,
     and whatever else its request holds."""
-    return isinstance(req, dict) and req.get("action") == "estop"
+    return action_of(req) == "estop"
 
 
 def _shown(value: Any) -> str:
@@ -263,7 +263,7 @@ def _shown(value: Any) -> str:
 def _watchdog_needs(req: dict[str, Any]) -> str:
     """E-stop is every login's; arming and disarming are the operator's; a trip with a reason
     of its own only the appliance's nodes'."""
-    action = req.get("action") if isinstance(req, dict) else None
+    action = action_of(req)
     if action == "trip":
         return roles.APPLIANCE_USER
     return roles.OPERATOR if action in ("arm", "disarm") else roles.OBSERVER

@@ -15,36 +15,26 @@ from typing import Annotated, Any
 
 import msgspec
 
-from exolink.refusal import Refused
-
-
-class _Action(
-    msgspec.Struct,
-    tag_field="action",
-    forbid_unknown_fields=True,
-    omit_defaults=True,
-    frozen=True,
-):
-    pass
-
+from exolink.wire.requests import Action, action_of
+from exolink.wire.requests import convert as convert  # the untagged requests' decode
 
 # --- the watchdog (``watchdog``) ------------------------------------------------------------
 
 
-class Arm(_Action, tag="arm", frozen=True):
+class Arm(Action, tag="arm", frozen=True):
     """Allow motion (refused while anything blocks it: the supervisor lists what)."""
 
 
-class Disarm(_Action, tag="disarm", frozen=True):
+class Disarm(Action, tag="disarm", frozen=True):
     """No motion from now on, without a trip."""
 
 
-class Estop(msgspec.Struct, tag_field="action", tag="estop", omit_defaults=True, frozen=True):
+class Estop(Action, tag="estop", forbid_unknown_fields=False, frozen=True):
     """Trip now: every login's, whatever else the request holds (its detail names the login
     Zenoh proved, never a name in the request)."""
 
 
-class Trip(_Action, tag="trip", frozen=True):
+class Trip(Action, tag="trip", frozen=True):
     """A trip with a reason of its own: the appliance's nodes only (the motion holder lost)."""
 
     reason: str = ""
@@ -57,7 +47,7 @@ Watchdog = Arm | Disarm | Estop | Trip
 # --- nodes (``control``, ``logs``) ----------------------------------------------------------
 
 
-class _NodeAction(_Action, frozen=True):
+class _NodeAction(Action, frozen=True):
     node: str
 
 
@@ -86,14 +76,14 @@ class Logs(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True, froze
 # --- the trigger and the board's clock (``trigger``, ``clock``) ------------------------------
 
 
-class Fire(_Action, tag="fire", frozen=True):
+class Fire(Action, tag="fire", frozen=True):
     """A pulse on the trigger output (an EMG unit's start)."""
 
 
 Trigger = Fire
 
 
-class Step(_Action, tag="step", frozen=True):
+class Step(Action, tag="step", frozen=True):
     """Step the board's clock by ``offset_s`` (an operator laptop's, measured with ``error_s``);
     exolink.board.clock refuses it while armed or synchronised."""
 
@@ -137,14 +127,6 @@ class Fault(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True, froz
     duration_s: float = 1.0
 
 
-def convert(req: Any, cls: type[msgspec.Struct], what: str) -> Any:
-    """``req`` as ``cls`` (a request without a tag), or Refused naming the field."""
-    try:
-        return msgspec.convert(req, cls, strict=True)
-    except msgspec.ValidationError as exc:
-        raise Refused(f"{what}: {exc}") from None
-
-
 def status_asked(req: Any) -> bool:
     """No ``action`` (or ``status``): the route's status, whatever else the request holds."""
-    return isinstance(req, dict) and req.get("action") in (None, "status")
+    return isinstance(req, dict) and action_of(req) in (None, "status")

@@ -17,14 +17,39 @@ import msgspec
 from exolink.refusal import Refused
 
 
+class Action(
+    msgspec.Struct, tag_field="action", forbid_unknown_fields=True, omit_defaults=True, frozen=True
+):
+    """The base of every request ``action`` names (the management routes, the pattern player,
+    the controllers, the recorder); a read subclasses it with ``forbid_unknown_fields=False``."""
+
+
+def action_of(req: Any, default: str | None = None) -> Any:
+    """A request's ``action`` as it came (``default`` without one), before it is decoded: for
+    who may ask it and which thread answers it. None for a request that is not an object."""
+    return req.get("action", default) if isinstance(req, dict) else None
+
+
+def with_default(req: Any, action: str) -> Any:
+    """A request without ``action`` as one for ``action`` (the route's default)."""
+    if isinstance(req, dict) and "action" not in req:
+        return {**req, "action": action}
+    return req
+
+
 def tag_of(request: msgspec.Struct) -> str:
     """The request's tag (its ``kind`` or ``action``): its class's."""
     return str(request.__struct_config__.tag)
 
 
+def classes(union: Any) -> dict[str, Any]:
+    """The union's request classes by tag, in its order: a request built from its tag."""
+    return {str(cls.__struct_config__.tag): cls for cls in get_args(union) or (union,)}
+
+
 def tags(union: Any) -> tuple[str, ...]:
     """The tags a union of requests takes, in its order (what a refusal lists)."""
-    return tuple(str(cls.__struct_config__.tag) for cls in get_args(union) or (union,))
+    return tuple(classes(union))
 
 
 def tag_field(union: Any) -> str:
@@ -45,6 +70,14 @@ def decode(req: dict[str, Any], union: Any, what: str) -> Any:
         return msgspec.convert(req, union, strict=True)
     except msgspec.ValidationError as exc:
         raise Refused(f"{what} {tag}: {exc}") from None
+
+
+def convert(req: Any, cls: type[msgspec.Struct], what: str) -> Any:
+    """``req`` as ``cls`` (a request without a tag), or Refused naming the field."""
+    try:
+        return msgspec.convert(req, cls, strict=True)
+    except msgspec.ValidationError as exc:
+        raise Refused(f"{what}: {exc}") from None
 
 
 def body(request: msgspec.Struct) -> dict[str, Any]:
