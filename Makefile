@@ -29,8 +29,10 @@ $(STAMP): pyproject.toml requirements.lock
 	$(BIN)/python -m pip install -q -c requirements.lock -e '.[dev]'
 	rm -f $(VENV)/.installed-* && touch $@
 
+# CONFIG=<file>: another appliance on simulated hardware, e.g. a lab's own device
+# (tests/lab_rig/rig.yaml, after `.venv/bin/pip install tests/lab_rig`).
 sim: $(STAMP)
-	$(BIN)/exolink up --sim
+	$(BIN)/exolink up --sim $(if $(CONFIG),-c $(CONFIG))
 
 # The wheel and sdist in dist/: `pipx install dist/exolink-*.whl` gives a laptop the CLI alone
 # (tests/test_dist.py checks the wheel's entry point and package data).

@@ -52,6 +52,7 @@ def lab_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[...
         (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
         (info / "entry_points.txt").write_text(entry_points)
         for filename, text in files.items():
+            (site / filename).parent.mkdir(parents=True, exist_ok=True)
             (site / filename).write_text(text)
         path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
         monkeypatch.setenv("PYTHONPATH", path)

@@ -1,81 +1,54 @@
-"""A second device under the same supervisor: a one-joint test rig described by its own DBC
-and a hardware class in a lab's package (exolink.hardware), installed as a third party installs
-it (a dist-info on the path with an ``exolink.hardware`` entry point). The supervisor and its
-watchdog run it with no edit: its pulse's silence trips, the e-stop sends its safe action, a
-motion frame while not armed is answered, a malformed frame is counted. The rig itself is this
-test's thread on the sim bus, as the H2 is the simulator's."""
+"""A second device under the same supervisor: a one-joint test rig described by its own DBC,
+a hardware class and two nodes in a lab's package (tests/lab_rig), installed as a third party
+installs it (a dist-info on the path with its entry points). The supervisor, its watchdog and
+the CLI run it with no edit: its pulse's silence trips, the e-stop sends its safe action, a
+motion frame while not armed is answered, a malformed frame is counted (the rig there is this
+test's thread on the sim bus); under ``make sim`` its own simulator stands in for it, its
+driver moves the joint once armed, and a hung driver is stopped by the watchdog."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import subprocess
+import tomllib
 from collections.abc import Iterator
-
-import can
-import pytest
-
-from benchmarks.harness import EXOLINK, Appliance, DrainedBus, FrameStream, collect, wait_for
-from exolink.canbus import open_bus
-
-RIG_DBC = """VERSION ""
-
-BU_: RIG LAB
-
-BO_ 512 RigAngle: 2 RIG
- SG_ angle : 0|16@1- (0.1,0) [-180|180] "deg" LAB
-
-BO_ 513 RigCommand: 3 LAB
- SG_ mode : 0|8@1+ (1,0) [0|2] "" RIG
- SG_ setpoint : 8|16@1- (0.1,0) [-180|180] "deg" RIG
-
-VAL_ 513 mode 0 "off" 1 "position" 2 "hold" ;
-"""
-
-RIG_PY = '''
-"""The lab's one-joint rig: its DBC, and what the watchdog needs of it."""
 from pathlib import Path
 
 import can
-import cantools
-from exolink.hardware import Seen
+import pytest
+import yaml
 
-DB = cantools.database.load_file(str(Path(__file__).with_name("rig.dbc")))
-ANGLE, COMMAND = DB.get_message_by_name("RigAngle"), DB.get_message_by_name("RigCommand")
-
-
-class Rig:
-    pulse = "rig data"
-    pulse_id = ANGLE.frame_id
-    command_id = COMMAND.frame_id
-    command_mask = bytes([0xFF, 0, 0])  # the mode
-
-    def safe_action(self, cfg):
-        data = COMMAND.encode({"mode": 0, "setpoint": 0})
-        return [can.Message(arbitration_id=COMMAND.frame_id, data=data, is_extended_id=False)]
-
-    def judge(self, msg):
-        try:
-            m = DB.get_message_by_frame_id(msg.arbitration_id)
-        except KeyError:
-            return Seen.MALFORMED, "unknown id"
-        if msg.is_extended_id or len(msg.data) != m.length:
-            return Seen.MALFORMED, "bad length"
-        if m is ANGLE:
-            return Seen.PULSE, ""
-        mode = m.decode(bytes(msg.data), decode_choices=False)["mode"]
-        if mode > 2:  # a lab's bug on purpose: its judge raises on a mode the DBC lacks
-            raise ValueError(f"rig: mode {mode}")
-        return (Seen.MOTION, "") if mode != 0 else (Seen.OTHER, "")
-'''
+from benchmarks.harness import (
+    EXOLINK,
+    Appliance,
+    DrainedBus,
+    FrameStream,
+    collect,
+    free_port,
+    wait_for,
+)
+from exolink.canbus import open_bus
 
 ANGLE_ID, COMMAND_ID = 512, 513
 OFF = bytes([0, 0, 0])
 
 
+RIG = Path(__file__).with_name("lab_rig")  # the lab's package: pyproject.toml, lab_rig/, rig.yaml
+
+
 @pytest.fixture
 def rig_package(lab_package) -> None:  # type: ignore[no-untyped-def]
-    """The lab's package on the path of the supervisor the test starts."""
-    entry = "[exolink.hardware]\nrig = lab_rig:Rig\n"
-    lab_package("lab_rig", entry, {"lab_rig.py": RIG_PY, "rig.dbc": RIG_DBC})
+    """The lab's package (tests/lab_rig), installed as pip would, on the path of the
+    supervisor the test starts."""
+    project = tomllib.loads((RIG / "pyproject.toml").read_text())["project"]
+    entry = "".join(
+        f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items())
+        for group, eps in project["entry-points"].items()
+    )
+    files = {f"lab_rig/{f.name}": f.read_text() for f in (RIG / "lab_rig").iterdir() if f.is_file()}
+    lab_package("lab_rig", entry, files)
 
 
 @pytest.fixture
@@ -153,3 +126,42 @@ def test_an_unknown_device_is_a_config_error_naming_those_installed(write_config
         r = subprocess.run([*EXOLINK, *args], capture_output=True, text=True, timeout=60)
         assert r.returncode == 3, (args, r.stderr)
         assert "hardware: unknown device 'exo9000' (available: h2" in r.stderr, r.stderr
+
+
+def test_the_rig_runs_under_make_sim_with_its_simulator_and_a_driver_the_watchdog_stops(
+    rig_package, spawn, tmp_path, group, mbus
+) -> None:  # type: ignore[no-untyped-def]
+    """``make sim`` with the lab's config: the rig's simulator stands in for the rig (not the
+    H2's), its driver moves the joint once armed, and when the driver hangs the watchdog
+    stops the rig: its safe action on the bus and the joint still."""
+    data = yaml.safe_load((RIG / "rig.yaml").read_text())
+    data["can"]["channel"] = group
+    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    cfg = tmp_path / "rig.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    app = Appliance(cfg, spawn, sim=True)
+    assert {n["name"] for n in app.call("status")["nodes"]} == {"rig_sim", "rig"}
+    r = app.cli("echo", "rig/angle", "-n", "1", "--json")
+    assert r.returncode == 0 and "data" in r.stdout, r.stderr
+
+    def angles(seconds: float) -> list[float]:
+        frames = collect(mbus, seconds, {ANGLE_ID})
+        return [int.from_bytes(f.data[:2], "little", signed=True) / 10 for f in frames]
+
+    assert set(angles(0.3)) == {0.0}  # not armed: nothing moves it
+    app.arm()
+    wait_for(lambda: max(map(abs, angles(0.3)), default=0) > 2, timeout=10)  # the sweep
+    pid = app.node("rig")["pid"]
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        wait_for(lambda: app.call("status")["watchdog"]["state"] == "tripped", timeout=5)
+        wd = app.call("status")["watchdog"]
+        assert (wd["reason"], wd["detail"][:17]) == ("heartbeat late", "rig: no heartbeat"), wd
+        mbus.clear()
+        frames = collect(mbus, 0.5, {ANGLE_ID, COMMAND_ID})
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # the supervisor kills a hung node
+            os.kill(pid, signal.SIGCONT)
+    assert offs(frames) and set(offs(frames)) == {OFF}  # only the safe action, repeated
+    still = {bytes(f.data) for f in frames if f.arbitration_id == ANGLE_ID}
+    assert len(still) == 1, still  # the rig stopped where it was

@@ -136,7 +136,7 @@ def test_simulator_silence_trips_and_arm_is_refused_meanwhile(app, mbus) -> None
         assert r.returncode == 5 and "cannot arm: no h2 data for" in r.stderr
     finally:
         s.close()
-    wait_for(lambda: app.status()["bus"]["h2_silent_s"] < 0.5, timeout=15)
+    wait_for(lambda: app.status()["bus"]["pulse_silent_s"] < 0.5, timeout=15)
     app.arm()  # data is back
 
 

@@ -417,7 +417,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"  malformed {sum(wd.get('malformed', {}).values())}"
         f"  socket drops {'n/a' if wd.get('socket_dropped') is None else wd['socket_dropped']}\n"
         f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
-        f"h2 silent {bus.get('h2_silent_s')} s\n"
+        f"{bus.get('pulse', 'pulse')} silent {bus.get('pulse_silent_s')} s\n"
         f"trigger  {trig['source']} count={trig['count']}\n"
         + (clock.describe(s["clock"], off) if off is not None else "")
         + update_line(s.get("software"))

@@ -15,7 +15,7 @@ from functools import cache
 from typing import TYPE_CHECKING, Protocol
 
 from exolink import entrypoints
-from exolink.config import ConfigError, WatchdogConfig
+from exolink.config import ApplianceConfig, ConfigError, NodeConfig, WatchdogConfig
 
 if TYPE_CHECKING:
     import can
@@ -50,6 +50,12 @@ class Device(Protocol):
 
     def judge(self, msg: Received) -> tuple[Seen, str]:
         """What ``msg`` is, and for a malformed one why (never raises: any frame may come)."""
+        ...
+
+    def simulator(self, cfg: ApplianceConfig) -> NodeConfig:
+        """The node that plays the device on a simulated bus: ``exolink up --sim`` (``make sim``)
+        adds it to a config that runs no node of its plugin, so a config written for the board
+        runs on the laptop as it is."""
         ...
 
 

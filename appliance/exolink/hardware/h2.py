@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from exolink.config import WatchdogConfig
+from exolink.config import ApplianceConfig, NodeConfig, WatchdogConfig
 from exolink.hardware import Seen
 from exolink.protocol import h2, maccepa
 
@@ -41,3 +41,8 @@ class H2Exoskeleton:
         if isinstance(frame, h2.Unknown) and isinstance(maccepa.decode(msg), maccepa.Unknown):
             return Seen.MALFORMED, frame.reason
         return _OTHER
+
+    def simulator(self, cfg: ApplianceConfig) -> NodeConfig:
+        """exolink.nodes.simulator, with the MACCEPA boards the watchdog stops on a trip."""
+        params = {"maccepa_boards": list(cfg.watchdog.maccepa_boards)}
+        return NodeConfig(name="simulator", plugin="simulator", params=params)

@@ -111,7 +111,9 @@ class ManagementApi:
                 "interface": sup.cfg.can.interface,
                 "channel": sup.cfg.can.channel,
                 **(vars(sup.health) if sup.health else {"state": "n/a"}),
-                "h2_silent_s": None if silent is None else round(silent, 3),
+                # the device's pulse (exolink.hardware: "h2 data"), and how long it is silent
+                "pulse": sup.watchdog.device.pulse,
+                "pulse_silent_s": None if silent is None else round(silent, 3),
             },
             "clock": sup.clock.status(),
             "software": sup.update.status(version()),

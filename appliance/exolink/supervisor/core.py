@@ -28,7 +28,7 @@ from exolink import hardware, liveness, logs, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
-from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, NodeConfig
+from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig
 from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
@@ -65,7 +65,8 @@ BAD_SAMPLE_OTHER = "other kinds"
 
 
 def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
-    """``--sim``: the same appliance on a udp_multicast bus with the simulator and a fake trigger."""
+    """``--sim``: the same appliance on a udp_multicast bus with the device's simulator
+    (exolink.hardware: ``Device.simulator``) and a fake trigger."""
     can = msgspec.structs.replace(
         cfg.can,
         interface="udp_multicast",
@@ -75,9 +76,9 @@ def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
     )
     trig = msgspec.structs.replace(cfg.trigger, source="simulated", output=None)
     nodes = list(cfg.nodes)
-    if not any(n.plugin == "simulator" for n in nodes):
-        params = {"maccepa_boards": list(cfg.watchdog.maccepa_boards)}
-        nodes.insert(0, NodeConfig(name="simulator", plugin="simulator", params=params))
+    sim = hardware.load(cfg.hardware).simulator(cfg)
+    if not any(n.plugin == sim.plugin for n in nodes):
+        nodes.insert(0, sim)
     return msgspec.structs.replace(cfg, can=can, trigger=trig, nodes=nodes)
 
 

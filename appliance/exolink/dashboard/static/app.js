@@ -315,7 +315,7 @@ function onStatus(m) {
   bus.innerHTML = "";
   const wd = s.watchdog, b = s.bus;
   kv(bus, "bus", `${b.interface}:${b.channel} ${b.state || "n/a"}`);
-  kv(bus, "h2 silent", b.h2_silent_s == null ? "-" : b.h2_silent_s + " s");
+  kv(bus, `${b.pulse || "pulse"} silent`, b.pulse_silent_s == null ? "-" : b.pulse_silent_s + " s");
   kv(bus, "joint_states", ((S.rates || {}).joint_states ?? "-") + " Hz");
   kv(bus, "watchdog trips", wd.trips);
   kv(bus, "read lag max", wd.read_lag_max_ms + " ms");
