@@ -22,6 +22,8 @@ from exolink.board import update
 from exolink.cli import update as cli_update
 from exolink.client import Refused
 from exolink.supervisor.api import ManagementApi
+from exolink.wire import management
+from exolink.wire.requests import decode
 
 REPO = Path(__file__).resolve().parents[1]
 BACKEND = REPO / "image/rauc/rauc-boot-backend"
@@ -32,12 +34,15 @@ def bundle_bytes(n: int = 3000) -> bytes:
 
 
 def begin(rx: update.Receiver, data: bytes, **over: Any) -> dict[str, Any]:
+    """A begin as the supervisor hands it on: decoded from the laptop's JSON object."""
     req = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest(), "name": "b.raucb"}
-    return rx.begin({**req, **over}, "admin")
+    ask = decode({"action": "begin", **req, **over}, management.Update, "update action")
+    return rx.begin(ask, "admin")
 
 
-def chunk(rx: update.Receiver, data: bytes, offset: int) -> dict[str, Any]:
-    return rx.chunk({"offset": offset, "data": base64.b64encode(data).decode()})
+def chunk(rx: update.Receiver, data: bytes | str, offset: int) -> dict[str, Any]:
+    text = data if isinstance(data, str) else base64.b64encode(data).decode()
+    return rx.chunk(management.Chunk(offset=offset, data=text))
 
 
 def test_a_bundle_in_chunks_becomes_a_request_for_the_agent(tmp_path: Path) -> None:
@@ -57,14 +62,17 @@ def test_a_bundle_in_chunks_becomes_a_request_for_the_agent(tmp_path: Path) -> N
 @pytest.mark.parametrize(
     ("over", "error"),
     [
-        ({"size": 0}, "size must be a positive integer"),
-        ({"size": "12"}, "size must be a positive integer"),
+        ({"size": 0}, r"Expected `int` >= 1 - at `\$.size`"),
+        ({"size": "12"}, r"Expected `int`, got `str` - at `\$.size`"),
+        ({"size": True}, r"Expected `int`, got `bool` - at `\$.size`"),
         ({"size": update.MAX_BUNDLE_BYTES + 1}, "the largest is"),
-        ({"sha256": "abc"}, "sha256 must be 64 lowercase hex digits"),
+        ({"sha256": "abc"}, r"Expected `str` matching regex .* - at `\$.sha256`"),
+        ({"sha256": "A" * 64}, r"at `\$.sha256`"),
+        ({"bytes": 12}, r"Object contains unknown field `bytes`"),
     ],
 )
 def test_begin_names_what_is_wrong(tmp_path: Path, over: dict[str, Any], error: str) -> None:
-    with pytest.raises(update.UpdateRefused, match=error):
+    with pytest.raises(Refused, match=error):
         begin(update.Receiver(tmp_path), bundle_bytes(), **over)
 
 
@@ -82,7 +90,7 @@ def test_chunks_out_of_order_bad_data_or_header_are_refused(tmp_path: Path) -> N
     with pytest.raises(update.UpdateRefused, match="offset 5 refused: expected 0"):
         chunk(rx, data, 5)
     with pytest.raises(update.UpdateRefused, match="not valid base64"):
-        rx.chunk({"offset": 0, "data": "!!"})
+        chunk(rx, "!!", 0)
     with pytest.raises(update.UpdateRefused, match="past the announced size"):
         chunk(rx, data + b"x", 0)
     with pytest.raises(update.UpdateRefused, match="incomplete: 0 of"):
@@ -267,3 +275,12 @@ def test_the_update_folder_is_the_boards_only_where_its_agent_is_installed(
     assert update.local_dir(work) == work / "update"
     agent.write_text("[Path]\n")
     assert update.local_dir(work) == shared
+
+
+@pytest.mark.parametrize("text", ["not json", '{"bundle": "incoming.raucb"}', '{"name": 5}'])
+def test_the_root_agent_refuses_a_request_file_that_is_not_one(tmp_path: Path, text: str) -> None:
+    """The agent runs as root on a file the unprivileged service wrote: read typed, anything
+    else is dropped before rauc is asked anything (none is installed here to ask)."""
+    (tmp_path / update.REQUEST).write_text(text)
+    assert update.agent_install(tmp_path, reboot=False) == 1
+    assert not (tmp_path / update.REQUEST).exists()

@@ -34,9 +34,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import structlog
 
 from exolink.refusal import Refused
+from exolink.wire import management
 
 log = structlog.get_logger("exolink.board.update")
 
@@ -139,6 +141,18 @@ class Upload:
     started: float = 0.0
 
 
+class InstallRequest(msgspec.Struct, frozen=True):
+    """What the supervisor hands the root agent (``REQUEST``): a checked bundle to install.
+    The agent reads it typed: the file is written by the unprivileged service."""
+
+    bundle: str
+    sha256: str
+    size: int
+    name: str
+    by: str
+    time: float
+
+
 class Receiver:
     """The supervisor's half (runs as ``exolink``): begin, chunk, commit, abort."""
 
@@ -155,16 +169,14 @@ class Receiver:
         st = read_state(self.dir)
         return st.get("result") == "installing" and st.get("boot_id") == _boot_id_or_none()
 
-    def begin(self, req: dict[str, Any], by: str) -> dict[str, Any]:
-        size, sha, name = req.get("size"), req.get("sha256"), req.get("name", "bundle.raucb")
-        if not isinstance(size, int) or isinstance(size, bool) or size <= 0:
-            raise UpdateRefused(f"size must be a positive integer of bytes, not {size!r:.40}")
+    def begin(self, req: management.Begin, by: str) -> dict[str, Any]:
+        """``req`` decoded (exolink.wire.management: size and hash well formed); what the board
+        can take is checked here."""
+        size, sha, name = req.size, req.sha256, req.name
         if size > MAX_BUNDLE_BYTES:
             raise UpdateRefused(
                 f"bundle of {size} bytes refused: the largest is {MAX_BUNDLE_BYTES} bytes"
             )
-        if not isinstance(sha, str) or not re.fullmatch(r"[0-9a-f]{64}", sha):
-            raise UpdateRefused("sha256 must be 64 lowercase hex digits")
         if self.installing:
             raise UpdateRefused("an update is already being installed; the board reboots when done")
         self.dir.mkdir(parents=True, exist_ok=True)
@@ -176,7 +188,7 @@ class Receiver:
             )
         (self.dir / INCOMING).unlink(missing_ok=True)
         (self.dir / INCOMING).touch(mode=0o640)
-        self.upload = Upload(size, sha, str(name)[:120], by, started=time.monotonic())
+        self.upload = Upload(size, sha, name[:120], by, started=time.monotonic())
         self._hash = hashlib.sha256()
         log.info("update_upload_started", size=size, name=self.upload.name, by=by)
         return {"offset": 0, "max_chunk": MAX_CHUNK}
@@ -187,13 +199,11 @@ class Receiver:
         except OSError:
             return 0
 
-    def chunk(self, req: dict[str, Any]) -> dict[str, Any]:
+    def chunk(self, req: management.Chunk) -> dict[str, Any]:
         up = self._current()
-        offset, data = req.get("offset"), req.get("data")
+        offset, data = req.offset, req.data
         if offset != up.received:
-            raise UpdateRefused(f"chunk at offset {offset!r:.20} refused: expected {up.received}")
-        if not isinstance(data, str):
-            raise UpdateRefused("data must be base64 text")
+            raise UpdateRefused(f"chunk at offset {offset} refused: expected {up.received}")
         try:
             raw = base64.b64decode(data, validate=True)
         except ValueError:
@@ -221,15 +231,8 @@ class Receiver:
             raise UpdateRefused(f"sha256 differs: received {digest}, announced {up.sha256}")
         with open(self.dir / INCOMING, "rb+") as f:
             os.fsync(f.fileno())
-        request = {
-            "bundle": INCOMING,
-            "sha256": digest,
-            "size": up.size,
-            "name": up.name,
-            "by": by,
-            "time": time.time(),
-        }
-        _write_json(self.dir / REQUEST, request)
+        request = InstallRequest(INCOMING, digest, up.size, up.name, by, time.time())
+        _write_json(self.dir / REQUEST, msgspec.structs.asdict(request))
         took = time.monotonic() - up.started
         log.warning("update_requested", size=up.size, name=up.name, by=by, upload_s=round(took, 1))
         self.upload = None
@@ -331,15 +334,15 @@ def agent_install(directory: Path = UPDATE_DIR, reboot: bool = True) -> int:
     """Install the requested bundle into the other slot and reboot into it (root)."""
     req_path = directory / REQUEST
     try:
-        req = json.loads(req_path.read_text())
-    except (OSError, ValueError) as exc:
+        req = msgspec.json.decode(req_path.read_bytes(), type=InstallRequest)
+    except (OSError, msgspec.DecodeError) as exc:
         log.error("update_request_unreadable", error=str(exc))
         req_path.unlink(missing_ok=True)
         return 1
     bundle = directory / INCOMING
     booted = _slot_from_cmdline()
     target = next((s for s in SLOTS if s != booted), None)
-    _set_state(directory, result="installing", detail=f"{req.get('name')} into slot {target}",
+    _set_state(directory, result="installing", detail=f"{req.name} into slot {target}",
                boot_id=boot_id())  # fmt: skip
     info = _run("rauc", "info", "--output-format=json", str(bundle), timeout=600)
     if info.returncode != 0:
@@ -358,7 +361,7 @@ def agent_install(directory: Path = UPDATE_DIR, reboot: bool = True) -> int:
     req_path.unlink(missing_ok=True)
     _set_state(directory, result="installed", detail=f"slot {target}: version {version}, "
                f"installed in {took} s; rebooting into it", boot_id=boot_id(),
-               pending={"slot": target, "from": booted, "version": version, "by": req.get("by")})  # fmt: skip
+               pending={"slot": target, "from": booted, "version": version, "by": req.by})  # fmt: skip
     if reboot:
         subprocess.run(["systemctl", "reboot"], check=False)
     return 0

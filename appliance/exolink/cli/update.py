@@ -24,6 +24,8 @@ from exolink.board import update
 from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
+from exolink.wire import management
+from exolink.wire.requests import body
 
 POLL_S = 5.0
 
@@ -68,8 +70,7 @@ def check_bundle(path: Path) -> tuple[int, str]:
 def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> float:
     """Chunks in order; a lost reply is asked again at the same offset. Returns seconds taken."""
     t0 = time.monotonic()
-    reply = r.call("update", body={"action": "begin", "size": size, "sha256": sha,
-                                   "name": path.name})  # fmt: skip
+    reply = r.call("update", body=body(management.Begin(size=size, sha256=sha, name=path.name)))
     chunk = min(int(reply.get("max_chunk", update.MAX_CHUNK)), update.MAX_CHUNK)
     offset, shown = 0, -1
     with open(path, "rb") as f:
@@ -78,8 +79,8 @@ def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> f
             data = base64.b64encode(f.read(chunk)).decode()
             for attempt in range(5):
                 try:
-                    reply = r.call("update", body={"action": "chunk", "offset": offset,
-                                                   "data": data})  # fmt: skip
+                    ask = management.Chunk(offset=offset, data=data)
+                    reply = r.call("update", body=body(ask))
                     break
                 except messaging.Unreachable:
                     if attempt == 4:
@@ -98,7 +99,7 @@ def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> f
                 rate = offset / max(time.monotonic() - t0, 1e-3) / 1e6
                 out.write(f"sent {offset >> 20} of {size >> 20} MiB ({pct}%, {rate:.1f} MB/s)\n")
                 out.flush()
-    r.call("update", body={"action": "commit"})
+    r.call("update", body=body(management.Commit()))
     return time.monotonic() - t0
 
 

@@ -214,30 +214,27 @@ class ManagementApi:
         return clock.status()
 
     def update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
-        """A new root file system from an admin laptop, in chunks (exolink.board.update): ``begin``
-        (size, sha256, name), ``chunk`` (offset, base64 data), ``commit``, ``abort``; no action
-        is the software status (any role). Refused while armed: installing ends in a reboot,
-        never under a walking patient; once committed, arming is refused until the reboot."""
-        rx, action = self.sup.update, req.get("action")
-        if action in (None, "status"):
+        """A new root file system from an admin laptop, in chunks (exolink.board.update; the
+        requests: exolink.wire.management's ``Update``); no action is the software status (any
+        role). Refused while armed: installing ends in a reboot, never under a walking patient;
+        once committed, arming is refused until the reboot."""
+        rx = self.sup.update
+        if management.status_asked(req):
             return rx.status(version())
-        if action == "abort":
+        ask = decode(req, management.Update, "update action")
+        if isinstance(ask, management.Abort):
             rx.abort()
             return rx.status(version())
-        if action in ("begin", "commit") and self.sup.watchdog.armed:
+        if isinstance(ask, management.Begin | management.Commit) and self.sup.watchdog.armed:
             raise update.UpdateRefused(
                 "the exoskeleton is armed: an update ends in a reboot, never under a walking "
                 "patient. Disarm first (exolink watchdog disarm)"
             )
-        if action == "begin":
-            return rx.begin(req, caller.login)
-        if action == "chunk":
-            return rx.chunk(req)
-        if action == "commit":
-            return rx.commit(caller.login)
-        raise Refused(
-            f"unknown update action {_shown(action)} (status, begin, chunk, commit or abort)"
-        )
+        if isinstance(ask, management.Begin):
+            return rx.begin(ask, caller.login)
+        if isinstance(ask, management.Chunk):
+            return rx.chunk(ask)
+        return rx.commit(caller.login)
 
 
 @functools.cache

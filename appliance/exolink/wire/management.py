@@ -1,5 +1,5 @@
 """The management requests, one schema each: the supervisor's routes (exolink.supervisor.api),
-a node's params, the timing monitor's query and the simulator's faults.
+a node's params, the timing monitor's query, the simulator's faults and the software update.
 
 The command line, the dashboard (through the command line's parser), the ROS 2 services and the
 appliance's own nodes build them; the supervisor's handlers decode each request once
@@ -92,6 +92,36 @@ class Step(Action, tag="step", frozen=True):
 
 
 Clock = Step
+
+
+# --- software updates (``update``: exolink.board.update) --------------------------------------
+
+
+class Begin(Action, tag="begin", frozen=True):
+    """A bundle of ``size`` bytes whose SHA-256 is ``sha256`` follows in chunks (``name``: for
+    the journal, cut to 120 characters)."""
+
+    size: Annotated[int, msgspec.Meta(ge=1)]
+    sha256: Annotated[str, msgspec.Meta(pattern="^[0-9a-f]{64}$")]
+    name: str = "bundle.raucb"
+
+
+class Chunk(Action, tag="chunk", frozen=True):
+    """The bundle's next bytes, base64 in ``data``, from ``offset`` (the bytes received so far)."""
+
+    offset: Annotated[int, msgspec.Meta(ge=0)]
+    data: str
+
+
+class Commit(Action, tag="commit", frozen=True):
+    """Every byte in: check the hash and hand the bundle to the root agent (a reboot follows)."""
+
+
+class Abort(Action, tag="abort", frozen=True):
+    """Drop the upload under way."""
+
+
+Update = Begin | Chunk | Commit | Abort
 
 
 # --- any node (``nodes/<name>/params``) and the observers' own -------------------------------
