@@ -27,6 +27,7 @@ import msgspec
 import zenoh
 
 from exolink import messaging
+from exolink.loops import Every
 from exolink.node import Node
 from exolink.wire import rosgraph
 
@@ -143,9 +144,8 @@ class FoxgloveBridge(Node, foxglove.websocket.ServerListener):
 
         return on_sample
 
-    def run(self, stop: threading.Event) -> None:
-        while not stop.wait(0.1):
-            self.beat()
+    def loop(self) -> Every:
+        return Every(0.1)  # its work is the server's thread and the subscriptions' callbacks
 
     def shutdown(self) -> None:
         with self._lock:  # declared per client subscription, not owned

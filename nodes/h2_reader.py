@@ -20,7 +20,6 @@ batches straight from the socket (``canbus.FrameReader``) and published from CDR
 from __future__ import annotations
 
 import math
-import threading
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Annotated, Any, Literal
@@ -32,6 +31,7 @@ from exolink.canbus import Cadence, Frame, open_reader
 from exolink.canbus.filters import Drop
 from exolink.config import ConfigError, node_params
 from exolink.hardware import maccepa as maccepa_state
+from exolink.loops import Frames
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import h2
@@ -155,6 +155,8 @@ class H2Reader(Node):
         self._last_feet: tuple[h2.FootSwitches, float] | None = None  # the last published, when
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
+        self._next_diag = time.monotonic() + self.params.diagnostics_period_s
+        self._last_restart = time.monotonic()
         if self.params.start_stream:
             self.bus.send(h2.encode_stream(True))
 
@@ -303,35 +305,35 @@ class H2Reader(Node):
         last = max(self.gaps.last.values(), default=None)
         return float("inf") if last is None else time.time() - last
 
-    def run(self, stop: threading.Event) -> None:
-        next_diag = time.monotonic() + self.params.diagnostics_period_s
-        last_restart = time.monotonic()
-        timeout = self.cadence.idle_s
-        clock = self.clock
-        while not stop.is_set():
-            clock.start()
-            self.beat()
-            clock.mark("beat")
-            frames = self.reader.read(timeout)
-            clock.mark("read")
-            for frame in frames:
-                self.handle(frame)
-            clock.mark("handle")
-            self.out.flush()
-            clock.mark("publish")
-            timeout = self.cadence.timeout(bool(frames))
-            now = time.monotonic()
-            if now >= next_diag:
-                next_diag += self.params.diagnostics_period_s
-                self._diagnostics()
-            restart = self.params.restart_stream_after_s
-            if (
-                self.params.start_stream
-                and restart
-                and self._silent_for() > restart
-                and now - last_restart > restart
-            ):
-                last_restart = now
-                self.stats.stream_restarts += 1
-                self.bus.send(h2.encode_stream(True))
-            clock.mark("rest")
+    def loop(self) -> Frames:
+        """A wake's frames, then their samples out together, then the periodic work."""
+        return Frames(
+            self.reader,
+            self.handle_all,
+            self.cadence,
+            after=[("publish", self.out.flush), ("rest", self._periodic)],
+            clock=self.clock,
+        )
+
+    def handle_all(self, frames: list[Frame]) -> None:
+        handle = self.handle
+        for frame in frames:
+            handle(frame)
+
+    def _periodic(self) -> None:
+        """Diagnostics every period; with ``start_stream``, the stream asked for again while the
+        H2 stays silent (it may have been powered after this node started)."""
+        now = time.monotonic()
+        if now >= self._next_diag:
+            self._next_diag += self.params.diagnostics_period_s
+            self._diagnostics()
+        restart = self.params.restart_stream_after_s
+        if (
+            self.params.start_stream
+            and restart
+            and self._silent_for() > restart
+            and now - self._last_restart > restart
+        ):
+            self._last_restart = now
+            self.stats.stream_restarts += 1
+            self.bus.send(h2.encode_stream(True))

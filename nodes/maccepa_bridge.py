@@ -11,15 +11,15 @@ motion, for the boards in its ``params.maccepa``.
 
 from __future__ import annotations
 
-import threading
 from typing import Annotated, Literal
 
 import msgspec
 
 from exolink import messaging
-from exolink.canbus import Cadence, open_reader
+from exolink.canbus import Cadence, Frame, open_reader
 from exolink.canbus.filters import Drop
 from exolink.hardware.maccepa import STATE, BoardStates, topic
+from exolink.loops import Frames
 from exolink.node import Node
 from exolink.protocol import maccepa
 
@@ -73,13 +73,10 @@ class MaccepaBridge(Node):
     def malformed(self) -> int:
         return self.states.malformed
 
-    def run(self, stop: threading.Event) -> None:
-        timeout = self.cadence.idle_s
+    def loop(self) -> Frames:
+        return Frames(self.reader, self.handle_all, self.cadence, [("publish", self.out.flush)])
+
+    def handle_all(self, frames: list[Frame]) -> None:
         handle = self.states.handle
-        while not stop.is_set():
-            self.beat()
-            frames = self.reader.read(timeout)
-            for frame in frames:
-                handle(frame)
-            self.out.flush()
-            timeout = self.cadence.timeout(bool(frames))
+        for frame in frames:
+            handle(frame)

@@ -36,6 +36,7 @@ from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.control.gait import period_s
 from exolink.limits.joints import Limits
+from exolink.loops import Every
 from exolink.messaging import Caller, Refused
 from exolink.node import Node
 from exolink.protocol import ProtocolError, h2
@@ -159,6 +160,7 @@ class PatternPlayer(Node):
 
     def configure(self) -> None:
         p = self.params
+        self._beats = 0  # the loop's wakes: the state goes out every STATE_EVERY
         self.limits = self.ctx.config.joint_limits()
         self.pattern = load_pattern(p.pattern, self.limits)
         self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
@@ -443,17 +445,17 @@ class PatternPlayer(Node):
             target=self._follow_manager, args=(stop,), daemon=True, name="follow"
         )
         follow.start()
-        beats = 0
         try:
-            while not stop.wait(BEAT_S):
-                self.beat()
-                self._guard()
-                beats += 1
-                if beats % STATE_EVERY == 0:
-                    self._publish()
+            Every(BEAT_S, self._tick).run(self.beat, stop)
         finally:
             self._activity.set()  # the follower looks at `stop` now
             follow.join(1)
+
+    def _tick(self) -> None:
+        self._guard()
+        self._beats += 1
+        if self._beats % STATE_EVERY == 0:
+            self._publish()
 
     def _guard(self) -> None:
         """The watchdog no longer allows motion: the state says so at once (the manager has

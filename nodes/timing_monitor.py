@@ -17,8 +17,9 @@ from typing import Annotated, Any
 
 import msgspec
 
-from exolink.canbus import open_reader
+from exolink.canbus import Frame, open_reader
 from exolink.canbus.filters import Drop
+from exolink.loops import Frames
 from exolink.messaging import Refused
 from exolink.node import Node
 from exolink.wire import management
@@ -206,12 +207,13 @@ class TimingMonitor(Node):
         out["socket_dropped"] = self.reader.dropped
         return out
 
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            self.beat()
-            frames = self.reader.read(READ_EVERY_S)
-            with self.lock:
-                for msg in frames:
-                    ring = self.stamps.get(msg.arbitration_id)
-                    if ring is not None:  # the kernel filter lets only these through
-                        ring.add(msg.timestamp, msg.data)
+    def loop(self) -> Frames:
+        return Frames(self.reader, self.keep, READ_EVERY_S)
+
+    def keep(self, frames: list[Frame]) -> None:
+        """A read's frames into their ids' rings, under the lock the queries take."""
+        with self.lock:
+            for msg in frames:
+                ring = self.stamps.get(msg.arbitration_id)
+                if ring is not None:  # the kernel filter lets only these through
+                    ring.add(msg.timestamp, msg.data)

@@ -11,7 +11,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 import msgspec
 import structlog
@@ -20,6 +20,9 @@ import zenoh
 from exolink import messaging
 from exolink.config import ApplianceConfig
 from exolink.liveness import Beater
+
+if TYPE_CHECKING:
+    from exolink.loops import Loop
 
 HEARTBEAT_PERIOD_S = 0.1  # the heartbeat thread's shortest period (see beat_period_s)
 TELEMETRY_PERIOD_S = 1.0  # the heartbeat on Zenoh: for people, not the watchdog
@@ -143,8 +146,15 @@ class Node:
     def configure(self) -> None:
         pass
 
+    def loop(self) -> Loop:
+        """How the node wakes and what it does then (exolink.loops: ``Every``, ``Frames``),
+        declared after ``configure``; ``run`` runs it, beating on every wake."""
+        raise NotImplementedError(f"{type(self).__name__} declares neither loop() nor run()")
+
     def run(self, stop: threading.Event) -> None:
-        raise NotImplementedError
+        """The declared loop until ``stop``. A node whose loop is its job (a clocked model, the
+        controller manager's cycle) overrides this instead and beats itself."""
+        self.loop().run(self.beat, stop)
 
     def shutdown(self) -> None:
         pass

@@ -19,6 +19,7 @@ from exolink import roles
 from exolink.client import Remote
 from exolink.dashboard import server
 from exolink.dashboard.hub import Hub
+from exolink.loops import Every
 from exolink.node import Node
 
 
@@ -83,8 +84,10 @@ class DashboardNode(Node):
     def run(self, stop: threading.Event) -> None:
         t = threading.Thread(target=self._serve, args=(stop,), name="dashboard", daemon=True)
         t.start()
-        while not stop.wait(0.1):
+
+        def serving() -> None:
             if not t.is_alive():
                 raise RuntimeError(f"dashboard server stopped: {self._failed}")
-            self.beat()
+
+        Every(0.1, serving).run(self.beat, stop)
         t.join(5)

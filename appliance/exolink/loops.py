@@ -1,0 +1,90 @@
+"""The loops a node declares instead of writing its own (``Node.loop``): how it wakes, what it
+reads and what it does after. The runtime runs the declared loop and beats for the node on every
+wake, so a node is its handlers plus one line saying when they run, and the rules every loop
+must keep (beat on every wake, read a wake's frames in one batch, publish after the read, time
+the phases on the thread's CPU clock) are kept here once.
+
+- ``Every(period_s, step)``: wake every period, then ``step`` (None: the node's work is in its
+  handlers and threads, the loop only proves it alive).
+- ``Frames(reader, handle, wait, after)``: wake on the bus (exolink.canbus.open_reader), hand a
+  wake's frames to ``handle`` in one call, then each ``after`` phase (the outbox's flush,
+  diagnostics); ``wait`` is a fixed timeout or the reader's ``Cadence``.
+
+A node whose loop is its job keeps ``run`` (the controller manager's cycle and timer modes, the
+recorder's intake, the simulator's clocked models): say which in its docstring.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+from exolink.phaseclock import PhaseClock
+
+if TYPE_CHECKING:
+    from exolink.canbus import Cadence
+
+Beat = Callable[[], None]
+
+
+class Loop(Protocol):
+    def run(self, beat: Beat, stop: threading.Event) -> None:
+        """Until ``stop``: wake, ``beat()``, do the node's work."""
+        ...
+
+
+class Reads(Protocol):
+    """What ``Frames`` reads: exolink.canbus's FrameReader (a batch per call, up to a timeout)."""
+
+    def read(self, timeout: float) -> list[Any]: ...
+
+
+@dataclass
+class Every:
+    period_s: float
+    step: Callable[[], None] | None = None
+
+    def run(self, beat: Beat, stop: threading.Event) -> None:
+        step = self.step
+        while not stop.wait(self.period_s):
+            beat()
+            if step is not None:
+                step()
+
+
+@dataclass
+class Frames:
+    """``clock``: the CPU of each phase (``beat``, ``read``, ``handle``, then each ``after``'s
+    name), sampled (exolink.phaseclock); the h2 reader's stats show it as ``loop_cpu``."""
+
+    reader: Reads
+    handle: Callable[[list[Any]], None]
+    wait: Cadence | float
+    after: Sequence[tuple[str, Callable[[], None]]] = ()
+    clock: PhaseClock = field(default_factory=PhaseClock)
+
+    def run(self, beat: Beat, stop: threading.Event) -> None:
+        read, handle, after, clock = self.reader.read, self.handle, self.after, self.clock
+        wait = self.wait
+        cadence, timeout = (
+            (None, float(wait)) if isinstance(wait, int | float) else (wait, wait.idle_s)
+        )
+        while not stop.is_set():
+            clock.start()
+            beat()
+            clock.mark("beat")
+            frames = read(timeout)
+            clock.mark("read")
+            if frames:
+                handle(frames)
+            clock.mark("handle")
+            for phase, fn in after:
+                fn()
+                clock.mark(phase)
+            if cadence is not None:
+                timeout = cadence.timeout(bool(frames))
+
+
+__all__ = ["Every", "Frames", "Loop", "Reads"]
