@@ -16,8 +16,9 @@ from typing import Any, NamedTuple
 import pytest
 from conftest import bus_sockets
 from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
-from exolink.nodes.controller_manager.manager import Manager, ManagerRefused, Switch
+from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.node import LEASE_PAST_TRIP_MS
+from exolink.nodes.controller_manager.slots import ManagerRefused, Switch
 
 from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_for
 from exolink import messaging, roles
@@ -309,7 +310,7 @@ def test_a_cpu_clock_in_ticks_stops_no_controller_for_a_tick_it_touched(
 
 
 def test_the_cpu_clocks_step_here_is_fine() -> None:
-    from exolink.nodes.controller_manager.manager import cpu_clock_step
+    from exolink.nodes.controller_manager.budget import cpu_clock_step
 
     assert 0 < cpu_clock_step() < 0.001  # a clock in ns on this kernel, as on the board's
 

@@ -9,7 +9,8 @@ import time
 
 import can
 import pytest
-from exolink.nodes.controller_manager.manager import Manager, Switch
+from exolink.nodes.controller_manager.manager import Manager
+from exolink.nodes.controller_manager.slots import Switch
 from exolink.nodes.controller_manager.timed import Timed
 
 from exolink.canbus.bcm import ThreadLease

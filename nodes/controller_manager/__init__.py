@@ -3,12 +3,15 @@ the home of the operator's intent (limits in force, who holds motion).
 
 - ``node``: the node: reads the bus, runs the cycle, writes frames;
 - ``api``: its requests: controllers, the H2's and the MACCEPA boards' commands, presence;
-- ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O);
+- ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O), with
+  ``slots`` (what it holds and hands out) and ``budget`` (an update judged: CPU, values);
+- ``params``, ``frames``: the node's params; its frames, encoded once, and its reader's ids;
 - ``intent``: the operator's limits (persisted) and presence;
 - ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager);
 - ``builtin``, ``maccepa``: the built-in controllers (joints; MACCEPA boards).
 """
 
-from exolink.nodes.controller_manager.node import ControllerManagerNode, drop_rules, one_socket
+from exolink.nodes.controller_manager.frames import drop_rules, one_socket
+from exolink.nodes.controller_manager.node import ControllerManagerNode
 
 __all__ = ["ControllerManagerNode", "drop_rules", "one_socket"]

@@ -21,8 +21,10 @@ from typing import Any, Protocol, TypeVar
 
 import can
 import structlog
+from exolink.nodes.controller_manager.frames import SAFE_MODES
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import Manager, Switch
+from exolink.nodes.controller_manager.manager import Manager
+from exolink.nodes.controller_manager.slots import Switch
 
 from exolink import roles
 from exolink.control import requests
@@ -39,7 +41,6 @@ R = TypeVar("R")
 SWITCH_WAIT_S = 1.0
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
 OPERATOR_MODES = ("position", "stiffness", "torque")
-SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
 DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
 READS = ("list", "types", "state")  # what an observer may ask of the controllers
 PRESENCE = ("hold", "release")  # answered at once, never behind a switch

@@ -5,25 +5,34 @@ the switches waiting for a cycle boundary, and turns one H2 cycle into the joint
 MACCEPA board commands to write (``maccepa<N>/setpoint|duty|gains``, each inside that board's
 ``BoardLimits``). The node around it (``ControllerManagerNode``) reads the bus, checks arming and writes.
 Everything that changes what is active happens inside ``cycle`` (or ``stop_all`` /
-``joints_disabled``) under one lock, so no cycle ever sees half a switch.
+``joints_disabled``) under one lock, so no cycle ever sees half a switch. What it holds and
+hands out (a loaded controller, a switch, a cycle's writes) is ``slots``; how an update is
+judged (its CPU against its budget, the values it returned) is ``budget``.
 """
 
 from __future__ import annotations
 
-import gc
 import math
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
 import structlog
+from exolink.nodes.controller_manager.budget import CPU_STEP_S, GC_CLOCK, check_values, overran
+from exolink.nodes.controller_manager.slots import (
+    PLANNED,
+    Cycle,
+    MaccepaWrite,
+    ManagerRefused,
+    Slot,
+    Switch,
+    Write,
+    check_claims,
+)
 
 from exolink.control.controller import (
-    INTERFACES,
-    MACCEPA_INTERFACES,
     Controller,
     SafeStop,
     State,
@@ -38,194 +47,11 @@ from exolink.refusal import Refused
 log = structlog.get_logger()
 
 
-class GcClock:
-    """CPU seconds each thread spent in the garbage collector (gc.callbacks), so a controller's
-    budget counts its own work: a collection falls in whichever update allocates past the
-    threshold, and a controller must not be stopped for an overrun that was the collector's."""
-
-    def __init__(self) -> None:
-        self.spent: dict[int, float] = {}
-        self._start: dict[int, float] = {}
-        self.runs = [0, 0, 0]  # collections per generation
-        self.longest_s = [0.0, 0.0, 0.0]  # the longest of each (CPU): a stall of the loop
-
-    def __call__(self, phase: str, info: dict[str, int]) -> None:
-        tid = threading.get_ident()
-        if phase == "start":
-            self._start[tid] = time.thread_time()
-        elif (t0 := self._start.pop(tid, None)) is not None:
-            took = time.thread_time() - t0
-            self.spent[tid] = self.spent.get(tid, 0.0) + took
-            g = info.get("generation", 0)
-            self.runs[g] += 1
-            if took > self.longest_s[g]:
-                self.longest_s[g] = took
-
-    def of_this_thread(self) -> float:
-        return self.spent.get(threading.get_ident(), 0.0)
-
-    def counters(self) -> dict[str, list[float]]:
-        return {"runs": list(self.runs), "longest_ms": [round(t * 1e3, 2) for t in self.longest_s]}
-
-
-GC_CLOCK = GcClock()
-gc.callbacks.append(GC_CLOCK)
-
-
-def cpu_clock_step(spin_s: float = 0.05) -> float:
-    """The smallest step of this thread's CPU clock, measured once. Where the kernel accounts CPU
-    in ticks (User-Mode Linux: 10 ms) an update that straddles a tick reads a whole tick; a
-    budget is then judged on what was surely used (the reading less one step), so a controller
-    is never stopped for a tick it only touched. On the board's kernel the step is ~1 us."""
-    t0 = t = time.thread_time()
-    end = time.perf_counter() + spin_s
-    while t == t0 and time.perf_counter() < end:
-        t = time.thread_time()
-    return t - t0 if t > t0 else spin_s
-
-
-CPU_STEP_S = cpu_clock_step()
-
 # An unchanged MACCEPA set-point or duty is re-sent every this many H2 cycles (100 ms), so a
 # frame lost on the bus is repaired soon; a changed one goes out in its own cycle. Every cycle
 # would be 100 frames/s per board for no news: one bus send per cycle doubled the manager's
 # overhead on this machine (benchmarks/bench_controllers.py).
 MACCEPA_REFRESH_CYCLES = 10
-# ``Manager.cycle``'s parts: the controllers planned for the timer, or the cycle loop's others.
-PLANNED, UNPLANNED = "planned", "unplanned"
-
-
-class ManagerRefused(Refused):
-    """A management request the manager refuses; the text names what is in the way."""
-
-
-@dataclass
-class Slot:
-    """A loaded controller and what the manager knows of it."""
-
-    name: str
-    kind: str
-    ctrl: Controller
-    claims: tuple[str, ...]
-    budget_s: float
-    state: str = "inactive"
-    error: str = ""
-    updates: int = 0
-    cpu_s_total: float = 0.0
-    cpu_s_max: float = 0.0
-    overruns: int = 0
-    overran_last: float = 0.0  # CPU of the last update if it overran the budget, else 0
-    limited: int = 0
-    written: int = 0  # joint set-points written for it
-
-    def joints(self) -> set[int]:
-        return {JOINTS.index(t) for t in (c.split("/")[0] for c in self.claims) if t in JOINTS}
-
-    def boards(self) -> set[int]:
-        """The MACCEPA boards this controller writes (any of their interfaces)."""
-        return {b for c in self.claims if (b := board_of(c.split("/")[0])) is not None}
-
-    def status(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "type": self.kind,
-            "state": self.state,
-            "claims": list(self.claims),
-            "error": self.error,
-            "updates": self.updates,
-            "update_ms_mean": round(self.cpu_s_total / self.updates * 1e3, 4)
-            if self.updates
-            else None,
-            "update_ms_max": round(self.cpu_s_max * 1e3, 4),
-            "budget_ms": round(self.budget_s * 1e3, 3),
-            "overruns": self.overruns,
-            "limited": self.limited,
-            "written": self.written,
-            **self.ctrl.status(),
-        }
-
-
-@dataclass(frozen=True, slots=True)
-class Write:
-    """One joint's command for this cycle, inside every limit (motor 1..6)."""
-
-    motor: int
-    mode: int
-    setpoint: int
-    stiffness: int
-
-
-@dataclass(frozen=True, slots=True)
-class MaccepaWrite:
-    """One MACCEPA frame for this cycle, inside the board's limits: ``kind`` is setpoint, duty,
-    kp, ki or kd; ``controller`` the board's configured controller type (setpoint and gains)."""
-
-    board: int
-    kind: str
-    value: float
-    controller: str
-
-
-@dataclass
-class Switch:
-    """Deactivate some, activate others: applied whole at one cycle boundary, or refused whole."""
-
-    activate: list[str]
-    deactivate: list[str]
-    done: threading.Event = field(default_factory=threading.Event)
-    error: str | None = None
-
-
-@dataclass
-class Cycle:
-    """What one cycle asks of the node: frames to write and joints to put in the safe action."""
-
-    writes: list[Write] = field(default_factory=list)
-    safe: set[int] = field(default_factory=set)
-    maccepa: list[MaccepaWrite] = field(default_factory=list)
-    safe_boards: set[int] = field(default_factory=set)  # MACCEPA boards to stop
-    controller_s: float = 0.0  # wall time inside controllers' update (the rest is overhead)
-
-
-def split(interface: str) -> tuple[int, str]:
-    joint, _, kind = interface.partition("/")
-    return JOINTS.index(joint), kind
-
-
-def check_claims(name: str, claims: list[str], boards: Any = ()) -> tuple[str, ...]:
-    """A controller's own claims: known interfaces, no repeats, not torque and position on one
-    joint (the H2 runs one mode per joint), not set-point and duty on one MACCEPA board (a
-    set-point frame switches the board to closed loop, a duty frame to open loop); ``boards``:
-    the MACCEPA boards the manager is configured to drive."""
-    seen: set[str] = set()
-    for c in claims:
-        target, _, kind = c.partition("/") if isinstance(c, str) else (c, "", "")
-        b = board_of(target)
-        if b is not None and kind in MACCEPA_INTERFACES:
-            if b not in boards:
-                configured = ", ".join(board_name(x) for x in sorted(boards)) or "none"
-                raise ManagerRefused(
-                    f"{name} claims {c}: MACCEPA board {b} is not in the manager's "
-                    f"params.maccepa (configured: {configured})"
-                )
-        elif target not in JOINTS or kind not in INTERFACES:
-            raise ManagerRefused(
-                f"{name} claims {c!r}: interfaces are <joint>/<{'|'.join(INTERFACES)}> "
-                f"with joint one of {', '.join(JOINTS)}, or "
-                f"maccepa<board>/<{'|'.join(MACCEPA_INTERFACES)}>"
-            )
-        if c in seen:
-            raise ManagerRefused(f"{name} claims {c} twice")
-        seen.add(c)
-    for j in JOINTS:
-        if f"{j}/torque" in seen and ({f"{j}/position", f"{j}/stiffness"} & seen):
-            raise ManagerRefused(f"{name} claims {j}/torque with {j}'s position or stiffness")
-    for b in boards:
-        if {f"{board_name(b)}/setpoint", f"{board_name(b)}/duty"} <= seen:
-            raise ManagerRefused(
-                f"{name} claims {board_name(b)}/setpoint with {board_name(b)}/duty"
-            )
-    return tuple(claims)
 
 
 class Manager:
@@ -767,7 +593,7 @@ class Manager:
             values = slot.ctrl.update(state, t, period)
             cpu = time.thread_time() - c0 - (GC_CLOCK.of_this_thread() - g0)
             out.controller_s += time.perf_counter() - w0
-            bad = self._check_values(slot, values)
+            bad = check_values(slot, values)
         except SafeStop as exc:
             self._fail(slot, f"asked for the safe action: {exc}", out, error=False)
             return
@@ -779,7 +605,7 @@ class Manager:
         slot.cpu_s_max = max(slot.cpu_s_max, cpu)
         if (surely := cpu - CPU_STEP_S) > slot.budget_s:
             slot.overruns += 1
-            if why := self._overran(slot, surely):
+            if why := overran(slot, surely, self._period_s):
                 self._fail(slot, why, out)
                 return
         else:
@@ -788,39 +614,6 @@ class Manager:
             self._fail(slot, bad, out)
             return
         self.held.update(values)
-
-    def _overran(self, slot: Slot, cpu: float) -> str | None:
-        """Why an update over its budget stops the controller: a second one in a row, or one
-        longer than the update period (that cycle itself late). One alone is counted: a
-        thread's CPU clock also takes the interrupts served while it ran, and stopping a gait
-        for one would put a walking patient's joints in the safe action for nothing."""
-        budget = f"{slot.budget_s * 1e3:g} ms"
-        last, slot.overran_last = slot.overran_last, cpu
-        if cpu > self._period_s:
-            return (
-                f"overran its budget: {cpu * 1e3:.3f} ms CPU > {budget}, longer than the "
-                f"update period ({self._period_s * 1e3:g} ms)"
-            )
-        if last:
-            return (
-                f"overran its budget twice in a row: {last * 1e3:.3f} and {cpu * 1e3:.3f} ms "
-                f"CPU > {budget}"
-            )
-        log.warning("controller_overran", controller=slot.name, cpu_ms=round(cpu * 1e3, 3))
-        return None
-
-    def _check_values(self, slot: Slot, values: Any) -> str | None:
-        if not isinstance(values, dict):
-            return f"update returned {type(values).__name__}, not a dict of interface values"
-        for k, v in values.items():
-            if k not in slot.claims:
-                return f"wrote {k}, which it did not claim"
-            if k.endswith("/gains") and k.startswith("maccepa"):
-                if not (isinstance(v, tuple | list) and len(v) == 3 and all(map(_finite, v))):
-                    return f"wrote {k} = {v!r}, not three finite numbers (kp, ki, kd)"
-            elif not _finite(v):
-                return f"wrote {k} = {v!r}, not a finite number"
-        return None
 
     def _fail(self, slot: Slot, reason: str, out: Cycle, error: bool = True) -> None:
         """Deactivate ``slot``; its joints get the safe action, so any other controller driving
@@ -947,7 +740,3 @@ class Manager:
 # Each joint's command interfaces, formatted once: _compose looks them up for six joints each
 # cycle (the f-strings were a third of its CPU).
 _JOINT_KEYS = tuple((f"{n}/position", f"{n}/torque", f"{n}/stiffness") for n in JOINTS)
-
-
-def _finite(v: Any) -> bool:
-    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)

@@ -49,32 +49,36 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
 import can
-import msgspec
 from exolink.nodes.controller_manager.api import ManagerApi
-from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
-from exolink.nodes.controller_manager.manager import (
-    GC_CLOCK,
-    UNPLANNED,
-    Cycle,
-    Manager,
-    ManagerRefused,
+from exolink.nodes.controller_manager.budget import GC_CLOCK
+from exolink.nodes.controller_manager.frames import (
+    EXTRA_IDS,
+    READ_IDS,
+    SAFE_MODES,
+    board_frame,
+    drop_rules,
+    joint_frame,
+    joint_payload,
+    one_socket,
 )
+from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
+from exolink.nodes.controller_manager.manager import Manager
+from exolink.nodes.controller_manager.params import ManagerParams
+from exolink.nodes.controller_manager.slots import UNPLANNED, Cycle, ManagerRefused
 from exolink.nodes.controller_manager.timed import Timed
 
 from exolink import logs
 from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
 from exolink.canbus.bcm import open_lease
-from exolink.canbus.filters import Drop
 from exolink.config import ConfigError
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
 from exolink.limits.joints import POSITION
-from exolink.limits.maccepa import BoardLimits, target
+from exolink.limits.maccepa import target
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import ProtocolError, h2, maccepa
@@ -93,115 +97,10 @@ WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before act
 # A planned set-point may reach the bus at most this long after the watchdog's first disable
 # frame (hung detection's own budget): lease_ms <= heartbeat deadline + this.
 LEASE_PAST_TRIP_MS = 60
-SAFE_MODES = {h2.MODES["disabled"], h2.MODES["stopped"]}
-# Always read: the angle frame starts a cycle; anyone's joint control (a disable or stop from
-# anyone stops that joint's controllers). The others only while a loaded controller reads them.
-READ_IDS = [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
-EXTRA_IDS = {"torque": h2.JOINT_TORQUES, "feet": h2.FOOT_SWITCHES}
 # Every change of a controller's state goes out on ACTIVITY_TOPIC at once, and the whole list
 # again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
 # asking: five state queries a second were four Zenoh hops and a handler each, on one core.
 ACTIVITY_REFRESH_S = 60.0
-
-
-class ControllerSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    name: str
-    type: str
-    params: dict[str, Any] = {}
-    budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None
-
-
-class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    # (Joint limits, caps and the step limit are the config's `limits:` section.)
-    # Send the accepted angles in force to the H2 at start (the operator's, if they sent any).
-    send_limits_on_start: bool = True
-    # CPU one controller's update may take per cycle before it is deactivated.
-    update_budget_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 2.0
-    h2_timeout_ms: Annotated[int, msgspec.Meta(ge=15, le=1000)] = 50
-    # The cycle loop (feedback controllers: PID, impedance, MACCEPA) runs read -> update ->
-    # write once per this many H2 cycles (10 ms each), on the newest angle frame; the loop
-    # sleeps in between instead of waking per frame. Planned controllers use slot_ms instead.
-    cycles_per_update: Annotated[int, msgspec.Meta(ge=1, le=5)] = 1
-    # Planned controllers (the gait, trajectories) put a set-point per joint on the bus every
-    # slot_ms on the kernel's timer (timed.py); leased for lease_ms after the manager's last
-    # renewal, so a manager that stops renewing stops moving within that (it must not exceed
-    # the manager's heartbeat deadline + 60 ms: checked at start).
-    slot_ms: Annotated[int, msgspec.Meta(ge=10, le=100, multiple_of=10)] = 20
-    # False: planned controllers run in the cycle loop like the others, one set-point per
-    # update (no send op is made).
-    timer: bool = True
-    lease_ms: Annotated[int, msgspec.Meta(ge=20, le=500)] = 100
-    safe_action: Literal["disable", "stop"] = "disable"
-    require_armed: bool = True
-    # MACCEPA boards this manager drives (maccepa<N>/setpoint|duty|gains) and their limits.
-    maccepa: list[BoardLimits] = []
-    controllers: list[ControllerSpec] = []  # loaded (inactive) at start
-
-    def __post_init__(self) -> None:
-        gap_ms = (self.cycles_per_update + 1) * h2.PERIOD_S * 1e3  # the longest between reads
-        if self.cycles_per_update > 1 and self.h2_timeout_ms <= gap_ms:
-            raise ValueError(
-                f"h2_timeout_ms {self.h2_timeout_ms} must exceed {gap_ms:g} ms with "
-                f"cycles_per_update {self.cycles_per_update}"
-            )
-        if self.lease_ms < 2 * self.slot_ms:
-            raise ValueError(
-                f"lease_ms {self.lease_ms} must hold two slots (slot_ms {self.slot_ms}): "
-                "the lease is renewed every second slot"
-            )
-
-
-@lru_cache(maxsize=4096)
-def _frame(motor: int, mode: int, setpoint: int, stiffness: int) -> can.Message:
-    """Encoded once per distinct command (the codec checks ranges again): a holding joint costs
-    a dictionary look-up per cycle, not an encode."""
-    return h2.encode_joint_control(motor, mode, setpoint, stiffness)
-
-
-@lru_cache(maxsize=4096)
-def _payload(motor: int, mode: int, setpoint: int, stiffness: int) -> bytes:
-    """A joint-control frame's bytes for the timer's plan (values the manager held to the
-    limits; the DBC's bounds checked again by the codec)."""
-    return h2.joint_control_payload(motor, mode, setpoint, stiffness)
-
-
-@lru_cache(maxsize=4096)
-def _mframe(board: int, kind: str, value: float, controller: str) -> can.Message:
-    """A MACCEPA command through the MACCEPA codec (which checks ranges again), cached like
-    ``_frame``: a held set-point costs a look-up per cycle."""
-    if kind == "setpoint":
-        return maccepa.encode_setpoint(board, value, controller)
-    if kind == "duty":
-        return maccepa.encode_duty(board, value)
-    return maccepa.encode_gain(board, kind, value, controller)
-
-
-def one_socket(interface: str, read_ids: list[int], board_ids: set[int]) -> bool:
-    """One socket reads all: every id besides the angle frame reaches this process only as
-    rare news, which may then wake the loop (on SocketCAN, whose kernel runs the content
-    filters: of id 70 only anyone's disable or stop, board 0's status when it is not driven
-    being dropped too). A second socket for them cost each update a second receive call and a
-    merge, for a socket almost always empty. The simulated bus filters in Python, after the
-    wake-up, and gives a socket its own frames back: two sockets there."""
-    return (
-        interface == "socketcan"
-        and set(read_ids) <= {h2.JOINT_ANGLES, h2.JOINT_CONTROL}
-        and 0 not in board_ids
-    )
-
-
-def drop_rules(board_ids: set[int], mc_ids: list[int]) -> list[Drop]:
-    """What the manager's reader never needs of the ids it reads (exolink.canbus.filters: the kernel
-    drops them on SocketCAN). Of the H2's joint control only a disable or stop matters here (the
-    gait's set-points come from this process and are never read back; the MACCEPA bridge and
-    the timing monitor read them); board 0's status shares id 70 and matters only when board 0
-    is driven; an H2 frame on a driven board's id is the H2's."""
-    jc = h2.JOINT_CONTROL
-    rules = [Drop(jc, h2.dlc_of(jc) or 0, h2.MODE_BYTE, frozenset(SAFE_MODES))]
-    if 0 not in board_ids:
-        rules.append(Drop(jc, maccepa.dlc_of(jc) or 0))
-    rules += [Drop(i, n) for i, n in maccepa.h2_shaped(mc_ids) if i != jc]
-    return rules
 
 
 class ControllerManagerNode(Node):
@@ -368,7 +267,7 @@ class ControllerManagerNode(Node):
     def stop_joints(self, joints: set[int], mode: int, why: str) -> list[can.Message]:
         """Joints disabled or stopped at a request: their controllers released first, so no
         later cycle writes them, then the frames, after the cycle in flight."""
-        frames = [_frame(j + 1, mode, 0, 0) for j in sorted(joints)]
+        frames = [joint_frame(j + 1, mode, 0, 0) for j in sorted(joints)]
         with self.io_lock:
             self._abort_timed()
             self.manager.joints_disabled(joints, why)
@@ -491,7 +390,7 @@ class ControllerManagerNode(Node):
                 lease_slots,
                 time.time(),
                 time.monotonic(),
-                _payload,
+                joint_payload,
                 lambda: self.beat(False),
                 self.manager.repeats_slots(slot_s),
             )
@@ -717,7 +616,7 @@ class ControllerManagerNode(Node):
         reason = d.reason
         # Also without configured boards: id 70 is MACCEPA board 0's too (8 bytes), which is
         # not a malformed H2 frame (there may be a hundred a second). Unconfigured
-        # boards' frames are then skipped (_board_frame).
+        # boards' frames are then skipped (_board_state).
         m = maccepa.decode(f)
         if not isinstance(m, maccepa.Unknown):
             return m
@@ -783,9 +682,9 @@ class ControllerManagerNode(Node):
                 self.last_state = State(tuple(d), self.torque, self.feet, self.mview)
                 self._cycle(f.timestamp, self.last_state)
             elif isinstance(d, maccepa.Sensors | maccepa.Positions | maccepa.Controller):
-                self._board_frame(d, f.timestamp)
+                self._board_state(d, f.timestamp)
 
-    def _board_frame(self, d: Any, stamp: float) -> None:
+    def _board_state(self, d: Any, stamp: float) -> None:
         """A board's status frame: that board's state replaced whole (cycles hold immutable
         ones), only for configured boards."""
         b = d.board
@@ -836,11 +735,11 @@ class ControllerManagerNode(Node):
         self.clock.mark("cycle")
         frames = self._safe_frames(out)  # safe actions first, in the cycle's one send
         for w in out.writes:
-            frames.append(_frame(w.motor, w.mode, w.setpoint, w.stiffness))
+            frames.append(joint_frame(w.motor, w.mode, w.setpoint, w.stiffness))
             self.written += 1
         for m in out.maccepa:
             try:
-                frame = _mframe(m.board, m.kind, m.value, m.controller)
+                frame = board_frame(m.board, m.kind, m.value, m.controller)
             except ProtocolError as exc:  # cannot happen after the limits: belt
                 self.log.error("maccepa_encode_refused", write=str(m), error=str(exc))
                 continue
@@ -857,7 +756,7 @@ class ControllerManagerNode(Node):
     def _safe_frames(self, out: Cycle) -> list[can.Message]:
         frames = []
         for j in sorted(out.safe):
-            frames.append(_frame(j + 1, self.safe_mode, 0, 0))
+            frames.append(joint_frame(j + 1, self.safe_mode, 0, 0))
             self.safe_sent += 1
         for b in sorted(out.safe_boards):
             frames.append(maccepa.encode_stop(b))

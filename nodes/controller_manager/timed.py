@@ -21,7 +21,8 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 
 import structlog
-from exolink.nodes.controller_manager.manager import PLANNED, Cycle, Manager
+from exolink.nodes.controller_manager.manager import Manager
+from exolink.nodes.controller_manager.slots import PLANNED, Cycle
 
 from exolink.canbus.bcm import Lease
 from exolink.control.controller import State
