@@ -61,6 +61,7 @@ def run(quick: bool) -> dict[str, Any]:
         "import_cycle_modules": cycles,
         "import_cycles_with_functions": len(imports.cycles(edges, with_functions=True)),
         "imports_in_functions": imports.all_lazy(known),
+        "imports_in_functions_without_reason": len(imports.unexplained_lazy(known)),
         "type_ignore": type_ignores(),
         "modules_importing_h2": len(h2),
         "readme_lines": len((ROOT / "README.md").read_text().splitlines()),

@@ -174,5 +174,29 @@ def all_lazy(known: dict[str, Path]) -> int:
     return count
 
 
+def unexplained_lazy(known: dict[str, Path]) -> list[tuple[str, int]]:
+    """Imports inside functions that give no reason: no comment on the statement, nor on the
+    line just above it or its block of imports (a heavy optional module says why it is loaded
+    on demand; a dodged cycle is a layer to fix)."""
+    found = []
+    for module, path in known.items():
+        lines = path.read_text().splitlines()
+        for node, in_function in _walk(ast.parse("\n".join(lines), str(path)), False):
+            if not (in_function and isinstance(node, ast.Import | ast.ImportFrom)):
+                continue
+            end = node.end_lineno or node.lineno
+            if any("#" in ln for ln in lines[node.lineno - 1 : end]):
+                continue
+            above = node.lineno - 2
+            while above >= 0 and "#" not in lines[above]:
+                if not lines[above].lstrip().startswith(("import ", "from ")):
+                    break
+                above -= 1
+            if above >= 0 and "#" in lines[above]:
+                continue
+            found.append((module, node.lineno))
+    return sorted(found)
+
+
 if __name__ == "__main__":
     raise SystemExit(main())

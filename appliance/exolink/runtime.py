@@ -179,7 +179,7 @@ def profiled(name: str) -> Iterator[None]:
     if not where or (only and name not in only.split(",")):
         yield
         return
-    import cProfile
+    import cProfile  # lazy: only with EXOLINK_PROFILE_DIR
 
     prof = cProfile.Profile()
     prof.enable()

@@ -144,7 +144,7 @@ def own_process_group() -> None:
 
 def set_comm(name: str) -> None:
     """What top and the journal show for the process (its cmdline stays the zygote's)."""
-    import ctypes
+    import ctypes  # lazy: prctl, once per process
 
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None).prctl(PR_SET_NAME, name.encode()[:15], 0, 0, 0)

@@ -26,6 +26,7 @@ import base64
 import hashlib
 import json
 import os
+import pwd
 import re
 import shutil
 import subprocess
@@ -429,7 +430,6 @@ def agent_mark_good(directory: Path = UPDATE_DIR) -> int:
 
 
 def _exolink_ids() -> tuple[int, int]:
-    import pwd
 
     try:
         pw = pwd.getpwnam("exolink")

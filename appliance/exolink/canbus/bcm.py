@@ -374,7 +374,7 @@ class ThreadLease:
 
     def _due(self) -> can.Message | None:
         """Under the lock at the slot's time: the frame to send, or None (stopped meanwhile)."""
-        import can
+        import can  # lazy: python-can: only a process that sends through the op
 
         if not self._running or self._count <= 0:
             return None

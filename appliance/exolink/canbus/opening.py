@@ -37,7 +37,7 @@ def open_bus(
     """Open the configured bus through python-can (the simulated bus is its interface
     ``exolink_sim``, exolink.canbus.simbus); failures name the interface and the likely fix.
     ``filters`` None: every frame; ``[]``: none (a bus that only sends)."""
-    import can
+    import can  # lazy: python-can (its interfaces) only where a bus is opened
 
     kwargs: dict[str, Any] = {"receive_own_messages": receive_own_messages}
     if filters is not None:

@@ -130,7 +130,7 @@ class FrameReader:
         in_kernel = family == socket.AF_CAN
         if family == socket.AF_INET:
             self._parse = self._parse_udp
-            import msgpack
+            import msgpack  # lazy: the udp_multicast bus only (its datagrams)
 
             self._unpackb = msgpack.unpackb
         # one recvmmsg per socket and read, into buffers made here (not on the hot path)

@@ -50,7 +50,7 @@ class FrameWriter:
 
     def _send_each(self, msgs: Sequence[can.Message]) -> None:
         """Through python-can; a refused frame does not hold back the ones after it."""
-        import can
+        import can  # lazy: python-can only on the fallback path
 
         failed: list[str] = []
         for m in msgs:
@@ -91,7 +91,7 @@ class FrameWriter:
                 continue
             if tries < 2 and err in (errno.ENOBUFS, errno.EAGAIN):
                 continue
-            import can
+            import can  # lazy: python-can only to raise its error
 
             raise can.CanOperationError(
                 f"sent {done} of {total} frames: {os.strerror(err)} (transmit queue full?)"

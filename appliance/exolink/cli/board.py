@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import msgspec
 
@@ -53,7 +54,6 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_board_setup(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
     from exolink.board import setup as boardsetup  # the board's own setup: `board-setup` only
 

@@ -4,6 +4,7 @@ activate, deactivate, switch, command). Reading needs the observer role, the res
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import sys
 from typing import Any
@@ -44,7 +45,6 @@ def _presence(p: dict[str, Any]) -> str:
 
 
 def _time(ns: int | None) -> str:
-    import datetime
 
     if not ns:
         return "-"

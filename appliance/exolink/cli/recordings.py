@@ -268,7 +268,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def _export_gaitlab(args: argparse.Namespace) -> None:
     """C3D, OpenSim and the events CSV (exolink.gaitlab); what was lost is said, never hidden."""
-    from pathlib import Path
 
     logs.setup("export")  # the library's log lines on stderr, never mixed into this output
     if args.c3d:

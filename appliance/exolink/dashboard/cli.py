@@ -6,6 +6,7 @@ asyncio and aiohttp are imported when the command runs, not whenever `exolink` s
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 
 from exolink.cli.errors import EXIT_USAGE, fail
@@ -15,8 +16,7 @@ from exolink.client import remote
 
 @guard
 def cmd_dashboard(args: argparse.Namespace) -> int:
-    import asyncio
-    import signal
+    import asyncio  # lazy: the dashboard command only: the others start without asyncio
 
     from exolink.dashboard import server  # heavy: aiohttp; `exolink dashboard` only
     from exolink.dashboard.hub import Hub  # heavy: the dashboard's Zenoh side; `dashboard` only

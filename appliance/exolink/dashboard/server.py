@@ -15,6 +15,7 @@ import json
 import re
 import secrets
 import socket
+import tempfile
 import threading
 import webbrowser
 from collections.abc import Awaitable, Callable, Iterable, Mapping
@@ -351,7 +352,6 @@ def _c3d(path: Path, out_dir: str) -> Path:
 async def recording_c3d(request: web.Request) -> web.StreamResponse:
     """The recording as C3D for the gait lab (exolink.gaitlab, as `exolink export --c3d`), where
     the dashboard runs with the gaitlab extra (a laptop): on the board, 501 naming the extra."""
-    import tempfile
 
     path = await _recording(request)
     try:

@@ -35,7 +35,7 @@ def samples_per_frame(frames: int, rate_hz: float) -> int:
 def require_ezc3d() -> Any:
     """ezc3d, or MissingExtra naming the extra that brings it (imported only for --c3d)."""
     try:
-        import ezc3d
+        import ezc3d  # lazy: the gaitlab extra (a laptop); the board has none
     except ImportError:
         raise MissingExtra(
             f"C3D export needs ezc3d: pip install 'exolink[{EXTRA}]' (laptop side)"
@@ -47,7 +47,7 @@ def write_c3d(trial: Trial, out: str | Path) -> Path:
     """The trial as a C3D file: channels as analogs (float, SCALE 1, OFFSET 0, NaN where not
     measured), no markers, events in the EVENT group as Vicon and Visual3D read them, labels
     and losses in the EXOLINK group, the subject in SUBJECTS."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     ezc3d = require_ezc3d()
     out = Path(out)
@@ -109,7 +109,7 @@ def write_c3d(trial: Trial, out: str | Path) -> Path:
 def _events(c: Any, trial: Trial, subject: str) -> None:
     """The EVENT group in one go (ezc3d's add_event rewrites the whole group per event: hours
     of gait are thousands of events). TIMES is 2 x n: minutes, then seconds from frame 1."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     times = np.array([trial.time_s(e.time_ns) for e in trial.events], dtype=np.float64)
     minutes = np.floor(times / 60)
@@ -127,7 +127,7 @@ def _ints(c: Any, group: str, name: str, values: list[int]) -> None:
     """An integer (int16) array parameter: ezc3d's add_parameter stores every list as floats,
     where C3D readers expect integers (ICON_IDS, TRIAL's fields). Through ezc3d's own
     Parameter type (its documented SWIG API) into the file's parameters (ezc3d 1.x)."""
-    from ezc3d import ezc3d as swig
+    from ezc3d import ezc3d as swig  # lazy: the gaitlab extra
 
     param = swig.Parameter(name, "")
     param.set(swig.VecInt([int(v) for v in values]))

@@ -24,7 +24,7 @@ class Stream:
 
     def period_ns(self) -> float:
         """The stream's period: the median interval (robust to gaps and jitter)."""
-        import numpy as np
+        import numpy as np  # lazy: the gaitlab extra (numpy: not on the board)
 
         d = np.diff(self.t)
         d = d[d > 0]
@@ -32,7 +32,7 @@ class Stream:
 
     def lost_frames(self) -> int:
         """Samples lost in gaps, counted as the h2 reader counts them."""
-        import numpy as np
+        import numpy as np  # lazy: the gaitlab extra
 
         p = self.period_ns()
         if p <= 0:
@@ -52,7 +52,7 @@ class Channel:
 
     @property
     def invalid(self) -> int:
-        import numpy as np
+        import numpy as np  # lazy: the gaitlab extra
 
         return int(np.count_nonzero(np.isnan(self.values)))
 

@@ -57,7 +57,7 @@ def _num(x: float) -> str:
 def write_opensim(trial: Trial, out_dir: str | Path, model: str = "rajagopal") -> list[Path]:
     """``<stem>.mot`` (joint angles, degrees) and ``<stem>_torques.sto`` (N·m) in ``out_dir``,
     OpenSim's coordinate names and signs for ``model`` (rajagopal or gait2392)."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     if model not in MODELS:
         raise RecordingError(f"model must be one of {', '.join(MODELS)}, got {model!r}")

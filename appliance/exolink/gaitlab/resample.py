@@ -22,7 +22,7 @@ def nearest(t: Any, v: Any, grid: Any, period_ns: float) -> Any:
     """Each tick of ``grid`` takes the sample of (t, v) nearest in time, NaN where the nearest
     is more than GAP_FACTOR / 2 periods away: inside a gap (two samples more than GAP_FACTOR
     periods apart) and past the stream's ends. Never an interpolated value."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra (numpy: not on the board)
 
     out = np.full(len(grid), np.nan)
     if len(t) == 0:
@@ -41,7 +41,7 @@ def nearest(t: Any, v: Any, grid: Any, period_ns: float) -> Any:
 def hold(t: Any, v: Any, grid: Any, max_age_ns: float) -> Any:
     """Each tick takes the last state published at or before it (states published on change);
     NaN before the first and where the last is older than ``max_age_ns`` (messages stopped)."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     i = np.searchsorted(t, grid, side="right") - 1
     out = np.where(i >= 0, v[i.clip(0)], np.nan).astype(np.float64)
@@ -97,7 +97,7 @@ def foot_events(
 
 def _after_gap(js_t: Any, at_ns: int, gap_ns: float) -> bool:
     """Is ``at_ns`` the first H2 news after a gap (the change happened somewhere in it)?"""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     i = int(np.searchsorted(js_t, at_ns, side="left"))
     if i == 0:

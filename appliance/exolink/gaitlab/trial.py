@@ -61,7 +61,7 @@ def read_streams(path: str | Path) -> tuple[dict[str, Stream], list[tuple[int, s
     checked out (``info``: a damaged file is refused before anything is written). Returns the
     streams by kind (``joints``, ``feet``, ``maccepa/bN``), the trigger edges (ns, edge) and the
     file's ``Info``."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     i = info(path)
     kinds = {t: _kind(t, v["type"]) for t, v in i.topics.items()}
@@ -125,7 +125,7 @@ def _joint_columns(msg: Any) -> dict[str, float]:
 
 def _refresh_s(metadata: dict[str, dict[str, str]]) -> float:
     """The h2 reader's foot_switches_refresh_s in the recording's config (1.0 if not said)."""
-    import yaml
+    import yaml  # lazy: a trial file is read only here
 
     try:
         cfg = yaml.safe_load(metadata.get("exolink.config", {}).get("yaml", "")) or {}
@@ -142,7 +142,7 @@ def build_trial(
 ) -> Trial:
     """The recording at ``path`` as one trial: every channel on the H2's clock, the gait and
     trigger events, the labels and the losses (see the package's docstring for every rule)."""
-    import numpy as np
+    import numpy as np  # lazy: the gaitlab extra
 
     if zero not in ZERO_CHOICES:
         raise RecordingError(f"zero must be one of {', '.join(ZERO_CHOICES)}, got {zero!r}")

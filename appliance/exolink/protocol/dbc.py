@@ -161,7 +161,7 @@ class Layout:
 
 
 def _compile_with_cantools(path: Path) -> list[dict[str, Any]]:
-    import cantools
+    import cantools  # lazy: cantools only to compile a DBC (make dbc); nodes read the tables
 
     db = cantools.database.load_file(str(path), strict=True)
     if not isinstance(db, cantools.database.can.Database):

@@ -145,7 +145,7 @@ def _read_at(f: IO[bytes], offset: int, n: int) -> bytes:
 
 def _parse(op: int, body: bytes) -> tuple[Any, int]:
     """A record's body -> (mcap record, bytes it used), with the mcap library's record classes."""
-    from mcap.data_stream import ReadDataStream
+    from mcap.data_stream import ReadDataStream  # lazy: mcap's readers: only when a file is checked
     from mcap.records import (
         Attachment,
         Channel,
@@ -297,7 +297,9 @@ class Walk:
                 return footer_at
         c.summary = "checked" if crc else "no crc"
         if start:
-            from mcap.reader import SeekingReader
+            from mcap.reader import (
+                SeekingReader,
+            )  # lazy: mcap's readers: only when a file is checked
 
             try:
                 f.seek(0)
@@ -366,7 +368,11 @@ class Walk:
                 yield rec
 
     def _chunk(self, pos: int, length: int, rec: Any) -> Iterator[Any]:
-        from mcap.stream_reader import CRCValidationError, breakup_chunk, get_chunk_data_stream
+        from mcap.stream_reader import (
+            CRCValidationError,
+            breakup_chunk,
+            get_chunk_data_stream,
+        )  # lazy: mcap's readers: only when a file is checked
 
         no = self.numbers.get(pos, self.seen_chunks)
         self.seen_chunks += 1

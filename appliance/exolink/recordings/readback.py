@@ -47,7 +47,11 @@ class Info:
 @cache
 def _store_for(schema_name: str, schema_text: str) -> Any:
     """A rosbags typestore that knows this file's schema (and its embedded dependencies)."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    from rosbags.typesys import (
+        Stores,
+        get_types_from_msg,
+        get_typestore,
+    )  # lazy: rosbags: only when a file is decoded
 
     store = get_typestore(Stores.EMPTY)
     types: dict[str, Any] = {}
@@ -82,7 +86,7 @@ def iter_messages(
     """(schema, channel, message) in log-time order, each chunk's CRC checked as it is read
     (the mcap reader's own check). Damage, or a file cut off, raises RecordingError naming
     where; callers that must not act on half a file call ``verify`` (or ``info``) first."""
-    from mcap.reader import make_reader
+    from mcap.reader import make_reader  # lazy: mcap's reader: only when a file is read
 
     with _open(path) as f:
         try:
@@ -97,7 +101,7 @@ def iter_messages(
 def info(path: str | Path) -> Info:
     """Topics, counts, times, triggers and metadata, after the whole file checked out
     (``verify``: every chunk's, the data section's and the summary's CRC)."""
-    from mcap.reader import make_reader
+    from mcap.reader import make_reader  # lazy: mcap's reader: only when a file is read
 
     checked = verify(path)
     out = Info(str(path))
@@ -252,7 +256,12 @@ class _Copier:
         self.orphans = 0  # messages whose channel was defined in a lost chunk only
 
     def add(self, rec: Any) -> None:
-        from mcap.records import Channel, Message, Metadata, Schema
+        from mcap.records import (
+            Channel,
+            Message,
+            Metadata,
+            Schema,
+        )  # lazy: mcap's records: only when a file is recovered
 
         if isinstance(rec, Schema):
             self.schemas[rec.id] = rec
@@ -311,7 +320,7 @@ def recover(path: str | Path, out: str | Path) -> Recovered:
     (chunks, byte offsets, log time ranges, messages counted or estimated) is returned and
     written into the new file's ``exolink.recovered`` metadata. Not an MCAP file, or nothing
     intact in it: RecordingError, and no output file."""
-    from mcap.writer import Writer
+    from mcap.writer import Writer  # lazy: mcap's writer: only when a file is recovered
 
     target = Path(out)
     if target.exists():

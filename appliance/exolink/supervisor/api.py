@@ -9,6 +9,8 @@ from __future__ import annotations
 import functools
 import os
 import threading
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as installed_version
 from typing import Any, Protocol
 
 from exolink import messaging, roles
@@ -240,10 +242,9 @@ class ManagementApi:
 @functools.cache
 def version() -> str:
     """The installed exolink's version (the software status names it)."""
-    from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return version("exolink")
+        return installed_version("exolink")
     except PackageNotFoundError:
         return "unknown"
 

@@ -61,7 +61,7 @@ PR_SET_CHILD_SUBREAPER = 36
 def become_subreaper() -> None:
     """Orphans of this process' descendants (a forked node, whatever a node left behind)
     become its children instead of init's, so none escapes the stray sweep (kill_strays)."""
-    import ctypes
+    import ctypes  # lazy: prctl, once per process
 
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:

@@ -32,7 +32,7 @@ class GpioTrigger:
     """Edge detection with kernel debounce on one line; a thread blocks in wait_edge_events."""
 
     def __init__(self, cfg: TriggerConfig, on_edge: OnEdge) -> None:
-        import gpiod
+        import gpiod  # lazy: libgpiod: a board trigger only (a laptop has no GPIO)
         from gpiod.line import Clock
         from gpiod.line import Edge as GEdge
 
@@ -64,7 +64,7 @@ class GpioTrigger:
         self.thread.start()
 
     def _loop(self) -> None:
-        from gpiod import EdgeEvent
+        from gpiod import EdgeEvent  # lazy: libgpiod: a board trigger only
 
         rising = EdgeEvent.Type.RISING_EDGE
         while not self.stop.is_set():
@@ -106,7 +106,7 @@ class TriggerOutput:
     """Drives the configured output line high for pulse_ms."""
 
     def __init__(self, chip: str, line: int, pulse_ms: int) -> None:
-        import gpiod
+        import gpiod  # lazy: libgpiod: a board trigger only
         from gpiod.line import Direction, Value
 
         self.line, self.pulse_s = line, pulse_ms / 1000

@@ -39,7 +39,7 @@ def service_fielddefs(name: str, request: str, response: str) -> dict[str, Any]:
     ``<T>_Response``, ``<T>_Event`` (service_msgs/ServiceEventInfo info, request and response
     as sequences of at most one) and ``<T>`` itself (request_message, response_message,
     event_message), the type whose RIHS01 hash rmw_zenoh puts into the key."""
-    from rosbags.typesys import get_types_from_msg
+    from rosbags.typesys import get_types_from_msg  # lazy: rosbags: the ROS 2 services only
 
     types: dict[str, Any] = {}
     types.update(get_types_from_msg(request, f"{name}_Request"))
@@ -62,7 +62,7 @@ def service_hashes(store: Any, names: list[str]) -> dict[str, str]:
     ``char[16]``, which rosidl maps to uint8 (a different id in the hashed description): with
     it, std_srvs/Trigger hashed to 50f8... instead of the eeff2c... Jazzy advertises. The hashes
     are taken in a copy of the store whose ServiceEventInfo says uint8[16]."""
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_typestore  # lazy: rosbags: the ROS 2 services only
 
     fixed = get_typestore(Stores.EMPTY)
     defs = dict(store.fielddefs)
