@@ -159,7 +159,7 @@ def test_negative_lists_parse_without_equals_sign() -> None:
 
 
 def test_echo_text_shows_units_from_the_table() -> None:
-    from exolink.cli.remote import _pretty
+    from exolink.cli.data import _pretty
 
     js = {
         "header": {"stamp": {"sec": 1, "nanosec": 0}, "frame_id": ""},
@@ -260,7 +260,7 @@ def node(name: str, state: str = "running", **kw: object) -> dict:
 
 
 def test_status_table_aligned_and_health_never_blank() -> None:
-    from exolink.cli.remote import _node_table
+    from exolink.cli.status import _node_table
 
     nodes = [
         node("simulator", critical=False),

@@ -4,9 +4,11 @@ arguments, and the guard that turns a refusal into an exit code."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import re
+import sys
 from typing import Any
 
 from exolink.client import DEFAULT_AT, DEFAULT_TIMEOUT_S, Refused
@@ -164,3 +166,8 @@ class Leaves:
 
     def add_parser(self, name: str, **kw: Any) -> argparse.ArgumentParser:
         return self.sub.add_parser(name, parents=[self.parent], **kw)
+
+
+def print_json(data: Any) -> None:
+    """A reply as an operator's script reads it (``--json``)."""
+    sys.stdout.write(json.dumps(data, indent=2) + "\n")

@@ -17,10 +17,12 @@ from exolink.cli import (
     bus_tools,
     clock,
     controllers,
+    data,
     motion,
     options,
     recordings,
     remote,
+    status,
     update,
 )
 
@@ -109,7 +111,9 @@ def build_parser(
     p.add_argument("--count", type=options.integer, default=0, help="stop after N frames")
     p.set_defaults(func=bus_tools.cmd_candump)
 
+    data.register(sub)
     remote.register(sub)
+    status.register(sub)
     remote.register_management(sub)
     motion.register(sub)
     recordings.register(sub)
