@@ -18,6 +18,7 @@ from exolink.cli import (
     clock,
     controllers,
     data,
+    files,
     motion,
     options,
     recordings,
@@ -117,6 +118,7 @@ def build_parser(
     remote.register_management(sub)
     motion.register(sub)
     recordings.register(sub)
+    files.register(sub)
     clock.register(sub)
     update.register(sub)
     controllers.register(sub)
