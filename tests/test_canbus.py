@@ -389,11 +389,12 @@ def test_set_ids_changes_what_a_two_socket_reader_returns_without_reopening(grou
 def test_a_reader_asks_for_a_batch_that_holds_its_wake(group: str) -> None:
     """The h2 reader with a MACCEPA board wakes once per 10 cycles for ~66 frames: a batch of
     the default 64 stopped short and a second read (a whole loop iteration more, beat and
-    publish included) followed every wake (board proxy, docs/performance.md). The batch is the
-    wake's cycles and two more; one read then takes them all."""
+    publish included) followed every wake (board proxy, docs/performance.md); so did a quarter
+    of the wakes with a batch of 72 when the core was busy. The batch is twice the wake's
+    cycles and two more; one read then takes them all."""
     from exolink.canbus import Cadence
 
-    assert Cadence(0.01, 10).batch(6) == 72 and Cadence(0.01, 10).batch(3) == 64
+    assert Cadence(0.01, 10).batch(6) == 132 and Cadence(0.01, 1).batch(3) == 64
     with (
         socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock,
         pytest.raises(ValueError, match=r"1\.\.1024"),
@@ -409,3 +410,14 @@ def test_a_reader_asks_for_a_batch_that_holds_its_wake(group: str) -> None:
         c = reader.counters()
     tx.shutdown()
     assert len(got) == 66 and c["batches"] == 1 and c["batches_full"] == 0, c
+
+
+def test_a_reader_keeps_its_cadence_whatever_its_caller_spends_on_a_read() -> None:
+    """The next read is due ``every_s`` after the last was due, not after the caller's work
+    ended; one far behind starts afresh instead of reading twice in a row."""
+    from exolink.canbus.reader import next_read
+
+    assert next_read(10.0, 10.017, 0.1) == pytest.approx(10.1)  # 17 ms on the frames: no drift
+    assert next_read(10.0, 10.09, 0.1) == pytest.approx(10.19)  # late by most of a period
+    assert next_read(10.0, 10.3, 0.1) == pytest.approx(10.4)  # far behind: a period from now
+    assert next_read(0.0, 5000.0, 0.1) == pytest.approx(5000.1)  # the first read

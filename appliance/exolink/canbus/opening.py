@@ -98,9 +98,10 @@ class Cadence(NamedTuple):
         return (self.cycles + 0.25) * self.period_s if self.cycles > 1 else 0.0
 
     def batch(self, frames_per_cycle: int) -> int:
-        """FrameReader's ``batch`` for a stream of ``frames_per_cycle`` frames a period: a
-        wake's cycles and two more, at least the default (canbus.mmsg.BATCH)."""
-        return max(BATCH, (self.cycles + 2) * frames_per_cycle)
+        """FrameReader's ``batch`` for a stream of ``frames_per_cycle`` frames a period: twice
+        a wake's cycles and two more (a late wake on a busy core still reads all in one go), at
+        least the default (canbus.mmsg.BATCH)."""
+        return max(BATCH, (2 * self.cycles + 2) * frames_per_cycle)
 
     def timeout(self, found: bool) -> float:
         """The next read's timeout: while frames flow, a cycle whose waking frame was lost is

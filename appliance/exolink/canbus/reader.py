@@ -38,6 +38,15 @@ LATE_S = 0.01  # a frame read later than this after it arrived is counted late (
 _arrival = operator.itemgetter(0)  # a Frame's timestamp, in C: sort and bisect keys per frame
 
 
+def next_read(due: float, now: float, every_s: float) -> float:
+    """When a reader that reads every ``every_s`` looks next, its last read due at ``due`` and
+    done at ``now``: on its cadence, so the time spent on a read's frames does not stretch the
+    period (a 10-cycle reader on the board proxy read every ~12 cycles, too many for its
+    batch); one that fell more than half a period behind (a busy core) starts afresh."""
+    on_cadence = due + every_s
+    return on_cadence if on_cadence >= now + every_s / 2 else now + every_s
+
+
 class FrameReader:
     """Reads the socket under a python-can bus directly, in batches.
 
@@ -63,8 +72,9 @@ class FrameReader:
     order; a cycle whose waking frame never comes is read when the caller's timeout ends.
 
     ``every_s`` bounds how often a busy reader wakes: after a read that found frames, the next
-    waits out the rest of ``every_s`` before looking, so frames arriving meanwhile are read as
-    one batch. A wake-up (select, context switch, the GIL) costs more than parsing the frames
+    waits until ``every_s`` after the last one was due (a fixed cadence: the time the caller
+    spends on a read's frames does not stretch the period), so frames arriving meanwhile are
+    read as one batch. A wake-up (select, context switch, the GIL) costs more than parsing the frames
     it brings, so a reader that does not need each frame at once (the timing monitor, which
     works from kernel timestamps) trades that latency for CPU. Never longer than the caller's
     timeout; 0 (default) wakes for each frame.
@@ -238,8 +248,11 @@ class FrameReader:
                 timeout = max(0.0, timeout - wait)
         out = self._read(timeout, wake_fds, frames_wake)
         if out and self.every_s:  # a full batch left frames queued: read them at once
-            more = not self.complete and self._sock is not None
-            self._next_read = time.monotonic() + (0.0 if more else self.every_s)
+            now = time.monotonic()
+            if not self.complete and self._sock is not None:
+                self._next_read = now
+            else:
+                self._next_read = next_read(self._next_read, now, self.every_s)
         self.behind_s = 0.0
         if out:
             n = len(out)
