@@ -98,6 +98,8 @@ def table(result: dict[str, Any]) -> str:
     row("unit: getppid() (CPU us per call)", *pair("units", "syscall_getppid_us"))
     row("unit: thread_time() (CPU us per call)", *pair("units", "syscall_thread_time_us"))
     row("unit: 100 Hz sleep-wake (CPU us)", *pair("units", "wake_us"))
+    row("unit: beat's pipe write (CPU us)", *pair("units", "beat_us", "pipe_write"))
+    row("unit: beat's timerfd re-arm (CPU us)", *pair("units", "beat_us", "timerfd_rearm"))
     row(
         "unit: CAN frame read (CPU us)",
         *pair("units", "can_receive_us", "read", "cpu_us_per_frame_sent"),

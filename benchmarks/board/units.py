@@ -61,6 +61,34 @@ def syscall_us(call: str) -> float:
     return round((time.thread_time() - t0) * 1e6 / n, 2)
 
 
+def beat_us() -> dict[str, float] | None:
+    """CPU us of each of a node's beat's two system calls (exolink.liveness): a 9-byte record
+    into the supervisor's pipe (drained between rounds, outside the count) and the deadline
+    timer set 50 ms ahead. None where os.timerfd_* is missing (Python < 3.13)."""
+    if not hasattr(os, "timerfd_create"):
+        return None
+    r, w = os.pipe()
+    fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_NONBLOCK)
+    record, rounds, per_round = b"\0" * 9, 20, 500
+    try:
+        spent = 0.0
+        for _ in range(rounds):
+            t0 = time.thread_time()
+            for _ in range(per_round):
+                os.write(w, record)
+            spent += time.thread_time() - t0
+            os.read(r, 65536)
+        t0 = time.thread_time()
+        for _ in range(rounds * per_round):
+            os.timerfd_settime(fd, flags=os.TFD_TIMER_ABSTIME, initial=time.monotonic() + 0.05)
+        armed = time.thread_time() - t0
+    finally:
+        for x in (r, w, fd):
+            os.close(x)
+    n = rounds * per_round
+    return {"pipe_write": round(spent * 1e6 / n, 2), "timerfd_rearm": round(armed * 1e6 / n, 2)}
+
+
 def wake_us(seconds: float) -> float:
     """CPU us per iteration of a loop that sleeps to a 10 ms deadline and does nothing else."""
     c0, t = time.thread_time(), time.monotonic()
@@ -288,6 +316,7 @@ def main() -> int:
         "syscall_getppid_us": syscall_us("getppid"),
         "syscall_thread_time_us": syscall_us("thread_time"),
         "wake_us": wake_us(args.seconds),
+        "beat_us": beat_us(),
         "can_receive_us": can_receive_us(args.seconds),
         "zenoh_us_per_sample": zenoh_hop(args.seconds, 1),
         "zenoh_us_per_sample_burst4": zenoh_hop(args.seconds, 4),
