@@ -26,7 +26,8 @@ it too; earlier files are never reopened.
 The recorder also serves its directory to laptops (``recordings``: exolink.recordings.store): it alone
 knows which file it is writing, and that one is never handed out nor deleted.
 
-- ``node``: the node: commands, the intake, the writer loop, diagnostics, receive counters;
+- ``node``: the node: commands, the writer loop, diagnostics, receive counters;
+- ``intake``: what it takes from the inbox: keys parsed once, bundles opened, gaps counted;
 - ``inbox``: what it subscribes to, learnt from the ROS 2 graph, and the topic budgets;
 - ``mcapfile``: the MCAP file writer;
 - ``params``: its params and its counters.

@@ -1,22 +1,21 @@
-"""The recorder node (``Recorder``): its commands (``record``, ``recordings``), the intake from
-the inbox in batches, the writer loop, its diagnostics, and the bus readers' receive counters
-in each file."""
+"""The recorder node (``Recorder``): its commands (``record``, ``recordings``), the writer loop
+over the intake's batches (intake.py), its diagnostics, and the bus readers' receive counters in
+each file."""
 
 from __future__ import annotations
 
 import contextlib
 import errno
-import fnmatch
 import json
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import yaml
 from exolink.nodes.recorder.inbox import Inbox
+from exolink.nodes.recorder.intake import Intake, Item
 from exolink.nodes.recorder.mcapfile import McapFile
 from exolink.nodes.recorder.params import RecorderParams, Stats
 
@@ -36,13 +35,6 @@ INTAKE_PERIOD_S = 0.1
 # Take from the inbox in slices of wall time, not of messages, with beat() between them: sharing
 # one core with nodes that are importing, 500 messages took the loop past its 0.5 s stall limit.
 DRAIN_SLICE_S = 0.05
-MAX_KEYS = 4096  # keys whose parse is cached (a flood of made-up keys clears it)
-# A message numbered at most this far below its publisher's last is a duplicate (a topic taken
-# both ways while its subscription moves to its bundles); further below, a new count (a forged
-# sample with a huge number then costs a gap in the counters, never the messages after it).
-DUPLICATE_WINDOW = 1000
-
-Item = tuple[str, str, bytes, int, int, int]  # topic, type, CDR, log ns, publish ns, sequence
 # A start or stop replies within this (under the CLI's 3 s default) even if the card is slow to
 # open or close the file: the reply then says so ("stopping", or no file yet), which is true,
 # instead of the CLI timing out.
@@ -73,19 +65,19 @@ class Recorder(Node):
         self.index = 0
         self.session_stamp = ""
         self._receive_at_open: dict[str, dict[str, Any]] = {}
-        self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
-        # key -> (topic, type), None for keys not recorded: a key is parsed and matched against
-        # ``exclude`` once, not per sample (the board's ~220 samples/s share a dozen keys).
-        self._keys: dict[str, tuple[str, str, bool] | None] = {}
         self._pending = 0  # taken from the inbox, not yet written
         cfg = msgspec.to_builtins(self.ctx.config)
         cfg.pop("source", None)
         self.config_yaml = yaml.safe_dump(cfg, sort_keys=False)  # pure Python: not in the loop
         m = self.ctx.messaging
-        self.selectors = [
+        selectors = [
             messaging.topic_selector(m.domain_id, m.namespace, t) for t in self.params.topics
         ]
-        self.inbox: Inbox | None = None  # while recording (see _subscribe)
+        p = self.params
+        # subscribed while recording (start_recording, _unsubscribe_if_idle)
+        self.intake = Intake(
+            self.ctx.session, m.device, m.domain_id, selectors, p.exclude, p.inbox, self.lock
+        )
         self.pub_diag = self.own(
             m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         )
@@ -105,125 +97,28 @@ class Recorder(Node):
         elif self.params.autostart:
             self.start_recording(dict(self.params.labels))
 
-    # --- intake (the node's loop, in batches) ---------------------------------------------
+    # --- intake (the node's loop, in batches: intake.py) -------------------------------------
 
-    def _samples(self, discover: bool = True) -> Iterator[Any]:
-        """What the inbox holds now (with ``discover``, the loop's: topics the graph showed
-        since the last take included; subscriptions change on that thread only)."""
-        inbox = self.inbox
-        if inbox is not None:
-            if discover:
-                inbox.discover()
-                if inbox.refused != self.stats.refused_topics:
-                    with self.lock:
-                        self.stats.refused_topics = inbox.refused
-                        self.stats.refused_from = dict(inbox.refused_from)
-            yield from inbox.samples()
+    def _refused(self, inbox: Inbox) -> None:
+        if inbox.refused != self.stats.refused_topics:
+            with self.lock:
+                self.stats.refused_topics = inbox.refused
+                self.stats.refused_from = dict(inbox.refused_from)
 
     def _take(self, until: float) -> list[Item]:
-        """What the inbox holds now (until the wall-time slice ends), minus excluded topics;
-        the publishers' sequence gaps are counted as dropped while recording."""
-        out: list[Item] = []
-        gaps = dups = bad = 0
-        recording = self.state in ("recording", "stopping")
-        now = time.time_ns()
-        keys = self._keys
-        last_seq = self._last_seq
-        for sample in self._samples():
-            key = str(sample.key_expr)
-            try:
-                kept = keys[key]
-            except KeyError:  # a key not seen before (once each)
-                if len(keys) >= MAX_KEYS:  # anyone may publish: the cache stays bounded
-                    keys.clear()
-                kept = keys[key] = self._kept_sample_key(key)
-            if kept is None:
-                continue
-            topic, typename, bundle = kept
-            if bundle:
-                try:
-                    gid, messages = messaging.decode_bundle(sample.payload.to_bytes())
-                except ValueError:
-                    bad += 1
-                    continue
-            else:
-                seq, src, gid = 0, 0, b""
-                att = sample.attachment
-                if att is not None:
-                    with contextlib.suppress(Exception):
-                        seq, src, gid = messaging.decode_attachment(att.to_bytes())
-                messages = [(seq, src, sample.payload.to_bytes())]
-            for seq, src, data in messages:
-                if gid:
-                    last = last_seq.get(gid)
-                    if last is not None and last - DUPLICATE_WINDOW < seq <= last:
-                        dups += 1  # seen by the other way (its key and its bundle)
-                        continue
-                    if recording and last is not None and seq > last + 1:
-                        gaps += seq - last - 1
-                    last_seq[gid] = seq
-                if recording:
-                    out.append((topic, typename, data, now, src or now, seq))
-            if len(out) >= 64 and time.monotonic() >= until:
-                break
-        if out or gaps or dups or bad:
+        """What the inbox holds now (until the wall-time slice ends), counted in the stats."""
+        got = self.intake.take(until, self.state in ("recording", "stopping"), self._refused)
+        if got.items or got.gaps or got.duplicates or got.malformed:
             with self.lock:
-                self.stats.received += len(out)
-                self.stats.dropped += gaps
-                self.stats.duplicates += dups
-                self.stats.malformed += bad
-        return out
-
-    def _kept_sample_key(self, key: str) -> tuple[str, str, bool] | None:
-        """A sample key's (topic, type, is a bundle), None when it is not recorded."""
-        try:
-            key, bundle = messaging.bundled_data_key(self.ctx.config.device, key), True
-        except ValueError:
-            bundle = False
-        kept = self._kept(key)
-        if kept is None or (bundle and not (self.inbox is not None and self.inbox.wanted(key))):
-            return None
-        return (*kept, bundle)
-
-    def _kept(self, key: str) -> tuple[str, str] | None:
-        """A data key's (topic, type), None if it is not one or ``exclude`` matches it."""
-        try:
-            topic, typename = messaging.parse_key(key)
-        except ValueError:
-            return None
-        if any(fnmatch.fnmatchcase(topic, pat) for pat in self.params.exclude):
-            return None
-        return topic, typename
-
-    def _subscribe(self) -> None:
-        with self.lock:
-            if self.inbox is None:
-                m = self.ctx.messaging
-                self.inbox = Inbox(
-                    self.ctx.session,
-                    m.device,
-                    m.domain_id,
-                    self.selectors,
-                    self._kept,
-                    self.params.inbox,
-                )
+                self.stats.received += len(got.items)
+                self.stats.dropped += got.gaps
+                self.stats.duplicates += got.duplicates
+                self.stats.malformed += got.malformed
+        return got.items
 
     def _unsubscribe_if_idle(self) -> None:
         """The loop, once a recording ended: unless a new one started meanwhile."""
-        with self.lock:
-            if self.state in ("recording", "stopping"):
-                return
-            inbox, self.inbox = self.inbox, None
-        if inbox is not None:
-            inbox.close()
-
-    def _discard(self) -> None:
-        """A new recording: nothing queued before it, and sequence gaps counted from each
-        publisher's first sample in it (the numbers published in the pause are no loss of this
-        one)."""
-        for _ in self._samples(discover=False):
-            pass
-        self._last_seq.clear()
+        self.intake.close(lambda: self.state in ("recording", "stopping"))
 
     # --- commands -------------------------------------------------------------------------
 
@@ -343,8 +238,9 @@ class Recorder(Node):
     def start_recording(self, labels: dict[str, str]) -> None:
         with self.lock:
             self.stats = Stats()  # counters are per recording session
-        self._discard()  # nothing from before leaks into this session
-        self._subscribe()
+        self.intake.discard()  # nothing from before leaks into this session
+        with self.lock:
+            self.intake.open()
         self.labels = labels
         self.index = 0
         self._bytes = 0
@@ -553,5 +449,4 @@ class Recorder(Node):
                 self._close()
             except OSError as exc:
                 self.log.error("recording_close_failed", error=str(exc))
-        if self.inbox is not None:  # opened per recording, not owned
-            self.inbox.close()
+        self.intake.close(lambda: False)  # opened per recording, not owned
