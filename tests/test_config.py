@@ -145,6 +145,19 @@ def test_top_level_not_a_mapping() -> None:
 
 
 def test_duplicate_keys_are_errors_with_both_lines() -> None:
-    text = bundled("sim").read_text() + "watchdog:\n  h2_silence_ms: 5000\n"
+    text = bundled("sim").read_text() + "watchdog:\n  pulse_silence_ms: 5000\n"
     with pytest.raises(ConfigError, match=r":\d+: duplicate key 'watchdog' \(first at line \d+\)"):
         parse(text, "appliance.yaml")
+
+
+def test_the_pulse_silence_keeps_its_old_h2_name_but_not_both() -> None:
+    """``watchdog.pulse_silence_ms`` was ``h2_silence_ms`` before other devices: a lab's config
+    with the old name still loads, as the same setting; one with both names is refused by name."""
+    sim = bundled("sim").read_text()
+    new = parse(sim.replace("pulse_silence_ms: 100", "pulse_silence_ms: 250"), "a.yaml")
+    old = parse(sim.replace("pulse_silence_ms: 100", "h2_silence_ms: 250"), "a.yaml")
+    assert new.watchdog.silence_ms == old.watchdog.silence_ms == 250
+    assert parse(sim.replace("  pulse_silence_ms: 100\n", ""), "a.yaml").watchdog.silence_ms == 100
+    both = sim.replace("pulse_silence_ms: 100", "pulse_silence_ms: 100\n  h2_silence_ms: 100")
+    with pytest.raises(ConfigError, match="pulse_silence_ms and h2_silence_ms are one setting"):
+        parse(both, "a.yaml")

@@ -531,7 +531,7 @@ def app(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def]
     # deadline 300 ms: above a loaded CI machine's stalls (at 50 ms one tripped the watchdog
     # mid-test, whose disable frames then went out before the window the test looked in)
     cfg = write_config(
-        nodes=nodes(CTRL, deadline_ms=300), watchdog={"h2_silence_ms": 500}, limits=STEP_3
+        nodes=nodes(CTRL, deadline_ms=300), watchdog={"pulse_silence_ms": 500}, limits=STEP_3
     )
     return Appliance(cfg, spawn)
 
@@ -712,7 +712,7 @@ def every_other(write_config, spawn, lab_plugin):  # type: ignore[no-untyped-def
     """The manager as on the board: one update per two H2 cycles (``cycles_per_update``)."""
     n = nodes(CTRL, deadline_ms=300)
     n[2]["params"]["cycles_per_update"] = 2
-    cfg = write_config(nodes=n, watchdog={"h2_silence_ms": 500}, limits=STEP_3)
+    cfg = write_config(nodes=n, watchdog={"pulse_silence_ms": 500}, limits=STEP_3)
     return Appliance(cfg, spawn)
 
 
@@ -793,7 +793,7 @@ def routed(write_config, spawn):  # type: ignore[no-untyped-def]
     """`exolink send` motion becomes the manager's operator controllers."""
     gait = {"name": "gait", "type": "forward_command", "params": {"joints": ["r_knee"]}}
     cfg = write_config(
-        nodes=nodes([gait], deadline_ms=300), watchdog={"h2_silence_ms": 500}, limits=STEP_3
+        nodes=nodes([gait], deadline_ms=300), watchdog={"pulse_silence_ms": 500}, limits=STEP_3
     )
     return Appliance(cfg, spawn)
 
@@ -988,7 +988,7 @@ def test_with_the_timer_off_the_gait_runs_in_the_cycle_loop(write_config, spawn,
         "critical": True,
         "params": {"speed": 10, "selected": ["r_hip", "r_knee"]},
     }
-    app = Appliance(write_config(nodes=[*n, player], watchdog={"h2_silence_ms": 500}), spawn)
+    app = Appliance(write_config(nodes=[*n, player], watchdog={"pulse_silence_ms": 500}), spawn)
     app.arm_and_hold()
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: joint_frames(collect(mbus, 0.1, {70}), 1))
@@ -1012,7 +1012,9 @@ def gait(write_config, spawn):  # type: ignore[no-untyped-def]
         },
     ]
     # the sim config's step limit (5 deg per cycle): the default pattern at speed 10 needs 4
-    cfg = write_config(nodes=[*nodes([], deadline_ms=300), *extra], watchdog={"h2_silence_ms": 500})
+    cfg = write_config(
+        nodes=[*nodes([], deadline_ms=300), *extra], watchdog={"pulse_silence_ms": 500}
+    )
     return Appliance(cfg, spawn)
 
 

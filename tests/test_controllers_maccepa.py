@@ -186,7 +186,7 @@ def lab_board_plugin(lab_package) -> None:  # type: ignore[no-untyped-def]
 
 
 def appliance(write_config, spawn) -> Appliance:  # type: ignore[no-untyped-def]
-    cfg = write_config(nodes=nodes(), watchdog={"h2_silence_ms": 500, "maccepa_boards": [0]})
+    cfg = write_config(nodes=nodes(), watchdog={"pulse_silence_ms": 500, "maccepa_boards": [0]})
     return Appliance(cfg, spawn)
 
 

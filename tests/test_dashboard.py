@@ -223,7 +223,7 @@ class Dash:
 
 @pytest.fixture
 def dash(tmp_path, write_config, spawn, browser) -> Iterator[Dash]:  # type: ignore[no-untyped-def]
-    cfg = write_config(nodes=_nodes(tmp_path), watchdog={"h2_silence_ms": 2000})
+    cfg = write_config(nodes=_nodes(tmp_path), watchdog={"pulse_silence_ms": 2000})
     d = Dash(Appliance(cfg, spawn), spawn, browser)
     yield d
     d.close()
@@ -469,7 +469,7 @@ def test_an_observer_sees_everything_and_may_only_estop(  # type: ignore[no-unty
             {"name": "dashboard", "plugin": "dashboard", "params": board_dash},
         ],
         zenoh={"config_file": str(board_file)},
-        watchdog={"h2_silence_ms": 2000},
+        watchdog={"pulse_silence_ms": 2000},
     )
     app = Appliance(cfg, spawn, login=logins["admin"])
     app.arm()

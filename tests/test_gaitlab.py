@@ -135,7 +135,7 @@ def test_simulator_walking_exported_to_c3d_and_opensim(write_config, spawn, tmp_
         if n["name"] == "controller_manager":  # silence limits above this shared machine's
             n["heartbeat_deadline_ms"] = 300  # stalls (as test_controllers): not what this
             n["params"]["h2_timeout_ms"] = 300  # test is about, and a trip stops the walk
-    app = Appliance(write_config(nodes=nodes, watchdog={"h2_silence_ms": 500}), spawn)
+    app = Appliance(write_config(nodes=nodes, watchdog={"pulse_silence_ms": 500}), spawn)
     app.arm_and_hold()
     assert app.cli("pattern", "start", "--detach").returncode == 0
     r = app.cli("record", "start", "--label", "subject=S01", "--label", "session=walk1")

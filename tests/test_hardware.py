@@ -60,7 +60,7 @@ def rig(write_config, spawn, rig_package, mbus) -> Iterator[tuple[Appliance, Fra
         "plugin": "timing_monitor",
         "params": {"ids": [ANGLE_ID, COMMAND_ID]},
     }
-    cfg = write_config(nodes=[monitor], hardware="rig", watchdog={"h2_silence_ms": 300})
+    cfg = write_config(nodes=[monitor], hardware="rig", watchdog={"pulse_silence_ms": 300})
     app = Appliance(cfg, spawn)
     # the rig's angle frame every 10 ms
     angle = can.Message(arbitration_id=ANGLE_ID, data=bytes([100, 0]), is_extended_id=False)

@@ -34,7 +34,7 @@ NODES = [
 @pytest.fixture
 def app(write_config, spawn, tmp_path):  # type: ignore[no-untyped-def]
     cfg = write_config(
-        nodes=NODES, watchdog={"h2_silence_ms": 500}, state_dir=str(tmp_path / "state")
+        nodes=NODES, watchdog={"pulse_silence_ms": 500}, state_dir=str(tmp_path / "state")
     )
     return Appliance(cfg, spawn)
 

@@ -53,7 +53,7 @@ LIMITS = Limits.of(default_min(), default_max(), [127] * 6, [100] * 6, "test")
 
 @pytest.fixture
 def app(write_config, spawn):  # type: ignore[no-untyped-def]
-    cfg = write_config(nodes=NODES, watchdog={"maccepa_boards": [0], "h2_silence_ms": 300})
+    cfg = write_config(nodes=NODES, watchdog={"maccepa_boards": [0], "pulse_silence_ms": 300})
     return Appliance(cfg, spawn)
 
 

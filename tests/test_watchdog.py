@@ -71,7 +71,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Watchdog, StalledReade
     frames = FrameReader(
         reader, CanConfig(interface="virtual"), [h2.JOINT_ANGLES, h2.JOINT_CONTROL]
     )
-    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), frames, states.append, H2)
+    wd = Watchdog(WatchdogConfig(pulse_silence_ms=100), frames, states.append, H2)
     wd.start()
     try:
         end = time.monotonic() + 5
@@ -193,7 +193,7 @@ def test_on_sockets_angle_frames_never_wake_the_watchdog_yet_silence_and_motion_
     maccepa_b0 = can.Message(arbitration_id=70, data=bytes(8), is_extended_id=False)
     board = h2_board(group, open_bus(cfg), maccepa_b0)  # real sockets, as on the board
     reader = open_reader(cfg, [h2.JOINT_ANGLES, h2.JOINT_CONTROL], wake_on=[h2.JOINT_CONTROL])
-    wd = Watchdog(WatchdogConfig(h2_silence_ms=100), reader, lambda _s: None, H2)
+    wd = Watchdog(WatchdogConfig(pulse_silence_ms=100), reader, lambda _s: None, H2)
     wd.start()
     try:
         assert wait_for(lambda: wd.silent_for() is not None)

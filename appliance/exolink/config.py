@@ -22,6 +22,7 @@ Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 NodeName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,39}$")]
 DeviceName = Annotated[str, msgspec.Meta(pattern=r"^[a-zA-Z0-9][a-zA-Z0-9_-]{0,39}$")]
 PositiveMs = Annotated[int, msgspec.Meta(ge=1, le=600_000)]
+DEFAULT_SILENCE_MS = 100
 BoardId = Annotated[int, msgspec.Meta(ge=0, le=9)]
 
 SIM_MULTICAST_GROUP = "239.74.163.2"
@@ -105,12 +106,28 @@ class WatchdogConfig(_Strict, frozen=True):
     # A (re)started node must send its first heartbeat within this. Only availability rides on
     # it, not safety: arming needs every critical node's heartbeat, and a restart already tripped.
     start_grace_ms: PositiveMs = 20_000
-    h2_silence_ms: PositiveMs = 100
+    # The device's pulse (exolink.hardware: the H2's joint angles) silent this long trips the
+    # watchdog (``silence_ms``). ``h2_silence_ms`` is its name from before other devices: still
+    # read, never both.
+    pulse_silence_ms: PositiveMs | None = None
+    h2_silence_ms: PositiveMs | None = None
     safe_action: Literal["disable", "stop"] = "disable"
     maccepa_boards: list[BoardId] = msgspec.field(default_factory=list)
     trip_on_operator_lost: bool = True
     operator_lost_ms: PositiveMs = 2000
     trip_on_bus_error_passive: bool = True
+
+    def __post_init__(self) -> None:
+        if self.pulse_silence_ms is not None and self.h2_silence_ms is not None:
+            raise ValueError(
+                "pulse_silence_ms and h2_silence_ms are one setting (h2_silence_ms is its old "
+                "name): give pulse_silence_ms only"
+            )
+
+    @property
+    def silence_ms(self) -> int:
+        """How long the device's pulse may be silent (default 100 ms: ten H2 periods)."""
+        return self.pulse_silence_ms or self.h2_silence_ms or DEFAULT_SILENCE_MS
 
 
 class Priority(_Strict, frozen=True):

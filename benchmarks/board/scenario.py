@@ -52,10 +52,10 @@ ANGLES_QUERY = {"id": 110, "expected_ms": 10}
 # reader counted ~260 missing frames per id in a window), and the manager stopped the gait for
 # them (the run of ff87565: "no H2 joint angles for 50 ms" in the window's first seconds).
 TIMINGS = {
-    "stock": {"heartbeat_deadline_ms": 500, "h2_silence_ms": 100, "systemd_watchdog_s": None},
+    "stock": {"heartbeat_deadline_ms": 500, "pulse_silence_ms": 100, "systemd_watchdog_s": None},
     "relaxed": {
         "heartbeat_deadline_ms": 5000,
-        "h2_silence_ms": 100,
+        "pulse_silence_ms": 100,
         "systemd_watchdog_s": 60,
         "update_budget_ms": 8.0,
         "h2_timeout_ms": 100,
@@ -91,7 +91,7 @@ def bench_config(
     wd = cfg.setdefault("watchdog", {})
     wd.update(
         heartbeat_deadline_ms=TIMINGS[timings]["heartbeat_deadline_ms"],
-        h2_silence_ms=TIMINGS[timings]["h2_silence_ms"],
+        pulse_silence_ms=TIMINGS[timings]["pulse_silence_ms"],
         start_grace_ms=start_grace_ms,
         maccepa_boards=[0],
     )

@@ -303,7 +303,7 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
     # one UML CPU, CLI processes importing for seconds: wide limits for everything but the
     # manager, as tests/kernel/test_socketcan.py explains
     data["watchdog"].update(
-        h2_silence_ms=3000,
+        pulse_silence_ms=3000,
         heartbeat_deadline_ms=2000,
         start_grace_ms=60_000,
         operator_lost_ms=60_000,

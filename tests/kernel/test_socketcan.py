@@ -174,7 +174,7 @@ def write_config(tmp_path: Path, channel: str, nodes: list[dict]) -> Path:
     # a CLI process started in the guest (its imports take seconds of the one UML CPU).
     # The holder's keep-alive too: a CLI process starting takes the one CPU for seconds.
     data["watchdog"].update(
-        h2_silence_ms=3000,
+        pulse_silence_ms=3000,
         heartbeat_deadline_ms=2000,
         start_grace_ms=60_000,
         operator_lost_ms=15_000,
@@ -523,7 +523,7 @@ def test_watchdog_on_socketcan_reads_no_angle_frame_and_trips_on_kernel_silence(
     from exolink.supervisor.watchdog import Watchdog
 
     limit_s = 1.0  # wide for the UML guest, as write_config's
-    cfg = WatchdogConfig(h2_silence_ms=int(limit_s * 1000))
+    cfg = WatchdogConfig(pulse_silence_ms=int(limit_s * 1000))
     reader = open_reader(CanConfig(interface="socketcan", channel=vcan0), [])  # sends only
     published: list = []
     wd = Watchdog(

@@ -1,7 +1,7 @@
 """The kernel's CAN broadcast manager (can-bcm) watching an id: silence judged by a kernel timer
 and content compared in the kernel, not by a Python read of every frame.
 
-The watchdog must know within ``h2_silence_ms`` that the H2 stopped. Reading each angle frame
+The watchdog must know within ``pulse_silence_ms`` that the H2 stopped. Reading each angle frame
 (100/s) in Python for that was most of the watchdog's CPU on the board (docs/performance.md,
 "Measurements behind the code"). An ``RX_SETUP`` with a receive timeout does
 the same in the kernel: every frame of the id restarts an hrtimer, and user space hears only

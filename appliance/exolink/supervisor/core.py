@@ -145,7 +145,7 @@ class Supervisor:
             if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
                 from exolink.canbus.bcm import CyclicWatch
 
-                limit_s = cfg.watchdog.h2_silence_ms / 1e3
+                limit_s = cfg.watchdog.silence_ms / 1e3
                 watches.append(CyclicWatch(cfg.can.channel, dev.pulse_id, limit_s))
                 reopen = functools.partial(
                     CyclicWatch, cfg.can.channel, dev.command_id, mask=dev.command_mask
@@ -487,7 +487,7 @@ class Supervisor:
             ):
                 out.append(f"critical node {n.name} has no recent heartbeat")
         silent = self.watchdog.silent_for()
-        limit = self.cfg.watchdog.h2_silence_ms / 1000
+        limit = self.cfg.watchdog.silence_ms / 1000
         behind = self.watchdog.behind_s()
         if behind > limit:  # the bus may stream: the watchdog cannot see it in time
             out.append(
@@ -601,7 +601,7 @@ class Supervisor:
         """The CAN link's state and error counters, off the safety loop: woken by the driver's
         error frame at a state change (a bus-off trips at once) and every HEALTH_PERIOD_S for
         the link's up/down (sysfs). A bus-off link also silences the H2, which the watchdog
-        trips on within h2_silence_ms anyway."""
+        trips on within its silence limit anyway."""
         while not self.stop_event.is_set():
             link = self.link
             if link is None:

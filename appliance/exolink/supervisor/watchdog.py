@@ -271,11 +271,11 @@ class Watchdog:
     def _angles_event(self, ev: Event) -> None:
         if ev.frame is None:  # no angle frame for the limit: the kernel's timer ran out
             self._pulse_alive = False
-            self.last_pulse = time.monotonic() - self.cfg.h2_silence_ms / 1000
+            self.last_pulse = time.monotonic() - self.cfg.silence_ms / 1000
             if self.armed:
                 self.trip(
                     f"{self.device.pulse} silent",
-                    f"no {self.device.pulse} for {self.cfg.h2_silence_ms} ms (kernel timer)",
+                    f"no {self.device.pulse} for {self.cfg.silence_ms} ms (kernel timer)",
                 )
             return
         at = self._arrival(ev.frame)
@@ -306,19 +306,19 @@ class Watchdog:
         if self.angles is not None:
             self._check_silence(time.monotonic())
             return
-        backstop = self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S
+        backstop = self.cfg.silence_ms / 1000 + STALL_BACKSTOP_S
         if self.armed and silent is not None and silent > backstop:
             self.trip(
                 f"{self.device.pulse} silent",
                 f"watchdog bus reader stalled: no {self.device.pulse} read for "
-                f"{silent * 1000:.0f} ms (limit {self.cfg.h2_silence_ms} ms)",
+                f"{silent * 1000:.0f} ms (limit {self.cfg.silence_ms} ms)",
             )
 
     def next_due(self) -> float:
         """When ``check`` has something to do next (monotonic): a repeat, or the backstop."""
         due = min(self._repeats, default=float("inf"))
         if self.armed and self.last_pulse is not None and self.angles is None:
-            due = min(due, self.last_pulse + self.cfg.h2_silence_ms / 1000 + STALL_BACKSTOP_S)
+            due = min(due, self.last_pulse + self.cfg.silence_ms / 1000 + STALL_BACKSTOP_S)
         return due
 
     def _arrival(self, msg: Frame) -> float:
@@ -336,12 +336,12 @@ class Watchdog:
         if not self.armed or armed_at is None or (self.angles is not None and self._pulse_alive):
             return
         since = armed_at if self.last_pulse is None else max(self.last_pulse, armed_at)
-        silent, limit = at - since, self.cfg.h2_silence_ms / 1000
+        silent, limit = at - since, self.cfg.silence_ms / 1000
         if silent > limit:
             self.trip(
                 f"{self.device.pulse} silent",
                 f"no {self.device.pulse} for {silent * 1000:.0f} ms "
-                f"(limit {self.cfg.h2_silence_ms} ms)",
+                f"(limit {self.cfg.silence_ms} ms)",
             )
 
     def _was_armed_at(self, t: float) -> bool:
@@ -354,7 +354,7 @@ class Watchdog:
         self._pokes.set()
 
     def _listen(self) -> None:
-        limit = self.cfg.h2_silence_ms / 1000
+        limit = self.cfg.silence_ms / 1000
         while not self._stop.is_set():
             armed = self.armed
             poke = self._wake_fds()
