@@ -31,7 +31,7 @@ from exolink.canbus import Cadence, Frame, open_reader
 from exolink.canbus.filters import Drop
 from exolink.config import ConfigError, node_params
 from exolink.hardware import maccepa as maccepa_state
-from exolink.loops import Frames
+from exolink.loops import Frames, each
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import h2
@@ -309,16 +309,11 @@ class H2Reader(Node):
         """A wake's frames, then their samples out together, then the periodic work."""
         return Frames(
             self.reader,
-            self.handle_all,
+            each(self.handle),
             self.cadence,
             after=[("publish", self.out.flush), ("rest", self._periodic)],
             clock=self.clock,
         )
-
-    def handle_all(self, frames: list[Frame]) -> None:
-        handle = self.handle
-        for frame in frames:
-            handle(frame)
 
     def _periodic(self) -> None:
         """Diagnostics every period; with ``start_stream``, the stream asked for again while the

@@ -16,10 +16,10 @@ from typing import Annotated, Literal
 import msgspec
 
 from exolink import messaging
-from exolink.canbus import Cadence, Frame, open_reader
+from exolink.canbus import Cadence, open_reader
 from exolink.canbus.filters import Drop
 from exolink.hardware.maccepa import STATE, BoardStates, topic
-from exolink.loops import Frames
+from exolink.loops import Frames, each
 from exolink.node import Node
 from exolink.protocol import maccepa
 
@@ -74,9 +74,6 @@ class MaccepaBridge(Node):
         return self.states.malformed
 
     def loop(self) -> Frames:
-        return Frames(self.reader, self.handle_all, self.cadence, [("publish", self.out.flush)])
-
-    def handle_all(self, frames: list[Frame]) -> None:
-        handle = self.states.handle
-        for frame in frames:
-            handle(frame)
+        return Frames(
+            self.reader, each(self.states.handle), self.cadence, [("publish", self.out.flush)]
+        )

@@ -7,8 +7,9 @@ the phases on the thread's CPU clock) are kept here once.
 - ``Every(period_s, step)``: wake every period, then ``step`` (None: the node's work is in its
   handlers and threads, the loop only proves it alive).
 - ``Frames(reader, handle, wait, after)``: wake on the bus (exolink.canbus.open_reader), hand a
-  wake's frames to ``handle`` in one call, then each ``after`` phase (the outbox's flush,
-  diagnostics); ``wait`` is a fixed timeout or the reader's ``Cadence``.
+  wake's frames to ``handle`` in one call (``each(fn)``: to ``fn`` one by one), then each
+  ``after`` phase (the outbox's flush, diagnostics); ``wait`` is a fixed timeout or the
+  reader's ``Cadence``.
 
 A node whose loop is its job keeps ``run`` (the controller manager's cycle and timer modes, the
 recorder's intake, the simulator's clocked models): say which in its docstring.
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from exolink.phaseclock import PhaseClock
@@ -54,19 +55,41 @@ class Every:
                 step()
 
 
+def each(handle: Callable[[Any], None]) -> Callable[[list[Any]], None]:
+    """A wake's frames handed to ``handle`` one by one (``Frames``' handle)."""
+
+    def handle_all(frames: list[Any]) -> None:
+        for frame in frames:
+            handle(frame)
+
+    return handle_all
+
+
+class _Untimed:
+    """The clock of a loop whose phases nobody reads: no CPU clock read (a system call each)."""
+
+    def start(self) -> None:
+        pass
+
+    def mark(self, phase: str) -> None:
+        pass
+
+
 @dataclass
 class Frames:
     """``clock``: the CPU of each phase (``beat``, ``read``, ``handle``, then each ``after``'s
-    name), sampled (exolink.phaseclock); the h2 reader's stats show it as ``loop_cpu``."""
+    name), sampled (exolink.phaseclock), for a node that reports it (the h2 reader's stats:
+    ``loop_cpu``); None, not timed."""
 
     reader: Reads
     handle: Callable[[list[Any]], None]
     wait: Cadence | float
     after: Sequence[tuple[str, Callable[[], None]]] = ()
-    clock: PhaseClock = field(default_factory=PhaseClock)
+    clock: PhaseClock | None = None
 
     def run(self, beat: Beat, stop: threading.Event) -> None:
-        read, handle, after, clock = self.reader.read, self.handle, self.after, self.clock
+        read, handle, after = self.reader.read, self.handle, self.after
+        clock = self.clock or _Untimed()
         wait = self.wait
         cadence, timeout = (
             (None, float(wait)) if isinstance(wait, int | float) else (wait, wait.idle_s)
@@ -87,4 +110,4 @@ class Frames:
                 timeout = cadence.timeout(bool(frames))
 
 
-__all__ = ["Every", "Frames", "Loop", "Reads"]
+__all__ = ["Every", "Frames", "Loop", "Reads", "each"]
