@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import fnmatch
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -38,8 +37,8 @@ class Taken:
 
 
 class Intake:
-    """``lock``: the recorder's, held while the inbox opens or closes (its commands' threads
-    and its loop both do)."""
+    """The inbox opens and is detached under the recorder's lock (its commands' threads and its
+    loop both do); its samples are taken on the loop's thread only."""
 
     def __init__(
         self,
@@ -49,11 +48,9 @@ class Intake:
         selectors: list[str],
         exclude: list[str],
         capacity: int,
-        lock: threading.Lock,
     ) -> None:
         self._session, self._device, self._domain_id = session, device, domain_id
         self._selectors, self._exclude, self._capacity = selectors, exclude, capacity
-        self._lock = lock
         self.inbox: Inbox | None = None
         self._last_seq: dict[bytes, int] = {}  # publisher GID -> its last sequence number seen
         # key -> (topic, type, is a bundle), None for keys not recorded (the board's ~220
@@ -61,7 +58,7 @@ class Intake:
         self._keys: dict[str, tuple[str, str, bool] | None] = {}
 
     def open(self) -> None:
-        """Subscribed from now on (under the lock)."""
+        """Subscribed from now on."""
         if self.inbox is None:
             self.inbox = Inbox(
                 self._session,
@@ -72,15 +69,10 @@ class Intake:
                 self._capacity,
             )
 
-    def close(self, still_wanted: Callable[[], bool]) -> None:
-        """Unsubscribed, unless ``still_wanted()`` says otherwise under the lock (a recording
-        started meanwhile)."""
-        with self._lock:
-            if still_wanted():
-                return
-            inbox, self.inbox = self.inbox, None
-        if inbox is not None:
-            inbox.close()
+    def detach(self) -> Inbox | None:
+        """The inbox, no longer taken from: the caller closes it (outside the lock)."""
+        inbox, self.inbox = self.inbox, None
+        return inbox
 
     def samples(self, on_refused: Callable[[Inbox], None] | None = None) -> Iterator[Any]:
         """What the inbox holds now; with ``on_refused`` (the loop's take), topics the graph

@@ -75,9 +75,7 @@ class Recorder(Node):
         ]
         p = self.params
         # subscribed while recording (start_recording, _unsubscribe_if_idle)
-        self.intake = Intake(
-            self.ctx.session, m.device, m.domain_id, selectors, p.exclude, p.inbox, self.lock
-        )
+        self.intake = Intake(self.ctx.session, m.device, m.domain_id, selectors, p.exclude, p.inbox)
         self.pub_diag = self.own(
             m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         )
@@ -118,7 +116,12 @@ class Recorder(Node):
 
     def _unsubscribe_if_idle(self) -> None:
         """The loop, once a recording ended: unless a new one started meanwhile."""
-        self.intake.close(lambda: self.state in ("recording", "stopping"))
+        with self.lock:
+            if self.state in ("recording", "stopping"):
+                return
+            inbox = self.intake.detach()
+        if inbox is not None:
+            inbox.close()
 
     # --- commands -------------------------------------------------------------------------
 
@@ -449,4 +452,7 @@ class Recorder(Node):
                 self._close()
             except OSError as exc:
                 self.log.error("recording_close_failed", error=str(exc))
-        self.intake.close(lambda: False)  # opened per recording, not owned
+        with self.lock:
+            inbox = self.intake.detach()
+        if inbox is not None:  # opened per recording, not owned
+            inbox.close()
