@@ -165,3 +165,20 @@ def test_the_rig_runs_under_make_sim_with_its_simulator_and_a_driver_the_watchdo
     assert offs(frames) and set(offs(frames)) == {OFF}  # only the safe action, repeated
     still = {bytes(f.data) for f in frames if f.arbitration_id == ANGLE_ID}
     assert len(still) == 1, still  # the rig stopped where it was
+
+
+def test_a_device_that_names_no_simulator_is_a_config_error_under_sim(  # type: ignore[no-untyped-def]
+    write_config, lab_package
+) -> None:
+    """A lab's device class from before ``Device.simulator``: ``exolink up --sim`` says what is
+    missing and starts nothing, rather than a traceback."""
+    bare = (
+        "class Bare:\n    pulse, pulse_id, command_id, command_mask = 'bare data', 1, 2, bytes(1)\n"
+    )
+    lab_package("lab_bare", "[exolink.hardware]\nbare = lab_bare:Bare\n", {"lab_bare.py": bare})
+    cfg = write_config(nodes=[], hardware="bare")
+    r = subprocess.run(
+        [*EXOLINK, "up", "--sim", "-c", str(cfg)], capture_output=True, text=True, timeout=60
+    )
+    assert r.returncode == 3, r.stderr
+    assert "hardware 'bare' names no simulator (Device.simulator)" in r.stderr, r.stderr

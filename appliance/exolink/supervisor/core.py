@@ -28,7 +28,7 @@ from exolink import hardware, liveness, logs, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
-from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig
+from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, ConfigError
 from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
@@ -76,7 +76,13 @@ def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
     )
     trig = msgspec.structs.replace(cfg.trigger, source="simulated", output=None)
     nodes = list(cfg.nodes)
-    sim = hardware.load(cfg.hardware).simulator(cfg)
+    play = getattr(hardware.load(cfg.hardware), "simulator", None)
+    if play is None:  # a lab's device written before Device.simulator
+        raise ConfigError(
+            f"hardware {cfg.hardware!r} names no simulator (Device.simulator): --sim cannot "
+            "play it; add one, or list its simulator node in the config"
+        )
+    sim = play(cfg)
     if not any(n.plugin == sim.plugin for n in nodes):
         nodes.insert(0, sim)
     return msgspec.structs.replace(cfg, can=can, trigger=trig, nodes=nodes)
