@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import structlog
+import yaml
 
 from exolink.gaitlab.model import (
     DEBOUNCE_S,
@@ -125,7 +126,6 @@ def _joint_columns(msg: Any) -> dict[str, float]:
 
 def _refresh_s(metadata: dict[str, dict[str, str]]) -> float:
     """The h2 reader's foot_switches_refresh_s in the recording's config (1.0 if not said)."""
-    import yaml  # lazy: a trial file is read only here
 
     try:
         cfg = yaml.safe_load(metadata.get("exolink.config", {}).get("yaml", "")) or {}

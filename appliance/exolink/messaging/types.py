@@ -31,11 +31,8 @@ RECORDED_STANDARD_TYPES = (
 @cache
 def typestore() -> Any:
     """ROS 2 Jazzy's standard types plus every exolink_msgs .msg file."""
-    from rosbags.typesys import (
-        Stores,
-        get_types_from_msg,
-        get_typestore,
-    )  # lazy: rosbags + numpy (~13 MB): only a process that needs generic types
+    # lazy: rosbags + numpy (~13 MB): only a process that needs generic types
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
     types: dict[str, Any] = {}

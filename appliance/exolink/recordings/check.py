@@ -297,9 +297,8 @@ class Walk:
                 return footer_at
         c.summary = "checked" if crc else "no crc"
         if start:
-            from mcap.reader import (
-                SeekingReader,
-            )  # lazy: mcap's readers: only when a file is checked
+            # lazy: mcap's readers: only when a file is checked
+            from mcap.reader import SeekingReader
 
             try:
                 f.seek(0)
@@ -368,11 +367,8 @@ class Walk:
                 yield rec
 
     def _chunk(self, pos: int, length: int, rec: Any) -> Iterator[Any]:
-        from mcap.stream_reader import (
-            CRCValidationError,
-            breakup_chunk,
-            get_chunk_data_stream,
-        )  # lazy: mcap's readers: only when a file is checked
+        # lazy: mcap's readers: only when a file is checked
+        from mcap.stream_reader import CRCValidationError, breakup_chunk, get_chunk_data_stream
 
         no = self.numbers.get(pos, self.seen_chunks)
         self.seen_chunks += 1

@@ -47,11 +47,8 @@ class Info:
 @cache
 def _store_for(schema_name: str, schema_text: str) -> Any:
     """A rosbags typestore that knows this file's schema (and its embedded dependencies)."""
-    from rosbags.typesys import (
-        Stores,
-        get_types_from_msg,
-        get_typestore,
-    )  # lazy: rosbags: only when a file is decoded
+    # lazy: rosbags: only when a file is decoded
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.EMPTY)
     types: dict[str, Any] = {}
@@ -256,12 +253,8 @@ class _Copier:
         self.orphans = 0  # messages whose channel was defined in a lost chunk only
 
     def add(self, rec: Any) -> None:
-        from mcap.records import (
-            Channel,
-            Message,
-            Metadata,
-            Schema,
-        )  # lazy: mcap's records: only when a file is recovered
+        # lazy: mcap's records: only when a file is recovered
+        from mcap.records import Channel, Message, Metadata, Schema
 
         if isinstance(rec, Schema):
             self.schemas[rec.id] = rec
