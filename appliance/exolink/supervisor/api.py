@@ -166,7 +166,7 @@ class ManagementApi:
         request is the client's own text and is not used)."""
         wd = self.sup.watchdog
         # An e-stop first, as it came: nothing else in the request is looked at.
-        action, cmd = ("estop", None) if _is_estop(req) else (None, None)
+        action, cmd = ("estop" if _is_estop(req) else None), None
         if action is None and not management.status_asked(req):
             cmd = decode(req, management.Watchdog, "watchdog action")
             action = tag_of(cmd)
