@@ -109,11 +109,6 @@ class Cycle:
     controller_s: float = 0.0  # wall time inside controllers' update (the rest is overhead)
 
 
-def split(interface: str) -> tuple[int, str]:
-    joint, _, kind = interface.partition("/")
-    return JOINTS.index(joint), kind
-
-
 def check_claims(name: str, claims: list[str], boards: Any = ()) -> tuple[str, ...]:
     """A controller's own claims: known interfaces, no repeats, not torque and position on one
     joint (the H2 runs one mode per joint), not set-point and duty on one MACCEPA board (a
