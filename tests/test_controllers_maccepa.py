@@ -345,16 +345,14 @@ def test_board_0_frames_on_id_70_are_not_malformed_for_a_manager_without_boards(
     """Id 70 is H2 joint control (6 bytes) and MACCEPA board 0's controller frame (8 bytes): a
     manager that drives no board skips board 0's frames instead of counting them malformed (the
     board proxy's manager counted 93 in its first second); a 7-byte id-70 frame still counts."""
-    import structlog
-    from exolink.nodes.controller_manager import ControllerManagerNode
+    from exolink.nodes.controller_manager.bus_view import BusView
 
     from exolink.canbus import Frame
     from exolink.protocol import h2
 
-    node = ControllerManagerNode.__new__(ControllerManagerNode)  # _decode alone: no transport
-    node.board_ids, node.malformed, node.log = set(), {}, structlog.get_logger()
+    view = BusView(board_ids=set())  # the manager's decoding, without its transport
     board0 = Frame(0.0, h2.JOINT_CONTROL, bytes([10, 0, 20, 0, 9, 0, 0, 0]))  # what board 0 sends
-    assert isinstance(node._decode(board0), maccepa.Controller)
-    assert node.malformed == {}
-    node._decode(Frame(0.0, 70, bytes(7)))
-    assert node.malformed == {"70 bad length": 1}
+    assert isinstance(view.decode(board0), maccepa.Controller)
+    assert view.malformed == {}
+    view.decode(Frame(0.0, 70, bytes(7)))
+    assert view.malformed == {"70 bad length": 1}

@@ -7,7 +7,8 @@ the home of the operator's intent (limits in force, who holds motion).
   ``slots`` (what it holds and hands out) and ``budget`` (an update judged: CPU, values);
 - ``params``, ``frames``: the node's params; its frames, encoded once, and its reader's ids;
 - ``intent``: the operator's limits (persisted) and presence;
-- ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager);
+- ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager),
+  and ``on_timer``: the node's loop while that timer sends;
 - ``builtin``, ``maccepa``: the built-in controllers (joints; MACCEPA boards).
 """
 

@@ -2,10 +2,10 @@
 
 Two ways out for set-points. While every active controller is ``planned`` (the gait, a
 trajectory), they are planned a few slots ahead and sent on a timer the loop only renews
-(``timed``: the kernel's broadcast manager on SocketCAN), and the loop wakes every ``BEAT_S``
-for the heartbeat, the lease and anyone's disable. Otherwise (a feedback controller, a switch
-being applied) the cycle loop runs read -> update -> write once per H2 cycle, paced by the
-joint-angle frame (id 110).
+(``timed``: the kernel's broadcast manager on SocketCAN; the loop's side: ``on_timer``), and
+the loop wakes every ``BEAT_S`` for the heartbeat, the lease and anyone's disable. Otherwise
+(a feedback controller, a switch being applied) the cycle loop runs read -> update -> write
+once per H2 cycle, paced by the joint-angle frame (id 110).
 
 The node reads the H2 frames itself (one FrameReader: angles, torques, foot switches, and joint
 control so it sees a disable from anyone), and the status frames of the MACCEPA boards in
@@ -46,7 +46,6 @@ from before the reader closed (boards, torques, feet) is dropped with it.
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
 from pathlib import Path
@@ -55,29 +54,25 @@ from typing import Any
 import can
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.budget import GC_CLOCK
+from exolink.nodes.controller_manager.bus_view import BusView
 from exolink.nodes.controller_manager.frames import (
     EXTRA_IDS,
     READ_IDS,
-    SAFE_MODES,
     board_frame,
     drop_rules,
     joint_frame,
-    joint_payload,
     one_socket,
 )
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import Manager
+from exolink.nodes.controller_manager.on_timer import TimerLoop
 from exolink.nodes.controller_manager.params import ManagerParams
 from exolink.nodes.controller_manager.slots import UNPLANNED, Cycle, ManagerRefused
-from exolink.nodes.controller_manager.timed import Timed
 
-from exolink import logs
-from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus, open_reader
-from exolink.canbus.bcm import open_lease
+from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
 from exolink.config import ConfigError
 from exolink.control.arming import ArmingState
-from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, BoardState, State
-from exolink.limits.joints import POSITION
+from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, State
 from exolink.limits.maccepa import target
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
@@ -89,10 +84,6 @@ BEAT_S = 0.02
 # default deadline), not 50 times a second: each wake-up costs about a millisecond of the
 # board's CPU. It also judges the holder's keep-alive this often.
 IDLE_BEAT_S = 0.2
-# Reading back the timer's last frames after its op is deleted: a read this long that brings
-# none means the echo queue is empty (a frame's loopback is a softirq away, on the board's CAN
-# its transmit interrupt: ~0.1 ms at 1 Mbit/s).
-ECHO_S = 0.003
 WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
 # A planned set-point may reach the bus at most this long after the watchdog's first disable
 # frame (hung detection's own budget): lease_ms <= heartbeat deadline + this.
@@ -140,14 +131,7 @@ class ControllerManagerNode(Node):
                 f"{deadline} ms + {LEASE_PAST_TRIP_MS}: a hung manager's set-points would "
                 f"outlast the watchdog's disable by more than {LEASE_PAST_TRIP_MS} ms"
             )
-        self.timed: Timed | None = None  # planned set-points on a timer (timed.py)
-        self.timed_runs = 0
-        self.timed_version = -1
-        self.timed_beside = False  # the cycle loop runs beside the timer (see _time)
-        self.timed_refused = ""
-        self.timed_lapses = 0
-        self.timed_renewals = 0
-        self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
+        self.timer = TimerLoop(self, BEAT_S)  # planned set-points on a timer (on_timer.py)
         self.last_state: State | None = None  # the last cycle's: a plan's activation state
         for n, spec in enumerate(p.controllers):
             try:
@@ -171,8 +155,8 @@ class ControllerManagerNode(Node):
         self.opened = 0.0  # monotonic time the reader opened
         self.wake = threading.Event()  # a queued switch: open the reader now
         self.reader_opens = 0
+        self.view = BusView(self.board_ids, self.log)  # what it knows of the bus (bus_view.py)
         self._forget_state()
-        self.malformed: dict[str, int] = {}  # "<id> <reason>" -> count
         self.mc_written = 0
         self.mc_safe_sent = 0
         self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
@@ -214,22 +198,10 @@ class ControllerManagerNode(Node):
             "safe": self.safe_sent,
             "late_cycles": self.late_cycles,
             "cycles_per_update": self.params.cycles_per_update,
-            "timer": {  # planned set-points on the kernel's timer (timed.py)
-                "sending": self.timed is not None,
-                "runs": self.timed_runs,
-                "renewals": self.timed_renewals + (self.timed.renewals if self.timed else 0),
-                "lapses": self.timed_lapses,
-                "refused": self.timed_refused,
-                # slots computed through the manager, and the cycle replayed (0: none yet)
-                "computed": self.timed.computed if self.timed else 0,
-                "plan_cpu_ms": round(self.timed.plan_cpu_s * 1e3, 1) if self.timed else 0,
-                "repeating": self.timed.plan.period or 0
-                if self.timed and self.timed.plan.cycle_from is not None
-                else 0,
-            },
+            "timer": self.timer.status(),  # planned set-points on a timer (on_timer.py)
             "maccepa_written": self.mc_written,
             "maccepa_safe": self.mc_safe_sent,
-            "malformed": dict(self.malformed),
+            "malformed": dict(self.view.malformed),
             "reading": self.reader is not None,
             "reader_opens": self.reader_opens,
             "read_ids": self.read_ids,
@@ -269,7 +241,7 @@ class ControllerManagerNode(Node):
         later cycle writes them, then the frames, after the cycle in flight."""
         frames = [joint_frame(j + 1, mode, 0, 0) for j in sorted(joints)]
         with self.io_lock:
-            self._abort_timed()
+            self.timer.abort()
             self.manager.joints_disabled(joints, why)
             self._send(frames)
         self.maybe_tell()
@@ -279,7 +251,7 @@ class ControllerManagerNode(Node):
         """MACCEPA boards' "stop control" at a request, as ``stop_joints``."""
         frames = [maccepa.encode_stop(b) for b in sorted(boards)]
         with self.io_lock:
-            self._abort_timed()
+            self.timer.abort()
             self.manager.boards_stopped(boards, why)
             self._send(frames)
         self.maybe_tell()
@@ -288,7 +260,7 @@ class ControllerManagerNode(Node):
     def stop_all(self, why: str) -> None:
         """Every controller stopped, its joints and boards in the safe action."""
         with self.io_lock:
-            self._abort_timed()
+            self.timer.abort()
             self._safe(self.manager.stop_all(why))
         self.maybe_tell()
 
@@ -300,11 +272,11 @@ class ControllerManagerNode(Node):
         clock = self.clock
         while not stop.is_set():
             clock.start()
-            if self.timed is not None:
-                if not self.timed_beside:
-                    self._timed_wake()
+            if self.timer.sending:
+                if not self.timer.beside:
+                    self.timer.wake()
                     continue
-                self._keep_timed()  # a feedback controller beside it: the cycle loop runs too
+                self.timer.keep()  # a feedback controller beside it: the cycle loop runs too
             busy = self.reader is not None or self.manager.busy()
             # Idle (held to the appliance's default deadline) until a controller drives: the
             # reader's opening and an activation (hundreds of ms on the board: its stock
@@ -320,13 +292,13 @@ class ControllerManagerNode(Node):
                 continue
             if (
                 self.params.timer
-                and self.timed is None
+                and not self.timer.sending
                 and self.reader is not None
                 and self.last_state is not None
                 and self.manager.plannable()
             ):
-                self._time()  # after this iteration's beat: planning takes CPU
-                if self.timed is not None and not self.timed_beside:
+                self.timer.start()  # after this iteration's beat: planning takes CPU
+                if self.timer.sending and not self.timer.beside:
                     continue
             self._update_reads()
             if self.reader is None:
@@ -348,174 +320,6 @@ class ControllerManagerNode(Node):
             if not self.manager.busy():
                 self._close_reader()
             clock.mark("rest")
-
-    # --- planned set-points on a timer (timed.py) ------------------------------------------------
-
-    def _time(self) -> None:
-        """Every active controller is planned: from now their set-points go out on a timer,
-        planned a few slots ahead, and this loop wakes only to renew the lease."""
-        state, not_armed = self.last_state, self.not_armed()
-        if state is None or not_armed:
-            return
-        p, can_cfg = self.params, self.ctx.config.can
-        with self.io_lock:
-            joints = self.manager.position_joints()
-            if not joints or self.timed is not None:
-                return
-            ival_us = round(p.slot_ms * 1e3 / len(joints))  # the joints of a slot spread over it
-            lease_slots = p.lease_ms // p.slot_ms
-            ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
-            t0 = time.perf_counter()
-            try:
-                lease = open_lease(
-                    can_cfg.interface,
-                    can_cfg.channel,
-                    self.bus,
-                    h2.JOINT_CONTROL,
-                    ival_us / 1e6,
-                    ring,
-                )
-            except (CanOpenError, ValueError) as exc:  # the cycle loop goes on writing them
-                self.timed_refused = str(exc)
-                if logs.rarely(self.timed_runs + 1):
-                    self.log.error("timer_unavailable", error=str(exc))
-                return
-            opened = time.perf_counter()
-            self.echoed = {}
-            slot_s = ival_us * len(joints) / 1e6
-            timed = Timed(
-                lease,
-                joints,
-                slot_s,
-                lease_slots,
-                time.time(),
-                time.monotonic(),
-                joint_payload,
-                lambda: self.beat(False),
-                self.manager.repeats_slots(slot_s),
-            )
-            broke = timed.begin(self.manager, state, not_armed)  # beats after each slot
-            if broke is not None:
-                timed.abort()
-                self._send(self._safe_frames(broke))
-                return
-            self.timed, self.timed_version = timed, self.manager.version
-            # Feedback controllers beside the plan: the cycle loop runs too. Read once: any
-            # change of the controllers changes the version, which ends the timer first.
-            self.timed_beside = self.manager.unplanned()
-            self.timed_runs += 1
-            if self.reader is not None and self._one_socket() and not self.timed_beside:
-                # no angle frame wakes it now (with a feedback controller, every cycle does)
-                self.reader.set_ids([i for i in self.read_ids if i != h2.JOINT_ANGLES])
-        self.log.info(
-            "timer_started",
-            joints=[h2.JOINTS[j] for j in joints],
-            slot_ms=p.slot_ms,
-            open_ms=round((opened - t0) * 1e3, 2),
-            plan_ms=round((time.perf_counter() - opened) * 1e3, 2),
-            plan_cpu_ms=round(self.timed.plan_cpu_s * 1e3, 2) if self.timed else None,
-        )
-
-    def _timed_wake(self) -> None:
-        """One wake of the loop while the timer sends: anyone's disable read at once, the lease
-        renewed when due, then the heartbeat (after the renewal: the lease never outlives the
-        last beat by more than itself), the holder, arming. Anything else that changed (a switch
-        waiting, a controller stopped, the limits) hands the joints back to the cycle loop."""
-        reader, timed = self.reader, self.timed
-        assert reader is not None and timed is not None
-        try:
-            frames = reader.read(BEAT_S)
-        except (can.CanError, OSError) as exc:
-            self.log.error("bus_read_error", error=str(exc))
-            self._untime(orderly=False)
-            return
-        if frames:
-            self._stops(self._echoed(frames))
-        if self.timed is None:
-            return
-        # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
-        # beating after each): any beat after the last renewal keeps the lease's bound.
-        self.beat(False)
-        self._keep_timed()
-        self.beat(False)
-        self.api.check_presence()
-        self.maybe_tell()
-
-    def _keep_timed(self) -> None:
-        """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
-        a controller stopped, the limits) hands the joints back to the cycle loop first."""
-        timed = self.timed
-        if timed is None:
-            return
-        not_armed = self.not_armed()
-        if not_armed or self.manager.version != self.timed_version or not self.manager.plannable():
-            self._untime(orderly=not not_armed)
-            return
-        with self.io_lock:
-            if self.timed is None:
-                return
-            broke = timed.keep(self.manager, self.last_state, None, time.monotonic())  # type: ignore[arg-type]
-            if broke is not None:
-                self._abort_timed()
-                self._send(self._safe_frames(broke))
-        if timed.lapsed:
-            self.timed_lapses += 1
-            self.log.warning(
-                "timer_lease_lapsed",
-                renewals=timed.renewals,
-                renewal_gap_ms=round(timed.since_renewal_s * 1e3, 1),
-                lease_ms=self.params.lease_ms,
-            )
-            self._untime(orderly=True)
-
-    def _echoed(self, frames: list[Any]) -> list[tuple[Any, Any]]:
-        """Frames read while the timer sends, decoded: the timer's own set-points as the bus
-        carried them kept (each joint's last position: what the step limit goes on from when
-        the cycle loop takes the joints back). The caller acts on disables (``_stops``)."""
-        decoded = [(f, self._decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
-        for _f, d in decoded:
-            if isinstance(d, h2.JointControl) and d.mode == POSITION and 1 <= d.motor <= 6:
-                self.echoed[d.motor - 1] = d.setpoint
-        return decoded
-
-    def _abort_timed(self) -> None:
-        """Under ``io_lock``: the timer's op ends now (every stop and trip path)."""
-        if self.timed is not None:
-            self.timed.abort()
-            self._end_timed()
-
-    def _untime(self, orderly: bool) -> None:
-        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent,
-        read back from the bus once the op is deleted (the frames it sent before are then in
-        the reader's queue, or in the kernel's backlog for a moment: read until quiet)."""
-        with self.io_lock:
-            if self.timed is None:
-                return
-            if not orderly:
-                self.timed.abort()
-                self._end_timed()
-                return
-            joints = self.timed.plan.joints
-            back = self.timed.leave()
-            frames: list[Any] = []
-            if self.reader is not None:
-                with contextlib.suppress(can.CanError, OSError):
-                    while batch := self.reader.read(ECHO_S):
-                        frames += batch
-            decoded = self._echoed(frames)
-            # the bus is the truth where the kernel's count may be one frame short
-            back |= {j: self.echoed[j] for j in joints if j in self.echoed}
-            self.manager.written_back(back)
-            self._end_timed()
-        self._stops(decoded)
-
-    def _end_timed(self) -> None:
-        self.timed_renewals += self.timed.renewals if self.timed is not None else 0
-        self.timed = None
-        if self.reader is not None and self.reader.ids != frozenset(self.read_ids):
-            self.reader.set_ids(self.read_ids)
-        # the angle frames the loop did not read meanwhile are no silence, and no period
-        self.last_angle_ts, self.last_angle_mono = None, time.monotonic()
 
     def _not_due(self, stamp: float) -> bool:
         """With ``cycles_per_update`` > 1: this angle frame came too soon after the last
@@ -549,9 +353,9 @@ class ControllerManagerNode(Node):
             return
         self.read_ids = ids
         if "torque" not in reads:
-            self.torque = (0,) * 6
+            self.view.torque = (0,) * 6
         if "feet" not in reads:
-            self.feet = None
+            self.view.feet = None
         if self.reader is not None and self.reader.quiet_bus is None and not self._one_socket():
             self._close_reader(forget=False)  # the new ids must not wake it: reopened below
         elif self.reader is not None:
@@ -586,83 +390,39 @@ class ControllerManagerNode(Node):
         if forget:
             self._forget_state()
 
-    # the H2's latest readings (read_ids says which come: _forget_state sets them)
-    torque: tuple[int, ...]
-    feet: tuple[int, int, int, int] | None
     last_angle_ts: float | None  # the kernel stamp of the angle frame the last cycle ran on
 
     def _forget_state(self) -> None:
-        self.mstate: dict[int, BoardState] = {}  # the latest, replaced whole per frame
-        self.mview: dict[int, BoardState] = {}  # what cycles see: a copy taken when it changed
-        self.mchanged = False
-        self.torque = (0,) * 6
-        self.feet = None
+        self.view.forget()
         self.last_angle_ts = None
         self.last_angle_mono = time.monotonic()
         self.skipped = 0  # angle frames read since the last update and not run
 
     def _warm(self) -> bool:
         """A fresh reader has seen every configured board's positions (or waited WARM_S)."""
-        if time.monotonic() - self.opened >= WARM_S:
-            return True
-        return all((b := self.mstate.get(i)) and b.positions for i in self.board_ids)
-
-    def _decode(self, f: Any) -> Any:
-        """H2 first, then MACCEPA (ids 70/75/80/85 are both; the length tells): a frame neither
-        contract reads is counted by id and reason, never fatal."""
-        d = h2.decode(f)
-        if not isinstance(d, h2.Unknown):
-            return d
-        reason = d.reason
-        # Also without configured boards: id 70 is MACCEPA board 0's too (8 bytes), which is
-        # not a malformed H2 frame (there may be a hundred a second). Unconfigured
-        # boards' frames are then skipped (_board_state).
-        m = maccepa.decode(f)
-        if not isinstance(m, maccepa.Unknown):
-            return m
-        if self.board_ids and m.reason != "unknown id":  # a MACCEPA id: its contract's reason
-            reason = m.reason
-        key = f"{f.arbitration_id} {reason}"
-        n = self.malformed[key] = self.malformed.get(key, 0) + 1
-        if logs.rarely(n):
-            self.log.warning("malformed_frame", id=f.arbitration_id, reason=reason, count=n)
-        return d
+        return time.monotonic() - self.opened >= WARM_S or self.view.warm()
 
     def _stops(self, decoded: list[tuple[Any, Any]]) -> None:
         """Safety first: a disable/stop anywhere in the batch stops its joints' controllers
         before any set-point of this batch is computed (and a timer's, at once)."""
-        stopped = {
-            d.motor - 1
-            for _f, d in decoded
-            if isinstance(d, h2.JointControl) and d.mode in SAFE_MODES and 1 <= d.motor <= 6
-        }
+        stopped, halted = self.view.stops(decoded)
         if stopped:
             names = ", ".join(h2.JOINTS[j] for j in sorted(stopped))
             with self.io_lock:
-                self._abort_timed()
+                self.timer.abort()
                 self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
-        if self.board_ids:
-            halted = {
-                d.board
-                for _f, d in decoded
-                if isinstance(d, maccepa.Duty) and d.action == 0 and d.board in self.board_ids
-            }
-            if halted:
-                names = ", ".join(target(b) for b in sorted(halted))
-                self.manager.boards_stopped(halted, f"{names} stopped on the bus")
+        if halted:
+            names = ", ".join(target(b) for b in sorted(halted))
+            self.manager.boards_stopped(halted, f"{names} stopped on the bus")
 
     def _on_frames(self, frames: list[Any]) -> None:
-        decoded = [(f, self._decode(f)) for f in frames]
+        decoded = [(f, self.view.decode(f)) for f in frames]
         self._stops(decoded)
         newest = max(
             (i for i, (_f, d) in enumerate(decoded) if isinstance(d, h2.JointAngles)), default=-1
         )
         for i, (f, d) in enumerate(decoded):
-            if isinstance(d, h2.JointTorques):
-                self.torque = tuple(d)
-            elif isinstance(d, h2.FootSwitches):
-                self.feet = (d.r_heel, d.r_toe, d.l_heel, d.l_toe)
-            elif isinstance(d, h2.JointAngles):
+            if isinstance(d, h2.JointAngles):
                 if not self._warm():  # nothing is active while cold: activations wait
                     self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
                     self.manager.idle(self.not_armed())
@@ -677,29 +437,10 @@ class ControllerManagerNode(Node):
                 # an update every n cycles skips n - 1 by design; more were read late
                 self.late_cycles += max(0, self.skipped - self.params.cycles_per_update + 1)
                 self.skipped = 0
-                if self.mchanged:
-                    self.mview, self.mchanged = dict(self.mstate), False
-                self.last_state = State(tuple(d), self.torque, self.feet, self.mview)
+                self.last_state = self.view.state(d)
                 self._cycle(f.timestamp, self.last_state)
-            elif isinstance(d, maccepa.Sensors | maccepa.Positions | maccepa.Controller):
-                self._board_state(d, f.timestamp)
-
-    def _board_state(self, d: Any, stamp: float) -> None:
-        """A board's status frame: that board's state replaced whole (cycles hold immutable
-        ones), only for configured boards."""
-        b = d.board
-        if b not in self.board_ids:
-            return
-        old = self.mstate.get(b) or BoardState(b)
-        pos, sens, ctl = old.positions, old.sensors, old.controller
-        if isinstance(d, maccepa.Positions):
-            pos = (d.link, d.lever, d.extra_position, d.extra_sensor)
-        elif isinstance(d, maccepa.Sensors):
-            sens = (d.current, d.temperature, d.velocity, d.load)
-        else:
-            ctl = (d.setpoint, d.actuation, d.process_variable)
-        self.mstate[b] = BoardState(b, pos, sens, ctl, stamp)
-        self.mchanged = True
+            else:
+                self.view.take(d, f.timestamp)
 
     def _cycle(self, stamp: float, state: State) -> None:
         """One H2 cycle, for the newest angle frame of a read. A read that finds several (the
@@ -722,7 +463,7 @@ class ControllerManagerNode(Node):
 
     def _cycle_io(self, state: State, stamp: float, period: float) -> None:
         """The cycle's outputs and their frames, decided and sent under ``io_lock``."""
-        timed = self.timed is not None  # beside the timer: its controllers are planned there
+        timed = self.timer.sending  # beside the timer: its controllers are planned there
         out = self.manager.cycle(
             state,
             stamp,

@@ -1,0 +1,240 @@
+"""The controller manager's loop while its set-points go out on a timer (``timed``): the op
+started once every active controller is planned, the loop's wake while it sends (anyone's
+disable, the lease, the heartbeat, the holder), and the joints handed back to the cycle loop
+when anything changes (``leave``) or ended at once on every stop and trip path (``abort``).
+The node (``node.ControllerManagerNode``) owns one and calls it under its ``io_lock`` where
+the methods say so."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from typing import TYPE_CHECKING, Any
+
+import can
+from exolink.nodes.controller_manager.frames import joint_payload
+from exolink.nodes.controller_manager.timed import Timed
+
+from exolink import logs
+from exolink.canbus import CanOpenError
+from exolink.canbus.bcm import open_lease
+from exolink.limits.joints import POSITION
+from exolink.protocol import h2
+
+if TYPE_CHECKING:
+    from exolink.nodes.controller_manager.node import ControllerManagerNode
+
+# Reading back the timer's last frames after its op is deleted: a read this long that brings
+# none means the echo queue is empty (a frame's loopback is a softirq away, on the board's CAN
+# its transmit interrupt: ~0.1 ms at 1 Mbit/s).
+ECHO_S = 0.003
+
+
+class TimerLoop:
+    """The node's timer side: one ``Timed`` op at a time (``timed``: None while the cycle
+    loop writes), and its counters for the node's status."""
+
+    def __init__(self, node: ControllerManagerNode, beat_s: float) -> None:
+        self.node = node
+        self.beat_s = beat_s  # the loop's wake while the timer sends
+        self.timed: Timed | None = None
+        self.runs = 0
+        self.version = -1  # the manager's version the op was planned from
+        self.beside = False  # the cycle loop runs beside the timer (see ``start``)
+        self.refused = ""
+        self.lapses = 0
+        self.renewals = 0  # of the ops that ended
+        self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
+
+    @property
+    def sending(self) -> bool:
+        return self.timed is not None
+
+    def status(self) -> dict[str, Any]:
+        """The ``timer`` part of the node's status."""
+        timed = self.timed
+        return {
+            "sending": timed is not None,
+            "runs": self.runs,
+            "renewals": self.renewals + (timed.renewals if timed else 0),
+            "lapses": self.lapses,
+            "refused": self.refused,
+            # slots computed through the manager, and the cycle replayed (0: none yet)
+            "computed": timed.computed if timed else 0,
+            "plan_cpu_ms": round(timed.plan_cpu_s * 1e3, 1) if timed else 0,
+            "repeating": timed.plan.period or 0
+            if timed and timed.plan.cycle_from is not None
+            else 0,
+        }
+
+    def start(self) -> None:
+        """Every active controller is planned: from now their set-points go out on a timer,
+        planned a few slots ahead, and this loop wakes only to renew the lease."""
+        n = self.node
+        state, not_armed = n.last_state, n.not_armed()
+        if state is None or not_armed:
+            return
+        p, can_cfg = n.params, n.ctx.config.can
+        with n.io_lock:
+            joints = n.manager.position_joints()
+            if not joints or self.timed is not None:
+                return
+            ival_us = round(p.slot_ms * 1e3 / len(joints))  # the joints of a slot spread over it
+            lease_slots = p.lease_ms // p.slot_ms
+            ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
+            t0 = time.perf_counter()
+            try:
+                lease = open_lease(
+                    can_cfg.interface,
+                    can_cfg.channel,
+                    n.bus,
+                    h2.JOINT_CONTROL,
+                    ival_us / 1e6,
+                    ring,
+                )
+            except (CanOpenError, ValueError) as exc:  # the cycle loop goes on writing them
+                self.refused = str(exc)
+                if logs.rarely(self.runs + 1):
+                    n.log.error("timer_unavailable", error=str(exc))
+                return
+            opened = time.perf_counter()
+            self.echoed = {}
+            slot_s = ival_us * len(joints) / 1e6
+            timed = Timed(
+                lease,
+                joints,
+                slot_s,
+                lease_slots,
+                time.time(),
+                time.monotonic(),
+                joint_payload,
+                lambda: n.beat(False),
+                n.manager.repeats_slots(slot_s),
+            )
+            broke = timed.begin(n.manager, state, not_armed)  # beats after each slot
+            if broke is not None:
+                timed.abort()
+                n._send(n._safe_frames(broke))
+                return
+            self.timed, self.version = timed, n.manager.version
+            # Feedback controllers beside the plan: the cycle loop runs too. Read once: any
+            # change of the controllers changes the version, which ends the timer first.
+            self.beside = n.manager.unplanned()
+            self.runs += 1
+            if n.reader is not None and n._one_socket() and not self.beside:
+                # no angle frame wakes it now (with a feedback controller, every cycle does)
+                n.reader.set_ids([i for i in n.read_ids if i != h2.JOINT_ANGLES])
+        n.log.info(
+            "timer_started",
+            joints=[h2.JOINTS[j] for j in joints],
+            slot_ms=p.slot_ms,
+            open_ms=round((opened - t0) * 1e3, 2),
+            plan_ms=round((time.perf_counter() - opened) * 1e3, 2),
+            plan_cpu_ms=round(self.timed.plan_cpu_s * 1e3, 2) if self.timed else None,
+        )
+
+    def wake(self) -> None:
+        """One wake of the loop while the timer sends: anyone's disable read at once, the lease
+        renewed when due, then the heartbeat (after the renewal: the lease never outlives the
+        last beat by more than itself), the holder, arming. Anything else that changed (a switch
+        waiting, a controller stopped, the limits) hands the joints back to the cycle loop."""
+        n = self.node
+        reader, timed = n.reader, self.timed
+        assert reader is not None and timed is not None
+        try:
+            frames = reader.read(self.beat_s)
+        except (can.CanError, OSError) as exc:
+            n.log.error("bus_read_error", error=str(exc))
+            self.leave(orderly=False)
+            return
+        if frames:
+            n._stops(self._echoed(frames))
+        if self.timed is None:
+            return
+        # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
+        # beating after each): any beat after the last renewal keeps the lease's bound.
+        n.beat(False)
+        self.keep()
+        n.beat(False)
+        n.api.check_presence()
+        n.maybe_tell()
+
+    def keep(self) -> None:
+        """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
+        a controller stopped, the limits) hands the joints back to the cycle loop first."""
+        n = self.node
+        timed = self.timed
+        if timed is None:
+            return
+        not_armed = n.not_armed()
+        if not_armed or n.manager.version != self.version or not n.manager.plannable():
+            self.leave(orderly=not not_armed)
+            return
+        with n.io_lock:
+            if self.timed is None:
+                return
+            broke = timed.keep(n.manager, n.last_state, None, time.monotonic())  # type: ignore[arg-type]
+            if broke is not None:
+                self.abort()
+                n._send(n._safe_frames(broke))
+        if timed.lapsed:
+            self.lapses += 1
+            n.log.warning(
+                "timer_lease_lapsed",
+                renewals=timed.renewals,
+                renewal_gap_ms=round(timed.since_renewal_s * 1e3, 1),
+                lease_ms=n.params.lease_ms,
+            )
+            self.leave(orderly=True)
+
+    def _echoed(self, frames: list[Any]) -> list[tuple[Any, Any]]:
+        """Frames read while the timer sends, decoded: the timer's own set-points as the bus
+        carried them kept (each joint's last position: what the step limit goes on from when
+        the cycle loop takes the joints back). The caller acts on disables (``_stops``)."""
+        n = self.node
+        decoded = [(f, n.view.decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
+        for _f, d in decoded:
+            if isinstance(d, h2.JointControl) and d.mode == POSITION and 1 <= d.motor <= 6:
+                self.echoed[d.motor - 1] = d.setpoint
+        return decoded
+
+    def abort(self) -> None:
+        """Under ``io_lock``: the timer's op ends now (every stop and trip path)."""
+        if self.timed is not None:
+            self.timed.abort()
+            self._end()
+
+    def leave(self, orderly: bool) -> None:
+        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent,
+        read back from the bus once the op is deleted (the frames it sent before are then in
+        the reader's queue, or in the kernel's backlog for a moment: read until quiet)."""
+        n = self.node
+        with n.io_lock:
+            if self.timed is None:
+                return
+            if not orderly:
+                self.timed.abort()
+                self._end()
+                return
+            joints = self.timed.plan.joints
+            back = self.timed.leave()
+            frames: list[Any] = []
+            if n.reader is not None:
+                with contextlib.suppress(can.CanError, OSError):
+                    while batch := n.reader.read(ECHO_S):
+                        frames += batch
+            decoded = self._echoed(frames)
+            # the bus is the truth where the kernel's count may be one frame short
+            back |= {j: self.echoed[j] for j in joints if j in self.echoed}
+            n.manager.written_back(back)
+            self._end()
+        n._stops(decoded)
+
+    def _end(self) -> None:
+        n = self.node
+        self.renewals += self.timed.renewals if self.timed is not None else 0
+        self.timed = None
+        if n.reader is not None and n.reader.ids != frozenset(n.read_ids):
+            n.reader.set_ids(n.read_ids)
+        # the angle frames the loop did not read meanwhile are no silence, and no period
+        n.last_angle_ts, n.last_angle_mono = None, time.monotonic()
