@@ -9,7 +9,8 @@ from typing import Any
 
 import can
 import pytest
-from exolink.nodes.controller_manager.manager import MACCEPA_REFRESH_CYCLES, Manager
+from exolink.nodes.controller_manager.boards import MACCEPA_REFRESH_CYCLES
+from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.slots import ManagerRefused, Switch
 
 from benchmarks.harness import Appliance, collect, wait_for

@@ -4,7 +4,9 @@ the home of the operator's intent (limits in force, who holds motion).
 - ``node``: the node: reads the bus, runs the cycle, writes frames;
 - ``api``: its requests: controllers, the H2's and the MACCEPA boards' commands, presence;
 - ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O), with
-  ``slots`` (what it holds and hands out) and ``budget`` (an update judged: CPU, values);
+  ``slots`` (what it holds and hands out), ``budget`` (an update judged: CPU, values) and
+  ``boards`` (the MACCEPA boards' writes);
+- ``bus_view``: what the node knows of the bus (frames decoded, the latest readings, stops);
 - ``params``, ``frames``: the node's params; its frames, encoded once, and its reader's ids;
 - ``intent``: the operator's limits (persisted) and presence;
 - ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager),

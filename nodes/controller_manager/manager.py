@@ -7,7 +7,8 @@ MACCEPA board commands to write (``maccepa<N>/setpoint|duty|gains``, each inside
 Everything that changes what is active happens inside ``cycle`` (or ``stop_all`` /
 ``joints_disabled``) under one lock, so no cycle ever sees half a switch. What it holds and
 hands out (a loaded controller, a switch, a cycle's writes) is ``slots``; how an update is
-judged (its CPU against its budget, the values it returned) is ``budget``.
+judged (its CPU against its budget, the values it returned) is ``budget``; the boards' half of
+a cycle is ``boards``.
 """
 
 from __future__ import annotations
@@ -20,11 +21,11 @@ from typing import Any
 
 import msgspec
 import structlog
+from exolink.nodes.controller_manager.boards import BoardOutputs
 from exolink.nodes.controller_manager.budget import CPU_STEP_S, GC_CLOCK, check_values, overran
 from exolink.nodes.controller_manager.slots import (
     PLANNED,
     Cycle,
-    MaccepaWrite,
     ManagerRefused,
     Slot,
     Switch,
@@ -38,20 +39,12 @@ from exolink.control.controller import (
     State,
 )
 from exolink.limits.joints import POSITION, STIFFNESS, TORQUE, Limits
-from exolink.limits.maccepa import GAINS, BoardLimits, board_of
-from exolink.limits.maccepa import target as board_name
+from exolink.limits.maccepa import BoardLimits, board_of
 from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol.h2 import JOINTS, PERIOD_S
 from exolink.refusal import Refused
 
 log = structlog.get_logger()
-
-
-# An unchanged MACCEPA set-point or duty is re-sent every this many H2 cycles (100 ms), so a
-# frame lost on the bus is repaired soon; a changed one goes out in its own cycle. Every cycle
-# would be 100 frames/s per board for no news: one bus send per cycle doubled the manager's
-# overhead on this machine (benchmarks/bench_controllers.py).
-MACCEPA_REFRESH_CYCLES = 10
 
 
 class Manager:
@@ -63,18 +56,14 @@ class Manager:
         cycles_per_update: int = 1,
     ) -> None:
         self.limits = limits  # in force: the config's, narrowed by an operator (set_limits)
-        self.boards: dict[int, BoardLimits] = {b.board: b for b in boards or []}
-        self.last_sp: dict[int, float] = {}  # board -> last set-point written
-        self.gains_written: dict[int, tuple[float, float, float]] = {}  # board -> last gains
-        # board -> (kind, value) last written and cycles since, for the refresh above
-        self.drive_written: dict[int, tuple[str, float, int]] = {}
+        self.mc = BoardOutputs(boards or [], cycles_per_update)  # the boards' writes (boards.py)
+        self.boards = self.mc.limits
         # Rate limits are per 10 ms H2 cycle: an update every n cycles may move n steps (the
         # same speed limit); a held MACCEPA set-point is re-sent every ~100 ms either way.
         self.cycles_per_update = cycles_per_update
         self._steps = cycles_per_update  # of the update being composed (``cycle``)
         self.update_period_s = cycles_per_update * PERIOD_S
         self._period_s = self.update_period_s
-        self.refresh_cycles = max(1, round(MACCEPA_REFRESH_CYCLES / cycles_per_update))
         self.default_budget_s = budget_ms / 1e3
         self.lock = threading.Lock()
         self.slots: dict[str, Slot] = {}
@@ -248,14 +237,7 @@ class Manager:
             slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
             gaps = self.gaps
             over = list(self.overhead_s)
-            boards = {
-                board_name(b): {
-                    "controller": lim.controller,
-                    "setpoint": self.last_sp.get(b),
-                    "gains": list(self.gains_written[b]) if b in self.gains_written else None,
-                }
-                for b, lim in self.boards.items()
-            }
+            boards = self.mc.status()
         over.sort()
         return {
             "controllers": [s.status() for s in slots],
@@ -308,13 +290,7 @@ class Manager:
                 if c in owners:
                     raise ManagerRefused(f"cannot activate {n}: {c} is owned by {owners[c]}")
                 owners[c] = n
-        for b in self.boards:
-            sp, duty = owners.get(f"{board_name(b)}/setpoint"), owners.get(f"{board_name(b)}/duty")
-            if sp and duty:
-                raise ManagerRefused(
-                    f"cannot switch: {board_name(b)}/setpoint ({sp}) and {board_name(b)}/duty ({duty}) "
-                    f"would both drive MACCEPA board {b}"
-                )
+        self.mc.conflicts(owners)
         for j in JOINTS:
             t, p, s = (owners.get(f"{j}/{k}") for k in ("torque", "position", "stiffness"))
             if t and (p or s):
@@ -362,7 +338,7 @@ class Manager:
                     ) from None
                 written = list(self.last_pos)  # before the releases clear them
                 written_t = list(self.last_torque)
-                written_sp = dict(self.last_sp)
+                written_sp = dict(self.mc.last_sp)
                 for n in sw.deactivate:
                     self._release(self.slots[n], "")
                 for slot in started:
@@ -396,10 +372,7 @@ class Manager:
             target, _, kind = c.partition("/")
             b = board_of(target)
             if b is not None:
-                if kind == "setpoint":
-                    lever = state.board(b).lever  # type: ignore[union-attr]
-                    here = float(lever or 0) if self.boards[b].controller == "position" else 0.0
-                    self.last_sp[b] = written_sp.get(b, here)
+                self.mc.claim(b, kind, state, written_sp)
                 continue
             j = JOINTS.index(target)
             if kind == "position":
@@ -424,11 +397,7 @@ class Manager:
                 target, _, kind = c.partition("/")
                 b = board_of(target)
                 if b is not None:
-                    if kind in ("setpoint", "duty"):
-                        self.last_sp.pop(b, None)
-                        self.drive_written.pop(b, None)  # the next owner writes at once
-                    elif kind == "gains":
-                        self.gains_written.pop(b, None)  # the next owner writes all three
+                    self.mc.release(b, kind)
                     continue
                 if kind == "position":
                     self.last_pos[JOINTS.index(target)] = None
@@ -678,63 +647,7 @@ class Manager:
             self.slots[owner].written += 1
             out.writes.append(Write(j + 1, mode, sp2, st2))
         if self.boards and not (part is not None and part[1]):
-            self._compose_maccepa(out)
-
-    def _compose_maccepa(self, out: Cycle) -> None:
-        """Per owned board: the set-point (or duty) inside the board's range and step, written
-        when it changes and re-sent every ``refresh_cycles`` updates while it holds; gains only
-        when they change. A board whose value is not known yet gets no frame."""
-        owners, held = self.owners, self.held
-        for b, lim in self.boards.items():
-            if b in out.safe_boards:
-                continue
-            key = f"{board_name(b)}/"
-            g_owner = owners.get(key + "gains")
-            if g_owner is not None:
-                g = held.get(key + "gains")
-                if g is None:
-                    self.gains_written.pop(b, None)
-                else:
-                    new = tuple(lim.saturate_gain(x) for x in g)
-                    if new != tuple(g):
-                        self.slots[g_owner].limited += 1
-                    old = self.gains_written.get(b)
-                    for i, which in enumerate(GAINS):
-                        if old is None or old[i] != new[i]:
-                            out.maccepa.append(MaccepaWrite(b, which, new[i], lim.controller))
-                    self.gains_written[b] = new  # type: ignore[assignment]
-            sp_owner = owners.get(key + "setpoint")
-            if sp_owner is not None:
-                v = held.get(key + "setpoint")
-                if v is None:
-                    self.gaps += 1
-                    continue
-                sp = lim.saturate_setpoint(v, self.last_sp.get(b))
-                if sp != v:
-                    self.slots[sp_owner].limited += 1
-                if lim.violation("setpoint", sp) is not None:  # cannot happen: belt
-                    continue
-                self.last_sp[b] = sp
-                self._drive(out, b, "setpoint", sp, lim.controller)
-                continue
-            duty_owner = owners.get(key + "duty")
-            if duty_owner is not None:
-                v = held.get(key + "duty")
-                if v is None:
-                    self.gaps += 1
-                    continue
-                d = lim.saturate_duty(v)
-                if d != v:
-                    self.slots[duty_owner].limited += 1
-                self._drive(out, b, "duty", d, lim.controller)
-
-    def _drive(self, out: Cycle, board: int, kind: str, value: float, controller: str) -> None:
-        last = self.drive_written.get(board)
-        if last is not None and last[:2] == (kind, value) and last[2] + 1 < self.refresh_cycles:
-            self.drive_written[board] = (kind, value, last[2] + 1)
-            return
-        self.drive_written[board] = (kind, value, 0)
-        out.maccepa.append(MaccepaWrite(board, kind, value, controller))
+            self.gaps += self.mc.compose(out, owners, held, self.slots)
 
 
 # Each joint's command interfaces, formatted once: _compose looks them up for six joints each

@@ -138,7 +138,7 @@ class TimerLoop:
         renewed when due, then the heartbeat (after the renewal: the lease never outlives the
         last beat by more than itself), the holder, arming. Anything else that changed (a switch
         waiting, a controller stopped, the limits) hands the joints back to the cycle loop."""
-        n = self.node
+        n, clock = self.node, self.node.clock  # its phases: "timer <phase>" in loop_cpu
         reader, timed = n.reader, self.timed
         assert reader is not None and timed is not None
         try:
@@ -147,6 +147,7 @@ class TimerLoop:
             n.log.error("bus_read_error", error=str(exc))
             self.leave(orderly=False)
             return
+        clock.mark("timer read")  # the wait's wake-up and the sockets' drain
         if frames:
             n._stops(self._echoed(frames))
         if self.timed is None:
@@ -154,10 +155,13 @@ class TimerLoop:
         # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
         # beating after each): any beat after the last renewal keeps the lease's bound.
         n.beat(False)
+        clock.mark("timer beat")
         self.keep()
+        clock.mark("timer keep")  # the lease's renewal when due (every second wake)
         n.beat(False)
         n.api.check_presence()
         n.maybe_tell()
+        clock.mark("timer rest")
 
     def keep(self) -> None:
         """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
