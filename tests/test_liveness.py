@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import struct
+import time
 
 from exolink import liveness
 
@@ -113,3 +114,33 @@ def test_a_wakeup_ends_a_wait_from_another_thread_and_only_once() -> None:
     assert w.wait(0.01) is False
     w.close()
     w.set()  # after close: nothing, no error
+
+
+def test_the_deadline_timer_runs_out_early_never_late_and_is_reset_one_beat_in_two() -> None:
+    """Beats every 20 ms under a 50 ms deadline (the controller manager's): a beat whose timer
+    is still set 30 ms or more ahead leaves it (a system call saved), the next one sets it; an
+    end of idle (a shorter deadline) sets it at once. The timer is the kernel's own (timerfd):
+    whatever a beat leaves, it runs out no later than the newest beat's deadline."""
+    ch = liveness.Channel()
+    try:
+        beater = liveness.Beater(ch.child_fd, (ch.timer, 0.05, 0.5))
+        t0 = time.monotonic() + 10.0  # absolute times on the monotonic clock, in the future
+
+        def expires() -> float:
+            return time.monotonic() + liveness.TIMERS.remaining(ch.timer)
+
+        reset = []
+        for k in range(6):
+            t = t0 + 0.02 * k
+            before = expires() if k else None
+            beater.beat(t, idle=False)
+            now = expires()
+            assert now <= t + 0.05 + 0.002  # never later than this beat's deadline
+            reset.append(before is None or abs(now - before) > 0.005)
+        assert reset == [True, False, True, False, True, False]
+        beater.beat(t0 + 0.2, idle=True)  # idle: the longer deadline
+        assert abs(expires() - (t0 + 0.7)) < 0.005
+        beater.beat(t0 + 0.22, idle=False)  # driving again: its own deadline, at once
+        assert abs(expires() - (t0 + 0.27)) < 0.005
+    finally:
+        ch.close()

@@ -54,6 +54,7 @@ class Plan(Mapping[int, bytes]):
         self.positions: dict[int, tuple[int, ...]] = {}  # slot -> degrees
         self.slots = 0  # slots planned so far (replayed ones included)
         self.cycle_from: int | None = None  # the first slot of the replayed cycle
+        self._kept_from = 0  # no slot before this one is held (forget_before)
 
     def add(self, k: int, frames: list[bytes], positions: tuple[int, ...]) -> None:
         """Slot ``k`` (the next), planned through the manager."""
@@ -105,6 +106,9 @@ class Plan(Mapping[int, bytes]):
             slot = min(slot, self.cycle_from)
         elif self.period is not None:
             slot = min(slot, self.slots - self.period)
+        if slot <= self._kept_from:  # nothing older held: no walk over the whole cycle
+            return
+        self._kept_from = slot
         n = self.per_slot
         for i in [i for i in self.frames if i < slot * n]:
             del self.frames[i]
