@@ -1,7 +1,8 @@
 """Controller manager [thesis: the ros_control hardware interface]: the one writer of motion and
 the home of the operator's intent (limits in force, who holds motion).
 
-- ``node``: the node: reads the bus, runs the cycle, writes frames;
+- ``node``: the node: its bus, its loop's turns, the writes a request asks for; the loop's two
+  ways out are ``cycle_loop`` (read -> update -> write each H2 cycle) and ``on_timer``;
 - ``api``: its requests: controllers, the H2's and the MACCEPA boards' commands, presence;
 - ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O), with
   ``slots`` (what it holds and hands out), ``budget`` (an update judged: CPU, values) and
@@ -9,8 +10,7 @@ the home of the operator's intent (limits in force, who holds motion).
 - ``bus_view``: what the node knows of the bus (frames decoded, the latest readings, stops);
 - ``params``, ``frames``: the node's params; its frames, encoded once, and its reader's ids;
 - ``intent``: the operator's limits (persisted) and presence;
-- ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager),
-  and ``on_timer``: the node's loop while that timer sends;
+- ``timed``: a trajectory's set-points handed to the kernel's timer (the broadcast manager);
 - ``builtin``, ``maccepa``: the built-in controllers (joints; MACCEPA boards).
 """
 

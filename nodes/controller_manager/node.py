@@ -4,8 +4,8 @@ Two ways out for set-points. While every active controller is ``planned`` (the g
 trajectory), they are planned a few slots ahead and sent on a timer the loop only renews
 (``timed``: the kernel's broadcast manager on SocketCAN; the loop's side: ``on_timer``), and
 the loop wakes every ``BEAT_S`` for the heartbeat, the lease and anyone's disable. Otherwise
-(a feedback controller, a switch being applied) the cycle loop runs read -> update -> write
-once per H2 cycle, paced by the joint-angle frame (id 110).
+(a feedback controller, a switch being applied) the cycle loop (``cycle_loop``) runs read ->
+update -> write once per H2 cycle, paced by the joint-angle frame (id 110).
 
 The node reads the H2 frames itself (one FrameReader: angles, torques, foot switches, and joint
 control so it sees a disable from anyone), and the status frames of the MACCEPA boards in
@@ -40,7 +40,7 @@ Off the bus while idle: with no controller active and no switch queued the node 
 that frames reach (a send-only bus stays, for commands and safe actions): reading and decoding
 every H2 and MACCEPA frame for nothing was the board's largest cost. A queued switch
 opens the reader; activations wait until it is warm (every configured board's position frame
-seen, or ``WARM_S``) so a controller never starts from a stale or missing state, and the state
+seen, or ``cycle_loop.WARM_S``) so a controller never starts from a stale or missing state, and the state
 from before the reader closed (boards, torques, feet) is dropped with it.
 """
 
@@ -55,10 +55,9 @@ import can
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.budget import GC_CLOCK
 from exolink.nodes.controller_manager.bus_view import BusView
+from exolink.nodes.controller_manager.cycle_loop import CycleLoop
 from exolink.nodes.controller_manager.frames import (
-    EXTRA_IDS,
     READ_IDS,
-    board_frame,
     drop_rules,
     joint_frame,
     one_socket,
@@ -67,16 +66,16 @@ from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.on_timer import TimerLoop
 from exolink.nodes.controller_manager.params import ManagerParams
-from exolink.nodes.controller_manager.slots import UNPLANNED, Cycle, ManagerRefused
+from exolink.nodes.controller_manager.slots import Cycle, ManagerRefused
 
-from exolink.canbus import FrameReader, FrameWriter, open_bus, open_reader
+from exolink.canbus import FrameReader, FrameWriter, open_bus
 from exolink.config import ConfigError
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, State
 from exolink.limits.maccepa import target
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
-from exolink.protocol import ProtocolError, h2, maccepa
+from exolink.protocol import h2, maccepa
 from exolink.wire import cdr
 
 BEAT_S = 0.02
@@ -84,7 +83,6 @@ BEAT_S = 0.02
 # default deadline), not 50 times a second: each wake-up costs about a millisecond of the
 # board's CPU. It also judges the holder's keep-alive this often.
 IDLE_BEAT_S = 0.2
-WARM_S = 0.1  # a fresh reader's wait for the boards' position frames before activations apply
 # A planned set-point may reach the bus at most this long after the watchdog's first disable
 # frame (hung detection's own budget): lease_ms <= heartbeat deadline + this.
 LEASE_PAST_TRIP_MS = 60
@@ -120,7 +118,6 @@ class ControllerManagerNode(Node):
             list(p.maccepa),
             cycles_per_update=p.cycles_per_update,
         )
-        self.update_every_s = p.cycles_per_update * h2.PERIOD_S
         try:
             deadline = round(cfg.deadline_s(cfg.node(self.name)) * 1000)
         except ConfigError:  # run outside a config's node list (tests)
@@ -132,6 +129,7 @@ class ControllerManagerNode(Node):
                 f"outlast the watchdog's disable by more than {LEASE_PAST_TRIP_MS} ms"
             )
         self.timer = TimerLoop(self, BEAT_S)  # planned set-points on a timer (on_timer.py)
+        self.cycle = CycleLoop(self, BEAT_S)  # read -> update -> write each cycle (cycle_loop.py)
         self.last_state: State | None = None  # the last cycle's: a plan's activation state
         for n, spec in enumerate(p.controllers):
             try:
@@ -144,8 +142,9 @@ class ControllerManagerNode(Node):
         mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
         self.base_ids = frozenset({*READ_IDS, *mc_ids})
         self.drops = drop_rules(self.board_ids, mc_ids)
-        self.read_ids = sorted(self.base_ids)  # the loaded controllers' extras: _update_reads
-        self._reads_version = -1
+        self.read_ids = sorted(
+            self.base_ids
+        )  # the loaded controllers' extras: CycleLoop.update_reads
         self.bus = self.own(open_bus(cfg.can, filters=[]))  # sends, reader closed
         self.writer = FrameWriter(self.bus, cfg.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued
@@ -163,7 +162,6 @@ class ControllerManagerNode(Node):
         self.written = 0
         self.safe_sent = 0
         self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
-        self._controller_s = 0.0  # the last cycle's time inside controllers' update
         # Where the loop's CPU goes, by phase (status: loop_cpu). One cycle in 32: a sampled
         # one reads the thread's CPU clock 7 times, each a system call; at 100 cycles/s that
         # is still ~190 samples a minute.
@@ -268,7 +266,6 @@ class ControllerManagerNode(Node):
         return self.arming.check() if self.arming is not None else None
 
     def run(self, stop: threading.Event) -> None:
-        timeout = self.params.h2_timeout_ms / 1e3
         clock = self.clock
         while not stop.is_set():
             clock.start()
@@ -300,89 +297,15 @@ class ControllerManagerNode(Node):
                 self.timer.start()  # after this iteration's beat: planning takes CPU
                 if self.timer.sending and not self.timer.beside:
                     continue
-            self._update_reads()
-            if self.reader is None:
-                self._open_reader()
-            self._until_due()
-            try:
-                frames = self.reader.read(BEAT_S)  # type: ignore[union-attr]
-            except (can.CanError, OSError) as exc:
-                self.log.error("bus_read_error", error=str(exc))
-                self._silent("CAN read error: " + str(exc))
-                stop.wait(BEAT_S)
-                continue
-            clock.mark("read")
-            self._on_frames(frames)
-            clock.mark("frames")
-            if time.monotonic() - self.last_angle_mono > timeout:
-                self._silent(f"no H2 joint angles for {self.params.h2_timeout_ms} ms")
-                self.manager.idle(self.not_armed())
-            if not self.manager.busy():
-                self._close_reader()
-            clock.mark("rest")
-
-    def _not_due(self, stamp: float) -> bool:
-        """With ``cycles_per_update`` > 1: this angle frame came too soon after the last
-        update's (by the frames' own kernel stamps; a clock stepped back makes it due)."""
-        last = self.last_angle_ts
-        n = self.params.cycles_per_update
-        return n > 1 and last is not None and 0 <= stamp - last < (n - 0.5) * h2.PERIOD_S
-
-    def _until_due(self) -> None:
-        """With ``cycles_per_update`` > 1: sleep until the frame of the next update is due
-        (queued a quarter period ago), instead of waking for the angle frames in between: on
-        the board a wake-up costs more than the frames it brings. Frames that come meanwhile
-        (a disable from anyone) are read before that update's set-points are computed."""
-        last = self.last_angle_ts  # the last update's frame (or a cold reader's last)
-        if self.params.cycles_per_update > 1 and last is not None:
-            wait = last + self.update_every_s + h2.PERIOD_S / 4 - time.time()
-            if wait > 0:  # never longer than one update (a wall clock stepped back); a plain
-                # sleep: an Event's timed wait makes a lock and a condition per call
-                time.sleep(min(wait, self.update_every_s + h2.PERIOD_S / 4))
-
-    def _update_reads(self) -> None:
-        """The frames to read for the loaded controllers (``Controller.reads``), applied to an
-        open reader's kernel filter at once; a kind no longer read is forgotten, so a later
-        reader of it never sees an old value. Between a load and its first frame (one cycle)
-        a new reader of torque sees zeros, as every controller does after the reader opens."""
-        if self.manager.version == self._reads_version:  # an int read: no lock per cycle
-            return
-        self._reads_version, reads = self.manager.reads()
-        ids = sorted(self.base_ids | {EXTRA_IDS[k] for k in reads if k in EXTRA_IDS})
-        if ids == self.read_ids:
-            return
-        self.read_ids = ids
-        if "torque" not in reads:
-            self.view.torque = (0,) * 6
-        if "feet" not in reads:
-            self.view.feet = None
-        if self.reader is not None and self.reader.quiet_bus is None and not self._one_socket():
-            self._close_reader(forget=False)  # the new ids must not wake it: reopened below
-        elif self.reader is not None:
-            self.reader.set_ids(ids)
-        self.log.info("read_ids", ids=ids)
+            self.cycle.step(stop)
 
     def _one_socket(self) -> bool:
         return one_socket(self.ctx.config.can.interface, self.read_ids, self.board_ids)
 
-    def _open_reader(self) -> None:
-        # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
-        # (torques, feet, the boards') are read with the next one, in arrival order and before
-        # that cycle's set-points: one wake-up per cycle, not 4-6. Anyone's disable or stop
-        # alone is rare: then one socket (_one_socket).
-        self.reader = open_reader(
-            self.ctx.config.can,
-            self.read_ids,
-            wake_on=None if self._one_socket() else [h2.JOINT_ANGLES],
-            drop=self.drops,
-        )
-        self.opened = self.last_angle_mono = time.monotonic()
-        self.reader_opens += 1
-
     def _close_reader(self, forget: bool = True) -> None:
         """Idle: frames no longer reach this process, and what it knew of the bus is dropped
         (a controller activated later starts from fresh frames). ``forget=False``: reopened at
-        once with other sockets (``_update_reads``), the state stands."""
+        once with other sockets (``CycleLoop.update_reads``), the state stands."""
         with self.io_lock:  # a request's send may be using its socket
             reader, self.reader = self.reader, None
             if reader is not None:
@@ -398,10 +321,6 @@ class ControllerManagerNode(Node):
         self.last_angle_mono = time.monotonic()
         self.skipped = 0  # angle frames read since the last update and not run
 
-    def _warm(self) -> bool:
-        """A fresh reader has seen every configured board's positions (or waited WARM_S)."""
-        return time.monotonic() - self.opened >= WARM_S or self.view.warm()
-
     def _stops(self, decoded: list[tuple[Any, Any]]) -> None:
         """Safety first: a disable/stop anywhere in the batch stops its joints' controllers
         before any set-point of this batch is computed (and a timer's, at once)."""
@@ -414,81 +333,6 @@ class ControllerManagerNode(Node):
         if halted:
             names = ", ".join(target(b) for b in sorted(halted))
             self.manager.boards_stopped(halted, f"{names} stopped on the bus")
-
-    def _on_frames(self, frames: list[Any]) -> None:
-        decoded = [(f, self.view.decode(f)) for f in frames]
-        self._stops(decoded)
-        newest = max(
-            (i for i, (_f, d) in enumerate(decoded) if isinstance(d, h2.JointAngles)), default=-1
-        )
-        for i, (f, d) in enumerate(decoded):
-            if isinstance(d, h2.JointAngles):
-                if not self._warm():  # nothing is active while cold: activations wait
-                    self.last_angle_ts, self.last_angle_mono = f.timestamp, time.monotonic()
-                    self.manager.idle(self.not_armed())
-                    continue
-                if i != newest:  # read late, a newer cycle behind it: see _cycle
-                    self.skipped += 1
-                    continue
-                if self._not_due(f.timestamp):
-                    self.skipped += 1
-                    self.last_angle_mono = time.monotonic()  # the H2 is not silent
-                    continue
-                # an update every n cycles skips n - 1 by design; more were read late
-                self.late_cycles += max(0, self.skipped - self.params.cycles_per_update + 1)
-                self.skipped = 0
-                self.last_state = self.view.state(d)
-                self._cycle(f.timestamp, self.last_state)
-            else:
-                self.view.take(d, f.timestamp)
-
-    def _cycle(self, stamp: float, state: State) -> None:
-        """One H2 cycle, for the newest angle frame of a read. A read that finds several (the
-        loop ran late: a starved manager may read twenty cycles at once) runs only the last
-        and counts the others in ``late_cycles``: replaying them wrote their set-points back to
-        back, each a step limit from the one before, so a joint's set-point could move 22 steps
-        within a millisecond. The controllers get the measured period since the last cycle run."""
-        t0 = time.perf_counter()
-        period = stamp - self.last_angle_ts if self.last_angle_ts is not None else h2.PERIOD_S
-        self.last_angle_ts = stamp
-        self.clock.mark("frames")  # the batch's decoding up to this cycle
-        with self.io_lock:
-            self._cycle_io(state, stamp, period)
-        self.clock.mark("send")
-        # The H2-silence clock restarts when the cycle ends, not when it began: a cycle that
-        # took long (an activation on the board: hundreds of ms) is the manager's lateness, and
-        # the angle frames queued meanwhile are read next, before silence is judged.
-        self.last_angle_mono = time.monotonic()
-        self.manager.overhead_s.append(time.perf_counter() - t0 - self._controller_s)
-
-    def _cycle_io(self, state: State, stamp: float, period: float) -> None:
-        """The cycle's outputs and their frames, decided and sent under ``io_lock``."""
-        timed = self.timer.sending  # beside the timer: its controllers are planned there
-        out = self.manager.cycle(
-            state,
-            stamp,
-            period,
-            self.not_armed(),
-            switches=not timed,
-            part=UNPLANNED if timed else None,
-        )
-        self._controller_s = out.controller_s
-        self.clock.mark("cycle")
-        frames = self._safe_frames(out)  # safe actions first, in the cycle's one send
-        for w in out.writes:
-            frames.append(joint_frame(w.motor, w.mode, w.setpoint, w.stiffness))
-            self.written += 1
-        for m in out.maccepa:
-            try:
-                frame = board_frame(m.board, m.kind, m.value, m.controller)
-            except ProtocolError as exc:  # cannot happen after the limits: belt
-                self.log.error("maccepa_encode_refused", write=str(m), error=str(exc))
-                continue
-            frames.append(frame)
-            self.mc_written += 1
-        if out.writes or out.maccepa:
-            self.beat(False)  # driving from this cycle on: its own deadline, before it drives
-        self._send(frames)
 
     def _safe(self, out: Cycle) -> None:
         """The safe action of the joints and boards ``out`` names, sent now."""
