@@ -5,6 +5,7 @@ the home of the operator's intent (limits in force, who holds motion).
   ways out are ``cycle_loop`` (read -> update -> write each H2 cycle) and ``on_timer``;
 - ``api``: its requests: controllers, the H2's and the MACCEPA boards' commands, presence;
 - ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O), with
+  ``loaded`` (loading and describing them), ``switching`` (switches at a cycle boundary),
   ``slots`` (what it holds and hands out), ``budget`` (an update judged: CPU, values) and
   ``boards`` (the MACCEPA boards' writes);
 - ``bus_view``: what the node knows of the bus (frames decoded, the latest readings, stops);

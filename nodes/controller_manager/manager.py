@@ -8,7 +8,9 @@ Everything that changes what is active happens inside ``cycle`` (or ``stop_all``
 ``joints_disabled``) under one lock, so no cycle ever sees half a switch. What it holds and
 hands out (a loaded controller, a switch, a cycle's writes) is ``slots``; how an update is
 judged (its CPU against its budget, the values it returned) is ``budget``; the boards' half of
-a cycle is ``boards``.
+a cycle is ``boards``. A ``Manager`` is also ``Loaded`` (loading, unloading, describing its
+controllers: ``loaded``) and ``Switching`` (switches checked, queued and applied: ``switching``);
+this module is its cycle.
 """
 
 from __future__ import annotations
@@ -19,35 +21,31 @@ import time
 from collections import deque
 from typing import Any
 
-import msgspec
 import structlog
 from exolink.nodes.controller_manager.boards import BoardOutputs
 from exolink.nodes.controller_manager.budget import CPU_STEP_S, GC_CLOCK, check_values, overran
+from exolink.nodes.controller_manager.loaded import Loaded
 from exolink.nodes.controller_manager.slots import (
     PLANNED,
     Cycle,
-    ManagerRefused,
     Slot,
     Switch,
     Write,
-    check_claims,
 )
+from exolink.nodes.controller_manager.switching import Switching
 
 from exolink.control.controller import (
-    Controller,
     SafeStop,
     State,
 )
 from exolink.limits.joints import POSITION, STIFFNESS, TORQUE, Limits
-from exolink.limits.maccepa import BoardLimits, board_of
-from exolink.plugins import PluginError, find_controller_class
+from exolink.limits.maccepa import BoardLimits
 from exolink.protocol.h2 import JOINTS, PERIOD_S
-from exolink.refusal import Refused
 
 log = structlog.get_logger()
 
 
-class Manager:
+class Manager(Loaded, Switching):
     def __init__(
         self,
         limits: Limits,
@@ -82,327 +80,6 @@ class Manager:
         with self.lock:
             self.limits = limits
             self.version += 1
-
-    # --- loading ----------------------------------------------------------------------------
-
-    def load(
-        self, name: str, kind: str, params: dict[str, Any] | None, budget_ms: float | None = None
-    ) -> dict[str, Any]:
-        """Import, validate params, configure: the controller is then inactive. Every error
-        refuses the load and names the controller and what is wrong."""
-        slot = self.prepare(name, kind, params, budget_ms)
-        self.add(slot)
-        return slot.status()
-
-    def prepare(
-        self,
-        name: str,
-        kind: str,
-        params: dict[str, Any] | None,
-        budget_ms: float | None = None,
-        replacing: bool = False,
-    ) -> Slot:
-        """A configured controller, not loaded yet (``add``): so a replacement is checked
-        before the one it replaces is touched."""
-        if not name or not isinstance(name, str) or "/" in name:
-            raise ManagerRefused(f"controller name {name!r}: give a plain name")
-        with self.lock:
-            if name in self.slots and not replacing:
-                raise ManagerRefused(f"a controller named {name} is already loaded")
-        try:
-            cls = find_controller_class(kind)
-        except PluginError as exc:
-            raise ManagerRefused(str(exc)) from None
-        try:
-            p = msgspec.convert(params or {}, cls.Params)  # type: ignore[attr-defined]
-        except msgspec.ValidationError as exc:
-            raise ManagerRefused(f"controller {name} ({kind}) params: {exc}") from None
-        if budget_ms is not None and not (
-            isinstance(budget_ms, int | float) and 0 < budget_ms <= 1000
-        ):
-            raise ManagerRefused(f"controller {name}: budget_ms must be in (0, 1000]")
-        ctrl: Controller = cls(name, p)
-        ctrl.boards = dict(self.boards)
-        ctrl.limits = self.limits  # a controller that knows its plan checks it whole
-        try:
-            ctrl.configure()
-            claims = check_claims(name, ctrl.claims(), self.boards)
-        except (Refused, ValueError) as exc:
-            raise ManagerRefused(f"controller {name} ({kind}): {exc}") from None
-        budget = budget_ms / 1e3 if budget_ms is not None else self.default_budget_s
-        return Slot(name, kind, ctrl, claims, budget)
-
-    def add(self, slot: Slot, replace: bool = False) -> Slot | None:
-        """Load a prepared controller, inactive; ``replace``: in place of an inactive one of
-        that name, which is returned (for ``put_back``)."""
-        with self.lock:
-            old = self.slots.get(slot.name)
-            if old is not None and not replace:
-                raise ManagerRefused(f"a controller named {slot.name} is already loaded")
-            if old is not None and old.state == "active":
-                raise ManagerRefused(f"{slot.name} is active: deactivate it first")
-            self.slots[slot.name] = slot
-            self.version += 1
-        log.info(
-            "controller_loaded", controller=slot.name, type=slot.kind, claims=list(slot.claims)
-        )
-        return old
-
-    def put_back(self, slot: Slot, old: Slot | None) -> None:
-        """Undo ``add`` of an inactive ``slot`` (its activation was refused): the one it
-        replaced comes back, inactive, or nothing of that name."""
-        with self.lock:
-            if self.slots.get(slot.name) is not slot or slot.state == "active":
-                return  # changed meanwhile by another request: that one stands
-            if old is None:
-                del self.slots[slot.name]
-            else:
-                self.slots[slot.name] = old
-            self.version += 1
-
-    def unload(self, name: str) -> None:
-        with self.lock:
-            slot = self._slot(name)
-            if slot.state == "active":
-                raise ManagerRefused(f"{name} is active: deactivate it first")
-            del self.slots[name]
-            self.version += 1
-        log.info("controller_unloaded", controller=name)
-
-    def _slot(self, name: str) -> Slot:
-        slot = self.slots.get(name)
-        if slot is None:
-            names = ", ".join(self.slots) or "none loaded"
-            raise ManagerRefused(f"no controller {name!r} (loaded: {names})")
-        return slot
-
-    def names(self) -> list[str]:
-        with self.lock:
-            return list(self.slots)
-
-    def superseded(self, names: list[str], prefix: str) -> list[str]:
-        """The active controllers named ``prefix...`` (the operator's one-off holds) that own a
-        joint or board one of ``names`` claims."""
-        with self.lock:
-            wanted = set()
-            for n in names:
-                slot = self._slot(n)
-                wanted |= {c.split("/")[0] for c in slot.claims}
-            return sorted(
-                {
-                    owner
-                    for c, owner in self.owners.items()
-                    if owner.startswith(prefix) and owner not in names and c.split("/")[0] in wanted
-                }
-            )
-
-    def owners_of(self, joint: str) -> dict[str, str]:
-        """The interfaces of ``joint`` (or of a board, ``maccepa0``) that an active controller
-        owns, and who owns them."""
-        with self.lock:
-            return {k: v for k, v in self.owners.items() if k.split("/")[0] == joint}
-
-    def command(self, name: str, request: dict[str, Any]) -> dict[str, Any]:
-        with self.lock:
-            slot = self._slot(name)
-        return slot.ctrl.command(request)  # a controller's Refused is the caller's
-
-    def state_of(self, name: str) -> dict[str, Any]:
-        """One controller's state and why it stopped: what a node that follows a controller
-        (the pattern player) asks several times a second. ``status`` sorts the overhead window
-        and describes every controller, a millisecond of the manager's GIL its loop waited on."""
-        with self.lock:
-            slot = self.slots.get(name)
-            if slot is None:
-                return {"name": name, "state": None, "error": f"no controller {name!r}"}
-            return {"name": name, "state": slot.state, "error": slot.error, "written": slot.written}
-
-    def reads(self) -> tuple[int, frozenset[str]]:
-        """(version, what of State beyond positions the loaded controllers read): the node
-        reads torque and foot-switch frames only for those (``Controller.reads``)."""
-        with self.lock:
-            out: frozenset[str] = frozenset()
-            for slot in self.slots.values():
-                out |= type(slot.ctrl).reads
-            return self.version, out
-
-    def activity(self) -> tuple[int, list[tuple[str, str, str, str]]]:
-        """(version, (name, type, state, error) per controller): what followers are told on
-        every change, so they need not ask several times a second."""
-        with self.lock:
-            return self.version, [(s.name, s.kind, s.state, s.error) for s in self.slots.values()]
-
-    def status(self) -> dict[str, Any]:
-        with self.lock:  # copies only: the loop waits on this lock, so no work inside it
-            slots, owners, cycles = list(self.slots.values()), dict(self.owners), self.cycles
-            gaps = self.gaps
-            over = list(self.overhead_s)
-            boards = self.mc.status()
-        over.sort()
-        return {
-            "controllers": [s.status() for s in slots],
-            "owners": owners,
-            "maccepa": boards,
-            "cycles": cycles,
-            "gaps": gaps,
-            "overhead_us": {
-                "n": len(over),
-                "p50": round(over[len(over) // 2] * 1e6, 1) if over else None,
-                "p99": round(over[int(len(over) * 0.99)] * 1e6, 1) if over else None,
-                "max": round(over[-1] * 1e6, 1) if over else None,
-            },
-        }
-
-    # --- switching --------------------------------------------------------------------------
-
-    def request(self, switch: Switch) -> None:
-        """Check what can be checked now (names, states) and queue for the next boundary."""
-        with self.lock:
-            self._precheck(switch)
-            self.pending.append(switch)
-
-    def withdraw(self, switch: Switch) -> bool:
-        """Take back a switch no cycle applied; False when one did meanwhile."""
-        with self.lock:
-            if switch in self.pending:
-                self.pending.remove(switch)
-                return True
-            return False
-
-    def _precheck(self, sw: Switch) -> None:
-        if not sw.activate and not sw.deactivate:
-            raise ManagerRefused("nothing to switch: name controllers to activate or deactivate")
-        if set(sw.activate) & set(sw.deactivate):
-            raise ManagerRefused("a controller cannot be activated and deactivated at once")
-        for n in sw.deactivate:
-            if self._slot(n).state != "active":
-                raise ManagerRefused(f"{n} is not active")
-        for n in sw.activate:
-            if self._slot(n).state == "active":
-                raise ManagerRefused(f"{n} is already active")
-        self._conflicts(sw)
-
-    def _conflicts(self, sw: Switch) -> None:
-        """The claims after the switch: one owner per interface, one mode per joint."""
-        owners = {i: o for i, o in self.owners.items() if o not in sw.deactivate}
-        for n in sw.activate:
-            for c in self.slots[n].claims:
-                if c in owners:
-                    raise ManagerRefused(f"cannot activate {n}: {c} is owned by {owners[c]}")
-                owners[c] = n
-        self.mc.conflicts(owners)
-        for j in JOINTS:
-            t, p, s = (owners.get(f"{j}/{k}") for k in ("torque", "position", "stiffness"))
-            if t and (p or s):
-                raise ManagerRefused(
-                    f"cannot switch: {j}/torque ({t}) and {j}/{'position' if p else 'stiffness'} "
-                    f"({p or s}) would both drive {j}"
-                )
-            if s and not p:
-                raise ManagerRefused(
-                    f"cannot switch: {j}/stiffness ({s}) needs {j}/position claimed too "
-                    "(stiffness mode carries a position set-point)"
-                )
-
-    def _apply(self, state: State | None, not_armed: str | None) -> None:
-        """Pending switches, at this boundary. Without a state (no H2 cycle) only switches that
-        just deactivate apply: activating needs where the joints are."""
-        keep: list[Switch] = []
-        for sw in self.pending:
-            if sw.activate and state is None:
-                keep.append(sw)
-                continue
-            try:
-                self._precheck(sw)
-                if sw.activate and not_armed:
-                    raise ManagerRefused(not_armed)
-                for n in sw.activate:
-                    for b in sorted(self.slots[n].boards()):
-                        got = state.board(b)  # type: ignore[union-attr]
-                        if got is None or got.positions is None:
-                            raise ManagerRefused(
-                                f"cannot activate {n}: no position frame from MACCEPA board {b} "
-                                "yet (is it powered and on the bus?)"
-                            )
-                started: list[Slot] = []
-                try:
-                    for n in sw.activate:
-                        slot = self.slots[n]
-                        slot.ctrl.activate(state)  # type: ignore[arg-type]
-                        started.append(slot)
-                except Exception as exc:
-                    for slot in started:
-                        self._safe_deactivate(slot)
-                    raise ManagerRefused(
-                        f"{n} refused to activate: {type(exc).__name__}: {exc}"
-                    ) from None
-                written = list(self.last_pos)  # before the releases clear them
-                written_t = list(self.last_torque)
-                written_sp = dict(self.mc.last_sp)
-                for n in sw.deactivate:
-                    self._release(self.slots[n], "")
-                for slot in started:
-                    self._claim(slot, state, written, written_sp, written_t)  # type: ignore[arg-type]
-            except ManagerRefused as exc:
-                sw.error = str(exc)
-            sw.done.set()
-            log.info(
-                "controllers_switched" if sw.error is None else "switch_refused",
-                activate=sw.activate,
-                deactivate=sw.deactivate,
-                error=sw.error,
-            )
-        self.pending = keep
-
-    def _claim(
-        self,
-        slot: Slot,
-        state: State,
-        written: list[int | None],
-        written_sp: dict[int, float],
-        written_t: list[int | None],
-    ) -> None:
-        """The step limit of a joint (or a MACCEPA set-point) handed over in this switch
-        continues from what its previous owner last wrote; one nobody was writing starts from
-        where it is (a board's lever; 0 for a velocity controller; a torque from 0)."""
-        slot.state, slot.error = "active", ""
-        self.version += 1
-        for c in slot.claims:
-            self.owners[c] = slot.name
-            target, _, kind = c.partition("/")
-            b = board_of(target)
-            if b is not None:
-                self.mc.claim(b, kind, state, written_sp)
-                continue
-            j = JOINTS.index(target)
-            if kind == "position":
-                self.last_pos[j] = written[j] if written[j] is not None else state.position[j]
-            elif kind == "torque":
-                self.last_torque[j] = written_t[j]
-
-    def _safe_deactivate(self, slot: Slot) -> None:
-        try:
-            slot.ctrl.deactivate()
-        except Exception as exc:  # a broken deactivate must not keep claims
-            log.error("controller_deactivate_failed", controller=slot.name, error=str(exc))
-
-    def _release(self, slot: Slot, error: str) -> None:
-        self._safe_deactivate(slot)
-        slot.state, slot.error = "inactive", error
-        self.version += 1
-        for c in slot.claims:
-            if self.owners.get(c) == slot.name:
-                del self.owners[c]
-                self.held.pop(c, None)
-                target, _, kind = c.partition("/")
-                b = board_of(target)
-                if b is not None:
-                    self.mc.release(b, kind)
-                    continue
-                if kind == "position":
-                    self.last_pos[JOINTS.index(target)] = None
-                elif kind == "torque":
-                    self.last_torque[JOINTS.index(target)] = None
 
     # --- the loop ---------------------------------------------------------------------------
 
