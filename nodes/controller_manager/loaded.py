@@ -5,14 +5,13 @@ described for requests and for the followers (``activity``) that are told of eve
 
 from __future__ import annotations
 
-import threading
 from collections import deque
 from typing import Any
 
 import msgspec
 import structlog
 from exolink.nodes.controller_manager.boards import BoardOutputs
-from exolink.nodes.controller_manager.slots import ManagerRefused, Slot, check_claims
+from exolink.nodes.controller_manager.slots import Held, ManagerRefused, Slot, check_claims
 
 from exolink.control.controller import Controller
 from exolink.limits.joints import Limits
@@ -23,12 +22,7 @@ from exolink.refusal import Refused
 log = structlog.get_logger()
 
 
-class Loaded:
-    # The manager's state these methods share (set in ``Manager.__init__``).
-    lock: threading.Lock
-    slots: dict[str, Slot]
-    owners: dict[str, str]
-    version: int
+class Loaded(Held):
     limits: Limits
     boards: dict[int, BoardLimits]
     mc: BoardOutputs

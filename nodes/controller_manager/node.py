@@ -38,9 +38,9 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
 
 Off the bus while idle: with no controller active and no switch queued the node holds no socket
 that frames reach (a send-only bus stays, for commands and safe actions): reading and decoding
-every H2 and MACCEPA frame for nothing was the board's largest cost. A queued switch
-opens the reader; activations wait until it is warm (every configured board's position frame
-seen, or ``cycle_loop.WARM_S``) so a controller never starts from a stale or missing state, and the state
+every H2 and MACCEPA frame for nothing was the board's largest cost. A queued switch opens the
+reader; activations wait until it is warm (every configured board's position frame seen, or
+``cycle_loop.WARM_S``) so a controller never starts from a stale or missing state, and the state
 from before the reader closed (boards, torques, feet) is dropped with it.
 """
 
@@ -142,9 +142,8 @@ class ControllerManagerNode(Node):
         mc_ids = maccepa.data_ids(boards) + [maccepa.DUTY_BASE + b for b in boards]
         self.base_ids = frozenset({*READ_IDS, *mc_ids})
         self.drops = drop_rules(self.board_ids, mc_ids)
-        self.read_ids = sorted(
-            self.base_ids
-        )  # the loaded controllers' extras: CycleLoop.update_reads
+        # with the loaded controllers' extras (CycleLoop.update_reads)
+        self.read_ids = sorted(self.base_ids)
         self.bus = self.own(open_bus(cfg.can, filters=[]))  # sends, reader closed
         self.writer = FrameWriter(self.bus, cfg.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued

@@ -21,6 +21,16 @@ class ManagerRefused(Refused):
     """A management request the manager refuses; the text names what is in the way."""
 
 
+class Held:
+    """What every part of ``Manager`` (``Loaded``, ``Switching``, the cycle) shares, set in
+    ``Manager.__init__``: declared once, for the type checker."""
+
+    lock: threading.Lock
+    slots: dict[str, Slot]
+    owners: dict[str, str]  # interface -> active controller
+    version: int
+
+
 @dataclass
 class Slot:
     """A loaded controller and what the manager knows of it."""

@@ -6,12 +6,11 @@ wrote; one nobody was writing starts from where the joint or board is."""
 
 from __future__ import annotations
 
-import threading
 from typing import TYPE_CHECKING, Any
 
 import structlog
 from exolink.nodes.controller_manager.boards import BoardOutputs
-from exolink.nodes.controller_manager.slots import ManagerRefused, Slot, Switch
+from exolink.nodes.controller_manager.slots import Held, ManagerRefused, Slot, Switch
 
 from exolink.control.controller import State
 from exolink.limits.maccepa import board_of
@@ -20,12 +19,7 @@ from exolink.protocol.h2 import JOINTS
 log = structlog.get_logger()
 
 
-class Switching:
-    # The manager's state these methods share (set in ``Manager.__init__``).
-    lock: threading.Lock
-    slots: dict[str, Slot]
-    owners: dict[str, str]
-    version: int
+class Switching(Held):
     pending: list[Switch]
     held: dict[str, Any]
     last_pos: list[int | None]

@@ -114,10 +114,12 @@ class Recorder(Node):
                 self.stats.malformed += got.malformed
         return got.items
 
-    def _unsubscribe_if_idle(self) -> None:
-        """The loop, once a recording ended: unless a new one started meanwhile."""
+    def _unsubscribe_if_idle(self, at_shutdown: bool = False) -> None:
+        """The loop, once a recording ended: unless a new one started meanwhile (at shutdown,
+        whatever the state: the inbox is opened per recording, not owned). The inbox is
+        detached under the lock and closed outside it."""
         with self.lock:
-            if self.state in ("recording", "stopping"):
+            if not at_shutdown and self.state in ("recording", "stopping"):
                 return
             inbox = self.intake.detach()
         if inbox is not None:
@@ -452,7 +454,4 @@ class Recorder(Node):
                 self._close()
             except OSError as exc:
                 self.log.error("recording_close_failed", error=str(exc))
-        with self.lock:
-            inbox = self.intake.detach()
-        if inbox is not None:  # opened per recording, not owned
-            inbox.close()
+        self._unsubscribe_if_idle(at_shutdown=True)
