@@ -102,13 +102,16 @@ def motion_nodes(
     *extra: dict[str, Any],
     deadline_ms: int = 50,
     h2_timeout_ms: int | None = None,
+    leased_deadline_ms: int = 100,
     params: dict[str, Any] | None = None,
     **manager: Any,
 ) -> list[dict[str, Any]]:
     """The simulated H2, its reader and the controller manager (the one writer of motion), then
     ``extra`` nodes. Defaults as shipped; a test not about stalls passes limits above a loaded
     machine's (``deadline_ms``: the manager's heartbeat deadline, ``h2_timeout_ms`` its H2
-    silence); ``params`` and ``manager`` (priority, restart, ...) go to the manager's entry."""
+    silence; ``leased_deadline_ms``: its deadline while only the timer sends, never under
+    ``deadline_ms``); ``params`` and ``manager`` (priority, restart, ...) go to the manager's
+    entry."""
     params = dict(params or {})
     if h2_timeout_ms is not None:
         params["h2_timeout_ms"] = h2_timeout_ms
@@ -117,6 +120,7 @@ def motion_nodes(
         "plugin": "controller_manager",
         "critical": True,
         "heartbeat_deadline_ms": deadline_ms,
+        "leased_deadline_ms": max(deadline_ms, leased_deadline_ms),
         **manager,
         **({"params": params} if params else {}),
     }

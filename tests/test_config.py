@@ -134,6 +134,23 @@ def test_duplicate_node_names() -> None:
         parse(text, "a.yaml")
 
 
+def test_a_leased_deadline_is_never_the_stricter_one() -> None:
+    """A lease loosens the watchdog's judgment of a motion node (exolink.liveness), never
+    tightens it: one shorter than the node's own deadline is a mistake, named with its line."""
+    text = GOOD + (
+        "  - name: controller_manager\n    plugin: controller_manager\n"
+        "    heartbeat_deadline_ms: 50\n    leased_deadline_ms: 40\n"
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"a\.yaml:\d+: nodes\[1\]\.leased_deadline_ms: 40 is shorter than the node's own "
+        r"heartbeat deadline \(50 ms\)",
+    ):
+        parse(text, "a.yaml")
+    cfg = parse(text.replace("leased_deadline_ms: 40", "leased_deadline_ms: 100"), "a.yaml")
+    assert cfg.deadlines_s(cfg.node("controller_manager")) == (0.05, 0.5, 0.1)
+
+
 def test_missing_required_key() -> None:
     with pytest.raises(ConfigError, match=r"Object missing required field `device`"):
         parse("can: {}\n", "a.yaml")

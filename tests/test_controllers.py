@@ -17,7 +17,7 @@ import pytest
 from conftest import bus_sockets
 from exolink.nodes.controller_manager.builtin import JointTrajectory, Pid, PidParams
 from exolink.nodes.controller_manager.manager import Manager
-from exolink.nodes.controller_manager.node import LEASE_PAST_TRIP_MS
+from exolink.nodes.controller_manager.params import LEASE_PAST_TRIP_MS, ManagerParams
 from exolink.nodes.controller_manager.slots import ManagerRefused, Switch
 
 from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_for
@@ -879,6 +879,22 @@ def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:
     assert listing(app)["gait"]["state"] == "active"
 
 
+def test_the_timers_wake_and_lease_fit_the_deadline_they_are_judged_by() -> None:
+    """While only the timer sends, the manager wakes at 40 % of the shorter of its lease and its
+    leased deadline (stock 100 / 100: every 40 ms, renewing each time), never more often than
+    its cycle's beat; a lease that would outlast the watchdog's disable by more than hung
+    detection's budget is refused at start, naming both."""
+    p = ManagerParams()
+    assert (p.lease_ms, p.slot_ms) == (100, 20)
+    assert p.timed_wake_s(100, 0.02) == pytest.approx(0.04)
+    assert p.timed_wake_s(50, 0.02) == pytest.approx(0.02)  # judged by 50 ms: as before
+    assert p.timed_wake_s(40, 0.02) == pytest.approx(0.02)
+    with pytest.raises(ValueError, match=r"lease_ms 200 exceeds the leased heartbeat deadline "):
+        ManagerParams(lease_ms=200).timed_wake_s(100, 0.02)
+    assert ManagerParams(lease_ms=160).timed_wake_s(100, 0.02) == pytest.approx(0.04)
+    assert LEASE_PAST_TRIP_MS == 60
+
+
 def pattern_slots(rows: list[int], f: float) -> list[int]:
     """Four cycles of the pattern sampled a fraction ``f`` of the way from each row to the next."""
     return dedup(
@@ -913,6 +929,9 @@ def test_a_hung_or_killed_manager_ends_the_gaits_timer(gait, mbus, sig) -> None:
     app.arm_and_hold()
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: json.loads(ctl(app, "list", "--json").stdout)["timer"]["sending"])
+    # only the timer sends: the supervisor judges the manager by its leased deadline (a lapse
+    # on a loaded host hands the joints to the cycle loop for a moment: then by its own)
+    wait_for(lambda: app.node("controller_manager")["leased"])
     pid = app.node("controller_manager")["pid"]
     mbus.q.queue.clear()
     at = time.time()

@@ -18,15 +18,18 @@ def test_newest_whole_beat_wins_and_partial_records_wait() -> None:
         beater.beat(10.001)  # inside MIN_INTERVAL_S: not written
         beater.beat(10.5)
         assert ch.fileno() and liveness.with_beats([ch]) == {ch}
-        assert ch.drain(100.0) == (10.5, False)
+        assert ch.drain(100.0) == (10.5, liveness.Pace.OWN)
         assert liveness.with_beats([ch]) == set()
-        raw = struct.pack("=d?", 11.0, False)
+        raw = struct.pack("=dB", 11.0, 0)
         os.write(ch.child_fd, raw[:3])  # a torn record cannot come from one write, but be strict
         assert ch.drain(100.0) is None
         os.write(ch.child_fd, raw[3:])
-        assert ch.drain(100.0) == (11.0, False)
+        assert ch.drain(100.0) == (11.0, liveness.Pace.OWN)
         beater.beat(500.0)
-        assert ch.drain(100.0) == (100.0, False)  # a beat from the future is clamped to now
+        assert ch.drain(100.0) == (
+            100.0,
+            liveness.Pace.OWN,
+        )  # a beat from the future is clamped to now
     finally:
         ch.close()
 
@@ -35,13 +38,30 @@ def test_idle_is_said_at_once_and_repeated_by_beats_that_do_not_say() -> None:
     ch = liveness.Channel()
     try:
         beater = liveness.Beater(ch.child_fd)
-        beater.beat(10.0, idle=True)
+        beater.beat(10.0, pace=liveness.Pace.IDLE)
         beater.beat(10.5)  # the heartbeat thread: as the loop last said
-        assert ch.drain(100.0) == (10.5, True)
-        beater.beat(10.501, idle=False)  # inside MIN_INTERVAL_S, but a change: written
-        assert ch.drain(100.0) == (10.501, False)
-        beater.beat(10.502, idle=False)  # no change, inside the interval: not written
+        assert ch.drain(100.0) == (10.5, liveness.Pace.IDLE)
+        beater.beat(10.501, pace=liveness.Pace.OWN)  # inside MIN_INTERVAL_S, but a change: written
+        assert ch.drain(100.0) == (10.501, liveness.Pace.OWN)
+        beater.beat(10.502, pace=liveness.Pace.OWN)  # no change, inside the interval: not written
         assert ch.drain(100.0) is None
+    finally:
+        ch.close()
+
+
+def test_a_lease_is_said_at_once_and_an_unknown_pace_is_judged_strictly() -> None:
+    """Leased (the manager while only the kernel's timer sends) goes through the pipe like idle;
+    a byte no version writes is judged by the node's own deadline, never a longer one."""
+    ch = liveness.Channel()
+    try:
+        beater = liveness.Beater(ch.child_fd)
+        beater.beat(10.0, pace=liveness.Pace.LEASED)
+        beater.beat(10.001)  # inside MIN_INTERVAL_S, no change: not written
+        assert ch.drain(100.0) == (10.0, liveness.Pace.LEASED)
+        beater.beat(10.002, pace=liveness.Pace.OWN)  # the lease ended: at once
+        assert ch.drain(100.0) == (10.002, liveness.Pace.OWN)
+        os.write(ch.child_fd, struct.pack("=dB", 11.0, 7))
+        assert ch.drain(100.0) == (11.0, liveness.Pace.OWN)
     finally:
         ch.close()
 
@@ -123,7 +143,7 @@ def test_the_deadline_timer_runs_out_early_never_late_and_is_reset_one_beat_in_t
     whatever a beat leaves, it runs out no later than the newest beat's deadline."""
     ch = liveness.Channel()
     try:
-        beater = liveness.Beater(ch.child_fd, (ch.timer, 0.05, 0.5))
+        beater = liveness.Beater(ch.child_fd, ch.timer, (0.05, 0.5))
         t0 = time.monotonic() + 10.0  # absolute times on the monotonic clock, in the future
 
         def expires() -> float:
@@ -133,14 +153,22 @@ def test_the_deadline_timer_runs_out_early_never_late_and_is_reset_one_beat_in_t
         for k in range(6):
             t = t0 + 0.02 * k
             before = expires() if k else None
-            beater.beat(t, idle=False)
+            beater.beat(t, pace=liveness.Pace.OWN)
             now = expires()
             assert now <= t + 0.05 + 0.002  # never later than this beat's deadline
             reset.append(before is None or abs(now - before) > 0.005)
         assert reset == [True, False, True, False, True, False]
-        beater.beat(t0 + 0.2, idle=True)  # idle: the longer deadline
+        beater.beat(t0 + 0.2, pace=liveness.Pace.IDLE)  # idle: the longer deadline
         assert abs(expires() - (t0 + 0.7)) < 0.005
-        beater.beat(t0 + 0.22, idle=False)  # driving again: its own deadline, at once
+        beater.beat(t0 + 0.22, pace=liveness.Pace.OWN)  # driving again: its own deadline, at once
         assert abs(expires() - (t0 + 0.27)) < 0.005
+        # two deadlines given: leased is the node's own (no leased_deadline_ms)
+        beater.beat(t0 + 0.3, pace=liveness.Pace.LEASED)
+        assert abs(expires() - (t0 + 0.35)) < 0.005
+        leased = liveness.Beater(ch.child_fd, ch.timer, (0.05, 0.5, 0.1))
+        leased.beat(t0 + 0.4, pace=liveness.Pace.LEASED)  # the leased deadline
+        assert abs(expires() - (t0 + 0.5)) < 0.005
+        leased.beat(t0 + 0.44, pace=liveness.Pace.OWN)  # the lease ended: its own, at once
+        assert abs(expires() - (t0 + 0.49)) < 0.005
     finally:
         ch.close()

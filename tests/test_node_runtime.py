@@ -282,7 +282,7 @@ def test_the_beat_after_configure_is_idle_until_the_loop_beats(session: zenoh.Se
     """The runtime's beat after configure says idle (the default deadline): nothing is driven
     before the loop runs, whose first beat is not idle. A motion node held to its own 50 ms
     from there was killed when its loop first beat 67 ms later (board proxy, a restart)."""
-    from exolink.liveness import _RECORD, Beater, Channel
+    from exolink.liveness import _RECORD, Beater, Channel, Pace
 
     cfg = config.parse(config.bundled("sim").read_text())
     channel = Channel()
@@ -297,5 +297,5 @@ def test_the_beat_after_configure_is_idle_until_the_loop_beats(session: zenoh.Se
         runner.stop.set()
         t.join(5)
         channel.close()
-    idle = [rec[1] for rec in _RECORD.iter_unpack(data[: len(data) - len(data) % _RECORD.size])]
-    assert idle[0] is True and idle[-1] is False, idle
+    paces = [rec[1] for rec in _RECORD.iter_unpack(data[: len(data) - len(data) % _RECORD.size])]
+    assert paces[0] == Pace.IDLE and paces[-1] == Pace.OWN, paces

@@ -271,23 +271,54 @@ def test_an_idle_motion_node_is_held_to_the_default_deadline_until_it_says_other
 
     spawn()
     try:
-        beater.beat(1000.0, idle=True)
+        beater.beat(1000.0, pace=liveness.Pace.IDLE)
         sup._check_nodes(1000.3)
-        assert trips == [] and node.idle
+        assert trips == [] and node.pace == liveness.Pace.IDLE
         assert sup._next_due(1000.3) == pytest.approx(1000.35)  # its own deadline from now
-        beater.beat(1000.31, idle=False)  # activating: then hung
+        beater.beat(1000.31, pace=liveness.Pace.OWN)  # activating: then hung
         sup._check_nodes(1000.35)
-        assert trips == [] and not node.idle
+        assert trips == [] and node.pace == liveness.Pace.OWN
         sup._check_nodes(1000.37)
         assert trips == ["controller_manager: no heartbeat for 60 ms (deadline 50 ms)"]
         assert node.state == "killed"
         node.proc.wait()
         spawn()
-        beater.beat(1001.0, idle=True)  # idle, then silent past the default deadline
+        beater.beat(1001.0, pace=liveness.Pace.IDLE)  # idle, then silent past the default deadline
         sup._check_nodes(1001.4)
         assert len(trips) == 1
         sup._check_nodes(1001.6)
         assert trips[1] == "controller_manager: no heartbeat for 600 ms (deadline 500 ms)"
+        assert node.state == "killed"
+    finally:
+        node.kill()
+        node.channel.close()
+
+
+def test_a_leased_motion_node_is_held_to_its_leased_deadline_until_the_lease_ends() -> None:
+    """The controller manager while only the kernel's timer sends says so (Pace.LEASED): the
+    board config's leased_deadline_ms (100) judges it, then its own 50 ms again from its first
+    beat that is not leased. The lease (100 ms) has ended the motion by then (node.py)."""
+    from exolink import liveness
+
+    sup, trips = _supervisor_recording_trips()
+    node, beater = _sleeping_node(sup, "controller_manager", timer=False)
+    assert sup.cfg.deadline_s(node.cfg, liveness.Pace.LEASED) == 0.1
+    try:
+        beater.beat(1000.0, pace=liveness.Pace.LEASED)
+        sup._check_nodes(1000.09)  # 90 ms: late by its own 50 ms, not by the lease's 100
+        assert trips == [] and node.pace == liveness.Pace.LEASED
+        assert sup._next_due(1000.09) == pytest.approx(1000.1)
+        beater.beat(1000.095, pace=liveness.Pace.OWN)  # back to the cycle loop: then hung
+        sup._check_nodes(1000.14)
+        assert trips == [] and node.pace == liveness.Pace.OWN
+        sup._check_nodes(1000.155)
+        assert trips == ["controller_manager: no heartbeat for 60 ms (deadline 50 ms)"]
+        node.proc.wait()
+        node.proc = subprocess.Popen(["sleep", "60"])
+        node.state = "running"
+        beater.beat(1001.0, pace=liveness.Pace.LEASED)  # leased, then silent past 100 ms
+        sup._check_nodes(1001.11)
+        assert trips[1:] == ["controller_manager: no heartbeat for 110 ms (deadline 100 ms)"]
         assert node.state == "killed"
     finally:
         node.kill()
@@ -486,8 +517,8 @@ def _sleeping_node(sup: Any, name: str, timer: bool) -> tuple[Any, Any]:
     cfg = sup.cfg
     node = NodeProcess(cfg.node(name), "", lambda _e: None, lambda _n, _l: None)
     node.channel = liveness.Channel()
-    deadlines = (node.channel.timer, cfg.deadline_s(node.cfg), cfg.deadline_s(node.cfg, True))
-    beater = liveness.Beater(node.channel.child_fd, deadlines if timer else None)
+    deadlines = cfg.deadlines_s(node.cfg) if timer else ()
+    beater = liveness.Beater(node.channel.child_fd, node.channel.timer, deadlines)
     node.proc = subprocess.Popen(["sleep", "60"])
     node.state, node.heartbeat_at = "running", time.monotonic()
     sup.nodes[name] = node
@@ -544,12 +575,14 @@ def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
 
 
 def test_a_hung_node_is_judged_when_its_timer_runs_out() -> None:
+    from exolink import liveness
+
     sup, node, beater, trips = _manager_with_timer()
     try:
-        beater.beat(idle=True)  # idle: the default deadline
+        beater.beat(pace=liveness.Pace.IDLE)  # idle: the default deadline
         sup._check_nodes(time.monotonic())
         t0 = time.monotonic()
-        beater.beat(idle=False)  # driving: its own 50 ms from this beat, then silent
+        beater.beat(pace=liveness.Pace.OWN)  # driving: its own 50 ms from this beat, then silent
         _, ready = sup.wake.wait_any(5.0, [node.channel.timer])
         assert ready == [node.channel.timer] and time.monotonic() - t0 >= 0.05
         sup._timer_ran_out(node, ready[0])

@@ -17,6 +17,7 @@ import yaml
 
 from exolink.entrypoints import PluginError, node_params_type
 from exolink.limits.joints import Limits, LimitsConfig
+from exolink.liveness import Pace
 
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 NodeName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,39}$")]
@@ -161,6 +162,10 @@ class NodeConfig(_Strict, frozen=True, kw_only=True):
     # This node's liveness deadline (default: watchdog.heartbeat_deadline_ms). Motion nodes beat
     # every cycle and get a short one: a hung set-point loop is caught within it.
     heartbeat_deadline_ms: PositiveMs | None = None
+    # While the node says its motion runs on a lease the kernel ends by itself (exolink.liveness:
+    # the controller manager's timer), it is judged by this one instead (default: its own). A
+    # hang then ends the motion at the lease's end; the node checks its lease fits at start.
+    leased_deadline_ms: PositiveMs | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
@@ -183,11 +188,20 @@ class ApplianceConfig(_Strict, frozen=True, kw_only=True):
     # Where this config came from; set by the loader, not by the file.
     source: str = "<memory>"
 
-    def deadline_s(self, node: NodeConfig, idle: bool = False) -> float:
-        """The node's liveness deadline: its own, else the watchdog's; while it says it is idle
-        (nothing to drive, see exolink.liveness) never shorter than the watchdog's."""
+    def deadline_s(self, node: NodeConfig, pace: Pace = Pace.OWN) -> float:
+        """The node's liveness deadline by the pace its last beat said (exolink.liveness): its
+        own, else the watchdog's; idle (nothing to drive) never shorter than the watchdog's;
+        leased, its ``leased_deadline_ms`` if set."""
         own = node.heartbeat_deadline_ms or self.watchdog.heartbeat_deadline_ms
-        return max(own, self.watchdog.heartbeat_deadline_ms if idle else 0) / 1000
+        if pace == Pace.IDLE:
+            return max(own, self.watchdog.heartbeat_deadline_ms) / 1000
+        if pace == Pace.LEASED:
+            return (node.leased_deadline_ms or own) / 1000
+        return own / 1000
+
+    def deadlines_s(self, node: NodeConfig) -> tuple[float, ...]:
+        """Its deadlines by ``Pace`` (own, idle, leased): what its beats set its timer by."""
+        return tuple(self.deadline_s(node, pace) for pace in Pace)
 
     def joint_limits(self) -> Limits:
         """The configured limits, checked (parse has refused a config whose are not)."""
@@ -322,6 +336,14 @@ def _check_nodes(
             line = _line_of(root, f"nodes[{i}].name")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
         seen.add(node.name)
+        own = node.heartbeat_deadline_ms or cfg.watchdog.heartbeat_deadline_ms
+        if node.leased_deadline_ms is not None and node.leased_deadline_ms < own:
+            line = _line_of(root, f"nodes[{i}].leased_deadline_ms")
+            raise ConfigError(
+                f"{cfg.source}:{line}: nodes[{i}].leased_deadline_ms: {node.leased_deadline_ms} "
+                f"is shorter than the node's own heartbeat deadline ({own} ms): a lease is the "
+                "looser judgment, never the stricter"
+            )
         for key in node.params:
             if key in MOVED_TO_LIMITS:
                 line = _line_of(root, f"nodes[{i}].params.{key}")

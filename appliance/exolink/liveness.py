@@ -14,6 +14,12 @@ says so, and is then held to the appliance's default deadline instead of its own
 it need not wake 50 times a second to prove it could move nothing. Its first beat that is not
 idle comes before it drives anything, and from then on its own deadline holds again.
 
+Leased: a motion node whose set-points go out on a lease the kernel ends by itself (the controller
+manager's broadcast-manager op, renewed before each beat) says so, and is then held to its
+``leased_deadline_ms`` (config): a hang then stops the motion at the lease's end, not at the
+watchdog's word, so the watchdog need not judge it as tightly as a loop that writes every cycle.
+The node checks at start that its lease ends within that deadline (+ hung detection's budget).
+
 The deadline itself is a kernel timer: with each beat the node also sets a timerfd, shared with
 the supervisor at spawn, to expire at that beat's time plus its deadline (``EXOLINK_LIVENESS_TIMER_FD``,
 deadlines in ``EXOLINK_LIVENESS_DEADLINES``). The supervisor waits on the timers and wakes only
@@ -26,6 +32,7 @@ nobody.
 from __future__ import annotations
 
 import contextlib
+import enum
 import os
 import select
 import struct
@@ -36,8 +43,8 @@ from typing import NamedTuple
 
 ENV = "EXOLINK_LIVENESS_FD"
 TIMER_ENV = "EXOLINK_LIVENESS_TIMER_FD"
-DEADLINES_ENV = "EXOLINK_LIVENESS_DEADLINES"  # "<own s>,<idle s>"
-_RECORD = struct.Struct("=d?")
+DEADLINES_ENV = "EXOLINK_LIVENESS_DEADLINES"  # "<own s>,<idle s>,<leased s>"
+_RECORD = struct.Struct("=dB")
 MIN_INTERVAL_S = 0.01  # a loop beating faster than this writes once per interval
 REARM_AHEAD = 0.6  # of a deadline: a timer set at least this far ahead is not re-set (Beater.beat)
 
@@ -102,9 +109,27 @@ TIMER_SLACK_S = 0.001  # the node adds its deadline to its beat's time in floati
 TIMERS = _Timers()
 
 
+class Pace(enum.IntEnum):
+    """How a beat asks to be judged: by the node's own deadline, as idle (the appliance's
+    default), or as leased (``leased_deadline_ms``). The byte after the beat's time."""
+
+    OWN = 0
+    IDLE = 1
+    LEASED = 2
+
+    @classmethod
+    def of(cls, raw: int) -> Pace:
+        """A byte from the pipe; one no version wrote is judged by the node's own deadline
+        (the strictest), never a longer one."""
+        try:
+            return cls(raw)
+        except ValueError:
+            return cls.OWN
+
+
 class Beat(NamedTuple):
     t: float  # the node's CLOCK_MONOTONIC time of the beat
-    idle: bool  # nothing to drive: judged by the appliance's default deadline
+    pace: Pace  # the deadline it is judged by (``Pace``)
 
 
 class Channel:
@@ -158,8 +183,8 @@ class Channel:
         self._tail = data[whole:]
         if not whole:
             return None
-        t, idle = _RECORD.unpack_from(data, whole - _RECORD.size)
-        return Beat(min(t, now), idle)
+        t, pace = _RECORD.unpack_from(data, whole - _RECORD.size)
+        return Beat(min(t, now), Pace.of(pace))
 
     def close(self) -> None:
         for fd in (self._r, self.child_fd, getattr(self, "timer", -1)):
@@ -190,14 +215,18 @@ def with_beats(channels: Iterable[Channel]) -> set[Channel]:
 
 class Beater:
     """The node's end. Without a supervisor (a node run by hand, a test) it does nothing.
-    ``timer``: the deadline timer and the deadlines (own, idle) its beats set it by."""
+    ``timer_fd``: the deadline timer, and ``deadlines`` (s) its beats set it by, by ``Pace``
+    (own, idle, leased; leased missing: own)."""
 
-    def __init__(self, fd: int | None, timer: tuple[int, float, float] | None = None) -> None:
+    def __init__(
+        self, fd: int | None, timer_fd: int | None = None, deadlines: tuple[float, ...] = ()
+    ) -> None:
         self.fd = fd
-        self.timer = timer
+        self.timer_fd = timer_fd if deadlines else None
+        self.deadlines = deadlines + deadlines[:1] * (len(Pace) - len(deadlines))
         self._last = 0.0
         self._armed_until = 0.0  # when the deadline timer runs out, as last set
-        self.idle = False  # what the loop's last beat said (the heartbeat thread repeats it)
+        self.pace = Pace.OWN  # what the loop's last beat said (the heartbeat thread repeats it)
 
     @classmethod
     def from_env(cls) -> Beater:
@@ -209,19 +238,19 @@ class Beater:
         fd = int(raw)
         os.set_blocking(fd, False)
         os.set_inheritable(fd, False)
-        timer = None
-        if raw_timer is not None and raw_deadlines is not None:
-            own, idle = (float(x) for x in raw_deadlines.split(","))
-            timer = (int(raw_timer), own, idle)
-            os.set_inheritable(timer[0], False)
-        return cls(fd, timer)
+        if raw_timer is None or raw_deadlines is None:
+            return cls(fd)
+        timer_fd = int(raw_timer)
+        os.set_inheritable(timer_fd, False)
+        return cls(fd, timer_fd, tuple(float(x) for x in raw_deadlines.split(",")))
 
-    def beat(self, now: float | None = None, idle: bool | None = None) -> None:
-        """``idle`` None: as the last beat said. A change is written at once (the end of idle
-        must reach the supervisor before the node drives anything)."""
-        changed = idle is not None and idle != self.idle
-        if changed:
-            self.idle = bool(idle)
+    def beat(self, now: float | None = None, pace: Pace | None = None) -> None:
+        """``pace`` None: as the last beat said. A change is written at once (the end of idle,
+        or of a lease, must reach the supervisor before the node drives anything by its own
+        deadline)."""
+        changed = pace is not None and pace != self.pace
+        if pace is not None:
+            self.pace = pace
         if self.fd is None:
             return
         t = time.monotonic() if now is None else now
@@ -230,10 +259,9 @@ class Beater:
         self._last = t
         # A full pipe (supervisor stalled) or a gone one (supervisor dead): nothing to do here.
         with contextlib.suppress(BlockingIOError, BrokenPipeError, OSError):
-            os.write(self.fd, _RECORD.pack(t, self.idle))
-        if self.timer is not None:  # after the record: when it runs out, the pipe says why
-            fd, own, idle_s = self.timer
-            deadline = idle_s if self.idle else own
+            os.write(self.fd, _RECORD.pack(t, self.pace))
+        if self.timer_fd is not None:  # after the record: when it runs out, the pipe says why
+            fd, deadline = self.timer_fd, self.deadlines[self.pace]
             expiry = t + deadline
             # A timer still set at least REARM_AHEAD of a deadline ahead, and not later than
             # this beat's, is left as it is: it can only run out early, never late, and the

@@ -19,7 +19,7 @@ import zenoh
 
 from exolink import messaging
 from exolink.config import ApplianceConfig
-from exolink.liveness import Beater
+from exolink.liveness import Beater, Pace
 
 if TYPE_CHECKING:
     from exolink.loops import Loop
@@ -91,6 +91,9 @@ class Node:
         self.log = ctx.log
         self._last_beat = time.monotonic()
         self._stall_limit = self.stall_s
+        # While the loop says its motion runs on a lease (``beat(Pace.LEASED)``): it beats at
+        # least this often (a node that leases sets its own, from its wake).
+        self.leased_stall_s = self.stall_s
         self.on_stall: Callable[[float, float], None] | None = None  # (gap s, limit s)
         self.liveness = Beater(None)  # the runtime connects it to the supervisor's pipe
         self._owned = contextlib.ExitStack()
@@ -119,18 +122,25 @@ class Node:
     def name(self) -> str:
         return self.ctx.name
 
-    def beat(self, idle: bool = False) -> None:
+    def beat(self, pace: Pace = Pace.OWN) -> None:
         """The loop is alive: straight to the supervisor, so the node is judged on its loop's own
-        beats. ``idle``: it has nothing to drive until its next beat that is not
-        (exolink.liveness). A beat that ends a gap longer than the loop's stall limit reports
-        it (``on_stall``, set by the runtime: the journal's ``loop_stalled``)."""
+        beats. ``pace``: the deadline it is judged by until its next beat (exolink.liveness:
+        idle, nothing to drive; leased, its motion ends with a lease). A beat that ends a gap
+        longer than the loop's stall limit reports it (``on_stall``, set by the runtime: the
+        journal's ``loop_stalled``)."""
         now = time.monotonic()
         gap = now - self._last_beat
         self._last_beat = now
-        self.liveness.beat(now, idle)
+        self.liveness.beat(now, pace)
         if gap > self._stall_limit and self.on_stall is not None:
             self.on_stall(gap, self._stall_limit)
-        self._stall_limit = self.idle_stall_s if idle else self.stall_s
+        self._stall_limit = (
+            self.idle_stall_s
+            if pace == Pace.IDLE
+            else self.leased_stall_s
+            if pace == Pace.LEASED
+            else self.stall_s
+        )
 
     @property
     def last_beat(self) -> float:

@@ -142,7 +142,7 @@ class NodeRunner:
         # manager whose loop beats first a little later (docs/performance.md, exolink.liveness).
         self.node.on_stall = self._on_stall
         self.node.restart_stall_clock()
-        self.node.beat(idle=True)
+        self.node.beat(liveness.Pace.IDLE)
         hb = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         hb.start()
         self.log.info("node_running", pid=os.getpid())

@@ -124,6 +124,8 @@ def bench_config(
             # a longer one (the observers') stays
             relaxed = TIMINGS[timings]["heartbeat_deadline_ms"]
             n["heartbeat_deadline_ms"] = max(n["heartbeat_deadline_ms"], relaxed)
+            if n.get("leased_deadline_ms"):  # never under its own (the config refuses that)
+                n["leased_deadline_ms"] = max(n["leased_deadline_ms"], relaxed)
         if (n.get("priority") or {}).get("cpus"):
             raise ValueError(f"node {n['name']} sets cpus: the bench keeps it on CPU 0")
     simulator = {

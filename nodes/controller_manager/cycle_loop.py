@@ -199,5 +199,5 @@ class CycleLoop:
             frames.append(frame)
             n.mc_written += 1
         if out.writes or out.maccepa:
-            n.beat(False)  # driving from this cycle on: its own deadline, before it drives
+            n.beat()  # driving from this cycle on: its own deadline, before it drives
         n._send(frames)

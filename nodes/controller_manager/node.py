@@ -3,7 +3,9 @@
 Two ways out for set-points. While every active controller is ``planned`` (the gait, a
 trajectory), they are planned a few slots ahead and sent on a timer the loop only renews
 (``timed``: the kernel's broadcast manager on SocketCAN; the loop's side: ``on_timer``), and
-the loop wakes every ``BEAT_S`` for the heartbeat, the lease and anyone's disable. Otherwise
+the loop wakes a few times per lease (``params.TIMED_WAKE``) for the heartbeat and the lease;
+anyone's disable wakes it at once (on SocketCAN its one socket then reads only the disables and
+stops of id 70: ``frames.one_socket``). Otherwise
 (a feedback controller, a switch being applied) the cycle loop (``cycle_loop``) runs read ->
 update -> write once per H2 cycle, paced by the joint-angle frame (id 110).
 
@@ -34,7 +36,9 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
   holder lost) deletes the send op before anything else, and a lease bounds what a manager
   that stops renewing (stopped, hung, starved) leaves on the bus;
 - the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
-  (``heartbeat_deadline_ms: 50`` in the configs).
+  (``heartbeat_deadline_ms: 50`` in the configs); while only the timer sends, its beats say
+  so and it is judged by ``leased_deadline_ms`` (100 in the configs): a hang's motion then
+  ends with the lease (100 ms), no later than the watchdog's disable.
 
 Off the bus while idle: with no controller active and no switch queued the node holds no socket
 that frames reach (a send-only bus stays, for commands and safe actions): reading and decoding
@@ -73,6 +77,7 @@ from exolink.config import ConfigError
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, State
 from exolink.limits.maccepa import target
+from exolink.liveness import Pace
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
 from exolink.protocol import h2, maccepa
@@ -83,9 +88,6 @@ BEAT_S = 0.02
 # default deadline), not 50 times a second: each wake-up costs about a millisecond of the
 # board's CPU. It also judges the holder's keep-alive this often.
 IDLE_BEAT_S = 0.2
-# A planned set-point may reach the bus at most this long after the watchdog's first disable
-# frame (hung detection's own budget): lease_ms <= heartbeat deadline + this.
-LEASE_PAST_TRIP_MS = 60
 # Every change of a controller's state goes out on ACTIVITY_TOPIC at once, and the whole list
 # again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
 # asking: five state queries a second were four Zenoh hops and a handler each, on one core.
@@ -118,17 +120,16 @@ class ControllerManagerNode(Node):
             list(p.maccepa),
             cycles_per_update=p.cycles_per_update,
         )
-        try:
-            deadline = round(cfg.deadline_s(cfg.node(self.name)) * 1000)
+        try:  # judged by this while only the lease sends (exolink.liveness: Pace.LEASED)
+            deadline = round(cfg.deadline_s(cfg.node(self.name), Pace.LEASED) * 1000)
         except ConfigError:  # run outside a config's node list (tests)
             deadline = cfg.watchdog.heartbeat_deadline_ms
-        if p.lease_ms > deadline + LEASE_PAST_TRIP_MS:
-            raise ValueError(
-                f"{self.name} params: lease_ms {p.lease_ms} exceeds its heartbeat deadline "
-                f"{deadline} ms + {LEASE_PAST_TRIP_MS}: a hung manager's set-points would "
-                f"outlast the watchdog's disable by more than {LEASE_PAST_TRIP_MS} ms"
-            )
-        self.timer = TimerLoop(self, BEAT_S)  # planned set-points on a timer (on_timer.py)
+        try:
+            wake_s = p.timed_wake_s(deadline, BEAT_S)
+        except ValueError as exc:  # a lease that would outlast the watchdog's disable
+            raise ValueError(f"{self.name} params: {exc}") from None
+        self.leased_stall_s = 2 * wake_s
+        self.timer = TimerLoop(self, wake_s)  # planned set-points on a timer (on_timer.py)
         self.cycle = CycleLoop(self, BEAT_S)  # read -> update -> write each cycle (cycle_loop.py)
         self.last_state: State | None = None  # the last cycle's: a plan's activation state
         for n, spec in enumerate(p.controllers):
@@ -278,7 +279,7 @@ class ControllerManagerNode(Node):
             # reader's opening and an activation (hundreds of ms on the board: its stock
             # 50 ms deadline tripped the watchdog at every gait start) come before the first
             # set-point, and _send says "not idle" before that one goes out.
-            self.beat(not (busy and self.manager.driving()))
+            self.beat(Pace.OWN if busy and self.manager.driving() else Pace.IDLE)
             self.api.check_presence()
             self.maybe_tell()
             clock.mark("beat")

@@ -19,6 +19,7 @@ from exolink import logs
 from exolink.canbus import CanOpenError
 from exolink.canbus.bcm import open_lease
 from exolink.limits.joints import POSITION
+from exolink.liveness import Pace
 from exolink.protocol import h2
 
 if TYPE_CHECKING:
@@ -100,6 +101,11 @@ class TimerLoop:
             opened = time.perf_counter()
             self.echoed = {}
             slot_s = ival_us * len(joints) / 1e6
+            # Feedback controllers beside the plan: the cycle loop runs too, and the node is
+            # judged by its own deadline. Read once: any change of the controllers changes the
+            # version, which ends the timer first. Alone, the lease bounds a hang's motion.
+            beside = n.manager.unplanned()
+            pace = Pace.OWN if beside else Pace.LEASED
             timed = Timed(
                 lease,
                 joints,
@@ -108,7 +114,7 @@ class TimerLoop:
                 time.time(),
                 time.monotonic(),
                 joint_payload,
-                lambda: n.beat(False),
+                lambda: n.beat(pace),
                 n.manager.repeats_slots(slot_s),
             )
             broke = timed.begin(n.manager, state, not_armed)  # beats after each slot
@@ -116,10 +122,7 @@ class TimerLoop:
                 timed.abort()
                 n._send(n._safe_frames(broke))
                 return
-            self.timed, self.version = timed, n.manager.version
-            # Feedback controllers beside the plan: the cycle loop runs too. Read once: any
-            # change of the controllers changes the version, which ends the timer first.
-            self.beside = n.manager.unplanned()
+            self.timed, self.version, self.beside = timed, n.manager.version, beside
             self.runs += 1
             if n.reader is not None and n._one_socket() and not self.beside:
                 # no angle frame wakes it now (with a feedback controller, every cycle does)
@@ -153,12 +156,13 @@ class TimerLoop:
         if self.timed is None:
             return
         # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
-        # beating after each): any beat after the last renewal keeps the lease's bound.
-        n.beat(False)
+        # beating after each): any beat after the last renewal keeps the lease's bound. Judged
+        # by the leased deadline (exolink.liveness): the op ends with its lease.
+        n.beat(Pace.LEASED)
         clock.mark("timer beat")
         self.keep()
-        clock.mark("timer keep")  # the lease's renewal when due (every second wake)
-        n.beat(False)
+        clock.mark("timer keep")  # the lease's renewal when due
+        n.beat(Pace.LEASED if self.timed is not None else Pace.OWN)
         n.api.check_presence()
         n.maybe_tell()
         clock.mark("timer rest")

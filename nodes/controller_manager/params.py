@@ -10,6 +10,13 @@ import msgspec
 from exolink.limits.maccepa import BoardLimits
 from exolink.protocol import h2
 
+# A planned set-point may reach the bus at most this long after the watchdog's first disable
+# frame (hung detection's own budget): lease_ms <= leased heartbeat deadline + this.
+LEASE_PAST_TRIP_MS = 60
+# On the timer, the loop wakes every this much of the shorter of its lease and its leased
+# deadline (exolink.liveness): both then hold against a wake 60 % of them late.
+TIMED_WAKE = 0.4
+
 
 class ControllerSpec(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     name: str
@@ -43,6 +50,19 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # MACCEPA boards this manager drives (maccepa<N>/setpoint|duty|gains) and their limits.
     maccepa: list[BoardLimits] = []
     controllers: list[ControllerSpec] = []  # loaded (inactive) at start
+
+    def timed_wake_s(self, deadline_ms: int, shortest_s: float) -> float:
+        """How often the loop wakes while the timer sends, judged by ``deadline_ms`` then (its
+        leased deadline): ``TIMED_WAKE`` of the shorter of lease and deadline, each wake
+        renewing, never under ``shortest_s``. Stock (100 ms both): every 40 ms. A lease that
+        would outlast the watchdog's disable by more than ``LEASE_PAST_TRIP_MS``: ValueError."""
+        if self.lease_ms > deadline_ms + LEASE_PAST_TRIP_MS:
+            raise ValueError(
+                f"lease_ms {self.lease_ms} exceeds the leased heartbeat deadline {deadline_ms} ms "
+                f"+ {LEASE_PAST_TRIP_MS}: a hung manager's set-points would outlast the "
+                f"watchdog's disable by more than {LEASE_PAST_TRIP_MS} ms"
+            )
+        return max(shortest_s, TIMED_WAKE * min(self.lease_ms, deadline_ms) / 1000)
 
     def __post_init__(self) -> None:
         gap_ms = (self.cycles_per_update + 1) * h2.PERIOD_S * 1e3  # the longest between reads

@@ -10,9 +10,11 @@ then runs once per renewal (every second slot), not per frame.
 
 The op is leased: it sends at most ``lease_slots`` slots after the last renewal. Renewals come
 before the loop's heartbeat, so a manager stopped, hung, starved or killed stops renewing
-before it stops beating, and the op ends at most ``lease_slots x slot_s`` after the last beat:
-with the stock 100 ms lease and 50 ms heartbeat deadline, at most 50 ms after the watchdog's
-first disable frame. Any stop, trip or switch deletes the op first (``abort``).
+before it stops beating, and the op ends at most ``lease_slots x slot_s`` after the last beat.
+Its beats meanwhile are judged by the leased deadline (exolink.liveness), at least the lease:
+stock, 100 ms both, so the op has ended by the watchdog's first disable frame (a frame's
+interval later at most: the count a renewal reads may be one short). Any stop, trip or switch
+deletes the op first (``abort``).
 """
 
 from __future__ import annotations

@@ -209,7 +209,7 @@ class Supervisor:
         for ncfg in cfg.nodes:
             node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
             node.zygote = self.zygote
-            node.deadlines = (cfg.deadline_s(ncfg), cfg.deadline_s(ncfg, idle=True))
+            node.deadlines = cfg.deadlines_s(ncfg)
             self.nodes[ncfg.name] = node
             if ncfg.enabled:
                 node.start()
@@ -329,7 +329,7 @@ class Supervisor:
                 late = self._judge_node(node, now, grace, beating)
             if not late:
                 continue
-            hb, deadline = node.heartbeat_at, self.cfg.deadline_s(node.cfg, node.idle)
+            hb, deadline = node.heartbeat_at, self.cfg.deadline_s(node.cfg, node.pace)
             detail = (
                 f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
                 if hb is not None
@@ -372,7 +372,7 @@ class Supervisor:
             if hb is None:
                 late = now - node.started_at > grace
             else:
-                late = now - hb > self.cfg.deadline_s(node.cfg, node.idle)
+                late = now - hb > self.cfg.deadline_s(node.cfg, node.pace)
         node.due_at = self._due(node, now, grace, expired)
         return late
 
@@ -388,11 +388,11 @@ class Supervisor:
         hb = node.heartbeat_at
         if hb is None:  # starting: its first beat brings its priority
             return min(now + STARTING_SLEEP_S, node.started_at + grace)
-        longest = max(self.cfg.deadline_s(node.cfg), self.cfg.deadline_s(node.cfg, idle=True))
+        longest = max(self.cfg.deadlines_s(node.cfg))
         if not expired and node.channel is not None and node.channel.armed(longest):
             return math.inf
-        due = hb + self.cfg.deadline_s(node.cfg, node.idle)  # the beats in its pipe read then
-        if node.idle:  # its first beat that is not idle is judged on time
+        due = hb + self.cfg.deadline_s(node.cfg, node.pace)  # the beats in its pipe read then
+        if node.pace != liveness.Pace.OWN:  # its first beat by its own deadline is judged on time
             due = min(due, now + self.cfg.deadline_s(node.cfg))
         return due
 
@@ -489,7 +489,7 @@ class Supervisor:
             if n.state != "running":
                 out.append(f"critical node {n.name} is {n.state}")
             elif n.heartbeat_at is None or now - n.heartbeat_at > self.cfg.deadline_s(
-                n.cfg, n.idle
+                n.cfg, n.pace
             ):
                 out.append(f"critical node {n.name} has no recent heartbeat")
         silent = self.watchdog.silent_for()

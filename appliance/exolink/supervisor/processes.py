@@ -66,7 +66,8 @@ class NodeProcess:
     # When the supervisor's loop next judges it (monotonic; 0: at its next wake). Another
     # thread that changes ``state`` sets it to 0, under ``lock``.
     due_at: float = 0.0
-    idle: bool = False  # its last beat said it has nothing to drive (exolink.liveness)
+    # the deadline its last beat asked to be judged by (exolink.liveness: own, idle, leased)
+    pace: liveness.Pace = liveness.Pace.OWN
     start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
     # Spawns counted, and the pids asked to stop: an exit is judged by its own spawn, never by
     # whatever the node is by the time its report comes (see _wait).
@@ -85,7 +86,7 @@ class NodeProcess:
     )
     lock: threading.RLock = field(default_factory=threading.RLock)
     channel: liveness.Channel | None = None  # this spawn's liveness pipe and deadline timer
-    deadlines: tuple[float, float] | None = None  # (own, idle) s: its beats set the timer by them
+    deadlines: tuple[float, ...] | None = None  # by Pace, s: its beats set the timer by them
     zygote: Zygote | None = None  # forks the node from a pre-imported runtime; else exec
 
     @property
@@ -128,7 +129,7 @@ class NodeProcess:
             self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s = None, None
-            self.idle, self.due_at = False, 0.0
+            self.pace, self.due_at = liveness.Pace.OWN, 0.0
             plain_priority(self.proc.pid)
             threading.Thread(
                 target=self._wait,
@@ -260,7 +261,7 @@ class NodeProcess:
         if beat is None or self.pid is None:
             return False
         first = self.heartbeat_at is None
-        self.heartbeat_at, self.idle = beat
+        self.heartbeat_at, self.pace = beat
         return first
 
     def failed_by_policy(self, code: int | None) -> bool:
@@ -299,7 +300,9 @@ class NodeProcess:
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,
-            "idle": self.idle,  # held to the default deadline meanwhile (exolink.liveness)
+            # held to the default deadline meanwhile, or to its lease's (exolink.liveness)
+            "idle": self.pace == liveness.Pace.IDLE,
+            "leased": self.pace == liveness.Pace.LEASED,
             "start_s": None if self.start_s is None else round(self.start_s, 2),
         }
         if pid:
