@@ -7,10 +7,9 @@ and what was expected, so a lab engineer can fix the card's config without readi
 from __future__ import annotations
 
 import os
-import re
 from collections.abc import Collection
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, Literal
 
 import msgspec
 import yaml
@@ -18,6 +17,7 @@ import yaml
 from exolink.entrypoints import PluginError, node_params_type
 from exolink.limits.joints import Limits, LimitsConfig
 from exolink.liveness import Pace
+from exolink.typed_yaml import ConfigError, decode_yaml, error_at, line_of, prefixed
 
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 NodeName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,39}$")]
@@ -33,11 +33,6 @@ SIM_INTERFACE = "exolink_sim"
 INTERFACE_ALIASES = {"udp_multicast": SIM_INTERFACE}
 # Node params that were joint limits: refused with a pointer to the `limits:` section.
 MOVED_TO_LIMITS = ("min_angles", "max_angles", "torque_cap", "stiffness_cap", "max_step_deg")
-T = TypeVar("T", bound=msgspec.Struct)
-
-
-class ConfigError(Exception):
-    """A configuration that must not be started; the message is for the operator."""
 
 
 class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
@@ -215,99 +210,6 @@ class ApplianceConfig(_Strict, frozen=True, kw_only=True):
         raise ConfigError(f"{self.source}: no node named {name!r} (configured: {known})")
 
 
-_PATH_RE = re.compile(r"`\$(?P<path>[^`]*)`")
-
-
-def _friendly_path(msgspec_path: str) -> str:
-    return msgspec_path.lstrip(".")
-
-
-def _line_of(root: yaml.Node | None, path: str) -> int | None:
-    """Follow ``a.b[2].c`` through the composed YAML tree to report the line the operator edits."""
-    node = root
-    line = node.start_mark.line + 1 if node is not None else None
-    for part in re.findall(r"\.?([^.\[\]]+)|\[(\d+)\]", path):
-        key, index = part
-        if isinstance(node, yaml.MappingNode) and key:
-            match = next(((k, v) for k, v in node.value if getattr(k, "value", None) == key), None)
-            if match is None:
-                break
-            key_node, node = match
-            line = key_node.start_mark.line + 1  # the key's line, also when its value is a block
-            continue
-        elif isinstance(node, yaml.SequenceNode) and index:
-            i = int(index)
-            if i >= len(node.value):
-                break
-            node = node.value[i]
-        else:
-            break
-        line = node.start_mark.line + 1
-    return line
-
-
-def _error(source: str, root: yaml.Node | None, exc: msgspec.ValidationError) -> ConfigError:
-    text = str(exc)
-    m = _PATH_RE.search(text)
-    path = _friendly_path(m.group("path")) if m else ""
-    reason = _PATH_RE.sub("", text).replace(" - at ", "").strip()
-    if "Object contains unknown field" in reason:
-        field = reason.split("`")[1] if "`" in reason else "?"
-        reason = f"unknown key {field!r}"
-        path = f"{path}.{field}".lstrip(".")
-    line = _line_of(root, path) if path else None
-    where = f"{source}:{line}" if line else source
-    return ConfigError(f"{where}: {path or '(top level)'}: {reason}")
-
-
-def decode_yaml(text: str, source: str, cls: type[T]) -> tuple[T, yaml.Node | None]:
-    """Any of exolink's YAML files into its typed struct, with file:line:path errors."""
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        line = f":{mark.line + 1}" if mark else ""
-        ctx = exc.context_mark
-        where = f" ({exc.context} at line {ctx.line + 1})" if ctx and exc.context else ""
-        raise ConfigError(f"{source}{line}: invalid YAML: {exc.problem or exc}{where}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: invalid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(
-            f"{source}: expected a mapping at the top level, got {type(data).__name__}"
-        )
-    _no_duplicate_keys(root, source)
-    if "source" in cls.__struct_fields__:
-        data["source"] = source
-    try:
-        return msgspec.convert(data, cls), root
-    except msgspec.ValidationError as exc:
-        raise _error(source, root, exc) from None
-
-
-def _no_duplicate_keys(node: yaml.Node | None, source: str) -> None:
-    """PyYAML keeps the last of two equal keys without a word: an edit that adds a second
-    ``heartbeat_deadline_ms`` further down would silently win. Refused, with both lines."""
-    stack = [node] if node is not None else []
-    while stack:
-        n = stack.pop()
-        if isinstance(n, yaml.MappingNode):
-            seen: dict[str, int] = {}
-            for k, v in n.value:
-                key = getattr(k, "value", None)
-                if isinstance(key, str):
-                    if key in seen:
-                        raise ConfigError(
-                            f"{source}:{k.start_mark.line + 1}: duplicate key {key!r} "
-                            f"(first at line {seen[key]})"
-                        )
-                    seen[key] = k.start_mark.line + 1
-                stack.append(v)
-        elif isinstance(n, yaml.SequenceNode):
-            stack.extend(n.value)
-
-
 def parse(
     text: str, source: str = "<memory>", check: Collection[str] | None = None
 ) -> ApplianceConfig:
@@ -322,7 +224,7 @@ def parse(
         cfg.joint_limits()
     except ValueError as exc:
         path = str(exc).split(":", 1)[0]
-        raise ConfigError(f"{source}:{_line_of(root, path)}: {exc}") from None
+        raise ConfigError(f"{source}:{line_of(root, path)}: {exc}") from None
     _check_nodes(cfg, root, check)
     return cfg
 
@@ -333,12 +235,12 @@ def _check_nodes(
     seen: set[str] = set()
     for i, node in enumerate(cfg.nodes):
         if node.name in seen:
-            line = _line_of(root, f"nodes[{i}].name")
+            line = line_of(root, f"nodes[{i}].name")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
         seen.add(node.name)
         own = node.heartbeat_deadline_ms or cfg.watchdog.heartbeat_deadline_ms
         if node.leased_deadline_ms is not None and node.leased_deadline_ms < own:
-            line = _line_of(root, f"nodes[{i}].leased_deadline_ms")
+            line = line_of(root, f"nodes[{i}].leased_deadline_ms")
             raise ConfigError(
                 f"{cfg.source}:{line}: nodes[{i}].leased_deadline_ms: {node.leased_deadline_ms} "
                 f"is shorter than the node's own heartbeat deadline ({own} ms): a lease is the "
@@ -346,7 +248,7 @@ def _check_nodes(
             )
         for key in node.params:
             if key in MOVED_TO_LIMITS:
-                line = _line_of(root, f"nodes[{i}].params.{key}")
+                line = line_of(root, f"nodes[{i}].params.{key}")
                 raise ConfigError(
                     f"{cfg.source}:{line}: nodes[{i}].params.{key}: joint limits and caps live "
                     "in the top-level `limits:` section (one place for every node: "
@@ -357,19 +259,13 @@ def _check_nodes(
         try:
             params = node_params_type(node.plugin)
         except PluginError as exc:
-            line = _line_of(root, f"nodes[{i}].plugin")
+            line = line_of(root, f"nodes[{i}].plugin")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].plugin: {exc}") from None
         try:
             msgspec.convert(node.params, params)
         except msgspec.ValidationError as exc:
-            err = _error(cfg.source, root, _prefixed(exc, f"nodes[{i}].params"))
+            err = error_at(cfg.source, root, prefixed(exc, f"nodes[{i}].params"))
             raise err from None
-
-
-def _prefixed(exc: msgspec.ValidationError, prefix: str) -> msgspec.ValidationError:
-    text = str(exc)
-    text = text.replace("`$", f"`$.{prefix}", 1) if "`$" in text else f"{text} - at `$.{prefix}`"
-    return msgspec.ValidationError(text)
 
 
 def load(path: str | Path, check: Collection[str] | None = None) -> ApplianceConfig:

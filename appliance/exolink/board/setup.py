@@ -27,7 +27,8 @@ import msgspec
 import structlog
 
 from exolink import roles
-from exolink.config import ConfigError, DeviceName, decode_yaml, parse
+from exolink.config import ConfigError, DeviceName, parse
+from exolink.typed_yaml import decode_yaml
 
 log = structlog.get_logger("exolink.board.setup")
 
