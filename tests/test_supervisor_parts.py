@@ -202,7 +202,8 @@ def test_the_loop_sleeps_until_the_nearest_deadline() -> None:
     """No 100 Hz tick: the supervisor wakes when a heartbeat would be late (the pattern player's
     50 ms deadline in board.yaml is the nearest), a restart is due, or the watchdog has work."""
     from exolink.config import bundled, parse
-    from exolink.supervisor.core import MAX_SLEEP_S, STARTING_SLEEP_S, Supervisor
+    from exolink.supervisor.core import Supervisor
+    from exolink.supervisor.judging import MAX_SLEEP_S, STARTING_SLEEP_S
     from exolink.supervisor.processes import NodeProcess
 
     cfg = parse(bundled("board").read_text(), "board.yaml")
@@ -329,7 +330,7 @@ def test_between_sweeps_the_loop_reads_only_the_nodes_whose_deadline_came() -> N
     """The manager's 50 ms deadline wakes the loop ~20 times a second: those wakes read its
     pipe, not the others' (their beats wait for their own deadlines or the next sweep), and a
     hung node with a 500 ms deadline is still caught at that deadline, not at a sweep."""
-    from exolink.supervisor.core import SWEEP_S
+    from exolink.supervisor.judging import SWEEP_S
 
     sup, trips = _supervisor_recording_trips()
     beaters = {}
@@ -547,7 +548,7 @@ def test_a_nodes_deadline_timer_wakes_the_loop_only_when_it_runs_out() -> None:
     import math
 
     from exolink import liveness
-    from exolink.supervisor.core import MAX_SLEEP_S
+    from exolink.supervisor.judging import MAX_SLEEP_S
 
     sup, node, beater, trips = _manager_with_timer()
     try:

@@ -266,7 +266,7 @@ class Beater:
             # A timer still set at least REARM_AHEAD of a deadline ahead, and not later than
             # this beat's, is left as it is: it can only run out early, never late, and the
             # supervisor, finding this later beat in the pipe then, judges it by its own
-            # deadline (exolink.supervisor.core._due). One system call in two saved on a loop
+            # deadline (exolink.supervisor.judging.NodeJudge._due). One system call in two saved on a loop
             # that beats more than twice per deadline (the controller manager's 20 ms).
             if expiry < self._armed_until or self._armed_until - t < REARM_AHEAD * deadline:
                 with contextlib.suppress(OSError):  # the supervisor polls a timer not set

@@ -11,7 +11,6 @@ import contextlib
 import functools
 import gc
 import json
-import math
 import os
 import shutil
 import tempfile
@@ -24,7 +23,7 @@ import msgspec
 import structlog
 import yaml
 
-from exolink import hardware, liveness, logs, messaging
+from exolink import hardware, logs, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
@@ -34,8 +33,9 @@ from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.api import ManagementApi
 from exolink.supervisor.forking import Zygote, become_subreaper
+from exolink.supervisor.judging import NodeJudge
 from exolink.supervisor.memory import MemoryTrim
-from exolink.supervisor.osproc import apply_priority, kill_strays, proc_state
+from exolink.supervisor.osproc import kill_strays
 from exolink.supervisor.processes import Exit, NodeProcess, relay
 from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
@@ -47,10 +47,7 @@ if TYPE_CHECKING:
     from exolink.canbus.bcm import CyclicWatch
 
 SUPERVISOR = "supervisor"  # its name as a ROS 2 node, in the logs and among the nodes' tokens
-MAX_SLEEP_S = 0.25  # the loop looks at least this often, whatever its deadlines say
-SWEEP_S = 1.0  # and at every node at least this often (_check_nodes)
-STRAY_SWEEP_S = 5.0  # and for node processes it does not count as any node's (_kill_strays)
-STARTING_SLEEP_S = 0.02  # while a node awaits its first beat (its priority comes with it)
+STRAY_SWEEP_S = 5.0  # the loop looks for node processes it does not count as any node's
 HEALTH_PERIOD_S = 2.0
 SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU starved of it)
 STATE_PERIOD_S = 1.0
@@ -100,7 +97,7 @@ class _Stop(threading.Event):
         self._wake.set()
 
 
-class Supervisor:
+class Supervisor(NodeJudge):
     def __init__(self, cfg: ApplianceConfig) -> None:
         self.cfg = cfg
         # the hardware guarded (exolink.hardware): an unknown name starts nothing
@@ -280,13 +277,6 @@ class Supervisor:
         ):  # a closed session at shutdown must not kill the reader thread
             self.session.put(self.msg.mgmt("log", name), line.encode())
 
-    def _node_up(self, node: NodeProcess, now: float) -> None:
-        """A spawn's first liveness beat: it imported and configured, its loop runs."""
-        node.start_s = (node.heartbeat_at or now) - node.started_at  # the beat's own time
-        if (pid := node.pid) is not None:
-            apply_priority(node.cfg, pid)  # only now: see plain_priority
-        self.log.info("node_up", node_name=node.name, start_s=round(node.start_s, 2))
-
     def _on_edge(self, edge: trigger.Edge) -> None:
         self.trigger_count += 1
         self.last_trigger_ns = edge.stamp_ns
@@ -308,93 +298,6 @@ class Supervisor:
         self.pub_wd.put(
             cdr.watchdog_event_msg(s.since_ns, s.state, s.reason, s.detail, s.frames_sent)
         )
-
-    # --- periodic checks --------------------------------------------------------------------
-
-    def _check_nodes(self, now: float) -> None:
-        """The nodes whose deadline (a heartbeat's, a restart's) has come, and every node each
-        SWEEP_S; between sweeps a node's beats wait in its pipe until its own deadline nears.
-        A short deadline (the controller manager's 50 ms) wakes the loop often, so a wake
-        judges only the nodes that are due (measured: docs/performance.md)."""
-        grace = self.cfg.watchdog.start_grace_ms / 1000
-        nodes: Any = self.nodes.values()
-        beating = None  # a due node's pipe is read as it is judged: no select first
-        if now >= self._sweep_at:
-            self._sweep_at = now + SWEEP_S
-            beating = liveness.with_beats(n.channel for n in nodes if n.channel)
-        else:
-            nodes = [n for n in nodes if n.due_at <= now]
-        for node in nodes:
-            with node.lock:
-                late = self._judge_node(node, now, grace, beating)
-            if not late:
-                continue
-            hb, deadline = node.heartbeat_at, self.cfg.deadline_s(node.cfg, node.pace)
-            detail = (
-                f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
-                if hb is not None
-                else f"{node.name}: no heartbeat {grace:g} s after start"
-            )
-            if node.cfg.critical and self.watchdog.armed:
-                self.watchdog.trip("heartbeat late", detail)
-            # A hung node is killed so its sockets close: a broadcast-manager task it set up in the
-            # kernel would otherwise go on sending. The restart policy brings it back.
-            self.log.error(
-                "node_hung_killed", node_name=node.name, detail=detail, threads=self._threads_now()
-            )
-            node.kill()
-
-    def _threads_now(self) -> dict[str, str]:
-        """Each node's main thread as the kernel sees it when one is found hung: runnable (R)
-        while it missed its deadline says the core was busy with others; sleeping in a futex,
-        that it waited for a lock (the GIL); elsewhere, where it blocked."""
-        out = {}
-        for n in self.nodes.values():
-            if (pid := n.pid) is not None:
-                out[n.name] = proc_state(pid)
-        return out
-
-    def _judge_node(
-        self, node: NodeProcess, now: float, grace: float, beating: set[Any] | None
-    ) -> bool:
-        """Under ``node.lock``: a due restart, the beats in its pipe (``beating``: the pipes
-        known to hold some; None: read it), and whether it is late; ``due_at`` is set to when
-        it next needs a look (a state change by another thread sets it to 0)."""
-        if node.state == "backoff" and now >= node.next_start:
-            self.log.info("node_restarting", node_name=node.name, restarts=node.restarts)
-            node.start()
-        late, expired = False, node.name in self._expired
-        self._expired.discard(node.name)
-        if node.state == "running" and node.pid is not None:
-            if (beating is None or node.channel in beating) and node.poll_liveness(now):
-                self._node_up(node, now)
-            hb = node.heartbeat_at
-            if hb is None:
-                late = now - node.started_at > grace
-            else:
-                late = now - hb > self.cfg.deadline_s(node.cfg, node.pace)
-        node.due_at = self._due(node, now, grace, expired)
-        return late
-
-    def _due(self, node: NodeProcess, now: float, grace: float, expired: bool = False) -> float:
-        """When ``node`` next needs a look, given what the loop knows of it now (inf: only the
-        sweeps look; a state change sets ``due_at`` to 0). A node that sets its deadline timer
-        (exolink.liveness) is looked at when the timer runs out; one whose timer is not set,
-        or ran out though its pipe holds a later beat, by polling its deadline."""
-        if node.state == "backoff":
-            return node.next_start
-        if node.state != "running":
-            return math.inf
-        hb = node.heartbeat_at
-        if hb is None:  # starting: its first beat brings its priority
-            return min(now + STARTING_SLEEP_S, node.started_at + grace)
-        longest = max(self.cfg.deadlines_s(node.cfg))
-        if not expired and node.channel is not None and node.channel.armed(longest):
-            return math.inf
-        due = hb + self.cfg.deadline_s(node.cfg, node.pace)  # the beats in its pipe read then
-        if node.pace != liveness.Pace.OWN:  # its first beat by its own deadline is judged on time
-            due = min(due, now + self.cfg.deadline_s(node.cfg))
-        return due
 
     def _node_diagnostics(self, key: str, payload: bytes) -> None:
         """The worst status a node reports (e.g. the recorder's disk full) shows in `exolink status`."""
@@ -470,28 +373,8 @@ class Supervisor:
                 f"can {h.state}", f"{self.cfg.can.channel} tx errors {h.txerr}, rx errors {h.rxerr}"
             )
 
-    def take_beats(self) -> None:
-        """Every node's beats read now, for an answer about them (arming, status): between
-        sweeps the loop reads a pipe only when its node's deadline timer runs out."""
-        now = time.monotonic()
-        for node in self.nodes.values():
-            with node.lock:
-                if node.state == "running" and node.pid is not None and node.poll_liveness(now):
-                    self._node_up(node, now)
-
     def arm_blockers(self) -> list[str]:
-        out = []
-        self.take_beats()
-        now = time.monotonic()
-        for n in self.nodes.values():
-            if not (n.cfg.critical and n.cfg.enabled):
-                continue
-            if n.state != "running":
-                out.append(f"critical node {n.name} is {n.state}")
-            elif n.heartbeat_at is None or now - n.heartbeat_at > self.cfg.deadline_s(
-                n.cfg, n.pace
-            ):
-                out.append(f"critical node {n.name} has no recent heartbeat")
+        out = self.node_blockers()
         silent = self.watchdog.silent_for()
         limit = self.cfg.watchdog.silence_ms / 1000
         behind = self.watchdog.behind_s()
@@ -586,22 +469,6 @@ class Supervisor:
                 process=name,
                 why="a node process no node counts as its own: it ran unwatched",
             )
-
-    def _timer_ran_out(self, node: NodeProcess, fd: int) -> None:
-        """A node's deadline timer ran out: judged at once (its pipe says whether it beat
-        meanwhile). The descriptor is read only if it is still this node's timer."""
-        with node.lock:
-            if node.channel is not None and node.channel.timer == fd and node.channel.expired():
-                self._expired.add(node.name)
-                node.due_at = 0.0
-
-    def _next_due(self, now: float) -> float:
-        """The nearest deadline of the nodes (their ``due_at``) and the watchdog."""
-        return min(
-            now + MAX_SLEEP_S,
-            self.watchdog.next_due(),
-            min((n.due_at for n in self.nodes.values()), default=math.inf),
-        )
 
     def _link_loop(self) -> None:
         """The CAN link's state and error counters, off the safety loop: woken by the driver's
