@@ -19,12 +19,9 @@ pattern (it does not resume by itself).
 
 from __future__ import annotations
 
-import csv
-import re
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -35,7 +32,7 @@ from exolink.control import requests
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.control.gait import period_s
-from exolink.limits.joints import Limits
+from exolink.control.patterns import load_pattern, parse_pattern, pattern_in
 from exolink.loops import Every
 from exolink.messaging import Caller, Refused
 from exolink.node import Node
@@ -45,9 +42,7 @@ from exolink.wire.requests import with_default
 
 DEFAULT_PATTERN = Path(__file__).with_name("patterns") / "normal_walking.csv"
 STATE_TYPE = "exolink_msgs/msg/PatternState"
-MAX_POINTS = 10_000
 MAX_UPLOAD = 1 << 20
-WHOLE = re.compile(r"[+-]?[0-9]+")  # ASCII: int() also takes other scripts' digits
 GAIT = "pattern"  # the controller the manager runs the gait as
 MANAGER_WAIT_S = 2.0  # a switch waits up to 1 s for an H2 cycle
 # Starting the gait: the manager loads it and waits for a cycle to activate it at. On the board
@@ -83,75 +78,6 @@ class PlayerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     speed: Annotated[int, msgspec.Meta(ge=1, le=10)] = 5
     selected: list[Joint] = []
     require_armed: bool = True
-
-
-@dataclass(frozen=True)
-class Pattern:
-    """Validated set-points in whole degrees, [row][joint index 0..5]."""
-
-    file: str
-    points: list[list[int]]
-
-
-def load_pattern(path: str, limits: Limits) -> Pattern:
-    """A pattern file the board's own config names (the start-up pattern)."""
-    try:
-        text = Path(path).read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise ProtocolError(f"{path}: cannot read pattern: {exc.strerror or exc}") from None
-    return parse_pattern(text, path, limits)
-
-
-def pattern_in(directory: str, name: str) -> str:
-    """A file name inside the patterns directory; anything else (a path out of it, a link out of
-    it) is refused: a network request must not make the board read /etc/shadow."""
-    base = Path(directory).resolve()
-    if not name or "/" in name or name in (".", ".."):
-        raise ProtocolError(f"pattern name {name!r}: give a file name in {base}, not a path")
-    target = (base / name).resolve()
-    if target.parent != base or not target.is_file():
-        raise ProtocolError(f"no pattern {name!r} in {base}")
-    return str(target)
-
-
-def parse_pattern(text: str, source: str, limits: Limits) -> Pattern:
-    """CSV with a header of joint names (all six), one row per set-point, whole degrees inside
-    the configured limits (the manager checks the limits in force again at start). Errors name
-    the line and what is wrong; a file that may not be a pattern (no six-joint header) never has
-    its content shown, a pattern's bad value is (its first 16 characters)."""
-    path = source
-    # A byte-order mark (a spreadsheet's "CSV UTF-8") is not part of the first joint's name.
-    rows = list(csv.reader(text.removeprefix("\ufeff").splitlines()))
-    if not rows:
-        raise ProtocolError(f"{path}: empty pattern file")
-    header = [c.strip() for c in rows[0]]
-    if sorted(header) != sorted(h2.JOINTS):
-        raise ProtocolError(f"{path}:1: header must name the six joints {', '.join(h2.JOINTS)}")
-    order = [header.index(j) for j in h2.JOINTS]
-    body = [r for r in rows[1:] if any(c.strip() for c in r)]
-    if not 2 <= len(body) <= MAX_POINTS:
-        raise ProtocolError(f"{path}: a pattern needs 2..{MAX_POINTS} set-points, got {len(body)}")
-    points = []
-    for n, row in enumerate(body, start=2):
-        if len(row) != 6:
-            raise ProtocolError(f"{path}:{n}: expected 6 values, got {len(row)}")
-        cells = [row[i].strip() for i in order]
-        for j, cell in enumerate(cells):
-            if not WHOLE.fullmatch(cell):
-                ascii_only = "" if cell.isascii() else " in ASCII digits"
-                raise ProtocolError(
-                    f"{path}:{n}: values must be whole degrees{ascii_only} "
-                    f"({h2.JOINTS[j]} {cell[:16]!r})"
-                )
-        vals = [int(c) for c in cells]
-        for j, v in enumerate(vals):
-            lo, hi = limits.min_angles[j], limits.max_angles[j]
-            if not lo <= v <= hi:
-                raise ProtocolError(
-                    f"{path}:{n}: {h2.JOINTS[j]} {v} deg is outside the limits {lo}..{hi}"
-                )
-        points.append(vals)
-    return Pattern(source, points)
 
 
 class PatternPlayer(Node):

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-from exolink.nodes.pattern_player import load_pattern, parse_pattern
 
 from benchmarks.harness import EXOLINK, Appliance
 from exolink.cli.main import parse
 from exolink.config import bundled
+from exolink.control.patterns import load_pattern, parse_pattern
 from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import ProtocolError, h2
 

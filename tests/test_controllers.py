@@ -24,6 +24,7 @@ from benchmarks.harness import Appliance, collect, connect, motion_nodes, wait_f
 from exolink import messaging, roles
 from exolink.config import ConfigError, load
 from exolink.control.controller import State
+from exolink.control.patterns import load_pattern
 from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import h2
 
@@ -129,7 +130,7 @@ def player_on(manager: ManagerStandIn) -> Any:
     player.ctx = SimpleNamespace(messaging=manager)  # type: ignore[assignment]
     player.log = structlog.get_logger()
     player.lock = threading.RLock()
-    player.pattern = pp.load_pattern(pp.DEFAULT_PATTERN, manager_limits())
+    player.pattern = load_pattern(str(pp.DEFAULT_PATTERN), manager_limits())
     player.selected, player.speed, player.index = [True] * 6, 10, 0
     player.state, player.reason, player._engaged, player._starts = "stopped", "", 0, 0
     player.sent, player.operator, player.arming = 0, "", None
@@ -438,9 +439,10 @@ def test_gait_pattern_moves_between_rows_and_the_default_pattern_fits_the_shippe
     speed 10 moves its knees 4 deg per 10 ms cycle, inside the shipped configs' step limit
     (8 deg per 20 ms row at once would not be); interpolate: false holds each row."""
     from exolink.nodes.controller_manager.builtin import GaitParams, GaitPattern
-    from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
+    from exolink.nodes.pattern_player import DEFAULT_PATTERN
 
     from exolink.config import bundled, load
+    from exolink.control.patterns import load_pattern
 
     rows = [[10, 20, 0, 0, 0, 0], [20, 28, 0, 0, 0, 0]]
     for interpolate, mid in ((True, {"r_hip/position": 15, "r_knee/position": 24}), (False, None)):
@@ -1038,7 +1040,9 @@ def gait(write_config, spawn):  # type: ignore[no-untyped-def]
 
 
 def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # type: ignore[no-untyped-def]
-    from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
+    from exolink.nodes.pattern_player import DEFAULT_PATTERN
+
+    from exolink.control.patterns import load_pattern
 
     app = gait
     r = app.cli("pattern", "start", "--detach")

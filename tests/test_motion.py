@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import bus_sockets
-from exolink.nodes.pattern_player import DEFAULT_PATTERN, load_pattern
+from exolink.nodes.pattern_player import DEFAULT_PATTERN
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging
 from exolink.control.gait import period_s
+from exolink.control.patterns import load_pattern
 from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import ProtocolError, h2, maccepa
 

@@ -26,7 +26,7 @@ import structlog
 from aiohttp import WSMsgType, web
 
 from exolink import gaitlab
-from exolink.dashboard import hub as hub_module
+from exolink.dashboard.files import recording_plot as plot_of
 from exolink.dashboard.hub import Hub
 from exolink.recordings import store as recstore
 from exolink.recordings.readback import RecordingError
@@ -377,7 +377,7 @@ async def recording_plot(request: web.Request) -> web.StreamResponse:
     except web.HTTPException as exc:
         return web.json_response({"ok": False, "error": exc.text})
     try:
-        data = await asyncio.to_thread(hub_module.recording_plot, str(path))
+        data = await asyncio.to_thread(plot_of, str(path))
     except RecordingError as exc:
         return web.json_response({"ok": False, "error": str(exc)})
     except Exception as exc:  # a file still being written (no summary yet), or damaged
