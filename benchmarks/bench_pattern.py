@@ -2,7 +2,7 @@
 with the other core idle and loaded: the pattern as the controller manager's ``gait_pattern``
 controller, planned ahead and sent on a timer (nodes/controller_manager/timed.py): one set-point
 per joint per 20 ms slot. Here the bus is udp_multicast, so the timer is a thread of the
-manager's process (exolink.canbus.bcm.ThreadLease) and the figures include the UDP path's jitter;
+manager's process (exolink.canbus.leases.ThreadLease) and the figures include the UDP path's jitter;
 the broadcast manager's on a real kernel come from the kernel tests (tests/kernel/).
 
 Goal: p99 deviation < 0.05 ms; the thesis' worst case on the board was 0.4 ms.

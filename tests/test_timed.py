@@ -1,4 +1,4 @@
-"""Planned set-points on a leased timer: ``exolink.canbus.bcm.ThreadLease`` on python-can's real
+"""Planned set-points on a leased timer: ``exolink.canbus.leases.ThreadLease`` on python-can's real
 virtual bus (the kernel's broadcast manager is tested in the UML guest: tests/kernel/), and the
 controller manager's plan (nodes/controller_manager/timed.py) through the real ``Manager``."""
 
@@ -13,7 +13,7 @@ from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.slots import Switch
 from exolink.nodes.controller_manager.timed import Timed
 
-from exolink.canbus.bcm import ThreadLease
+from exolink.canbus.leases import ThreadLease
 from exolink.control.controller import State
 from exolink.limits.joints import Limits, LimitsConfig
 from exolink.protocol import h2

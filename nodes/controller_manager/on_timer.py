@@ -17,7 +17,7 @@ from exolink.nodes.controller_manager.timed import Timed
 
 from exolink import logs
 from exolink.canbus import CanOpenError
-from exolink.canbus.bcm import open_lease
+from exolink.canbus.leases import open_lease
 from exolink.limits.joints import POSITION
 from exolink.liveness import Pace
 from exolink.protocol import h2

@@ -1,5 +1,5 @@
 """Set-points planned ahead and sent on a timer the manager does not run: the kernel's
-broadcast manager on SocketCAN (``exolink.canbus.bcm.CyclicLease``), a thread elsewhere.
+broadcast manager on SocketCAN (``exolink.canbus.leases.CyclicLease``), a thread elsewhere.
 
 While every active controller is ``planned`` (its outputs are a function of time: the gait
 pattern, a trajectory), the manager computes each slot's set-points a few slots ahead, through
@@ -26,7 +26,7 @@ import structlog
 from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.slots import PLANNED, Cycle
 
-from exolink.canbus.bcm import Lease
+from exolink.canbus.leases import Lease
 from exolink.control.controller import State
 from exolink.protocol import h2
 

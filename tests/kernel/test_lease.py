@@ -1,4 +1,4 @@
-"""The broadcast manager's send op with a lease (exolink.canbus.bcm.CyclicLease) on vcan0 in the
+"""The broadcast manager's send op with a lease (exolink.canbus.leases.CyclicLease) on vcan0 in the
 UML guest: set-points on the kernel's timer, renewed without a gap or a skip, and bounded when
 their owner is stopped, killed or stops them. Counts are asserted; times are printed."""
 
@@ -19,7 +19,7 @@ import can
 import pytest
 
 from benchmarks.harness import EXOLINK, motion_nodes
-from exolink.canbus.bcm import CyclicLease
+from exolink.canbus.leases import CyclicLease
 from exolink.protocol import h2
 
 pytestmark = pytest.mark.kernel
@@ -107,7 +107,7 @@ def test_renewed_set_points_leave_on_the_kernels_timer_without_gap_or_skip(vcan0
 
 OWNER = """
 import sys, time
-from exolink.canbus.bcm import CyclicLease
+from exolink.canbus.leases import CyclicLease
 from exolink.protocol import h2
 ID, PERIOD, LEASE = 0x46, 0.010, 6
 slot = lambda n: n.to_bytes(4, "big") + b"\\xee\\xee"

@@ -27,27 +27,25 @@ CAN frame that follows.
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import struct
-import threading
 import time
-from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple
 
 from exolink.canbus.frames import CAN_FRAME, Frame
 from exolink.canbus.opening import CanOpenError
 from exolink.canbus.sockets import SO_TIMESTAMPNS
 
 if TYPE_CHECKING:
-    import can
+    pass
 
 _HEAD_FMT = "@3I4l2I"
-_HEAD = struct.Struct(_HEAD_FMT + "x" * (-struct.calcsize(_HEAD_FMT) % 8))
+# struct bcm_msg_head, padded to the CAN frame that follows (both ops speak it)
+HEAD = struct.Struct(_HEAD_FMT + "x" * (-struct.calcsize(_HEAD_FMT) % 8))
 _TIMESPEC = struct.Struct("@ll")
 _CAN_EFF_FLAG, _CAN_RTR_FLAG, _CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 _ANC = socket.CMSG_SPACE(_TIMESPEC.size)
-_FULL = _HEAD.size + CAN_FRAME.size
+_FULL = HEAD.size + CAN_FRAME.size
 _TIMER = socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_RX_ANNOUNCE_RESUME
 
 
@@ -83,7 +81,7 @@ class CyclicWatch:
             self._sock.setblocking(False)
             sec, usec = int(timeout_s), round((timeout_s % 1) * 1e6)
             flags = socket.CAN_BCM_RX_CHECK_DLC | (_TIMER if timeout_s else 0)
-            head = _HEAD.pack(socket.CAN_BCM_RX_SETUP, flags, 0, sec, usec, 0, 0, can_id, 1)
+            head = HEAD.pack(socket.CAN_BCM_RX_SETUP, flags, 0, sec, usec, 0, 0, can_id, 1)
             self._sock.send(head + CAN_FRAME.pack(can_id, 8, mask))
         except OSError as exc:
             self._sock.close()
@@ -103,9 +101,9 @@ class CyclicWatch:
                 data, anc, _flags, _addr = self._sock.recvmsg(_FULL, _ANC)
             except BlockingIOError:
                 return out
-            if len(data) < _HEAD.size:
+            if len(data) < HEAD.size:
                 continue
-            head = _HEAD.unpack_from(data)
+            head = HEAD.unpack_from(data)
             opcode, nframes = head[0], head[-1]
             if opcode == socket.CAN_BCM_RX_TIMEOUT:
                 out.append(Event(time.time(), None))
@@ -113,7 +111,7 @@ class CyclicWatch:
                 out.append(self._changed(data, anc))
 
     def _changed(self, data: bytes, anc: list[tuple[int, int, bytes]]) -> Event:
-        raw_id, length, payload = CAN_FRAME.unpack_from(data, _HEAD.size)
+        raw_id, length, payload = CAN_FRAME.unpack_from(data, HEAD.size)
         at = time.time()
         for level, kind, value in anc:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 8:
@@ -139,276 +137,3 @@ class CyclicWatch:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _check_lease(lease: int, planned: int, ring: int) -> None:
-    """A lease of 1 frame up to what is planned, at most the op's ring (both leases' rule)."""
-    if not 1 <= lease <= min(planned, ring):
-        raise ValueError(
-            f"lease of {lease} frames: must be 1..{min(planned, ring)} "
-            f"(the frames planned, at most the op's {ring})"
-        )
-
-
-def _checked(slot: int, payload: bytes) -> bytes:
-    if len(payload) > 8:
-        raise ValueError(f"slot {slot}: a CAN frame carries 8 bytes, got {len(payload)}")
-    return payload
-
-
-def _place_ahead(
-    frames_from: Mapping[int, bytes],
-    n: int,
-    written: int,
-    ring: int,
-    put: Callable[[int, bytes], None],
-) -> int:
-    """Both leases' renewal: slot k sits at ring position k mod ``ring`` from ``start`` on, and
-    each is placed once (a plan does not change what it planned), so only slots from
-    ``max(n, written)`` up to a ring ahead of ``n`` are put. The first slot not placed."""
-    k = max(n, written)
-    while k < n + ring and k in frames_from:
-        put(k, frames_from[k])
-        k += 1
-    return k
-
-
-class CyclicLease:
-    """A broadcast-manager send op on ``can_id``: frames the kernel sends one per ``period_s``
-    on its own timer, for at most ``lease`` frames after the last ``start`` or ``renew``.
-
-    Set-points known ahead (a gait pattern) leave on the kernel's timer, not on a Python
-    process's wake-up, and the owner's silence bounds them: an owner stopped, hung or starved
-    stops renewing, and the kernel sends what the lease still allows, then nothing (``count``
-    frames at ``ival1``, no ``ival2``: the op's timer ends). Closing the socket (the process
-    killed) deletes the op at once; ``stop`` (TX_DELETE) does the same on purpose.
-
-    Content is planned by slot: slot n is the n-th frame the op sends since ``start``, and it
-    sits at ring position n mod ``ring``, always: the op's index is never reset after
-    ``start``. A renewal reads how many were sent (TX_READ: the op's remaining ``count``),
-    writes slots n, n+1, ... at their positions and sets a new ``count`` without restarting
-    the timer (SETTIMER without STARTTIMER keeps the phase; the same number of frames keeps
-    the index). A frame the kernel sends between that read and the renewal was already at
-    its position: nothing is repeated or skipped, the phase never slips, and the lease ends
-    one frame later than counted (``sent`` is then one short). So a lease never reaches a
-    position the renewal did not write, it is at most the frames planned minus one.
-    """
-
-    def __init__(self, channel: str, can_id: int, period_s: float, ring: int = 16) -> None:
-        if not 0 < period_s < 60:
-            raise ValueError(f"broadcast-manager period must be in (0, 60) s, got {period_s}")
-        if not 2 <= ring <= 256:
-            raise ValueError(f"broadcast-manager frames per op must be 2..256, got {ring}")
-        self.can_id, self.period_s, self.ring = can_id, period_s, ring
-        self._frames = [CAN_FRAME.pack(can_id, 0, bytes(8))] * ring  # packed, by ring position
-        self._written = 0  # slots below this are placed (in increasing order: never again)
-        self._base = 0  # slot of the op's first frame since the last start or renew
-        self._lease = 0  # the count that start or renew set
-        try:
-            self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
-        except OSError as exc:
-            raise CanOpenError(f"cannot open a CAN broadcast-manager socket: {exc}") from exc
-        try:
-            self._sock.connect((channel,))
-        except OSError as exc:
-            self._sock.close()
-            raise CanOpenError(f"cannot reach {channel} for the broadcast manager: {exc}") from exc
-        self._sock.settimeout(1.0)  # a TX_READ's answer is immediate; never wait forever
-
-    def _setup(self, flags: int, lease: int) -> None:
-        sec, usec = int(self.period_s), round((self.period_s % 1) * 1e6)
-        head = _HEAD.pack(
-            socket.CAN_BCM_TX_SETUP, flags, lease, sec, usec, 0, 0, self.can_id, self.ring
-        )
-        self._sock.send(head + b"".join(self._frames))
-        self._lease = lease
-
-    def _put(self, slot: int, payload: bytes) -> None:
-        payload = _checked(slot, payload)
-        self._frames[slot % self.ring] = CAN_FRAME.pack(
-            self.can_id, len(payload), payload.ljust(8, b"\0")
-        )
-
-    def start(self, frames: list[bytes], lease: int) -> None:
-        """Slot 0 (``frames[0]``) now, then one frame per period: a new phase."""
-        _check_lease(lease, len(frames), self.ring)
-        for k, f in enumerate(frames[: self.ring]):
-            self._put(k, f)
-        self._written = min(len(frames), self.ring)
-        self._setup(
-            socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
-            lease,
-        )
-        self._base = 0
-
-    def remaining(self) -> int:
-        """Frames the op may still send (0: the lease ran out, or no op)."""
-        head = _HEAD.pack(socket.CAN_BCM_TX_READ, 0, 0, 0, 0, 0, 0, self.can_id, 0)
-        try:
-            self._sock.send(head)
-            reply = self._sock.recv(_HEAD.size + self.ring * CAN_FRAME.size)
-        except OSError:  # EINVAL: no op on this id (never started, or deleted)
-            return 0
-        return int(_HEAD.unpack_from(reply)[2])
-
-    def sent(self) -> int:
-        """The slot the op sends next: how many it sent since ``start``."""
-        return self._base + self._lease - self.remaining()
-
-    def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
-        """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
-        slot, as the kernel counts) and ``lease`` frames from now, fewer than are planned
-        from n (fewer than two planned: ValueError). A lease that already ran out is not
-        restarted (``start`` is a new phase, on purpose)."""
-        n = self.sent()
-        k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
-        self._written = max(self._written, k)
-        lease = min(lease, k - n - 1)  # never past the plan, even one frame late
-        _check_lease(lease, k - n - 1, self.ring)
-        self._setup(socket.CAN_BCM_SETTIMER, lease)
-        self._base = n
-        return n
-
-    def stop(self) -> None:
-        """TX_DELETE: nothing more from this op, now."""
-        head = _HEAD.pack(socket.CAN_BCM_TX_DELETE, 0, 0, 0, 0, 0, 0, self.can_id, 0)
-        with contextlib.suppress(OSError):  # no op: nothing to delete
-            self._sock.send(head)
-        self._lease = 0
-
-    def close(self) -> None:
-        """Closing the socket deletes its op in the kernel."""
-        self._sock.close()
-
-
-class Lease(Protocol):
-    """What the controller manager asks of a lease (``CyclicLease``, ``ThreadLease``)."""
-
-    can_id: int
-    period_s: float
-    ring: int
-
-    def start(self, frames: list[bytes], lease: int) -> None: ...
-    def sent(self) -> int: ...
-    def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
-    def stop(self) -> None: ...
-    def close(self) -> None: ...
-
-
-# A sleep wakes up to the timer slack late (50 us by default): ThreadLease sleeps to this much
-# before a slot and spins the rest, as a simulated bus is timed on a development machine.
-SPIN_S = 0.0003
-
-
-class ThreadLease:
-    """``CyclicLease``'s contract on a bus without a broadcast manager (the simulated bus, the
-    virtual one): a thread of the owner's process sends the slots through ``bus``, one per
-    ``period_s`` from ``start``, at most ``lease`` after the last ``start`` or ``renew``, with
-    the same slot arithmetic (a renewal keeps the phase; a lapsed lease is not restarted).
-
-    Only the owner's failure modes differ, to the safe side: stopped or killed with its owner,
-    where the kernel's op sends out its lease (stopped) or ends at once (killed)."""
-
-    def __init__(self, bus: can.BusABC, can_id: int, period_s: float, ring: int = 16) -> None:
-        if not 0 < period_s < 60:
-            raise ValueError(f"lease period must be in (0, 60) s, got {period_s}")
-        if not 2 <= ring <= 256:
-            raise ValueError(f"frames per lease must be 2..256, got {ring}")
-        self.can_id, self.period_s, self.ring = can_id, period_s, ring
-        self._bus = bus
-        self._cond = threading.Condition()
-        self._frames = [bytes(8)] * ring  # by ring position, as CyclicLease's
-        self._written = 0
-        self._index = 0  # the op's next frame
-        self._count = 0  # frames the lease still allows
-        self._base = 0
-        self._lease = 0
-        self._running = False
-        self._next_at = 0.0  # monotonic time of the next frame
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name=f"lease-{can_id}", daemon=True)
-        self._thread.start()
-
-    def start(self, frames: list[bytes], lease: int) -> None:
-        _check_lease(lease, len(frames), self.ring)
-        with self._cond:
-            for k, f in enumerate(frames[: self.ring]):
-                self._put(k, f)
-            self._written = min(len(frames), self.ring)
-            self._index, self._count, self._base, self._lease = 0, lease, 0, lease
-            self._running, self._next_at = True, time.monotonic()
-            self._cond.notify()
-
-    def remaining(self) -> int:
-        with self._cond:
-            return self._count if self._running else 0
-
-    def sent(self) -> int:
-        with self._cond:
-            return self._base + self._lease - (self._count if self._running else 0)
-
-    def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
-        with self._cond:
-            n = self._base + self._lease - (self._count if self._running else 0)
-            k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
-            self._written = max(self._written, k)
-            lease = min(lease, k - n - 1)  # the kernel's rule (CyclicLease.renew)
-            _check_lease(lease, k - n - 1, self.ring)
-            self._base, self._lease = n, lease
-            self._count = lease if self._running else 0
-            return n
-
-    def _put(self, slot: int, payload: bytes) -> None:
-        self._frames[slot % self.ring] = bytes(_checked(slot, payload))
-
-    def stop(self) -> None:
-        with self._cond:
-            self._running, self._count, self._lease = False, 0, 0
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed, self._running, self._count = True, False, 0
-            self._cond.notify()
-        if self._thread is not threading.current_thread():
-            self._thread.join(1.0)
-
-    def _due(self) -> can.Message | None:
-        """Under the lock at the slot's time: the frame to send, or None (stopped meanwhile)."""
-        import can  # lazy: python-can: only a process that sends through the op
-
-        if not self._running or self._count <= 0:
-            return None
-        data = self._frames[self._index]
-        self._index = (self._index + 1) % self.ring
-        self._count -= 1
-        self._next_at += self.period_s
-        if self._count == 0:
-            self._running = False  # the lease ran out: the timer ends, as the kernel's
-        return can.Message(arbitration_id=self.can_id, data=data, is_extended_id=False)
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._closed and not self._running:
-                    self._cond.wait()
-                if self._closed:
-                    return
-                at = self._next_at
-            while (delay := at - time.monotonic()) > SPIN_S:
-                time.sleep(delay - SPIN_S)
-            while time.monotonic() < at:
-                pass
-            with self._cond:
-                msg = self._due() if at == self._next_at else None
-            if msg is not None:
-                with contextlib.suppress(Exception):  # a full queue: that slot is lost
-                    self._bus.send(msg)
-
-
-def open_lease(
-    interface: str, channel: str, bus: can.BusABC, can_id: int, period_s: float, ring: int
-) -> Lease:
-    """The kernel's broadcast manager on SocketCAN, a thread of this process elsewhere."""
-    if interface == "socketcan":
-        return CyclicLease(channel, can_id, period_s, ring)
-    return ThreadLease(bus, can_id, period_s, ring)
