@@ -160,6 +160,7 @@ class NodeConfig(_Strict, frozen=True, kw_only=True):
     # While the node says its motion runs on a lease the kernel ends by itself (exolink.liveness:
     # the controller manager's timer), it is judged by this one instead (default: its own). A
     # hang then ends the motion at the lease's end; the node checks its lease fits at start.
+    # Never shorter than its own (the longer of the two).
     leased_deadline_ms: PositiveMs | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
 
@@ -186,12 +187,13 @@ class ApplianceConfig(_Strict, frozen=True, kw_only=True):
     def deadline_s(self, node: NodeConfig, pace: Pace = Pace.OWN) -> float:
         """The node's liveness deadline by the pace its last beat said (exolink.liveness): its
         own, else the watchdog's; idle (nothing to drive) never shorter than the watchdog's;
-        leased, its ``leased_deadline_ms`` if set."""
+        leased, its ``leased_deadline_ms`` if set, never shorter than its own (a node whose own
+        deadline was raised, say for a slow machine, is not judged tighter on a lease)."""
         own = node.heartbeat_deadline_ms or self.watchdog.heartbeat_deadline_ms
         if pace == Pace.IDLE:
             return max(own, self.watchdog.heartbeat_deadline_ms) / 1000
         if pace == Pace.LEASED:
-            return (node.leased_deadline_ms or own) / 1000
+            return max(own, node.leased_deadline_ms or 0) / 1000
         return own / 1000
 
     def deadlines_s(self, node: NodeConfig) -> tuple[float, ...]:
@@ -238,14 +240,6 @@ def _check_nodes(
             line = line_of(root, f"nodes[{i}].name")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
         seen.add(node.name)
-        own = node.heartbeat_deadline_ms or cfg.watchdog.heartbeat_deadline_ms
-        if node.leased_deadline_ms is not None and node.leased_deadline_ms < own:
-            line = line_of(root, f"nodes[{i}].leased_deadline_ms")
-            raise ConfigError(
-                f"{cfg.source}:{line}: nodes[{i}].leased_deadline_ms: {node.leased_deadline_ms} "
-                f"is shorter than the node's own heartbeat deadline ({own} ms): a lease is the "
-                "looser judgment, never the stricter"
-            )
         for key in node.params:
             if key in MOVED_TO_LIMITS:
                 line = line_of(root, f"nodes[{i}].params.{key}")
