@@ -438,7 +438,7 @@ def test_gait_pattern_moves_between_rows_and_the_default_pattern_fits_the_shippe
     """The gait controller writes where the pattern is between rows, so the default pattern at
     speed 10 moves its knees 4 deg per 10 ms cycle, inside the shipped configs' step limit
     (8 deg per 20 ms row at once would not be); interpolate: false holds each row."""
-    from exolink.nodes.controller_manager.builtin import GaitParams, GaitPattern
+    from exolink.nodes.controller_manager.gait_pattern import GaitParams, GaitPattern
     from exolink.nodes.pattern_player import DEFAULT_PATTERN
 
     from exolink.config import bundled, load
