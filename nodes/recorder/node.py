@@ -1,6 +1,6 @@
 """The recorder node (``Recorder``): its commands (``record``, ``recordings``), the writer loop
-over the intake's batches (intake.py), its diagnostics, and the bus readers' receive counters in
-each file."""
+over the intake's batches (intake.py), the card's reserve, and its diagnostics; what each file
+says of itself (metadata.py)."""
 
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ import yaml
 from exolink.nodes.recorder.inbox import Inbox
 from exolink.nodes.recorder.intake import Intake, Item
 from exolink.nodes.recorder.mcapfile import McapFile
+from exolink.nodes.recorder.metadata import file_metadata, receive_counters, receive_metadata
 from exolink.nodes.recorder.params import RecorderParams, Stats
 
-from exolink import __version__, messaging, roles
-from exolink.board import clock
+from exolink import messaging, roles
 from exolink.messaging import Refused, Unlogged
 from exolink.node import Node
 from exolink.recordings import requests as reqs
@@ -39,8 +39,6 @@ DRAIN_SLICE_S = 0.05
 # open or close the file: the reply then says so ("stopping", or no file yet), which is true,
 # instead of the CLI timing out.
 REPLY_WAIT_S = 2.0
-RECEIVE_QUERY_S = 0.5  # the readers' receive counters, asked when a file opens and closes
-RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the file alone
 CARD_CHECK_S = 1.0  # how often the card's free space is read (one statvfs)
 
 
@@ -257,30 +255,17 @@ class Recorder(Node):
 
     # --- writer thread --------------------------------------------------------------------
 
-    def _metadata(self) -> dict[str, dict[str, str]]:
-        return {
-            "exolink": {
-                "device": self.ctx.config.device,
-                "software_version": __version__,
-                "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "file_index": str(self.index),
-            },
-            "exolink.labels": dict(self.labels),
-            # which clock stamped this file (a board with no time server: exolink.board.clock)
-            "exolink.board.clock": clock.recorded(self.ctx.config.state_dir),
-            "exolink.config": {"yaml": self.config_yaml},
-        }
-
     def _open(self) -> None:
         label = "_".join(f"{v}" for v in self.labels.values())[:40].replace("/", "-")
         name = "_".join(
             x for x in (self.ctx.config.device, self.session_stamp, label, f"{self.index:03d}") if x
         )
-        self._receive_at_open = self._receive_counters()
+        self._receive_at_open = receive_counters(self.ctx.session, self.ctx.messaging, self.log)
         path = self.dir / f"{name}.mcap"
         self.writing = path  # listed as being recorded from before it exists
         try:
-            self.file = McapFile(path, self.params, self._metadata())
+            about = file_metadata(self.ctx.config, self.labels, self.index, self.config_yaml)
+            self.file = McapFile(path, self.params, about)
         except BaseException:
             self.writing = None
             raise
@@ -299,42 +284,11 @@ class Recorder(Node):
             }
         f, self.file = self.file, None
         try:
-            f.close(stats, self._receive_metadata(self._receive_counters()))
+            at_close = receive_counters(self.ctx.session, self.ctx.messaging, self.log)
+            f.close(stats, receive_metadata(self._receive_at_open, at_close))
             self._bytes += f.size_closed()
         finally:
             self.writing = None
-
-    def _receive_counters(self) -> dict[str, dict[str, Any]]:
-        """Every bus reader's receive counters now (node -> FrameReader.counters())."""
-        out: dict[str, dict[str, Any]] = {}
-        # Every node's stats queryable, asked as the appliance's own login (see exolink.roles).
-        key = self.ctx.messaging.mgmt("nodes", "*", "stats", roles.APPLIANCE_USER)
-        try:
-            for reply in self.ctx.session.get(key, payload=b"{}", timeout=RECEIVE_QUERY_S):
-                if reply.ok is None:
-                    continue
-                stats = json.loads(reply.ok.payload.to_bytes())
-                if isinstance(stats.get("receive"), dict) and isinstance(stats.get("node"), str):
-                    out[stats["node"]] = stats["receive"]
-        except Exception as exc:  # the file is written either way; the gap is said in it
-            self.log.warning("receive_counters_unavailable", error=str(exc))
-        return out
-
-    def _receive_metadata(self, at_close: dict[str, dict[str, Any]]) -> dict[str, str]:
-        """``<node>.<counter>``: since the reader started; ``<node>.<counter>_in_file``: between
-        this file's open and close (absent if the reader restarted or did not answer at open)."""
-        meta: dict[str, str] = {}
-        at_open = self._receive_at_open
-        for node, now in sorted(at_close.items()):
-            meta.update({f"{node}.{k}": str(v) for k, v in now.items()})
-            before = at_open.get(node, {})
-            for k in RECEIVE_DELTAS:
-                a, b = before.get(k), now.get(k)
-                if isinstance(a, int) and isinstance(b, int) and b >= a:
-                    meta[f"{node}.{k}_in_file"] = str(b - a)
-        for node in sorted(set(at_open) - set(at_close)):
-            meta[f"{node}.error"] = "no answer when the file was closed"
-        return meta
 
     def _need_split(self) -> bool:
         f, p = self.file, self.params
