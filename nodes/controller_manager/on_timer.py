@@ -162,7 +162,12 @@ class TimerLoop:
         clock.mark("timer beat")
         self.keep()
         clock.mark("timer keep")  # the lease's renewal when due
-        n.beat(Pace.LEASED if self.timed is not None else Pace.OWN)
+        # ended meanwhile: by its own deadline if it drives on (the cycle loop takes the joints
+        # back), idle after a trip or a stop (nothing driven: no hang to catch in 50 ms)
+        if self.timed is not None:
+            n.beat(Pace.LEASED)
+        else:
+            n.beat(Pace.OWN if n.manager.driving() else Pace.IDLE)
         n.api.check_presence()
         n.maybe_tell()
         clock.mark("timer rest")
@@ -175,7 +180,10 @@ class TimerLoop:
         if timed is None:
             return
         not_armed = n.not_armed()
-        if not_armed or n.manager.version != self.version or not n.manager.plannable():
+        changed = n.manager.version != self.version
+        if not_armed or changed or not n.manager.plannable():
+            why = not_armed or ("the controllers changed" if changed else "not all planned")
+            n.log.info("timer_left", why=why, renewals=timed.renewals)
             self.leave(orderly=not not_armed)
             return
         with n.io_lock:
