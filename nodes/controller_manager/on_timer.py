@@ -162,12 +162,8 @@ class TimerLoop:
         clock.mark("timer beat")
         self.keep()
         clock.mark("timer keep")  # the lease's renewal when due
-        # ended meanwhile: by its own deadline if it drives on (the cycle loop takes the joints
-        # back), idle after a trip or a stop (nothing driven: no hang to catch in 50 ms)
-        if self.timed is not None:
+        if self.timed is not None:  # ended meanwhile: the main loop's next beat says how
             n.beat(Pace.LEASED)
-        else:
-            n.beat(Pace.OWN if n.manager.driving() else Pace.IDLE)
         n.api.check_presence()
         n.maybe_tell()
         clock.mark("timer rest")

@@ -120,7 +120,7 @@ class NodeJudge:
         hb = node.heartbeat_at
         if hb is None:  # starting: its first beat brings its priority
             return min(now + STARTING_SLEEP_S, node.started_at + grace)
-        longest = max(self.cfg.deadlines_s(node.cfg))
+        longest = max(node.deadlines or self.cfg.deadlines_s(node.cfg))  # set at spawn
         if not expired and node.channel is not None and node.channel.armed(longest):
             return math.inf
         due = hb + self.cfg.deadline_s(node.cfg, node.pace)  # the beats in its pipe read then
