@@ -16,6 +16,7 @@ from benchmarks.harness import EXOLINK, Appliance
 from exolink import messaging
 from exolink.cli.main import parse
 from exolink.client import DEFAULT_AT
+from exolink.wire import replies
 
 JS = "sensor_msgs/msg/JointState"
 WD = "exolink_msgs/msg/WatchdogEvent"
@@ -63,6 +64,12 @@ def test_options_before_the_command_reach_the_appliance(write_config, spawn) -> 
     r = run("--at", app.at, "--timeout", "3", "status")
     assert r.returncode == 0, r.stderr
     assert "h2_reader" in r.stdout
+    # The status reply is its schema, whole: read as exolink.wire.replies.Status and written
+    # back, it is what the supervisor sent (no field the schema leaves out or renames).
+    raw = app.call("status")
+    assert replies.plain(replies.read(raw, replies.Status)) == {
+        k: v for k, v in raw.items() if k != "ok"
+    }
     # a value after the command wins: an unreachable endpoint before it does not matter
     r = run("--at", "tcp/127.0.0.1:9", "nodes", "--at", app.at)
     assert r.returncode == 0, r.stderr
@@ -261,6 +268,7 @@ def node(name: str, state: str = "running", **kw: object) -> dict:
 
 def test_status_table_aligned_and_health_never_blank() -> None:
     from exolink.cli.status import _node_table
+    from exolink.wire.replies import NodeInfo, read
 
     nodes = [
         node("simulator", critical=False),
@@ -273,7 +281,7 @@ def test_status_table_aligned_and_health_never_blank() -> None:
         node("x", "failed", restarts=10, last_exit="exit 1: restart limit (5 in 60 s)"),
         node("y", "killed", last_exit="killed: no heartbeat for 510 ms"),
     ]
-    head, *rows, footer = _node_table(nodes).splitlines()
+    head, *rows, footer = _node_table([read(n, NodeInfo) for n in nodes]).splitlines()
     assert footer == "(* critical)" and len(rows) == len(nodes)
     health = head.index("health")
     left = {t: head.index(t) for t in ("node", "state", "last exit", "health")}

@@ -14,6 +14,7 @@ from typing import Any
 
 from exolink import messaging
 from exolink.refusal import Refused
+from exolink.wire import replies
 
 DEFAULT_AT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 3.0
@@ -73,6 +74,14 @@ class Remote:
             return messaging.request(self.session, key, body or {}, self.timeout, self.user)
         except messaging.RequestTooLarge as exc:
             raise Refused(str(exc)) from None
+
+    def status(self) -> replies.Status:
+        """The supervisor's status, typed (Refused if it refuses, ValueError if it does not
+        fit the schema)."""
+        return replies.read(self.call("status"), replies.Status)
+
+    def nodes(self) -> list[replies.NodeInfo]:
+        return replies.read(self.call("nodes"), replies.Nodes).nodes
 
     def selector(self, topic: str) -> str:
         if topic.startswith("/"):

@@ -29,7 +29,7 @@ import structlog
 import zenoh
 
 from exolink import logs, messaging, roles
-from exolink.wire import rosgraph
+from exolink.wire import replies, rosgraph
 
 _log = structlog.get_logger("exolink.ros2")
 
@@ -148,11 +148,11 @@ def outcome(reply: dict[str, Any], summary: Callable[[dict[str, Any]], str]) -> 
     return {"success": True, "message": summary(reply)}
 
 
-def run_json(handler: Callable[[dict[str, Any]], dict[str, Any] | None], request: dict[str, Any]):
+def run_json(handler: Callable[[dict[str, Any]], Any], request: dict[str, Any]):
     """A JSON API handler called in-process, its outcome shaped as ``messaging.serve`` shapes
     it (ok, or the refusal's text)."""
     try:
-        return {"ok": True, **(handler(request) or {})}
+        return {"ok": True, **replies.plain(handler(request))}
     except (messaging.Refused, roles.Forbidden, messaging.Unreachable) as exc:
         return {"ok": False, "error": str(exc)}
     except Exception as exc:  # a caller never waits on a handler bug

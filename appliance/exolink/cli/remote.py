@@ -16,7 +16,7 @@ from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import Leaves, common, guard, integer, number, print_json
 from exolink.client import remote
 from exolink.control import requests
-from exolink.wire import management
+from exolink.wire import management, replies
 from exolink.wire.requests import classes
 
 
@@ -121,8 +121,10 @@ def trigger_body(fire: bool) -> dict[str, Any]:
 @guard
 def cmd_control(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        n = r.call("control", body=control_body(args.command, args.node))["node"]
-    sys.stdout.write(f"{n['name']}: {n['state']} pid={n.get('pid')}\n")
+        n = replies.read(
+            r.call("control", body=control_body(args.command, args.node)), replies.NodeReply
+        )
+    sys.stdout.write(f"{n.node.name}: {n.node.state} pid={n.node.pid}\n")
     return 0
 
 
@@ -140,7 +142,7 @@ def hold(seconds: float = 0) -> None:
 def cmd_logs(args: argparse.Namespace) -> int:
     with remote(args) as r:
         ask = requests.body(management.Logs(args.node, args.lines))
-        for line in r.call("logs", body=ask)["lines"]:
+        for line in replies.read(r.call("logs", body=ask), replies.LogLines).lines:
             sys.stdout.write(line + "\n")
         if not args.follow:
             return 0
@@ -187,7 +189,7 @@ def params_body(args: argparse.Namespace) -> dict[str, Any]:
 @guard
 def cmd_params(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        names = [n["name"] for n in r.call("status")["nodes"]]
+        names = [n.name for n in r.nodes()]
         if args.node not in names:
             return fail(f"no node {args.node} (nodes: {', '.join(names)})", EXIT_REFUSED)
         if args.set:

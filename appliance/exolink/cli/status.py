@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from typing import Any
+
+import msgspec
 
 from exolink import messaging
 from exolink.cli import clock
@@ -13,6 +14,7 @@ from exolink.cli.controllers import show
 from exolink.cli.options import common, guard, print_json
 from exolink.cli.update import describe
 from exolink.client import Refused, remote
+from exolink.wire.replies import UNSET, NodeInfo, Status, read
 
 
 def _receive(rx: dict[str, Any] | None) -> str:
@@ -26,33 +28,37 @@ def _receive(rx: dict[str, Any] | None) -> str:
     )
 
 
-def node_health(n: dict[str, Any]) -> str:
+def node_health(n: NodeInfo) -> str:
     """What the health column says for a node: never blank."""
-    if not n.get("enabled", True):
+    if not n.enabled:
         return "disabled"
-    state = str(n.get("state") or "unknown")
+    state = n.state or "unknown"
     if state == "running":
-        if n.get("heartbeat_age_s") is None:
+        if n.heartbeat_age_s is None:
             return "starting"  # spawned, no heartbeat yet
-        return str(n.get("health") or "ok")  # its own diagnostics, if it publishes any
+        return n.health or "ok"  # its own diagnostics, if it publishes any
     return {"backoff": "restarting"}.get(state, state)
+
+
+def _or(value: Any, absent: str = "-") -> Any:
+    return absent if value is UNSET else value
 
 
 # (title, right-aligned, cell); the last column is not padded.
 _COLUMNS: list[tuple[str, bool, Any]] = [
-    ("node", False, lambda n: n["name"] + ("*" if n.get("critical") else "")),
-    ("state", False, lambda n: n["state"] if n.get("enabled", True) else "disabled"),
-    ("pid", True, lambda n: n.get("pid") or "-"),
-    ("uptime", True, lambda n: n.get("uptime_s", 0)),
-    ("restarts", True, lambda n: n.get("restarts", 0)),
-    ("cpu_s", True, lambda n: n.get("cpu_s", "-")),
-    ("rss_mb", True, lambda n: n.get("rss_mb", "-")),
-    ("last exit", False, lambda n: n.get("last_exit") or "-"),
-    ("health", False, lambda n: node_health(n) + _receive(n.get("receive"))),
+    ("node", False, lambda n: n.name + ("*" if n.critical else "")),
+    ("state", False, lambda n: n.state if n.enabled else "disabled"),
+    ("pid", True, lambda n: n.pid or "-"),
+    ("uptime", True, lambda n: n.uptime_s),
+    ("restarts", True, lambda n: n.restarts),
+    ("cpu_s", True, lambda n: _or(n.cpu_s)),
+    ("rss_mb", True, lambda n: _or(n.rss_mb)),
+    ("last exit", False, lambda n: n.last_exit or "-"),
+    ("health", False, lambda n: node_health(n) + _receive(_or(n.receive, ""))),
 ]
 
 
-def _node_table(nodes: list[dict[str, Any]]) -> str:
+def _node_table(nodes: list[NodeInfo]) -> str:
     """One row per node; every column as wide as its widest cell, so long names keep it aligned."""
     cells = [[title for title, _r, _f in _COLUMNS]]
     cells += [[str(f(n)) for _t, _r, f in _COLUMNS] for n in nodes]
@@ -67,22 +73,22 @@ def _node_table(nodes: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n(* critical)\n"
 
 
-def _api_lines(s: dict[str, Any]) -> str:
+def _api_lines(s: Status) -> str:
     """What the management API did with requests: the supervisor's counts, then each node's
     refusals (too large, over its login's rate, queue full, ...), and unreadable samples."""
-    api = s.get("api")
-    if api is None:  # an older supervisor
+    api = s.api
+    if not api:  # an older supervisor
         return ""
     refused = {k: v for k, v in api.items() if not k.startswith(("handled", "urgent")) and v}
     text = f"api      handled {api.get('handled', 0)}  urgent {api.get('urgent', 0)}"
     if api.get("urgent_unlogged"):
         text += f" ({api['urgent_unlogged']} not in the command log)"
     text += "  refused " + (", ".join(f"{k} {v}" for k, v in refused.items()) or "0") + "\n"
-    for n in s["nodes"]:
-        if n.get("api_refused"):
-            counts = ", ".join(f"{k} {v}" for k, v in n["api_refused"].items())
-            text += f"         {n['name']} refused {counts}\n"
-    if bad := s.get("bad_samples"):
+    for n in s.nodes:
+        if n.api_refused:
+            counts = ", ".join(f"{k} {v}" for k, v in n.api_refused.items())
+            text += f"         {n.name} refused {counts}\n"
+    if bad := s.bad_samples:
         text += f"samples  unreadable {sum(bad.values())} ({len(bad)} kinds)\n"
     return text
 
@@ -92,10 +98,10 @@ def _bytes(n: float) -> str:
     return f"{n / 2**30:.2f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
-def _card_line(nodes: list[dict[str, Any]]) -> str:
+def _card_line(nodes: list[NodeInfo]) -> str:
     """The recordings card, as the recorder last reported it: free space and the hours of
     recording that leaves at the current rate (above the reserve the recorder keeps)."""
-    card = next((n["card"] for n in nodes if isinstance(n.get("card"), dict)), None)
+    card = next((n.card for n in nodes if isinstance(n.card, dict)), None)
     if not card:
         return ""
 
@@ -120,41 +126,36 @@ def _card_line(nodes: list[dict[str, Any]]) -> str:
 @guard
 def cmd_status(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        s = r.call("status")
-        manager = any(
-            n.get("plugin") == "controller_manager" and n["state"] == "running" for n in s["nodes"]
-        )
+        raw = r.call("status")  # printed whole with --json: a newer board's fields too
+        s = read(raw, Status)
+        manager = any(n.plugin == "controller_manager" and n.state == "running" for n in s.nodes)
         ctrl: dict[str, Any] | None = None
         if manager:  # a manager starting (or failing to) must not take the whole status away
             try:
                 ctrl = r.call("controllers")
             except (messaging.Unreachable, Refused) as exc:
                 ctrl = {"error": f"controller manager: {exc}"}
-        off = clock.offset(r) if "clock" in s else None  # (an older supervisor has none)
+        off = clock.offset(r) if "clock" in raw else None  # (an older supervisor has none)
     if args.json:
         if off is not None:  # the board's clock minus this laptop's
-            s["clock"].update(offset_ms=off.offset_s * 1e3, offset_error_ms=off.error_s * 1e3)
-        print_json(s if ctrl is None else {**s, "controllers": ctrl})
+            raw["clock"].update(offset_ms=off.offset_s * 1e3, offset_error_ms=off.error_s * 1e3)
+        print_json(raw if ctrl is None else {**raw, "controllers": ctrl})
         return 0
-    wd, bus, trig = s["watchdog"], s["bus"], s["trigger"]
-    why = (
-        f" ({wd['reason']}{': ' + wd['detail'] if wd['detail'] else ''})"
-        if wd["state"] != "armed"
-        else ""
-    )
+    wd, bus, trig = s.watchdog, s.bus, s.trigger
+    why = f" ({wd.reason}{': ' + wd.detail if wd.detail else ''})" if wd.state != "armed" else ""
     sys.stdout.write(
-        f"device   {s['device']}\nwatchdog {wd['state'].upper()}{why}  trips={wd['trips']}"
-        f"  read lag max {wd.get('read_lag_max_ms', '?')} ms"
-        f"  malformed {sum(wd.get('malformed', {}).values())}"
-        f"  socket drops {'n/a' if wd.get('socket_dropped') is None else wd['socket_dropped']}\n"
-        f"bus      {bus['interface']}:{bus['channel']} {bus.get('state', 'n/a')} "
-        f"{bus.get('pulse', 'pulse')} silent {bus.get('pulse_silent_s')} s\n"
-        f"trigger  {trig['source']} count={trig['count']}\n"
-        + (clock.describe(s["clock"], off) if off is not None else "")
-        + update_line(s.get("software"))
-        + _card_line(s["nodes"])
+        f"device   {s.device}\nwatchdog {wd.state.upper()}{why}  trips={wd.trips}"
+        f"  read lag max {wd.read_lag_max_ms} ms"
+        f"  malformed {sum(wd.malformed.values())}"
+        f"  socket drops {'n/a' if wd.socket_dropped is None else wd.socket_dropped}\n"
+        f"bus      {bus.interface}:{bus.channel} {bus.state} "
+        f"{bus.pulse} silent {bus.pulse_silent_s} s\n"
+        f"trigger  {_or(trig.source, '')} count={trig.count}\n"
+        + (clock.describe(s.clock, off) if off is not None else "")
+        + update_line(s.software or None)
+        + _card_line(s.nodes)
         + _api_lines(s)
-        + _node_table(s["nodes"])
+        + _node_table(s.nodes)
     )
     if ctrl is not None and "error" in ctrl:
         sys.stdout.write(f"controllers  unavailable: {ctrl['error']}\n")
@@ -170,8 +171,11 @@ def update_line(sw: dict[str, Any] | None) -> str:
 @guard
 def cmd_nodes(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        nodes = r.call("nodes")["nodes"]
-    sys.stdout.write(json.dumps(nodes, indent=2) + "\n" if args.json else _node_table(nodes))
+        nodes = r.nodes()
+    if args.json:
+        sys.stdout.write(msgspec.json.format(msgspec.json.encode(nodes), indent=2).decode() + "\n")
+    else:
+        sys.stdout.write(_node_table(nodes))
     return 0
 
 

@@ -18,7 +18,7 @@ import zenoh
 from exolink import logs, roles
 from exolink.messaging.sessions import Unreachable
 from exolink.refusal import Refused
-from exolink.wire import cdr
+from exolink.wire import cdr, replies
 
 
 class Putter(Protocol):
@@ -49,7 +49,8 @@ class Caller:
     login: str
 
 
-Handler = Callable[..., dict[str, Any] | None]  # (request) or (request, Caller)
+# (request) or (request, Caller) -> a reply (exolink.wire.replies), or a plain dict
+Handler = Callable[..., Any]
 # The role a request needs: one for the whole key, or chosen from the request (its action).
 Needs = str | Callable[[dict[str, Any]], str]
 # Whether a request is acted on at once, before any rate limit or queue (an e-stop).
@@ -310,7 +311,7 @@ class Served:
             else:
                 result = self._handler(request)
             logged = logged and not isinstance(result, Unlogged)
-            reply = {"ok": True, **(result or {})}
+            reply = {"ok": True, **replies.plain(result)}
         except (Refused, roles.Forbidden) as exc:
             if isinstance(exc, roles.Forbidden):
                 self._admission.count("forbidden")

@@ -24,7 +24,7 @@ from exolink.supervisor.memory import MemoryTrim, rss_mb
 from exolink.supervisor.processes import NodeProcess
 from exolink.supervisor.wakeup import Wakeup
 from exolink.supervisor.watchdog import Watchdog
-from exolink.wire import management
+from exolink.wire import management, replies
 from exolink.wire.requests import action_of, decode, tag_of
 
 Route = tuple[Any, messaging.Needs]
@@ -51,7 +51,7 @@ class Supervised(Protocol):
     trigger_out: Any
 
     def take_beats(self) -> None: ...
-    def described(self, node: NodeProcess) -> dict[str, Any]: ...
+    def described(self, node: NodeProcess) -> replies.NodeInfo: ...
     def arm_blockers(self) -> list[str]: ...
 
 
@@ -83,56 +83,45 @@ class ManagementApi:
             for path, (handler, needs) in self.routes().items()
         ]
 
-    def nodes(self, _req: dict[str, Any]) -> dict[str, Any]:
+    def nodes(self, _req: dict[str, Any]) -> replies.Nodes:
         sup = self.sup
         sup.take_beats()
-        return {"nodes": [sup.described(n) for n in list(sup.nodes.values())]}
+        return replies.Nodes(nodes=[sup.described(n) for n in list(sup.nodes.values())])
 
-    def status(self, _req: dict[str, Any]) -> dict[str, Any]:
+    def status(self, _req: dict[str, Any]) -> replies.Status:
         sup = self.sup
         sup.take_beats()  # heartbeat ages as of now
         wd = sup.watchdog.snapshot()
         silent = sup.watchdog.silent_for()
-        return {
-            "device": sup.cfg.device,
-            "pid": os.getpid(),
-            "zygote_pid": sup.zygote.proc.pid if sup.zygote is not None else None,
-            "watchdog": {
-                "state": wd.state,
-                "reason": wd.reason,
-                "detail": wd.detail,
-                "since_ns": wd.since_ns,
-                "trips": wd.trips,
-                "frames_sent": wd.frames_sent,
-                "violations": wd.violations,
-                "read_lag_max_ms": wd.read_lag_max_ms,
-                "malformed": wd.malformed,
-                "socket_dropped": wd.socket_dropped,
-            },
-            "bus": {
-                "interface": sup.cfg.can.interface,
-                "channel": sup.cfg.can.channel,
-                **(vars(sup.health) if sup.health else {"state": "n/a"}),
+        return replies.Status(
+            device=sup.cfg.device,
+            pid=os.getpid(),
+            zygote_pid=sup.zygote.proc.pid if sup.zygote is not None else None,
+            watchdog=replies.WatchdogStatus(**vars(wd)),
+            bus=replies.Bus(
+                interface=sup.cfg.can.interface,
+                channel=sup.cfg.can.channel,
+                **(vars(sup.health) if sup.health else {}),
                 # the device's pulse (exolink.hardware: "h2 data"), and how long it is silent
-                "pulse": sup.watchdog.device.pulse,
-                "pulse_silent_s": None if silent is None else round(silent, 3),
-            },
-            "clock": sup.clock.status(),
-            "software": sup.update.status(version()),
-            "trigger": {
-                "source": sup.cfg.trigger.source,
-                "count": sup.trigger_count,
-                "last_ns": sup.last_trigger_ns,
-            },
+                pulse=sup.watchdog.device.pulse,
+                pulse_silent_s=None if silent is None else round(silent, 3),
+            ),
+            clock=sup.clock.status(),
+            software=sup.update.status(version()),
+            trigger=replies.TriggerStatus(
+                source=sup.cfg.trigger.source,
+                count=sup.trigger_count,
+                last_ns=sup.last_trigger_ns,
+            ),
             # a copy taken at once (under the GIL): the API answers while start() still adds
             # nodes, and iterating the dict itself then failed ("changed size during iteration")
-            "nodes": [sup.described(n) for n in list(sup.nodes.values())],
+            nodes=[sup.described(n) for n in list(sup.nodes.values())],
             # requests the supervisor's API handled and refused (messaging.Admission), samples
             # it could not read, and what it gave back to the kernel (memory.MemoryTrim)
-            "api": sup.msg.admission.counters(),
-            "bad_samples": dict(sup.bad_samples),
-            "memory": {"rss_mb": round(rss_mb(), 1), "trims": sup.memory.trims},
-        }
+            api=sup.msg.admission.counters(),
+            bad_samples=dict(sup.bad_samples),
+            memory=replies.Memory(rss_mb=round(rss_mb(), 1), trims=sup.memory.trims),
+        )
 
     def _node(self, name: str) -> NodeProcess:
         nodes = self.sup.nodes
@@ -140,7 +129,7 @@ class ManagementApi:
             raise Refused(f"unknown node {_shown(name)} (configured: {', '.join(nodes)})")
         return nodes[name]
 
-    def control(self, req: dict[str, Any]) -> dict[str, Any]:
+    def control(self, req: dict[str, Any]) -> replies.NodeReply:
         cmd = decode(req, management.NodeControl, "node action")
         node, action = self._node(cmd.node), tag_of(cmd)
         if action != "start" and node.cfg.critical:
@@ -155,13 +144,13 @@ class ManagementApi:
                 node.restart_times.clear()
                 node.start()
         self.sup.wake.set()  # a started node is looked at for its first beat at once
-        return {"node": self.sup.described(node)}
+        return replies.NodeReply(node=self.sup.described(node))
 
-    def logs(self, req: dict[str, Any]) -> dict[str, Any]:
+    def logs(self, req: dict[str, Any]) -> replies.LogLines:
         ask = management.convert(req, management.Logs, "logs")
-        return {"lines": list(self._node(ask.node).logs)[-ask.lines :]}
+        return replies.LogLines(lines=list(self._node(ask.node).logs)[-ask.lines :])
 
-    def watchdog(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+    def watchdog(self, req: dict[str, Any], caller: messaging.Caller) -> replies.Watchdog:
         """``caller``: the login Zenoh proved, which the e-stop's detail names (a ``by`` in the
         request is the client's own text and is not used)."""
         wd = self.sup.watchdog
@@ -189,19 +178,19 @@ class ManagementApi:
         elif isinstance(cmd, management.Trip):  # the appliance's own nodes (the holder lost)
             wd.trip(cmd.reason[:80] or "node request", cmd.detail[:300])
         s = wd.snapshot()
-        return {"state": s.state, "reason": s.reason, "detail": s.detail}
+        return replies.Watchdog(state=s.state, reason=s.reason, detail=s.detail)
 
-    def trigger(self, req: dict[str, Any]) -> dict[str, Any]:
+    def trigger(self, req: dict[str, Any]) -> replies.Fired | replies.TriggerStatus:
         sup = self.sup
         if not management.status_asked(req):
             decode(req, management.Trigger, "trigger action")  # fire is the one there is
             if sup.trigger_out is not None:
-                return {"fired_ns": sup.trigger_out.fire()}
+                return replies.Fired(fired_ns=sup.trigger_out.fire())
             if isinstance(sup.trigger_src, trigger.SimulatedTrigger):
                 sup.trigger_src.fire()
-                return {"fired_ns": sup.last_trigger_ns}
+                return replies.Fired(fired_ns=sup.last_trigger_ns)
             raise Refused("no trigger output configured (trigger.output in the config)")
-        return {"count": sup.trigger_count, "last_ns": sup.last_trigger_ns}
+        return replies.TriggerStatus(count=sup.trigger_count, last_ns=sup.last_trigger_ns)
 
     def clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
         """The board's clock (any role: a laptop measures its offset from ``now``), or a step

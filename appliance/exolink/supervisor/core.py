@@ -41,7 +41,7 @@ from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
 from exolink.supervisor.wakeup import Wakeup
 from exolink.supervisor.watchdog import Watchdog, WatchdogState
-from exolink.wire import cdr
+from exolink.wire import cdr, replies
 
 if TYPE_CHECKING:
     from exolink.canbus.bcm import CyclicWatch
@@ -336,11 +336,11 @@ class Supervisor(NodeJudge):
             return
         self.node_api[name] = counts
 
-    def described(self, node: NodeProcess) -> dict[str, Any]:
+    def described(self, node: NodeProcess) -> replies.NodeInfo:
         """A node as the API shows it: its own description and the requests it refused."""
         info = node.describe()
         if refused := self.node_api.get(node.name):
-            info["api_refused"] = refused
+            info.api_refused = refused
         return info
 
     def _bad_sample(self, topic: str, exc: ValueError) -> None:

@@ -25,6 +25,7 @@ from exolink import liveness
 from exolink.config import NodeConfig
 from exolink.supervisor.forking import Forked, Zygote
 from exolink.supervisor.osproc import plain_priority, proc_state, proc_usage
+from exolink.wire import replies
 
 LOG_LINES = 500
 # What the supervisor keeps and relays of a node's output (journal, ``log/<node>`` on Zenoh, the
@@ -282,32 +283,32 @@ class NodeProcess:
         self.state, self.next_start, self.due_at = "backoff", now + delay_ms / 1000, 0.0
         return True
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> replies.NodeInfo:
         pid = self.pid
-        info: dict[str, Any] = {
-            "name": self.name,
-            "plugin": self.cfg.plugin,
-            "critical": self.cfg.critical,
-            "enabled": self.cfg.enabled,
-            "state": self.state,
-            "pid": pid,
-            "uptime_s": round(time.monotonic() - self.started_at, 1) if pid else 0.0,
-            "restarts": self.restarts,
-            "last_exit": self.last_exit,
-            "health": self.health,
-            **({"receive": self.receive} if self.receive else {}),
-            **({"card": self.card} if self.card else {}),
-            "heartbeat_age_s": round(time.monotonic() - self.heartbeat_at, 3)
+        usage = proc_usage(pid) if pid else {}
+        return replies.NodeInfo(
+            name=self.name,
+            plugin=self.cfg.plugin,
+            critical=self.cfg.critical,
+            enabled=self.cfg.enabled,
+            state=self.state,
+            pid=pid,
+            uptime_s=round(time.monotonic() - self.started_at, 1) if pid else 0.0,
+            restarts=self.restarts,
+            last_exit=self.last_exit,
+            health=self.health,
+            receive=self.receive or replies.UNSET,
+            card=self.card or replies.UNSET,
+            heartbeat_age_s=round(time.monotonic() - self.heartbeat_at, 3)
             if self.heartbeat_at
             else None,
             # held to the default deadline meanwhile, or to its lease's (exolink.liveness)
-            "idle": self.pace == liveness.Pace.IDLE,
-            "leased": self.pace == liveness.Pace.LEASED,
-            "start_s": None if self.start_s is None else round(self.start_s, 2),
-        }
-        if pid:
-            info.update(proc_usage(pid))
-        return info
+            idle=self.pace == liveness.Pace.IDLE,
+            leased=self.pace == liveness.Pace.LEASED,
+            start_s=None if self.start_s is None else round(self.start_s, 2),
+            cpu_s=usage.get("cpu_s", replies.UNSET),
+            rss_mb=usage.get("rss_mb", replies.UNSET),
+        )
 
 
 class LineRate:
