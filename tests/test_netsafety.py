@@ -279,15 +279,15 @@ def test_a_nodes_output_is_kept_in_bounded_lines_at_a_bounded_rate() -> None:
 def test_unreadable_samples_are_counted_in_bounded_kinds() -> None:
     """Each error text an attacker makes (and the node names in keys) was a key of its own."""
     from exolink.config import parse
-    from exolink.supervisor import core
+    from exolink.supervisor import core, telemetry
 
     sup = core.Supervisor(parse(bundled("sim").read_text(), "sim.yaml"))
     with structlog.testing.capture_logs():
         for i in range(1000):
             sup._bad_sample("pattern_state", ValueError(f"garbled {i} " + "y" * 10_000))
-    assert len(sup.bad_samples) == core.BAD_SAMPLE_KINDS + 1
-    assert sup.bad_samples[core.BAD_SAMPLE_OTHER] == 1000 - core.BAD_SAMPLE_KINDS
-    assert max(len(k) for k in sup.bad_samples) < core.BAD_SAMPLE_CHARS + 30
+    assert len(sup.bad_samples) == telemetry.BAD_SAMPLE_KINDS + 1
+    assert sup.bad_samples[telemetry.BAD_SAMPLE_OTHER] == 1000 - telemetry.BAD_SAMPLE_KINDS
+    assert max(len(k) for k in sup.bad_samples) < telemetry.BAD_SAMPLE_CHARS + 30
 
 
 def test_a_logins_rate_is_a_token_bucket() -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
-import json
 import os
 import shutil
 import tempfile
@@ -23,7 +22,7 @@ import msgspec
 import structlog
 import yaml
 
-from exolink import hardware, logs, messaging
+from exolink import hardware, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
 from exolink.canbus import open_reader
@@ -39,8 +38,9 @@ from exolink.supervisor.osproc import kill_strays
 from exolink.supervisor.processes import Exit, NodeProcess, relay
 from exolink.supervisor.ros2api import Ros2Api
 from exolink.supervisor.systemd import Notifier
+from exolink.supervisor.telemetry import DIAGNOSTICS_TYPE, NodeTelemetry
 from exolink.supervisor.wakeup import Wakeup
-from exolink.supervisor.watchdog import Watchdog, WatchdogState
+from exolink.supervisor.watchdog import Watchdog
 from exolink.wire import cdr, replies
 
 if TYPE_CHECKING:
@@ -52,13 +52,9 @@ HEALTH_PERIOD_S = 2.0
 SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU starved of it)
 STATE_PERIOD_S = 1.0
 TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
-DIAGNOSTICS_TYPE = messaging.DIAGNOSTICS_TYPE
 TRIM_PERIOD_S = 10.0
 TRIM_GROWTH_MB = 8.0
 PAGE_SIZE = os.sysconf("SC_PAGE_SIZE")
-BAD_SAMPLE_KINDS = 64  # distinct "<topic>: <error>" counted one by one (_bad_sample)
-BAD_SAMPLE_CHARS = 160
-BAD_SAMPLE_OTHER = "other kinds"
 
 
 def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
@@ -97,7 +93,7 @@ class _Stop(threading.Event):
         self._wake.set()
 
 
-class Supervisor(NodeJudge):
+class Supervisor(NodeJudge, NodeTelemetry):
     def __init__(self, cfg: ApplianceConfig) -> None:
         self.cfg = cfg
         # the hardware guarded (exolink.hardware): an unknown name starts nothing
@@ -190,15 +186,7 @@ class Supervisor(NodeJudge):
         alive = self.msg.mgmt("nodes", SUPERVISOR, "alive")
         self._decls.append(self.session.liveliness().declare_token(alive))
         self.ros2 = Ros2Api(self)  # the same commands as ROS 2 services (rmw_zenoh)
-        diag_key = self.msg.key("nodes/*/diagnostics", DIAGNOSTICS_TYPE)
-        api_key = self.msg.key(messaging.API_TOPIC.format(node="*"), messaging.API_TYPE)
-        self._decls.append(self.session.declare_subscriber(api_key, self._on_node_api))
-        self._decls.append(
-            self.session.declare_subscriber(
-                diag_key,
-                lambda s: self._node_diagnostics(str(s.key_expr), s.payload.to_bytes()),
-            )
-        )
+        self._decls += self._hear_nodes()
         self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
         self.trigger_out = trigger.open_output(cfg.trigger)
         config_path = self._workdir / "appliance.yaml"
@@ -294,66 +282,12 @@ class Supervisor(NodeJudge):
             stamp_ns=edge.stamp_ns,
         )
 
-    def _publish_watchdog(self, s: WatchdogState) -> None:
-        self.pub_wd.put(
-            cdr.watchdog_event_msg(s.since_ns, s.state, s.reason, s.detail, s.frames_sent)
-        )
-
-    def _node_diagnostics(self, key: str, payload: bytes) -> None:
-        """The worst status a node reports (e.g. the recorder's disk full) shows in `exolink status`."""
-        parts = key.split("/")
-        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
-        node = self.nodes.get(name)
-        if node is None:
-            return
-        try:
-            statuses = cdr.diagnostic_statuses(payload)
-        except ValueError as exc:  # anyone may put on the key: checked, never trusted
-            self._bad_sample(f"nodes/{name}/diagnostics", exc)
-            return
-        node.note_diagnostics(statuses)  # a bus reader's receive losses (rx_*) for status
-        worst = max(statuses, key=lambda st: st.level, default=None)
-        if worst is not None:
-            level = {0: "ok", 1: "warn", 2: "error"}.get(int(worst.level), "stale")
-            node.health = f"{level}: {worst.message}" if level != "ok" else "ok"
-
-    def _on_node_api(self, sample: Any) -> None:
-        """A node's refusals of requests (messaging.API_TOPIC), for `exolink status`."""
-        parts = str(sample.key_expr).split("/")
-        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
-        if name not in self.nodes:
-            return
-        try:
-            counts = json.loads(cdr.string_of(sample.payload.to_bytes()))
-            if not (
-                isinstance(counts, dict)
-                and set(counts) <= set(messaging.Admission.REASONS)
-                and all(isinstance(n, int) and n >= 0 for n in counts.values())
-            ):
-                raise ValueError("not a node's refusal counts")
-        except ValueError as exc:  # anyone may put on the key: checked, never trusted
-            self._bad_sample(f"nodes/{name}/api", exc)
-            return
-        self.node_api[name] = counts
-
     def described(self, node: NodeProcess) -> replies.NodeInfo:
         """A node as the API shows it: its own description and the requests it refused."""
         info = node.describe()
         if refused := self.node_api.get(node.name):
             info.api_refused = refused
         return info
-
-    def _bad_sample(self, topic: str, exc: ValueError) -> None:
-        """A sample the supervisor cannot read, counted by topic and error and logged rarely
-        (``logs.rarely``), as malformed CAN frames are. The error may quote what was sent and
-        the topic holds a node name from the key: both are cut, and past BAD_SAMPLE_KINDS
-        kinds the rest are counted under one."""
-        key = messaging.clip(f"{topic}: {exc}", BAD_SAMPLE_CHARS)
-        if key not in self.bad_samples and len(self.bad_samples) >= BAD_SAMPLE_KINDS:
-            key = BAD_SAMPLE_OTHER
-        n = self.bad_samples[key] = self.bad_samples.get(key, 0) + 1
-        if logs.rarely(n):
-            self.log.warning("bad_sample", kind=key, count=n)
 
     def _check_bus(self) -> None:
         if self.cfg.can.interface != "socketcan":
@@ -483,29 +417,6 @@ class Supervisor(NodeJudge):
                 link.wait(HEALTH_PERIOD_S)
             if not self.stop_event.is_set():
                 self._check_bus()
-
-    def _publish_diagnostics(self) -> None:
-        wd = self.watchdog.snapshot()
-        values: dict[str, Any] = {
-            "watchdog": wd.state,
-            "reason": wd.reason,
-            "trips": wd.trips,
-            "trigger_count": self.trigger_count,
-        }
-        if self.health is not None:
-            values |= {
-                "bus_state": self.health.state,
-                "txerr": self.health.txerr,
-                "rxerr": self.health.rxerr,
-            }
-        now = time.time_ns()
-        level = "error" if wd.state == "tripped" else "ok"
-        self.pub_diag.put(
-            cdr.diagnostics(
-                now, "supervisor", messaging.LEVELS[level], wd.state, self.cfg.device, values
-            ),
-            now,
-        )
 
     # --- shutdown ---------------------------------------------------------------------------
 
