@@ -191,7 +191,7 @@ def test_echo_text_shows_units_from_the_table() -> None:
 
 
 def test_what_play_never_republishes_live() -> None:
-    from exolink.recordings.readback import replay_topic
+    from exolink.recordings.playback import replay_topic
 
     assert replay_topic("/h2/joint_states", live=False) == "replay/h2/joint_states"
     assert replay_topic("/h2/joint_states", live=True) == "h2/joint_states"

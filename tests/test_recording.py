@@ -536,7 +536,7 @@ def test_a_file_marks_commands_the_rule_does_not_know(tmp_path: Path) -> None:
     rule; no mark takes a command topic off it."""
     from mcap.writer import Writer
 
-    from exolink.recordings.readback import held_back, replay_topic
+    from exolink.recordings.playback import held_back, replay_topic
 
     path = tmp_path / "marked.mcap"
     with path.open("wb") as f:

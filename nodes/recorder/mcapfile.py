@@ -10,14 +10,14 @@ from exolink.nodes.recorder.params import RecorderParams
 from mcap.writer import CompressionType, Writer  # here, not on first file: see McapFile
 
 from exolink import __version__, messaging
-from exolink.recordings import readback as recording
+from exolink.recordings import commands
 
 
 class McapFile:
     """One open MCAP file with its schemas and channels registered on first use.
 
     Each channel's metadata marks whether its topic is a command (``exolink.command``: "true" or
-    "false", by exolink.recordings.readback.command_topic): ``exolink play`` never republishes a command.
+    "false", by exolink.recordings.commands.command_topic): ``exolink play`` never republishes a command.
 
     Nothing here may import: the writer loop opens files, and an import on it (mcap and its
     compressors took seconds under emulation) stalls its heartbeat until the supervisor kills it.
@@ -32,7 +32,7 @@ class McapFile:
         self.path = path
         self.f = path.open("xb")  # never overwrite a recording
         # CRCs of every chunk, of the data section and of the summary: readers tell a damaged
-        # file from a good one (exolink.recordings.readback.check), at one crc32 pass over what is written.
+        # file from a good one (exolink.recordings.check), at one crc32 pass over what is written.
         self.w = Writer(
             self.f,
             chunk_size=p.chunk_size,
@@ -58,7 +58,7 @@ class McapFile:
                 )
             name = f"/{topic}"
             cid = self.channels[topic] = self.w.register_channel(
-                name, "cdr", sid, recording.command_metadata(name)
+                name, "cdr", sid, commands.command_metadata(name)
             )
         return cid
 

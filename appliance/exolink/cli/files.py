@@ -15,16 +15,8 @@ from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.options import common, decimal, guard
 from exolink.client import remote
 from exolink.recordings.check import iso
-from exolink.recordings.readback import (
-    COMMANDS,
-    REPLAY_PREFIX,
-    RecordingError,
-    export_csv,
-    held_back,
-    info,
-    play,
-    recover,
-)
+from exolink.recordings.playback import COMMANDS, REPLAY_PREFIX, held_back, play
+from exolink.recordings.readback import RecordingError, export_csv, info, recover
 
 
 def _guard_file(func):

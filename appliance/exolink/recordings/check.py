@@ -6,20 +6,36 @@ statistics), as the MCAP format provides. ``check`` reads the whole file and che
 a damaged file is named by where (chunk, byte offset, log time range), never read as if whole.
 The mcap library parses every record and checks chunk CRCs; what it does not do is written here:
 the data-section and summary CRCs of a seeking reader, reading on past a damaged record (finding
-the next record start), and naming the loss. ``exolink.recordings.readback`` (info, export, play, recover)
+the next record start: exolink.recordings.records), and naming the loss. ``exolink.recordings.readback`` (info, export, play, recover)
 builds on it.
 """
 
 from __future__ import annotations
 
-import io
-import struct
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
+
+from exolink.recordings.records import (
+    CHUNK,
+    DATA_END,
+    DATA_OPS,
+    FOOTER,
+    FOOTER_OP,
+    HEAD,
+    HEADER,
+    MAX_CHUNK_BYTES,
+    MCAP_MAGIC,
+    MESSAGE_INDEX,
+    crc_of,
+    index_records,
+    parse,
+    read_at,
+    resync,
+)
 
 
 class RecordingError(Exception):
@@ -32,30 +48,6 @@ def iso(ns: int) -> str:
 
 
 # --- integrity: CRCs, damage, and where --------------------------------------------------------
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_HEAD = struct.Struct("<BQ")  # every record: opcode, length of what follows
-_FOOTER = struct.Struct("<BQQQI")  # opcode, length 20, summary start, summary offset start, CRC
-# Opcodes (the MCAP spec, mcap.opcode) of the records a file's data section holds.
-_HEADER, _FOOTER_OP, _SCHEMA, _CHANNEL, _MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-_CHUNK, _MESSAGE_INDEX, _ATTACHMENT, _METADATA, _DATA_END = 0x06, 0x07, 0x09, 0x0C, 0x0F
-_DATA_OPS = frozenset(
-    {
-        _HEADER,
-        _SCHEMA,
-        _CHANNEL,
-        _MESSAGE,
-        _CHUNK,
-        _MESSAGE_INDEX,
-        _ATTACHMENT,
-        _METADATA,
-        _DATA_END,
-    }
-)
-# A chunk header's uncompressed size past this is damage (the recorder's chunks are <= 64 MiB):
-# believed, it would have the decompressor allocate whatever a flipped bit says.
-MAX_CHUNK_BYTES = 1 << 30
-_BLOCK = 1 << 20
 
 
 @dataclass
@@ -138,105 +130,6 @@ class _Chunk:
     indexed_times: tuple[int, int] | None = None  # the first and last log time they list
 
 
-def _read_at(f: IO[bytes], offset: int, n: int) -> bytes:
-    f.seek(offset)
-    return f.read(n)
-
-
-def _parse(op: int, body: bytes) -> tuple[Any, int]:
-    """A record's body -> (mcap record, bytes it used), with the mcap library's record classes."""
-    from mcap.data_stream import ReadDataStream  # lazy: mcap's readers: only when a file is checked
-    from mcap.records import (
-        Attachment,
-        Channel,
-        Chunk,
-        DataEnd,
-        Header,
-        Message,
-        MessageIndex,
-        Metadata,
-        Schema,
-    )
-
-    readers: dict[int, Any] = {
-        _HEADER: Header.read,
-        _SCHEMA: Schema.read,
-        _CHANNEL: Channel.read,
-        _MESSAGE: lambda s: Message.read(s, len(body)),
-        _CHUNK: Chunk.read,
-        _MESSAGE_INDEX: MessageIndex.read,
-        _ATTACHMENT: Attachment.read,
-        _METADATA: Metadata.read,
-        _DATA_END: DataEnd.read,
-    }
-    stream = ReadDataStream(io.BytesIO(body))
-    return readers[op](stream), stream.count
-
-
-def _chunk_plausible(head: bytes) -> bool:
-    """Could a chunk record start here (opcode, length, then its fields, all consistent)?"""
-    if len(head) < 9 + 36 or head[0] != _CHUNK:
-        return False
-    (length,) = struct.unpack_from("<Q", head, 1)
-    start, end, usize, _crc, clen = struct.unpack_from("<QQQII", head, 9)
-    if clen not in (0, 3, 4) or len(head) < 9 + 36 + clen + 8 or start > end:
-        return False
-    comp = head[45 : 45 + clen]
-    if comp not in (b"", b"lz4", b"zstd") or usize > MAX_CHUNK_BYTES:
-        return False
-    (dlen,) = struct.unpack_from("<Q", head, 45 + clen)
-    return length == 36 + clen + 8 + dlen
-
-
-def _metadata_plausible(head: bytes) -> bool:
-    if len(head) < 9 + 8 or head[0] != _METADATA:
-        return False
-    (length,) = struct.unpack_from("<Q", head, 1)
-    (nlen,) = struct.unpack_from("<I", head, 9)
-    if nlen > 1024 or len(head) < 9 + 4 + nlen + 4:
-        return False
-    try:
-        head[13 : 13 + nlen].decode()
-    except UnicodeDecodeError:
-        return False
-    (mlen,) = struct.unpack_from("<I", head, 13 + nlen)
-    return length == 4 + nlen + 4 + mlen
-
-
-def _resync(f: IO[bytes], start: int, end: int) -> int | None:
-    """The next offset in [start, end) where a chunk or metadata record plausibly starts (the
-    records a damaged stretch is skipped to), or a DataEnd record right before the summary."""
-    pos = start
-    while pos < end:
-        f.seek(pos)
-        block = f.read(min(_BLOCK, end - pos) + 256)  # + the next candidate's header
-        found = [
-            i
-            for op in (_CHUNK, _METADATA, _DATA_END)
-            for i in _find_all(block, op)
-            if pos + i < end
-        ]
-        for i in sorted(found):
-            head = block[i : i + 256]
-            if len(head) < 256 and pos + i + len(head) < end:
-                head = _read_at(f, pos + i, 256)
-            fits = len(head) >= 9 and pos + i + 9 + struct.unpack_from("<Q", head, 1)[0] <= end
-            if fits and (_chunk_plausible(head) or _metadata_plausible(head)):
-                return pos + i
-            if head[:1] == bytes([_DATA_END]) and head[1:9] == struct.pack("<Q", 4):
-                return pos + i
-        pos += _BLOCK
-    return None
-
-
-def _find_all(block: bytes, op: int) -> Iterator[int]:
-    needle = bytes([op])
-    i = block.find(needle)
-    while i >= 0:
-        yield i
-        i = block.find(needle, i + 1)
-
-
 class Walk:
     """One pass over a file, record by record, in file order (the mcap library parses each).
 
@@ -253,7 +146,7 @@ class Walk:
         self.f, self.keep = f, keep
         f.seek(0, 2)
         self.check = Check(str(path), size=f.tell())
-        if _read_at(f, 0, 8) != MCAP_MAGIC:
+        if read_at(f, 0, 8) != MCAP_MAGIC:
             raise RecordingError(
                 f"{path}: not an MCAP file (it does not start with MCAP's magic bytes)"
             )
@@ -277,19 +170,19 @@ class Walk:
         """Checks the footer and the summary's CRC; returns where the data section ends at the
         latest (the summary's start when it can be believed, else the footer or the file end)."""
         c, f, size = self.check, self.f, self.check.size
-        footer_at = size - 8 - _FOOTER.size
-        if size < 8 + _FOOTER.size + 8 or _read_at(f, size - 8, 8) != MCAP_MAGIC:
+        footer_at = size - 8 - FOOTER.size
+        if size < 8 + FOOTER.size + 8 or read_at(f, size - 8, 8) != MCAP_MAGIC:
             c.summary = "missing"
             return size
-        raw = _read_at(f, footer_at, _FOOTER.size)
-        op, length, start, offsets, crc = _FOOTER.unpack(raw)
-        if op != _FOOTER_OP or length != 20 or start > footer_at or offsets > footer_at:
+        raw = read_at(f, footer_at, FOOTER.size)
+        op, length, start, offsets, crc = FOOTER.unpack(raw)
+        if op != FOOTER_OP or length != 20 or start > footer_at or offsets > footer_at:
             c.summary = "damaged"
-            c.losses.append(Loss(footer_at, _FOOTER.size, "footer damaged", messages=0))
+            c.losses.append(Loss(footer_at, FOOTER.size, "footer damaged", messages=0))
             return footer_at
         summary_at = start or footer_at
         if crc:
-            actual = zlib.crc32(raw[:25], _crc_of(f, summary_at, footer_at))
+            actual = zlib.crc32(raw[:25], crc_of(f, summary_at, footer_at))
             if actual != crc:
                 c.summary = "damaged"
                 what = "summary (index and statistics) damaged: CRC mismatch"
@@ -316,23 +209,23 @@ class Walk:
         f, c = self.f, self.check
         pos = 8
         while pos < self.limit:
-            head = _read_at(f, pos, _HEAD.size)
-            if len(head) < _HEAD.size:
+            head = read_at(f, pos, HEAD.size)
+            if len(head) < HEAD.size:
                 c.cut_off_at = pos
                 break
-            op, length = _HEAD.unpack(head)
-            end = pos + _HEAD.size + length
+            op, length = HEAD.unpack(head)
+            end = pos + HEAD.size + length
             parsed = None
-            if op in _DATA_OPS and end <= self.limit:
+            if op in DATA_OPS and end <= self.limit:
                 body = f.read(length)
                 try:
-                    parsed, used = _parse(op, body)
+                    parsed, used = parse(op, body)
                 except Exception:
                     parsed = None
                 if parsed is not None and used != length:  # the writer pads nothing
                     parsed = None
             if parsed is None:
-                torn = op in _DATA_OPS and end > self.check.size
+                torn = op in DATA_OPS and end > self.check.size
                 nxt = self._skip_to(pos)
                 if nxt is None and torn and c.summary == "missing":
                     c.cut_off_at = pos  # power loss: the last record was never finished
@@ -345,7 +238,7 @@ class Walk:
                 pos = nxt
                 continue
             yield from self._record(pos, op, length, parsed)
-            if op == _DATA_END:
+            if op == DATA_END:
                 self.data_end_at, self.data_crc = pos, parsed.data_section_crc
                 break
             pos = end
@@ -356,14 +249,14 @@ class Walk:
         self._finish()
 
     def _record(self, pos: int, op: int, length: int, rec: Any) -> Iterator[Any]:
-        if op == _CHUNK:
+        if op == CHUNK:
             self._close_chunk()
-            yield from self._chunk(pos, _HEAD.size + length, rec)
-        elif op == _MESSAGE_INDEX:
-            self._message_index(pos, _HEAD.size + length, rec)
+            yield from self._chunk(pos, HEAD.size + length, rec)
+        elif op == MESSAGE_INDEX:
+            self._message_index(pos, HEAD.size + length, rec)
         else:
             self._close_chunk()
-            if op not in (_HEADER, _DATA_END):
+            if op not in (HEADER, DATA_END):
                 yield rec
 
     def _chunk(self, pos: int, length: int, rec: Any) -> Iterator[Any]:
@@ -451,7 +344,7 @@ class Walk:
             known = [o for o in self.chunk_at if o > pos]
             known += [m.offset for m in self.summary.metadata_indexes if m.offset > pos]
             return min(known, default=None)
-        return _resync(self.f, pos + 1, self.limit)
+        return resync(self.f, pos + 1, self.limit)
 
     def _stretch(self, loss: Loss) -> Loss:
         """A skipped stretch named by the checked summary: its chunks, their log times, and
@@ -483,9 +376,9 @@ class Walk:
     def _indexed(self, chunk_index: Any) -> int:
         """Messages a chunk's message index records list (read where the summary says)."""
         n = 0
-        for offset, length in _index_records(chunk_index):
-            body = _read_at(self.f, offset + _HEAD.size, length - _HEAD.size)
-            n += len(_parse(_MESSAGE_INDEX, body)[0].records)
+        for offset, length in index_records(chunk_index):
+            body = read_at(self.f, offset + HEAD.size, length - HEAD.size)
+            n += len(parse(MESSAGE_INDEX, body)[0].records)
         return n
 
     def _lose(self, loss: Loss) -> None:
@@ -506,7 +399,7 @@ class Walk:
             c.data_crc = "missing"
         elif not self.data_crc:
             c.data_crc = "not written"
-        elif _crc_of(self.f, 0, self.data_end_at) == self.data_crc:
+        elif crc_of(self.f, 0, self.data_end_at) == self.data_crc:
             c.data_crc = "checked"
         else:
             c.data_crc = "mismatch"
@@ -517,26 +410,6 @@ class Walk:
                     "what was written; every chunk's messages check out"
                 )
                 c.losses.append(Loss(8, self.data_end_at - 8, what, messages=0))
-
-
-def _index_records(chunk_index: Any) -> Iterator[tuple[int, int]]:
-    """(offset, length) of each message index record of a chunk, from its ChunkIndex."""
-    offsets = sorted(chunk_index.message_index_offsets.values())
-    if offsets:
-        ends = [*offsets[1:], offsets[0] + chunk_index.message_index_length]
-        yield from ((o, e - o) for o, e in zip(offsets, ends, strict=True))
-
-
-def _crc_of(f: IO[bytes], start: int, end: int, crc: int = 0) -> int:
-    f.seek(start)
-    left = end - start
-    while left > 0:
-        block = f.read(min(_BLOCK, left))
-        if not block:
-            break
-        crc = zlib.crc32(block, crc)
-        left -= len(block)
-    return crc
 
 
 def check(path: str | Path) -> Check:
