@@ -3,9 +3,9 @@
 Data arrives at 100 Hz on Zenoh; the page needs a few tens of frames a second. The data topics'
 subscribers keep only their newest samples in Zenoh's own ring buffer (Rust: no Python runs per
 sample); a tick at the display rate takes the newest of each topic, decodes it and sends one JSON
-frame to every page. So the server's cost follows the display rate, not the data rate (what
-matters on the board), and a slow page never queues 100 Hz of data. Rates come from the
-publishers' sequence numbers (the rmw_zenoh attachment), not from counting samples.
+frame to every page (exolink.dashboard.live). So the server's cost follows the display rate, not
+the data rate (what matters on the board), and a slow page never queues 100 Hz of data. Rates
+come from the publishers' sequence numbers (the rmw_zenoh attachment), not from counting samples.
 
 Events a person must not miss (watchdog state, trigger edges, pattern state) go out at once.
 The supervisor's status (nodes, bus, watchdog details) is polled once a second.
@@ -20,14 +20,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import structlog
-import zenoh
 
 from exolink import messaging, roles
 from exolink.board import clock
@@ -36,6 +34,7 @@ from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.control.holder import Holder, HoldRefused, describe
 from exolink.dashboard.commands import Command, CommandError, parse
 from exolink.dashboard.files import Files, pattern_points
+from exolink.dashboard.live import LiveData
 from exolink.protocol import h2
 from exolink.recordings import requests as reqs
 from exolink.wire import cdr
@@ -43,13 +42,8 @@ from exolink.wire.requests import body as request_body
 
 log = structlog.get_logger("exolink.dashboard")
 
-JOINT_STATE = "sensor_msgs/msg/JointState"
-FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 TRIGGER = "exolink_msgs/msg/TriggerEvent"
 PATTERN_STATE = "exolink_msgs/msg/PatternState"
-# Samples a data subscriber keeps between ticks (the newest win): one per topic it matches,
-# with room for MACCEPA boards' three topics each.
-RING = 64
 
 
 class Hub:
@@ -61,9 +55,7 @@ class Hub:
         self.status_period_s = status_period_s
         self.role = remote.user if remote.user in roles.ROLES else roles.ADMIN
         self.clients: set[Any] = set()
-        self._rings: list[Any] = []  # data subscribers with a ring buffer, drained per tick
-        self._seq: dict[str, int] = {}  # topic -> newest publisher sequence number seen
-        self._names: dict[str, tuple[str, str]] = {}  # key -> (topic, type), parsed once
+        self.live = LiveData(remote)  # the 100 Hz topics, while a page is open
         self._follows: dict[str, tuple[Any, set[Any]]] = {}  # node -> (log subscriber, pages)
         self._subs: list[Any] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -116,28 +108,9 @@ class Hub:
         )
         log.info("dashboard_connected", device=device, at=r.at, role=self.role)
 
-    def _open_rings(self) -> None:
-        """The 100 Hz data topics, subscribed only while a page is open: otherwise the router
-        forwards ~300 samples/s here and the tick drains them for nobody (measured:
-        docs/performance.md)."""
-        r = self.remote
-        for selector in (
-            messaging.topic_key(r.domain, r.ns, "joint_states", JOINT_STATE),
-            messaging.topic_key(r.domain, r.ns, "foot_switches", FOOT_SWITCHES),
-            messaging.topic_selector(r.domain, r.ns, "maccepa/*/*"),
-        ):
-            self._rings.append(
-                r.session.declare_subscriber(selector, zenoh.handlers.RingChannel(RING))
-            )
-
-    def _close_rings(self) -> None:
-        for sub in self._rings:
-            with contextlib.suppress(Exception):  # the session may already be closed
-                sub.undeclare()
-        self._rings.clear()
-
     def _unsubscribe(self) -> None:
-        for sub in self._subs + self._rings:
+        self.live.close()
+        for sub in self._subs:
             with contextlib.suppress(Exception):  # the session may already be closed
                 sub.undeclare()
         for sub, _pages in self._follows.values():
@@ -145,7 +118,6 @@ class Hub:
                 sub.undeclare()
         self._follows.clear()
         self._subs.clear()
-        self._rings.clear()
         self._release_hold()
 
     # --- Zenoh callbacks (Zenoh's threads: keep them short) -------------------------------
@@ -309,74 +281,33 @@ class Hub:
     async def _tick(self) -> None:
         period = 1.0 / self.rate_hz
         next_at = time.monotonic()
-        rate_at, rate_seq = time.monotonic(), dict(self._seq)
+        live = self.live
+        rate_at, rate_seq = time.monotonic(), dict(live.seq)
         rates: dict[str, float] = {}
         while True:
             if not self.clients:  # nobody to draw for: no subscription, no wake-ups
-                self._close_rings()
+                live.close()
                 await self._watched.wait()
-                self._open_rings()
+                live.open()
                 next_at = rate_at = time.monotonic()
-                rate_seq = dict(self._seq)
+                rate_seq = dict(live.seq)
             next_at += period
             await asyncio.sleep(max(0.0, next_at - time.monotonic()))
             if time.monotonic() - next_at > period:  # fell behind (a busy CPU): skip, not burst
                 next_at = time.monotonic()
-            newest = self._drain()
+            newest = live.drain()
             now = time.monotonic()
             if now - rate_at >= 1.0:
                 rates = {
                     k: round(max(0, v - rate_seq.get(k, v)) / (now - rate_at), 1)
-                    for k, v in self._seq.items()
+                    for k, v in live.seq.items()
                 }
-                rate_at, rate_seq = now, dict(self._seq)
+                rate_at, rate_seq = now, dict(live.seq)
             if not self.clients:
                 continue  # nobody to draw for: nothing decoded
-            frame = self._frame(newest)
+            frame = live.frame(newest)
             if frame is not None or rates:
                 self._broadcast({"t": "live", **(frame or {}), "rates": rates})
-
-    def _drain(self) -> dict[str, tuple[str, Any]]:
-        """The newest sample of each data topic since the last tick: topic -> (type, sample)."""
-        newest: dict[str, tuple[str, Any]] = {}
-        for sub in self._rings:
-            while (sample := sub.try_recv()) is not None:
-                key = str(sample.key_expr)
-                if (named := self._names.get(key)) is None:
-                    try:
-                        topic, typename = messaging.parse_key(key)
-                    except ValueError:
-                        continue
-                    # h2/maccepa/b0/state -> maccepa/b0/state
-                    named = self._names[key] = (topic.split("/", 1)[-1], typename)
-                name, typename = named
-                newest[name] = (typename, sample)
-                if sample.attachment is not None:
-                    with contextlib.suppress(ValueError):
-                        self._seq[name] = messaging.decode_attachment(sample.attachment.to_bytes())[
-                            0
-                        ]
-        return newest
-
-    def _frame(self, newest: dict[str, tuple[str, Any]]) -> dict[str, Any] | None:
-        if not newest:
-            return None
-        out: dict[str, Any] = {"now_ns": time.time_ns()}
-        for name, (typename, sample) in newest.items():
-            payload = sample.payload.to_bytes()
-            try:
-                if name == "joint_states":
-                    out["js"] = _joint_state(payload)
-                elif name == "foot_switches":
-                    out["fs"] = _foot_switches(payload)
-                elif name.startswith("maccepa/"):
-                    board_topic = name.removeprefix("maccepa/")  # b0/state
-                    out.setdefault("maccepa", {})[board_topic] = _plain(
-                        messaging.deserialize(payload, typename)
-                    )
-            except Exception as exc:  # one bad sample must not stop the page
-                log.warning("dashboard_decode_failed", topic=name, error=str(exc))
-        return out
 
     # --- polling --------------------------------------------------------------------------
 
@@ -470,43 +401,6 @@ class Hub:
 def _ignore_result(task: asyncio.Future[Any]) -> None:
     if not task.cancelled():
         task.exception()  # a page gone mid-send: its socket's close handler removes it
-
-
-def _joint_state(payload: bytes) -> dict[str, Any]:
-    msg = messaging.deserialize(payload, JOINT_STATE)
-    return {
-        "stamp_ns": messaging.stamp_ns(msg.header.stamp),
-        "name": list(msg.name),
-        "pos_deg": [round(math.degrees(v), 2) for v in msg.position.tolist()],
-        "eff_nm": [round(v, 3) for v in msg.effort.tolist()],
-    }
-
-
-def _foot_switches(payload: bytes) -> dict[str, Any]:
-    msg = messaging.deserialize(payload, FOOT_SWITCHES)
-    return {
-        "stamp_ns": messaging.stamp_ns(msg.header.stamp),
-        "r_heel": bool(msg.r_heel),
-        "r_toe": bool(msg.r_toe),
-        "l_heel": bool(msg.l_heel),
-        "l_toe": bool(msg.l_toe),
-        "battery_raw": int(msg.battery_raw),
-        "battery_volts": round(float(msg.battery_volts), 2),
-    }
-
-
-def _plain(msg: Any) -> dict[str, Any]:
-    """A small message (a MACCEPA board's state) as plain fields, without its header."""
-    out: dict[str, Any] = {}
-    for k in msg.__dataclass_fields__:
-        if k.startswith("__"):  # rosbags' __msgtype__
-            continue
-        if k == "header":
-            out["stamp_ns"] = messaging.stamp_ns(msg.header.stamp)
-            continue
-        v = getattr(msg, k)
-        out[k] = v.tolist() if hasattr(v, "tolist") else v
-    return out
 
 
 def _with_clock_offset(status: dict[str, Any], t0: float, t1: float) -> dict[str, Any]:
