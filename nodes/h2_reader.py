@@ -89,6 +89,11 @@ class ReaderStats:
     receive: dict[str, int | float | None] = field(default_factory=dict)
 
 
+def _count(value: float | None) -> int | None:
+    """A counter from FrameReader.counters() as the count it is (None: not known)."""
+    return None if value is None else int(value)
+
+
 class GapCounter:
     """Counts frames lost in a periodic stream from the receive timestamps alone."""
 
@@ -247,7 +252,7 @@ class H2Reader(Node):
     def _stats(self) -> dict[str, Any]:
         st = self.stats
         st.receive = self.reader.counters()
-        st.socket_dropped = st.receive["dropped"]  # type: ignore[assignment]
+        st.socket_dropped = _count(st.receive["dropped"])
         return {
             "node": self.name,  # a wildcard query's replies say whose they are
             **asdict(st),
@@ -263,7 +268,7 @@ class H2Reader(Node):
     def _diagnostics(self) -> None:
         st = self.stats
         rx = st.receive = self.reader.counters()
-        dropped = st.socket_dropped = rx["dropped"]  # type: ignore[assignment]
+        dropped = st.socket_dropped = _count(rx["dropped"])
         values = {
             **{f"frames_{i}": n for i, n in st.frames.items()},
             **{f"missing_{i}": n for i, n in st.missing.items()},

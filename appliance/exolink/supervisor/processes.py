@@ -222,8 +222,8 @@ class NodeProcess:
             alive = proc is not None and proc.poll() is None
             self.state, self.due_at = ("stopping" if alive else "stopped"), 0.0
         try:
-            if alive:
-                self._end(proc, timeout)  # type: ignore[arg-type]
+            if alive and proc is not None:  # (alive says so: for the type checker)
+                self._end(proc, timeout)
         finally:
             with self.lock:
                 if self.spawns == spawn and self.state == "stopping":
