@@ -130,6 +130,24 @@ def test_the_plan_is_the_patterns_rows_one_per_slot_through_the_managers_limits(
     assert [f.setpoint for f in got] == [30, 50, 60], got  # type: ignore[union-attr]
 
 
+def test_the_node_is_alive_before_the_first_slot_is_planned_and_after_each(buses) -> None:  # type: ignore[no-untyped-def]
+    """The node beats (by its leased deadline) as planning begins, not only after a slot: a
+    first slot preempted past the node's own 50 ms tripped the watchdog at the gait's start on
+    a capped CPU. No frame is on the bus before the op starts."""
+    tx, rx = buses
+    m = gait_manager()
+    seen: list[tuple[int, int]] = []  # (slots planned, frames on the bus) at each beat
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
+    timed = Timed(lease, m.position_joints(), 0.02, 3, 1000.001, time.monotonic())
+    timed.alive = lambda: seen.append((timed.plan.slots, len(drain(rx, 0.0))))
+    try:
+        assert timed.begin(m, STATE, None) is None
+    finally:
+        timed.abort()
+    assert seen[0] == (0, 0), seen  # before any slot, nothing sent
+    assert [k for k, _ in seen[1:]] == list(range(1, len(seen))), seen  # then after each
+
+
 def test_leaving_the_timer_gives_the_step_limit_what_was_sent(buses) -> None:  # type: ignore[no-untyped-def]
     tx, rx = buses
     m = gait_manager()

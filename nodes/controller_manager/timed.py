@@ -136,9 +136,9 @@ class Timed:
         period: int | None = None,
     ) -> None:
         """``encode(motor, mode, setpoint, stiffness)``: a joint-control payload (the node's
-        cache of encoded frames; default the H2 codec's); ``alive``: called after each slot
-        planned (the node's heartbeat: the first plan of a process can take longer than the
-        manager's deadline on the board); ``period``: slots after which the outputs repeat
+        cache of encoded frames; default the H2 codec's); ``alive``: called as planning begins
+        and after each slot planned (the node's heartbeat: the first plan of a process can take
+        longer than the manager's deadline on the board); ``period``: slots after which the outputs repeat
         (``Manager.repeats_slots``), None: plan every slot."""
         self.alive = alive or (lambda: None)
         self.lease, self.slot_s, self.lease_slots = lease, slot_s, lease_slots
@@ -208,6 +208,11 @@ class Timed:
         the manager's (a lease's worth took tens of ms under TCG, in one wake); the renewals
         catch up, ``PLAN_PER_WAKE`` at a time."""
         first = min(PLAN_PER_WAKE, self.lease_slots)
+        # Alive before the first slot is planned too: the loop's last beat was by its own
+        # deadline (50 ms on the board), and a first slot preempted for that long (a CPU capped
+        # by its quota: E59, D60 in docs/performance.md) tripped the watchdog at every gait
+        # start. Nothing is sent until the op starts below, so nothing moves meanwhile.
+        self.alive()
         if (broke := self._plan_until(manager, state, first, not_armed)) is not None:
             return broke
         n = self.per_slot
