@@ -80,6 +80,14 @@ class TimerLoop:
             joints = n.manager.position_joints()
             if not joints or self.timed is not None:
                 return
+            # Feedback controllers beside the plan: the cycle loop runs too, and the node is
+            # judged by its own deadline. Read once: any change of the controllers changes the
+            # version, which ends the timer first. Alone, the lease bounds a hang's motion, and
+            # it is judged by that from here: nothing is sent until the op starts, and the op's
+            # opening and first slots, preempted on a capped CPU, outlasted its own 50 ms.
+            beside = n.manager.unplanned()
+            pace = Pace.OWN if beside else Pace.LEASED
+            n.beat(pace)
             ival_us = round(p.slot_ms * 1e3 / len(joints))  # the joints of a slot spread over it
             lease_slots = p.lease_ms // p.slot_ms
             ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
@@ -101,11 +109,6 @@ class TimerLoop:
             opened = time.perf_counter()
             self.echoed = {}
             slot_s = ival_us * len(joints) / 1e6
-            # Feedback controllers beside the plan: the cycle loop runs too, and the node is
-            # judged by its own deadline. Read once: any change of the controllers changes the
-            # version, which ends the timer first. Alone, the lease bounds a hang's motion.
-            beside = n.manager.unplanned()
-            pace = Pace.OWN if beside else Pace.LEASED
             timed = Timed(
                 lease,
                 joints,
