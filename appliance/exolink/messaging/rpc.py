@@ -49,8 +49,7 @@ class Caller:
     login: str
 
 
-# (request) or (request, Caller) -> a reply (exolink.wire.replies), or a plain dict
-Handler = Callable[..., Any]
+Handler = Callable[..., Any]  # (request) or (request, Caller) -> wire.replies struct or dict
 # The role a request needs: one for the whole key, or chosen from the request (its action).
 Needs = str | Callable[[dict[str, Any]], str]
 # Whether a request is acted on at once, before any rate limit or queue (an e-stop).
