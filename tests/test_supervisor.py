@@ -51,8 +51,23 @@ def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, vict
     assert_all_disabled(collect(mbus, 0.5, {70}))
     st = app.status()
     assert st["watchdog"]["state"] == "tripped"
-    assert st["watchdog"]["reason"] == "critical node exited"
-    assert f"{victim}: SIGKILL" in st["watchdog"]["detail"]
+    reason = st["watchdog"]["reason"]
+    if reason == "critical node exited":
+        assert f"{victim}: SIGKILL" in st["watchdog"]["detail"]
+    else:
+        # Another trip latched first: on a loaded 2-core host the simulated H2 can fall silent
+        # before the zygote reports the exit (1 run in 7 beside the UML kernel tests). The
+        # exit still tripped the watchdog, after it: the journal says so.
+        wait_for(
+            lambda: any(
+                '"watchdog_trip_while_tripped"' in line
+                and '"critical node exited"' in line
+                and f"{victim}: SIGKILL" in line
+                for line in app.proc.output().splitlines()
+            ),
+            timeout=5,
+            explain=lambda: st["watchdog"],
+        )
     wait_for(
         lambda: (
             (n := app.node(victim))["pid"] not in (None, pid) and n["heartbeat_age_s"] is not None
@@ -62,7 +77,7 @@ def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, vict
     assert app.node(victim)["restarts"] == 1
     # Latched: motion refused until re-armed, then accepted again.
     r = app.cli("send", "position", "r_knee", "40")
-    assert r.returncode == 5 and "watchdog is tripped (critical node exited)" in r.stderr
+    assert r.returncode == 5 and f"watchdog is tripped ({reason})" in r.stderr
     assert collect(mbus, 0.3, {70}) == []
     app.arm()
     assert app.cli("send", "position", "r_knee", "40").returncode == 0
