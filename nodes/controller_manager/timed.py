@@ -138,8 +138,8 @@ class Timed:
         """``encode(motor, mode, setpoint, stiffness)``: a joint-control payload (the node's
         cache of encoded frames; default the H2 codec's); ``alive``: called as planning begins
         and after each slot planned (the node's heartbeat: the first plan of a process can take
-        longer than the manager's deadline on the board); ``period``: slots after which the outputs repeat
-        (``Manager.repeats_slots``), None: plan every slot."""
+        longer than the manager's deadline on the board); ``period``: slots after which the
+        outputs repeat (``Manager.repeats_slots``), None: plan every slot."""
         self.alive = alive or (lambda: None)
         self.lease, self.slot_s, self.lease_slots = lease, slot_s, lease_slots
         self.encode = encode or _encode
@@ -210,8 +210,8 @@ class Timed:
         first = min(PLAN_PER_WAKE, self.lease_slots)
         # Alive before the first slot is planned too: the loop's last beat was by its own
         # deadline (50 ms on the board), and a first slot preempted for that long (a CPU capped
-        # by its quota: E59, D60 in docs/performance.md) tripped the watchdog at every gait
-        # start. Nothing is sent until the op starts below, so nothing moves meanwhile.
+        # by its quota: docs/performance.md) tripped the watchdog at every gait start. Nothing
+        # is sent until the op starts below, so nothing moves meanwhile.
         self.alive()
         if (broke := self._plan_until(manager, state, first, not_armed)) is not None:
             return broke
