@@ -282,27 +282,20 @@ class Hub:
         period = 1.0 / self.rate_hz
         next_at = time.monotonic()
         live = self.live
-        rate_at, rate_seq = time.monotonic(), dict(live.seq)
         rates: dict[str, float] = {}
         while True:
             if not self.clients:  # nobody to draw for: no subscription, no wake-ups
                 live.close()
                 await self._watched.wait()
                 live.open()
-                next_at = rate_at = time.monotonic()
-                rate_seq = dict(live.seq)
+                next_at = time.monotonic()
             next_at += period
             await asyncio.sleep(max(0.0, next_at - time.monotonic()))
             if time.monotonic() - next_at > period:  # fell behind (a busy CPU): skip, not burst
                 next_at = time.monotonic()
             newest = live.drain()
-            now = time.monotonic()
-            if now - rate_at >= 1.0:
-                rates = {
-                    k: round(max(0, v - rate_seq.get(k, v)) / (now - rate_at), 1)
-                    for k, v in live.seq.items()
-                }
-                rate_at, rate_seq = now, dict(live.seq)
+            if (now_rates := live.rates(time.monotonic())) is not None:
+                rates = now_rates
             if not self.clients:
                 continue  # nobody to draw for: nothing decoded
             frame = live.frame(newest)

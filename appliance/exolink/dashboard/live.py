@@ -33,6 +33,7 @@ class LiveData:
         self._rings: list[Any] = []  # data subscribers with a ring buffer, drained per tick
         self.seq: dict[str, int] = {}  # topic -> newest publisher sequence number seen
         self._names: dict[str, tuple[str, str]] = {}  # key -> (topic, type), parsed once
+        self._rate_at, self._rate_seq = time.monotonic(), dict(self.seq)  # see ``rates``
 
     def open(self) -> None:
         """The 100 Hz data topics, subscribed only while a page is open: otherwise the router
@@ -47,6 +48,20 @@ class LiveData:
             self._rings.append(
                 r.session.declare_subscriber(selector, zenoh.handlers.RingChannel(RING))
             )
+        self._rate_at, self._rate_seq = time.monotonic(), dict(self.seq)
+
+    def rates(self, now: float) -> dict[str, float] | None:
+        """Each topic's samples a second since the last rates (at least a second ago; None
+        before that), from its publisher's sequence numbers: what it sent, not what this
+        subscriber happened to get."""
+        took = now - self._rate_at
+        if took < 1.0:
+            return None
+        out = {
+            k: round(max(0, v - self._rate_seq.get(k, v)) / took, 1) for k, v in self.seq.items()
+        }
+        self._rate_at, self._rate_seq = now, dict(self.seq)
+        return out
 
     def close(self) -> None:
         for sub in self._rings:
