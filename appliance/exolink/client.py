@@ -75,12 +75,10 @@ class Remote:
         except messaging.RequestTooLarge as exc:
             raise Refused(str(exc)) from None
 
-    def status(self) -> replies.Status:
-        """The supervisor's status, typed (Refused if it refuses, ValueError if it does not
-        fit the schema)."""
-        return replies.read(self.call("status"), replies.Status)
-
     def nodes(self) -> list[replies.NodeInfo]:
+        """The supervisor's nodes, typed (Refused if it refuses, ValueError if the reply does
+        not fit exolink.wire.replies.Nodes). ``exolink status`` reads ``Status`` from the raw
+        reply with ``replies.read``: its ``--json`` prints the reply whole."""
         return replies.read(self.call("nodes"), replies.Nodes).nodes
 
     def selector(self, topic: str) -> str:

@@ -6,15 +6,13 @@ import argparse
 import sys
 from typing import Any
 
-import msgspec
-
 from exolink import messaging
 from exolink.cli import clock
 from exolink.cli.controllers import show
 from exolink.cli.options import common, guard, print_json
 from exolink.cli.update import describe
 from exolink.client import Refused, remote
-from exolink.wire.replies import UNSET, NodeInfo, Status, read
+from exolink.wire.replies import UNSET, NodeInfo, Nodes, Status, read
 
 
 def _receive(rx: dict[str, Any] | None) -> str:
@@ -171,11 +169,11 @@ def update_line(sw: dict[str, Any] | None) -> str:
 @guard
 def cmd_nodes(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        nodes = r.nodes()
+        raw = r.call("nodes")  # printed whole with --json, as ``status`` does
     if args.json:
-        sys.stdout.write(msgspec.json.format(msgspec.json.encode(nodes), indent=2).decode() + "\n")
+        print_json(raw["nodes"])
     else:
-        sys.stdout.write(_node_table(nodes))
+        sys.stdout.write(_node_table(read(raw, Nodes).nodes))
     return 0
 
 

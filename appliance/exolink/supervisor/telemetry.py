@@ -60,8 +60,7 @@ class NodeTelemetry:
 
     def _node_diagnostics(self, key: str, payload: bytes) -> None:
         """The worst status a node reports (e.g. the recorder's disk full) shows in `exolink status`."""
-        parts = key.split("/")
-        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
+        name = _node_of(key)
         node = self.nodes.get(name)
         if node is None:
             return
@@ -78,8 +77,7 @@ class NodeTelemetry:
 
     def _on_node_api(self, sample: Any) -> None:
         """A node's refusals of requests (messaging.API_TOPIC), for `exolink status`."""
-        parts = str(sample.key_expr).split("/")
-        name = parts[parts.index("nodes") + 1] if "nodes" in parts else ""
+        name = _node_of(str(sample.key_expr))
         if name not in self.nodes:
             return
         try:
@@ -129,3 +127,10 @@ class NodeTelemetry:
             ),
             now,
         )
+
+
+def _node_of(key: str) -> str:
+    """The node a ``.../nodes/<name>/...`` key is about ("" for none): only a name the
+    supervisor configured is ever acted on."""
+    parts = key.split("/")
+    return parts[parts.index("nodes") + 1] if "nodes" in parts else ""

@@ -1,5 +1,5 @@
 """The supervisor's replies, one schema each: what its handlers build (exolink.supervisor.api)
-and what a client reads back (exolink.client's ``Remote.status`` and ``Remote.nodes``).
+and what a client reads back (``read``; exolink.client's ``Remote.nodes``).
 
 On the wire a reply stays a plain JSON object with ``ok`` beside these fields (a laptop without
 exolink reads it as before). A client decodes it leniently: fields it does not know (a newer
@@ -136,8 +136,8 @@ def read(reply: dict[str, Any], cls: type[R]) -> R:
 
 
 def plain(reply: Any) -> dict[str, Any]:
-    """A reply as the JSON object it goes out as (a handler's dict passes through)."""
-    if isinstance(reply, msgspec.Struct):
-        out: dict[str, Any] = msgspec.to_builtins(reply)
-        return out
-    return dict(reply or {})
+    """A reply as the JSON object it goes out as (a handler's dict passes through, uncopied)."""
+    out: dict[str, Any] = (
+        msgspec.to_builtins(reply) if isinstance(reply, msgspec.Struct) else reply or {}
+    )
+    return out
