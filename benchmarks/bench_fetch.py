@@ -16,7 +16,7 @@ from exolink.nodes.recorder import RecorderParams
 from benchmarks.bench_recorder import joint_states, write
 from benchmarks.harness import Appliance, cpu_s
 from exolink import messaging
-from exolink.recordings import store as recstore
+from exolink.recordings import fetching
 
 
 def _nodes(directory: Path, fetch_mb_s: float) -> list[dict[str, Any]]:
@@ -62,7 +62,7 @@ def fetch_cost(file_mb: int, chunk: int, fetch_mb_s: float) -> dict[str, Any]:
         pids = {"supervisor": app.proc.pid, "recorder": int(rec["pid"])}
         key = messaging.mgmt_key("sim", "recordings")
 
-        ask = recstore.Patient(lambda body: messaging.request(app.session, key, body, 5))
+        ask = fetching.Patient(lambda body: messaging.request(app.session, key, body, 5))
 
         # The board's sha256, once (what the first `stat` of a fetch starts).
         t = time.monotonic()
@@ -78,7 +78,7 @@ def fetch_cost(file_mb: int, chunk: int, fetch_mb_s: float) -> dict[str, Any]:
         time.sleep(5)
         idle = _share(c0, _cpu(pids), time.monotonic() - t0)
         c1, t1 = _cpu(pids), time.monotonic()
-        f = recstore.fetch(ask, "sim_big_000.mcap", laptop, chunk)
+        f = fetching.fetch(ask, "sim_big_000.mcap", laptop, chunk)
         dt = time.monotonic() - t1
         during = _share(c1, _cpu(pids), dt)
         s = app.call("record")

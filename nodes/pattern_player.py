@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from exolink import roles
-from exolink.control import requests
+from exolink.control import replies, requests
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE
 from exolink.control.gait import period_s
@@ -113,7 +113,7 @@ class PatternPlayer(Node):
 
     # --- commands -------------------------------------------------------------------------
 
-    def on_command(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
+    def on_command(self, req: dict[str, Any], caller: Caller) -> replies.PatternInfo:
         cmd = requests.decode(with_default(req, "status"), requests.Pattern, "pattern action")
         action = requests.tag_of(cmd)
         handlers: dict[str, Callable[[Any, Caller], None]] = {
@@ -132,25 +132,24 @@ class PatternPlayer(Node):
             status = self.status()
         self._publish()
         if action != "status":
-            self.log.info("pattern_command", action=action, state=status["state"])
+            self.log.info("pattern_command", action=action, state=status.state)
         return status
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> replies.PatternInfo:
         self._track_index()
-        return {
-            "state": self.state,
-            "reason": self.reason,
-            "index": self.index,
-            "length": len(self.pattern.points),
-            "speed": self.speed,
-            "period_ms": round(period_s(self.speed) * 1000, 3),
-            "selected": [j for j, s in zip(h2.JOINTS, self.selected, strict=True) if s],
-            "file": self.pattern.file,
-            "timing": "manager",
-            "sent": self.sent,
-            "operator": self.operator,
-            "watchdog_word": self.arming.counters() if self.arming is not None else None,
-        }
+        return replies.PatternInfo(
+            state=self.state,
+            reason=self.reason,
+            index=self.index,
+            length=len(self.pattern.points),
+            speed=self.speed,
+            period_ms=round(period_s(self.speed) * 1000, 3),
+            selected=[j for j, s in zip(h2.JOINTS, self.selected, strict=True) if s],
+            file=self.pattern.file,
+            sent=self.sent,
+            operator=self.operator,
+            watchdog_word=self.arming.counters() if self.arming is not None else None,
+        )
 
     def _start(self, _req: Any, caller: Caller) -> None:
         with self.lock:
@@ -357,12 +356,17 @@ class PatternPlayer(Node):
         except Refused as exc:
             self.log.warning("manager_status_unavailable", error=str(exc))
             return None
-        if gait.get("state") is None:
-            return "the controller manager no longer has the pattern"
-        self.sent = int(gait.get("written", self.sent) or 0)
-        if gait.get("state") == "active":
+        try:
+            now = replies.read(gait, replies.StateOf)
+        except ValueError as exc:  # not the manager's answer: as if it did not answer
+            self.log.warning("manager_status_unreadable", error=str(exc))
             return None
-        return str(gait.get("error") or f"the pattern's controller is {gait.get('state')}")
+        if now.state is None:
+            return "the controller manager no longer has the pattern"
+        self.sent = now.written
+        if now.state == "active":
+            return None
+        return now.error or f"the pattern's controller is {now.state}"
 
     # --- the loop -------------------------------------------------------------------------
 

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from exolink import messaging
+from exolink.control.replies import PatternInfo
 from exolink.protocol import h2
 from exolink.wire import cdr, srvtypes
 
@@ -116,9 +117,8 @@ def test_joint_command_is_rosbags_cdr(
 )
 def test_pattern_state_is_rosbags_cdr(ns, texts, counts, speed, period, selected) -> None:  # type: ignore[no-untyped-def]
     state, reason, file, operator, timing = texts
-    status = {"state": state, "reason": reason, "index": counts[0], "length": counts[1]}
-    status |= {"speed": speed, "period_ms": period, "file": file, "operator": operator}
-    status["timing"] = timing
+    status = PatternInfo(state, reason, counts[0], counts[1], speed, period, [], file, 0, operator)
+    status.timing = timing
     cls = messaging.msg_class("exolink_msgs/msg/PatternState")
     ref = cls(
         stamp=messaging.stamp(ns),
@@ -227,8 +227,7 @@ def test_pattern_state_decodes_its_state_and_operator(
     ns: int, texts: list[str], selected: list[bool]
 ) -> None:
     state, reason, file, operator, timing = texts
-    status = {"state": state, "reason": reason, "index": 3, "length": 51, "speed": 10}
-    status |= {"period_ms": 20.0, "file": file, "operator": operator, "timing": timing}
+    status = PatternInfo(state, reason, 3, 51, 10, 20.0, [], file, 0, operator, timing)
     payload = cdr.pattern_state(ns, status, selected)
     assert cdr.pattern_state_of(payload) == (state, operator)
     for cut in (0, 5, 13, len(payload) - 1):

@@ -92,13 +92,13 @@ def test_a_replacement_is_checked_before_the_one_it_replaces_is_touched() -> Non
     new = m.prepare("a", "forward_command", {"joints": ["l_knee"]}, replacing=True)
     with pytest.raises(ManagerRefused, match="a is active: deactivate it first"):
         m.add(new, replace=True)
-    assert m.status()["controllers"][0]["claims"] == ["r_knee/position"]
+    assert m.status()["controllers"][0].claims == ["r_knee/position"]
     switch(m, deactivate=["a"])
     old = m.add(new, replace=True)
     assert old is not None and old.claims == ("r_knee/position",)
-    assert [c["claims"] for c in m.status()["controllers"]] == [["l_knee/position"]]
+    assert [c.claims for c in m.status()["controllers"]] == [["l_knee/position"]]
     m.put_back(new, old)  # its activation refused: the one it replaced is back
-    assert [c["claims"] for c in m.status()["controllers"]] == [["r_knee/position"]]
+    assert [c.claims for c in m.status()["controllers"]] == [["r_knee/position"]]
 
 
 class ManagerStandIn:
@@ -1078,7 +1078,7 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     assert "pattern" in shown and "gait_pattern" in shown and "r_knee/position" in shown, shown
     # speed and pause through the same CLI; pause stops the manager writing
     assert app.cli("pattern", "speed", "5").returncode == 0
-    assert listing(app)["pattern"]["speed"] == 5
+    assert listing(app)["pattern"]["own"]["speed"] == 5
     assert app.cli("pattern", "pause").returncode == 0
     collect(mbus, 0.2)
     assert joint_frames(collect(mbus, 0.3, {70}), 1) == []

@@ -74,7 +74,7 @@ def test_setpoint_held_from_the_lever_refused_out_of_range_saturated_by_step() -
     # the activating cycle: the three gains once, the set-point holding the lever (12)
     first = [("kp", 2.0), ("ki", 0.0), ("kd", 0.0), ("setpoint", 12.0)]
     assert writes(m) == first
-    assert m.status()["maccepa"]["maccepa0"]["gains"] == [2.0, 0.0, 0.0]
+    assert m.status()["maccepa"]["maccepa0"].gains == [2.0, 0.0, 0.0]
     # a controller's refusal reaches the caller as it is (exolink.refusal: one type)
     with pytest.raises(Refused, match=r"set-point 500 is outside the board's range"):
         m.command("m0", {"values": {"maccepa0": 500}})

@@ -72,12 +72,10 @@ def test_host_names_a_dashboard_answers_to() -> None:
     address a request came in on; loopback always; every name on its own port unless given."""
     import socket
 
-    from exolink.dashboard import server
+    from exolink.dashboard import guard
     from exolink.dashboard.node import DashboardParams
 
-    hosts = server.Hosts(
-        8080, DashboardParams().allow_hosts, placeholders={server.DEVICE: "exo-01"}
-    )
+    hosts = guard.Hosts(8080, DashboardParams().allow_hosts, placeholders={guard.DEVICE: "exo-01"})
     me = socket.gethostname()
     for header in ("exo-01:8080", "EXO-01.local:8080", f"{me}:8080", f"{me}.local:8080",
                    "localhost:8080", "127.0.0.1:8080", "[::1]:8080", "[0:0::1]:8080"):  # fmt: skip
@@ -88,13 +86,13 @@ def test_host_names_a_dashboard_answers_to() -> None:
                    "localhost:8080@evil.example", "evil@localhost:8080", "localhost:8080 x",
                    "localhost.:8080", "::1", "", "\uff4cocalhost:8080"):  # fmt: skip
         assert not hosts.allows(header, "10.0.0.1"), header
-    assert server.Hosts(80, ["exo.test"]).allows("exo.test", None)  # no port: 80
-    assert server.Hosts(8080, ["fe80::1", "tunnel.test:9000"]).allows("[fe80::1]:8080", None)
-    assert server.Hosts(8080, ["tunnel.test:9000"]).allows("tunnel.test:9000", None)
+    assert guard.Hosts(80, ["exo.test"]).allows("exo.test", None)  # no port: 80
+    assert guard.Hosts(8080, ["fe80::1", "tunnel.test:9000"]).allows("[fe80::1]:8080", None)
+    assert guard.Hosts(8080, ["tunnel.test:9000"]).allows("tunnel.test:9000", None)
     with pytest.raises(ValueError, match="'<devic>' is not a host name"):
-        server.Hosts(8080, ["<devic>"])
+        guard.Hosts(8080, ["<devic>"])
     with pytest.raises(ValueError, match="'http://x' is not a host name"):
-        server.Hosts(8080, ["http://x"])
+        guard.Hosts(8080, ["http://x"])
 
 
 # --- a sim appliance, a dashboard and a browser ----------------------------------------------

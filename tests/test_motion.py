@@ -143,7 +143,7 @@ def test_speed_change_without_restart_and_pause(app, mbus) -> None:  # type: ign
     assert app.cli("pattern", "start", "--detach").returncode == 0
     assert app.cli("pattern", "speed", "5").returncode == 0
     gait = json.loads(app.cli("controllers", "list", "--json").stdout)["controllers"]
-    assert [c["speed"] for c in gait if c["name"] == "pattern"] == [5]
+    assert [c["own"]["speed"] for c in gait if c["name"] == "pattern"] == [5]
     r = app.cli("pattern", "speed", "11")
     assert r.returncode == 5 and "speed must be a whole level 1..10" in r.stderr
     r = app.cli("pattern", "select", "l_knee")

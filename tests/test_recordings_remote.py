@@ -5,6 +5,7 @@ lists, operator fetches, admin deletes); the card filled on purpose on a real sm
 from __future__ import annotations
 
 import argparse
+import base64
 import hashlib
 import json
 import os
@@ -20,8 +21,11 @@ from benchmarks.harness import EXOLINK, Appliance, wait_for
 from exolink import messaging, roles
 from exolink.client import Remote
 from exolink.dashboard.hub import Hub
+from exolink.recordings import fetching
 from exolink.recordings import store as recstore
 from exolink.recordings.readback import info
+from exolink.recordings.replies import FileEntry
+from exolink.refusal import Refused
 
 
 def sha256(path: Path) -> str:
@@ -152,7 +156,7 @@ def test_a_laptop_lists_fetches_checks_and_deletes_by_role(tmp_path, write_confi
     os.environ["XDG_CACHE_HOME"] = str(cache)
     observer_hub, operator_hub = dashboard_hub(app, obs), dashboard_hub(app, op)
     try:
-        with pytest.raises(recstore.Refused, match="needs the operator role"):
+        with pytest.raises(Refused, match="needs the operator role"):
             observer_hub.recording(str(rec / name))
         elsewhere = str(tmp_path / "on-the-board" / name)  # not a file on this machine
         got_path = operator_hub.recording(elsewhere)
@@ -311,12 +315,12 @@ def test_names_from_the_network_stay_in_the_directory(tmp_path: Path) -> None:
     for name in ("../b.mcap", "/etc/passwd", "b.mcap", "sub.mcap", "a.mcap/..", "a", "a\nb.mcap"):
         with pytest.raises(recstore.StoreError):
             store.chunk(name, 0, 10)
-    assert recstore.base64.b64decode(store.chunk("a.mcap", 90, 50)["data"]) == b"x" * 10
+    assert base64.b64decode(store.chunk("a.mcap", 90, 50).data) == b"x" * 10
     writing = recstore.Store(d, lambda: d / "a.mcap")
     assert writing.entries()[0].state == "recording"
     with pytest.raises(recstore.StoreError, match="still being recorded"):
         writing.delete("a.mcap")
-    assert recstore.missing([{"name": "../x.mcap", "state": "closed", "size": 1}], d) == []
+    assert fetching.missing([FileEntry("../x.mcap", 1, 0.0, "closed", None)], d) == []
 
 
 def test_the_write_rate_and_hours_left() -> None:

@@ -50,9 +50,9 @@ def test_every_refusal_is_the_one_type() -> None:
 def test_the_laptops_and_the_handlers_refusal_are_the_same_class() -> None:
     from exolink import client
     from exolink.control import controller
-    from exolink.recordings import store
+    from exolink.recordings import fetching
 
-    assert client.Refused is messaging.Refused is controller.Refused is store.Refused is Refused
+    assert client.Refused is messaging.Refused is controller.Refused is fetching.Refused is Refused
 
 
 def test_a_refusal_from_deep_in_a_handler_is_an_error_reply_verbatim() -> None:

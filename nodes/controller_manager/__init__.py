@@ -3,7 +3,8 @@ the home of the operator's intent (limits in force, who holds motion).
 
 - ``node``: the node: its bus, its loop's turns, the writes a request asks for; the loop's two
   ways out are ``cycle_loop`` (read -> update -> write each H2 cycle) and ``on_timer``;
-- ``api``: its requests: controllers, the H2's and the MACCEPA boards' commands, presence;
+- ``api``: its requests: controllers, presence; ``commands``: the operator's one-off commands to
+  the H2 and the MACCEPA boards (``exolink send``, ``exolink maccepa``);
 - ``manager``: the controllers, their claims and switches, one cycle's outputs (no I/O), with
   ``loaded`` (loading and describing them), ``switching`` (switches at a cycle boundary),
   ``slots`` (what it holds and hands out), ``budget`` (an update judged: CPU, values) and

@@ -1,5 +1,6 @@
-"""What the controller manager serves: the controllers, the H2's commands (``exolink send``), the
-MACCEPA boards' commands (``exolink maccepa``) and the operator's presence (``exolink hold``).
+"""What the controller manager serves: the controllers and the operator's presence (``exolink
+hold``); the operator's one-off commands to the H2 and the MACCEPA boards are commands.py's, on
+the checks and switches of this one.
 
 Every way motion is asked for (the CLI, the dashboard, ROS 2's ``cmd/joint`` and
 ``joint_command`` through the supervisor, a controller loaded by hand) reaches these handlers in
@@ -20,27 +21,24 @@ import time
 from typing import Any, Protocol, TypeVar
 
 import can
+import msgspec
 import structlog
-from exolink.nodes.controller_manager.frames import SAFE_MODES
 from exolink.nodes.controller_manager.intent import OperatorLimits, Presence
 from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.slots import Switch
 
 from exolink import roles
-from exolink.control import requests
-from exolink.limits.maccepa import GAINS, target
+from exolink.control import replies, requests
 from exolink.messaging import Caller, Refused, Unlogged
 from exolink.node import NodeContext
 from exolink.plugins import controller_types
-from exolink.protocol import ProtocolError, h2, maccepa
-from exolink.wire import cdr, management
+from exolink.wire import management
 from exolink.wire.requests import action_of, with_default
 
 R = TypeVar("R")
 
 SWITCH_WAIT_S = 1.0
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
-OPERATOR_MODES = ("position", "stiffness", "torque")
 DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
 READS = ("list", "types", "state")  # what an observer may ask of the controllers
 PRESENCE = ("hold", "release")  # answered at once, never behind a switch
@@ -65,7 +63,7 @@ def _deadline(within: Any) -> float | None:
     return time.monotonic() + within
 
 
-def _frames(frames: list[can.Message]) -> list[str]:
+def frame_texts(frames: list[can.Message]) -> list[str]:
     return [f"{f.arbitration_id:03X}#{f.data.hex().upper()}" for f in frames]
 
 
@@ -81,7 +79,7 @@ class ManagerNode(Protocol):
     wake: threading.Event  # a queued switch: the loop opens the reader now
 
     def own(self, resource: R) -> R: ...
-    def status(self) -> dict[str, Any]: ...
+    def status(self) -> replies.ManagerStatus: ...
     def not_armed(self) -> str | None: ...
     def maybe_tell(self) -> None: ...
     def limit_frames(self) -> list[can.Message]: ...
@@ -100,10 +98,7 @@ class ManagerApi:
 
     def serve(self) -> None:
         m = self.node.ctx.messaging
-        self.pub_commands = self.node.own(m.publisher("joint_commands", JOINT_COMMAND, raw=True))
         self.node.own(m.serve("controllers", self.on_controllers, _controllers_needs, _presence))
-        self.node.own(m.serve(("h2", "command"), self.on_h2, roles.OPERATOR))
-        self.node.own(m.serve("maccepa", self.on_maccepa, roles.OPERATOR))
 
     # --- checks -------------------------------------------------------------------------------
 
@@ -121,7 +116,7 @@ class ManagerApi:
         finally:
             self.node.maybe_tell()
 
-    def _controllers(self, req: dict[str, Any], caller: Caller) -> dict[str, Any]:
+    def _controllers(self, req: dict[str, Any], caller: Caller) -> replies.Reply | Unlogged:
         req = with_default(req, "list")
         cmd = requests.decode(req, requests.Controllers, "controllers action")
         manager = self.node.manager
@@ -131,7 +126,7 @@ class ManagerApi:
             case requests.ControllerState():
                 return manager.state_of(cmd.name)
             case requests.ControllerTypes():
-                return {"types": controller_types()}
+                return replies.Types(controller_types())
             case requests.Hold():
                 return self._hold(cmd, caller)
             case requests.Release():
@@ -140,38 +135,35 @@ class ManagerApi:
                 return self._load(cmd)
             case requests.Unload():
                 manager.unload(cmd.name)
-                return {}
+                return replies.Done()
             case requests.ControllerCommand():
                 if cmd.name in manager.active():  # it moves a joint now
                     self.may_move()
                 # the rest is the controller's own command, which its type checks
                 body = {k: v for k, v in req.items() if k not in ("action", "name")}
-                return manager.command(cmd.name, body)
+                return replies.Commanded(cmd.name, manager.command(cmd.name, body))
             case requests.Activate():
-                return self._switch(Switch(list(cmd.names), []))
+                return self.switch(Switch(list(cmd.names), []))
             case requests.Deactivate():
-                return self._switch(Switch([], list(cmd.names)))
+                return self.switch(Switch([], list(cmd.names)))
             case requests.SwitchControllers():
-                return self._switch(Switch(list(cmd.activate), list(cmd.deactivate)))
+                return self.switch(Switch(list(cmd.activate), list(cmd.deactivate)))
         raise AssertionError(f"a decoded controllers request without a handler: {cmd!r}")
 
-    def _hold(self, req: requests.Hold, caller: Caller) -> dict[str, Any]:
-        out = self.node.presence.hold(req.holder, caller.login, req.what, req.take_over)
-        reply = {
-            **out,
-            "driving": self.node.manager.active(),
-            "presence_lost_after_s": self.node.presence.lost_s,
-        }
-        return Unlogged(reply) if out["renewed"] else reply  # renewals: twice a second
+    def _hold(self, req: requests.Hold, caller: Caller) -> replies.Held | Unlogged:
+        holder, renewed = self.node.presence.hold(req.holder, caller.login, req.what, req.take_over)
+        reply = replies.Held(holder, renewed, self.node.manager.active(), self.node.presence.lost_s)
+        # renewals (twice a second) stay out of the command log
+        return Unlogged(replies.plain(reply)) if renewed else reply
 
-    def _release(self, req: requests.Release) -> dict[str, Any]:
+    def _release(self, req: requests.Release) -> replies.Released:
         """A holder lets go: what it held stops (the safe action), without a trip."""
         released = self.node.presence.release(req.holder)
         if released and self.node.manager.active():
             self.node.stop_all("its holder released motion")
-        return {"released": released}
+        return replies.Released(released)
 
-    def _load(self, req: requests.Load) -> dict[str, Any]:
+    def _load(self, req: requests.Load) -> replies.Loaded:
         """``replace``: a controller of that name is deactivated and unloaded first;
         ``activate``: the new one is activated at the next cycle (within ``within_s`` of this
         request, if given). One request instead of four (what the pattern player sends). An
@@ -186,18 +178,20 @@ class ManagerApi:
             name, req.type, dict(req.params), req.budget_ms, replacing=replace
         )
         if replace and name in self.node.manager.active():
-            self._switch(Switch([], [name]))
+            self.switch(Switch([], [name]))
         old = self.node.manager.add(slot, replace=replace)
+        loaded = replies.Loaded(**msgspec.structs.asdict(slot.status()))
         if not activate:
-            return slot.status()
+            return loaded
         try:
-            active = self._switch(Switch([name], []), until)
+            active = self.switch(Switch([name], []), until)
         except Refused:
             self.node.manager.put_back(slot, old)  # nothing half-done: as before the request
             raise
-        return {**slot.status(), **active}
+        loaded.active = active.active
+        return loaded
 
-    def _switch(self, sw: Switch, until: float | None = None) -> dict[str, Any]:
+    def switch(self, sw: Switch, until: float | None = None) -> replies.Active:
         """Applied at one cycle boundary, or refused whole. An activation supersedes the
         operator's one-off holds (``operator.*``) on the joints and boards it claims, in the
         same switch: the operator who starts a pattern means the pattern to drive.
@@ -218,175 +212,7 @@ class ManagerApi:
         sw.done.wait()
         if sw.error is not None:
             raise Refused(sw.error)
-        return {"active": self.node.manager.active()}
-
-    # --- the H2's commands --------------------------------------------------------------------
-
-    def on_h2(self, req: dict[str, Any], caller: Caller) -> Any:
-        """``exolink send``: joint control (motion held by the joint's operator controller;
-        disable and stop at once, always allowed), the accepted angles (the operator's limits),
-        the data stream. Nothing is sent unless the whole command is valid."""
-        cmd = requests.decode(req, requests.H2Command, "command kind")
-        try:
-            if isinstance(cmd, requests.Joint):
-                return self._joint(cmd, caller)
-            if isinstance(cmd, requests.Limits):
-                return self._limits(cmd, caller)
-            frames = [h2.encode_stream(cmd.on)]
-            self.node.send_now(frames)
-            return {"frames": _frames(frames)}
-        except ProtocolError as exc:
-            raise Refused(str(exc)) from None
-
-    def _joint(self, cmd: requests.Joint, caller: Caller) -> dict[str, Any]:
-        joint = cmd.joint
-        mode = h2.mode_id(cmd.mode)
-        if mode in SAFE_MODES:  # can only make things safer: always, and at once
-            motors = range(1, 7) if joint == "all" else [h2.motor_id(joint)]
-            commands = [h2.joint_control(m, mode) for m in motors]
-            what = f"{'all joints' if joint == 'all' else joint} {h2.MODE_NAMES[mode]}"
-            frames = self.node.stop_joints(
-                {m - 1 for m in motors}, mode, f"{what} by {caller.login}"
-            )
-            for jc in commands:
-                self._record(jc, caller)
-            return {"frames": _frames(frames)}
-        if joint == "all":
-            raise Refused("'all' joints is only for disabled or stopped")
-        jc = h2.joint_control(joint, mode, cmd.setpoint or 0, cmd.stiffness or 0)
-        i = jc.motor - 1
-        lim = self.node.limits.in_force
-        by = self.node.limits.set_by
-        where = f" (set by {by.login})" if by is not None else " (the config's limits:)"
-        if why := lim.violation(i, mode, jc.setpoint, jc.stiffness, where=where):
-            raise Refused(why)
-        self.may_move()
-        reply = self._operator(h2.JOINTS[i], h2.MODE_NAMES[mode], jc.setpoint, jc.stiffness)
-        self._record(jc, caller)
-        return reply
-
-    def _operator(self, joint: str, mode: str, setpoint: int, stiffness: int) -> dict[str, Any]:
-        """Held by that joint's own operator controller, made on first use. A joint another
-        controller drives is refused with that controller named; a joint the operator drove in
-        another mode changes mode at one cycle boundary."""
-        name, mine = f"{OPERATOR}.{joint}.{mode}", f"{OPERATOR}.{joint}."
-        for key, owner in self.node.manager.owners_of(joint).items():
-            if not owner.startswith(mine):
-                raise Refused(
-                    f"{joint} is driven by controller {owner} ({key}): "
-                    f"`exolink controllers deactivate {owner}` first"
-                )
-        if name not in self.node.manager.names():
-            self.node.manager.load(name, "operator", {"joint": joint, "mode": mode})
-        reply = self.node.manager.command(name, {"setpoint": setpoint, "stiffness": stiffness})
-        if name not in self.node.manager.active():
-            before = [n for n in self.node.manager.active() if n.startswith(mine)]
-            self._switch(Switch([name], before))
-        return {"controller": name, "frames": [], **reply}
-
-    def _limits(self, cmd: requests.Limits, caller: Caller) -> Any:
-        """The operator's accepted angles: only narrower than the config's, kept before they
-        take effect (they survive a restart), then in force for every way in and sent to the
-        H2. ``reset``: back to the config's."""
-        if cmd.reset:
-            lo = hi = None
-        else:
-            got = {k: v for k, v in (("min", cmd.min), ("max", cmd.max)) if v is not None}
-            if not got:
-                raise Refused("limits needs 'min' and/or 'max' (six angles in degrees), or 'reset'")
-            checked = {k: h2.decode(h2.encode_accepted_angles(k, v)) for k, v in got.items()}
-            lo = [int(a) for a in checked["min"]] if "min" in checked else None
-            hi = [int(a) for a in checked["max"]] if "max" in checked else None
-        new = self.node.limits.set(lo, hi, caller.login)
-        self.node.manager.set_limits(new)
-        frames = self.node.limit_frames()
-        self.node.send_now(frames)
-        return {"frames": _frames(frames), "limits": self.node.limits.describe()}
-
-    def _record(self, jc: h2.JointControl, caller: Caller) -> None:
-        """An accepted command on ``joint_commands``, with the login that sent it."""
-        now = time.time_ns()
-        joint = h2.JOINTS[jc.motor - 1]
-        payload = cdr.joint_command(now, joint, jc.mode, jc.setpoint, jc.stiffness, caller.login)
-        self.pub_commands.put(payload, now)
-
-    # --- the MACCEPA boards' commands ---------------------------------------------------------
-
-    def on_maccepa(self, req: dict[str, Any], caller: Caller) -> Any:
-        """``exolink maccepa N ...``: set-point, duty and gains held by that board's operator
-        controller for the kind (``operator.maccepa0.setpoint``); stop control at once."""
-        cmd = requests.decode(req, requests.MaccepaCommand, "MACCEPA command")
-        board = cmd.board
-        if board not in self.node.board_ids:
-            configured = ", ".join(str(b) for b in sorted(self.node.board_ids)) or "none"
-            raise Refused(
-                f"MACCEPA board {board!r} is not driven by the controller manager "
-                f"(params.maccepa: {configured})"
-            )
-        try:
-            if isinstance(cmd, requests.Stop):
-                frames = self.node.stop_boards(
-                    {board}, f"{target(board)} stopped by {caller.login}"
-                )
-                return {"frames": _frames(frames)}
-            self._check_maccepa(cmd)
-            self.may_move()
-            return self._maccepa(cmd)
-        except ProtocolError as exc:
-            raise Refused(str(exc)) from None
-
-    def _check_maccepa(self, cmd: requests.Gains | requests.Setpoint | requests.Duty) -> None:
-        """The codec's checks (ProtocolError names what is wrong); the board's limits are the
-        controller's and the manager's."""
-        board = cmd.board
-        lim = self.node.manager.boards[board]
-        asked = getattr(cmd, "controller", None)  # duty has none: the board's own
-        ctl = lim.controller if asked is None else asked
-        if ctl not in (lim.controller, maccepa.CONTROLLERS[lim.controller]):
-            raise Refused(
-                f"{target(board)} runs its {lim.controller} controller under the controller "
-                f"manager (params.maccepa), not {ctl!r}"
-            )
-        if isinstance(cmd, requests.Gains):
-            gains = [(g, v) for g in GAINS if (v := getattr(cmd, g)) is not None]
-            if not gains:
-                raise Refused("gains needs at least one of kp, ki, kd")
-            for g, v in gains:
-                maccepa.encode_gain(board, g, v, lim.controller)
-        elif isinstance(cmd, requests.Setpoint):
-            maccepa.encode_setpoint(board, cmd.value, lim.controller)
-        else:
-            maccepa.encode_duty(board, cmd.value)
-
-    def _maccepa(self, cmd: requests.Gains | requests.Setpoint | requests.Duty) -> dict[str, Any]:
-        """Set-point and duty drive the board and replace each other at one cycle boundary;
-        gains are their own interface (tuning while something else drives the board). An
-        interface another controller owns is refused with that controller named."""
-        board, kind = cmd.board, requests.kind_of(cmd)
-        group = DRIVE if kind in DRIVE else ("gains",)
-        name, mine = f"{OPERATOR}.{target(board)}.{kind}", f"{OPERATOR}.{target(board)}."
-        for key, owner in self.node.manager.owners_of(target(board)).items():
-            if key.split("/")[1] in group and not owner.startswith(mine):
-                raise Refused(
-                    f"{target(board)} is driven by controller {owner} ({key}): "
-                    f"`exolink controllers deactivate {owner}` first"
-                )
-        if name not in self.node.manager.names():
-            self.node.manager.load(name, "maccepa_operator", {"board": board, "kind": kind})
-        body = (
-            {g: getattr(cmd, g) for g in GAINS}
-            if isinstance(cmd, requests.Gains)
-            else {"value": cmd.value}
-        )
-        reply = self.node.manager.command(name, body)
-        if name not in self.node.manager.active():
-            before = [
-                n
-                for n in self.node.manager.active()
-                if n.startswith(mine) and n.rpartition(".")[2] in group
-            ]
-            self._switch(Switch([name], before))
-        return {"controller": name, "frames": [], **reply}
+        return replies.Active(self.node.manager.active())
 
     # --- presence -----------------------------------------------------------------------------
 

@@ -11,6 +11,7 @@ from typing import Any
 from exolink.nodes.controller_manager.slots import Cycle, MaccepaWrite, ManagerRefused, Slot
 
 from exolink.control.controller import State
+from exolink.control.replies import BoardInfo
 from exolink.limits.maccepa import GAINS, BoardLimits
 from exolink.limits.maccepa import target as board_name
 
@@ -32,13 +33,13 @@ class BoardOutputs:
         self.drive_written: dict[int, tuple[str, float, int]] = {}
         self.refresh_cycles = max(1, round(MACCEPA_REFRESH_CYCLES / cycles_per_update))
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> dict[str, BoardInfo]:
         return {
-            board_name(b): {
-                "controller": lim.controller,
-                "setpoint": self.last_sp.get(b),
-                "gains": list(self.gains_written[b]) if b in self.gains_written else None,
-            }
+            board_name(b): BoardInfo(
+                lim.controller,
+                self.last_sp.get(b),
+                list(self.gains_written[b]) if b in self.gains_written else None,
+            )
             for b, lim in self.limits.items()
         }
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import structlog
 
+from exolink.control.replies import HolderInfo, JointLimits, LimitsInfo, PresenceInfo
 from exolink.limits.joints import Limits
 from exolink.protocol import h2
 from exolink.refusal import Refused
@@ -147,16 +148,16 @@ class OperatorLimits:
                 f"the limits cannot be kept ({self.path}: {exc.strerror or exc}): not applied"
             ) from None
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> LimitsInfo:
         lim = self.in_force
-        return {
-            "joints": lim.describe(),
-            "max_step_deg": lim.max_step_deg,
-            "set_by": None if self.set_by is None else self.set_by.login,
-            "set_at_ns": None if self.set_by is None else self.set_by.at_ns,
-            "source": "config" if self.set_by is None else "operator",
-            "unreadable": self.unreadable or None,
-        }
+        return LimitsInfo(
+            joints={j: JointLimits(**v) for j, v in lim.describe().items()},
+            max_step_deg=lim.max_step_deg,
+            set_by=None if self.set_by is None else self.set_by.login,
+            set_at_ns=None if self.set_by is None else self.set_by.at_ns,
+            source="config" if self.set_by is None else "operator",
+            unreadable=self.unreadable or None,
+        )
 
 
 def _angles(v: Any) -> bool:
@@ -175,13 +176,8 @@ class Holder:
     since_ns: int
     renewed: float  # monotonic
 
-    def describe(self, now: float) -> dict[str, Any]:
-        return {
-            "login": self.login,
-            "what": self.what,
-            "since_ns": self.since_ns,
-            "renewed_s_ago": round(now - self.renewed, 3),
-        }
+    def describe(self, now: float) -> HolderInfo:
+        return HolderInfo(self.login, self.what, self.since_ns, round(now - self.renewed, 3))
 
 
 class Presence:
@@ -194,8 +190,8 @@ class Presence:
         self.losses = 0
         self._lock = threading.Lock()
 
-    def hold(self, hid: Any, login: str, what: Any, take_over: bool) -> dict[str, Any]:
-        """Take or renew the hold; IntentRefused when another holds it (unless ``take_over``)
+    def hold(self, hid: Any, login: str, what: Any, take_over: bool) -> tuple[HolderInfo, bool]:
+        """Take or renew the hold (the holder, and whether it was a renewal); IntentRefused when another holds it (unless ``take_over``)
         or when this holder was replaced (it is told by whom)."""
         if not isinstance(hid, str) or not 8 <= len(hid) <= HOLDER_ID_CHARS:
             raise IntentRefused(f"holder must be an id of 8..{HOLDER_ID_CHARS} characters")
@@ -207,7 +203,7 @@ class Presence:
             h = self.holder
             if h is not None and h.id == hid:
                 h.renewed = now
-                return {"holder": h.describe(now), "renewed": True}
+                return h.describe(now), True
             if h is not None and now - h.renewed <= self.lost_s and not take_over:
                 raise IntentRefused(
                     f"motion is held by {_who(h)}: stop it there, or take over "
@@ -221,7 +217,7 @@ class Presence:
             self.taken_from.pop(hid, None)
             self.holder = Holder(hid, login, text, time.time_ns(), now)
             log.info("presence_held", login=login, what=text)
-            return {"holder": self.holder.describe(now), "renewed": False}
+            return self.holder.describe(now), False
 
     def release(self, hid: Any) -> bool:
         """True when ``hid`` held motion (it no longer does)."""
@@ -255,14 +251,12 @@ class Presence:
             self.losses += 1
             return h
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> PresenceInfo:
         with self._lock:
             h = self.holder
-            return {
-                "holder": None if h is None else h.describe(time.monotonic()),
-                "lost_after_s": self.lost_s,
-                "losses": self.losses,
-            }
+            return PresenceInfo(
+                None if h is None else h.describe(time.monotonic()), self.lost_s, self.losses
+            )
 
 
 def _who(h: Holder) -> str:

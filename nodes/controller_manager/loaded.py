@@ -14,6 +14,7 @@ from exolink.nodes.controller_manager.boards import BoardOutputs
 from exolink.nodes.controller_manager.slots import Held, ManagerRefused, Slot, check_claims
 
 from exolink.control.controller import Controller
+from exolink.control.replies import ControllerInfo, StateOf
 from exolink.limits.joints import Limits
 from exolink.limits.maccepa import BoardLimits
 from exolink.plugins import PluginError, find_controller_class
@@ -33,7 +34,7 @@ class Loaded(Held):
 
     def load(
         self, name: str, kind: str, params: dict[str, Any] | None, budget_ms: float | None = None
-    ) -> dict[str, Any]:
+    ) -> ControllerInfo:
         """Import, validate params, configure: the controller is then inactive. Every error
         refuses the load and names the controller and what is wrong."""
         slot = self.prepare(name, kind, params, budget_ms)
@@ -153,15 +154,15 @@ class Loaded(Held):
             slot = self._slot(name)
         return slot.ctrl.command(request)  # a controller's Refused is the caller's
 
-    def state_of(self, name: str) -> dict[str, Any]:
+    def state_of(self, name: str) -> StateOf:
         """One controller's state and why it stopped: what a node that follows a controller
         (the pattern player) asks several times a second. ``status`` sorts the overhead window
         and describes every controller, a millisecond of the manager's GIL its loop waited on."""
         with self.lock:
             slot = self.slots.get(name)
             if slot is None:
-                return {"name": name, "state": None, "error": f"no controller {name!r}"}
-            return {"name": name, "state": slot.state, "error": slot.error, "written": slot.written}
+                return StateOf(name, None, f"no controller {name!r}")
+            return StateOf(name, slot.state, slot.error, slot.written)
 
     def reads(self) -> tuple[int, frozenset[str]]:
         """(version, what of State beyond positions the loaded controllers read): the node

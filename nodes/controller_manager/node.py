@@ -59,6 +59,7 @@ import can
 from exolink.nodes.controller_manager.api import ManagerApi
 from exolink.nodes.controller_manager.budget import GC_CLOCK
 from exolink.nodes.controller_manager.bus_view import BusView
+from exolink.nodes.controller_manager.commands import OperatorCommands
 from exolink.nodes.controller_manager.cycle_loop import CycleLoop
 from exolink.nodes.controller_manager.frames import (
     READ_IDS,
@@ -76,6 +77,7 @@ from exolink.canbus import FrameReader, FrameWriter, open_bus
 from exolink.config import ConfigError
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, State
+from exolink.control.replies import ManagerStatus
 from exolink.limits.maccepa import target
 from exolink.liveness import Pace
 from exolink.node import Node
@@ -176,6 +178,8 @@ class ControllerManagerNode(Node):
             self.send_now(self.limit_frames())
         self.api = ManagerApi(self)  # the requests (api.py)
         self.api.serve()
+        self.commands = OperatorCommands(self, self.api)  # the operator's (commands.py)
+        self.commands.serve()
 
     def limit_frames(self) -> list[can.Message]:
         lim = self.limits.in_force
@@ -186,28 +190,28 @@ class ControllerManagerNode(Node):
 
     # --- management ---------------------------------------------------------------------------
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> ManagerStatus:
         reader = self.reader  # may close meanwhile: its counters stay readable
-        return {
+        return ManagerStatus(
             **self.manager.status(),
-            "limits": self.limits.describe(),
-            "presence": self.presence.describe(),
-            "written": self.written,
-            "safe": self.safe_sent,
-            "late_cycles": self.late_cycles,
-            "cycles_per_update": self.params.cycles_per_update,
-            "timer": self.timer.status(),  # planned set-points on a timer (on_timer.py)
-            "maccepa_written": self.mc_written,
-            "maccepa_safe": self.mc_safe_sent,
-            "malformed": dict(self.view.malformed),
-            "reading": self.reader is not None,
-            "reader_opens": self.reader_opens,
-            "read_ids": self.read_ids,
-            "receive": reader.counters() if reader is not None else None,
-            "watchdog_word": self.arming.counters() if self.arming is not None else None,
-            "loop_cpu": self.clock.counters(),
-            "gc": GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
-        }
+            limits=self.limits.describe(),
+            presence=self.presence.describe(),
+            written=self.written,
+            safe=self.safe_sent,
+            late_cycles=self.late_cycles,
+            cycles_per_update=self.params.cycles_per_update,
+            timer=self.timer.status(),  # planned set-points on a timer (on_timer.py)
+            maccepa_written=self.mc_written,
+            maccepa_safe=self.mc_safe_sent,
+            malformed=dict(self.view.malformed),
+            reading=self.reader is not None,
+            reader_opens=self.reader_opens,
+            read_ids=self.read_ids,
+            receive=reader.counters() if reader is not None else None,
+            watchdog_word=self.arming.counters() if self.arming is not None else None,
+            loop_cpu=self.clock.counters(),
+            gc=GC_CLOCK.counters(),  # the collector's pauses: stalls of the loop
+        )
 
     def maybe_tell(self) -> None:
         """Publish the controllers' states if they changed (or the refresh is due): one

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from exolink.control.controller import INTERFACES, MACCEPA_INTERFACES, Controller
+from exolink.control.replies import ControllerInfo
 from exolink.limits.maccepa import board_of
 from exolink.limits.maccepa import target as board_name
 from exolink.protocol.h2 import JOINTS
@@ -57,24 +58,24 @@ class Slot:
         """The MACCEPA boards this controller writes (any of their interfaces)."""
         return {b for c in self.claims if (b := board_of(c.split("/")[0])) is not None}
 
-    def status(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "type": self.kind,
-            "state": self.state,
-            "claims": list(self.claims),
-            "error": self.error,
-            "updates": self.updates,
-            "update_ms_mean": round(self.cpu_s_total / self.updates * 1e3, 4)
+    def status(self) -> ControllerInfo:
+        return ControllerInfo(
+            name=self.name,
+            type=self.kind,
+            state=self.state,
+            claims=list(self.claims),
+            error=self.error,
+            updates=self.updates,
+            update_ms_mean=round(self.cpu_s_total / self.updates * 1e3, 4)
             if self.updates
             else None,
-            "update_ms_max": round(self.cpu_s_max * 1e3, 4),
-            "budget_ms": round(self.budget_s * 1e3, 3),
-            "overruns": self.overruns,
-            "limited": self.limited,
-            "written": self.written,
-            **self.ctrl.status(),
-        }
+            update_ms_max=round(self.cpu_s_max * 1e3, 4),
+            budget_ms=round(self.budget_s * 1e3, 3),
+            overruns=self.overruns,
+            limited=self.limited,
+            written=self.written,
+            own=self.ctrl.status(),
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -25,7 +25,9 @@ from exolink.messaging import Refused, Unlogged
 from exolink.node import Node
 from exolink.recordings import requests as reqs
 from exolink.recordings import store as recstore
+from exolink.recordings.replies import Listing, RecordStatus, plain
 from exolink.wire import cdr
+from exolink.wire.replies import Reply
 from exolink.wire.requests import decode, with_default
 
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
@@ -86,10 +88,10 @@ class Recorder(Node):
         self.card = self.store.card()
         self.own(m.serve("recordings", self.on_recordings, roles.by_action(roles.RECORDINGS)))
         self.own(m.serve("record", self.on_command, roles.status_or(roles.OPERATOR)))
-        if self.params.autostart and self.card["free"] < self.card["reserve"]:
+        if self.params.autostart and self.card.free < self.card.reserve:
             # booted onto a full card: said at once, rather than a file opened to be closed
             self.state, self.error = "error", f"card full: {self._card_text()}; not recording"
-            self.log.error("recording_not_started_card_full", **self.card)
+            self.log.error("recording_not_started_card_full", **plain(self.card))
         elif self.params.autostart:
             self.start_recording(dict(self.params.labels))
 
@@ -125,13 +127,13 @@ class Recorder(Node):
 
     # --- commands -------------------------------------------------------------------------
 
-    def on_command(self, req: dict[str, Any]) -> dict[str, Any]:
+    def on_command(self, req: dict[str, Any]) -> RecordStatus:
         cmd = decode(with_default(req, "status"), reqs.Record, "record action")
         if isinstance(cmd, reqs.RecordStart):
             if self.state == "recording":
                 raise Refused(f"already recording to {self.file.path if self.file else '?'}")
             self.card = self.store.card()
-            if self.card["free"] < self.card["reserve"]:
+            if self.card.free < self.card.reserve:
                 raise Refused(
                     f"card full: {self._card_text()}; not recording (fetch the recordings: "
                     "exolink record sync DIR, then exolink record delete NAME)"
@@ -153,40 +155,46 @@ class Recorder(Node):
         counters at the file's open are then from before it), a stop once the file is closed."""
         return self.state == "stopping" or (self.state == "recording" and self.file is None)
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> RecordStatus:
         with self.lock:
-            s = vars(self.stats).copy()
-            s["files"] = list(self.stats.files)
-            s["refused_from"] = dict(self.stats.refused_from)
-        f = self.file
-        card = dict(self.card)
-        return {
-            "state": self.state,
-            "error": self.error,
-            "file": str(f.path) if f else None,
-            "size": f.size() if f else 0,
-            "labels": self.labels,
-            "queue": self._pending,
-            **s,
-            "bytes": self._bytes + (f.size() if f else 0),  # this recording's files, all
-            "card": card,
-            "rate_bps": round(self.rate.last, 1),
-            "hours_left": recstore.hours_left(card["free"], card["reserve"], self.rate.last),
-        }
+            st = self.stats
+            counts = (st.received, st.written, st.dropped, st.duplicates, st.malformed)
+            refused, refused_from, files = st.refused_topics, dict(st.refused_from), list(st.files)
+        f, card = self.file, self.card
+        received, written, dropped, duplicates, malformed = counts
+        return RecordStatus(
+            state=self.state,
+            error=self.error,
+            file=str(f.path) if f else None,
+            size=f.size() if f else 0,
+            labels=self.labels,
+            queue=self._pending,
+            received=received,
+            written=written,
+            dropped=dropped,
+            duplicates=duplicates,
+            malformed=malformed,
+            refused_topics=refused,
+            refused_from=refused_from,
+            files=files,
+            bytes=self._bytes + (f.size() if f else 0),  # this recording's files, all
+            card=card,
+            rate_bps=round(self.rate.last, 1),
+            hours_left=recstore.hours_left(card.free, card.reserve, self.rate.last),
+        )
 
-    def on_recordings(self, req: dict[str, Any]) -> dict[str, Any]:
+    def on_recordings(self, req: dict[str, Any]) -> Reply | Unlogged:
         """A laptop's request about the files (roles.RECORDINGS says who may ask what)."""
         ask = decode(with_default(req, "list"), reqs.Recordings, "recordings action")
         try:
             if isinstance(ask, reqs.List):
-                files = [e.as_dict() for e in self.store.entries()]
-                return {"files": files, "card": dict(self.card), "state": self.state}
+                return Listing(self.store.entries(), self.card, self.state)
             if isinstance(ask, reqs.Stat):
                 return self.store.stat(ask.name)
             if isinstance(ask, reqs.Fetch):
                 # A chunk is a read, not a command: the command log (recorded) keeps the
                 # ``stat`` that began the fetch, not one entry per MiB.
-                return Unlogged(self.store.chunk(ask.name, ask.offset, ask.length))
+                return Unlogged(plain(self.store.chunk(ask.name, ask.offset, ask.length)))
             out = self.store.delete(ask.name)
             self.card = self.store.card()
             return out
@@ -216,7 +224,7 @@ class Recorder(Node):
     def _card_text(self) -> str:
         c = self.card
         return (
-            f"{c['free'] / 2**20:.2f} MiB free, under the {c['reserve'] / 2**20:g} MiB "
+            f"{c.free / 2**20:.2f} MiB free, under the {c.reserve / 2**20:g} MiB "
             "the recorder leaves on the card"
         )
 
@@ -228,7 +236,7 @@ class Recorder(Node):
             return
         f = self.file
         self.rate.note(self._bytes + (f.size() if f is not None else 0))
-        if self.card["free"] >= self.card["reserve"]:
+        if self.card.free >= self.card.reserve:
             return
         self._write_all(self._take(float("inf")))
         path = str(f.path) if f is not None else None
@@ -236,7 +244,7 @@ class Recorder(Node):
         self.error = f"card full: {self._card_text()}; recording stopped, {path} closed"
         self.state = "error"
         self._unsubscribe_if_idle()
-        self.log.error("recording_stopped_card_full", file=path, **self.card)
+        self.log.error("recording_stopped_card_full", file=path, **plain(self.card))
 
     def start_recording(self, labels: dict[str, str]) -> None:
         with self.lock:
@@ -372,25 +380,22 @@ class Recorder(Node):
 
     def _diagnostics(self) -> None:
         s = self.status()
-        level = "error" if self.state == "error" else "warn" if s["dropped"] else "ok"
+        level = "error" if self.state == "error" else "warn" if s.dropped else "ok"
         now = time.time_ns()
-        values = {
-            k: s[k]
-            for k in (
-                "state",
-                "file",
-                "size",
-                "received",
-                "written",
-                "dropped",
-                "queue",
-                "refused_topics",
-            )
+        values: dict[str, Any] = {
+            "state": s.state,
+            "file": s.file,
+            "size": s.size,
+            "received": s.received,
+            "written": s.written,
+            "dropped": s.dropped,
+            "queue": s.queue,
+            "refused_topics": s.refused_topics,
         }
         # The card, for `exolink status` (the supervisor keeps card_* values: see its nodes)
-        values.update({f"card_{k}": v for k, v in s["card"].items()})
-        values["card_rate_bps"] = s["rate_bps"]
-        values["card_hours_left"] = None if s["hours_left"] is None else round(s["hours_left"], 2)
+        values.update({f"card_{k}": v for k, v in plain(s.card).items()})
+        values["card_rate_bps"] = s.rate_bps
+        values["card_hours_left"] = None if s.hours_left is None else round(s.hours_left, 2)
         payload = cdr.diagnostics(
             now,
             f"{self.name}/recording",

@@ -11,36 +11,32 @@ from typing import Any
 
 from exolink.cli.options import Leaves, common, decimal, guard
 from exolink.client import remote
-from exolink.control import requests
+from exolink.control import replies, requests
 from exolink.wire.requests import classes
 
 
-def _limits(lim: dict[str, Any]) -> list[str]:
+def _limits(lim: replies.LimitsInfo) -> list[str]:
     """The limits in force, one line per joint, and who set them."""
-    who = (
-        f"set by {lim['set_by']} at {_time(lim['set_at_ns'])}"
-        if lim.get("set_by")
-        else "the config's"
-    )
-    lines = [f"limits   {who}; step {lim['max_step_deg']} deg per 10 ms"]
-    if lim.get("unreadable"):
-        lines.append(f"         UNREADABLE (motion refused): {lim['unreadable']}")
-    for j, v in lim["joints"].items():
+    who = f"set by {lim.set_by} at {_time(lim.set_at_ns)}" if lim.set_by else "the config's"
+    lines = [f"limits   {who}; step {lim.max_step_deg} deg per 10 ms"]
+    if lim.unreadable:
+        lines.append(f"         UNREADABLE (motion refused): {lim.unreadable}")
+    for j, v in lim.joints.items():
         lines.append(
-            f"  {j:<8} {v['min']:>4}..{v['max']:<4} deg  torque {v['torque']} "
-            f"(+-{v['torque_step']} per 10 ms)  stiffness {v['stiffness']} %"
+            f"  {j:<8} {v.min:>4}..{v.max:<4} deg  torque {v.torque} "
+            f"(+-{v.torque_step} per 10 ms)  stiffness {v.stiffness} %"
         )
     return lines
 
 
-def _presence(p: dict[str, Any]) -> str:
-    h = p.get("holder")
-    lost = f"lost after {p['lost_after_s']:g} s, {p['losses']} lost so far"
+def _presence(p: replies.PresenceInfo) -> str:
+    h = p.holder
+    lost = f"lost after {p.lost_after_s:g} s, {p.losses} lost so far"
     if h is None:
         return f"motion   held by nobody (motion refused; `exolink hold`); {lost}"
     return (
-        f"motion   held by {h['login']} ({h['what']}) since {_time(h['since_ns'])}, "
-        f"renewed {h['renewed_s_ago']} s ago; {lost}"
+        f"motion   held by {h.login} ({h.what}) since {_time(h.since_ns)}, "
+        f"renewed {h.renewed_s_ago} s ago; {lost}"
     )
 
 
@@ -51,36 +47,31 @@ def _time(ns: int | None) -> str:
     return datetime.datetime.fromtimestamp(ns / 1e9).strftime("%Y-%m-%d %H:%M:%S")
 
 
-def show(s: dict[str, Any]) -> str:
-    lines = []
-    if s.get("presence"):
-        lines.append(_presence(s["presence"]))
-    if s.get("limits"):
-        lines += _limits(s["limits"])
-    lines.append(f"cycles {s['cycles']}  written {s['written']}  safe-action frames {s['safe']}")
-    if s.get("maccepa"):  # boards the manager drives: who owns what, what it last wrote
+def show(s: replies.ManagerStatus) -> str:
+    lines = [_presence(s.presence), *_limits(s.limits)]
+    lines.append(f"cycles {s.cycles}  written {s.written}  safe-action frames {s.safe}")
+    if s.maccepa:  # boards the manager drives: who owns what, what it last wrote
         lines.append(
-            f"maccepa frames written {s.get('maccepa_written', 0)}  "
-            f"stop-control frames {s.get('maccepa_safe', 0)}  "
-            f"malformed {sum(s.get('malformed', {}).values())}"
+            f"maccepa frames written {s.maccepa_written}  "
+            f"stop-control frames {s.maccepa_safe}  "
+            f"malformed {sum(s.malformed.values())}"
         )
-        owners = s.get("owners", {})
-        for name, b in sorted(s["maccepa"].items()):
-            held = {k.split("/")[1]: v for k, v in owners.items() if k.split("/")[0] == name}
-            gains = "-" if b["gains"] is None else ",".join(f"{g:g}" for g in b["gains"])
-            sp = "-" if b["setpoint"] is None else f"{b['setpoint']:g}"
+        for name, b in sorted(s.maccepa.items()):
+            held = {k.split("/")[1]: v for k, v in s.owners.items() if k.split("/")[0] == name}
+            gains = "-" if b.gains is None else ",".join(f"{g:g}" for g in b.gains)
+            sp = "-" if b.setpoint is None else f"{b.setpoint:g}"
             lines.append(
-                f"{name:<16} {b['controller']} controller  set-point {sp}  gains {gains}  "
+                f"{name:<16} {b.controller} controller  set-point {sp}  gains {gains}  "
                 + (", ".join(f"{k} by {v}" for k, v in sorted(held.items())) or "not claimed")
             )
-    for c in s["controllers"]:
-        why = f" ({c['error']})" if c.get("error") else ""
-        mean = c["update_ms_mean"]
+    for c in s.controllers:
+        why = f" ({c.error})" if c.error else ""
+        mean = c.update_ms_mean
         lines.append(
-            f"{c['name']:<16} {c['type']:<18} {c['state']}{why}\n"
-            f"  claims {', '.join(c['claims'])}\n"
-            f"  update ms mean {mean if mean is not None else '-'} max {c['update_ms_max']} "
-            f"(budget {c['budget_ms']})  overruns {c['overruns']}  limited {c['limited']}"
+            f"{c.name:<16} {c.type:<18} {c.state}{why}\n"
+            f"  claims {', '.join(c.claims)}\n"
+            f"  update ms mean {mean if mean is not None else '-'} max {c.update_ms_max} "
+            f"(budget {c.budget_ms})  overruns {c.overruns}  limited {c.limited}"
         )
     return "\n".join(lines)
 
@@ -142,12 +133,13 @@ def cmd_controllers(args: argparse.Namespace) -> int:
     if getattr(args, "json", False):
         sys.stdout.write(json.dumps(reply) + "\n")
     elif a == "list":
-        sys.stdout.write(show(reply) + "\n")
+        sys.stdout.write(show(replies.read(reply, replies.ManagerStatus)) + "\n")
     elif a == "types":
-        for name, where in sorted(reply["types"].items()):
+        for name, where in sorted(replies.read(reply, replies.Types).types.items()):
             sys.stdout.write(f"{name:<20} {where}\n")
     elif a in ("activate", "deactivate", "switch"):
-        sys.stdout.write(f"active: {', '.join(reply['active']) or '-'}\n")
+        active = replies.read(reply, replies.Active).active
+        sys.stdout.write(f"active: {', '.join(active) or '-'}\n")
     else:
         sys.stdout.write("ok " + json.dumps(reply) + "\n")
     return 0

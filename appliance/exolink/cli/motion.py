@@ -13,10 +13,10 @@ from typing import Any
 from exolink import messaging
 from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
 from exolink.cli.options import Leaves, common, decimal, frame_id, guard, integer, number
-from exolink.cli.remote import hold
+from exolink.cli.remote import done_line, hold
 from exolink.client import remote
 from exolink.config import ZenohConfig
-from exolink.control import requests
+from exolink.control import replies, requests
 from exolink.control.holder import Holder, HoldRefused, describe
 from exolink.wire import management
 from exolink.wire.requests import classes
@@ -24,11 +24,12 @@ from exolink.wire.requests import classes
 # --- pattern ----------------------------------------------------------------------------------
 
 
-def _show(s: dict[str, Any]) -> str:
-    why = f" ({s['reason']})" if s.get("reason") else ""
+def _show(raw: dict[str, Any]) -> str:
+    s = replies.read(raw, replies.PatternInfo)
+    why = f" ({s.reason})" if s.reason else ""
     return (
-        f"{s['state']}{why}  point {s['index']}/{s['length']}  speed {s['speed']} ({s['period_ms']} ms)  "
-        f"joints {','.join(s['selected']) or '-'}  sent {s['sent']}"
+        f"{s.state}{why}  point {s.index}/{s.length}  speed {s.speed} ({s.period_ms} ms)  "
+        f"joints {','.join(s.selected) or '-'}  sent {s.sent}"
     )
 
 
@@ -138,7 +139,7 @@ def cmd_hold(args: argparse.Namespace) -> int:
             return fail(f"refused: {exc}", EXIT_REFUSED)
         sys.stdout.write(
             f"holding motion (it stops if this laptop is silent for {holder.lost_after_s:g} s);"
-            f" driving now: {', '.join(reply.get('driving', [])) or '-'}; Ctrl-C lets go\n"
+            f" driving now: {', '.join(reply.driving) or '-'}; Ctrl-C lets go\n"
         )
         sys.stdout.flush()
         try:
@@ -185,11 +186,7 @@ def cmd_maccepa(args: argparse.Namespace) -> int:
     if args.kind == "watch":
         return _watch(args)
     with remote(args) as r:
-        reply = r.call("maccepa", body=maccepa_body(args))
-    if reply.get("controller"):  # held by the board's operator controller in the manager
-        sys.stdout.write(f"ok held by controller {reply['controller']}\n")
-    else:
-        sys.stdout.write("ok " + " ".join(reply["frames"]) + "\n")
+        sys.stdout.write(done_line(r.call("maccepa", body=maccepa_body(args))))
     return 0
 
 

@@ -13,9 +13,10 @@ from typing import Any
 from exolink.cli.errors import EXIT_CONFIG, EXIT_USAGE, fail
 from exolink.cli.options import Leaves, common, guard, integer
 from exolink.client import Remote, remote
+from exolink.recordings import fetching
 from exolink.recordings import requests as reqs
-from exolink.recordings import store as recstore
-from exolink.recordings.store import DEFAULT_CHUNK, StoreError
+from exolink.recordings.replies import Deleted, Listing, RecordStatus, read
+from exolink.recordings.store import DEFAULT_CHUNK, RECORDING, StoreError
 from exolink.wire.requests import body as request_body
 from exolink.wire.requests import classes
 
@@ -44,18 +45,19 @@ def cmd_record(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return fail(str(exc), EXIT_USAGE)
     with remote(args) as r:
-        s = r.call("record", body=body)
-    s.pop("ok", None)
+        raw = r.call("record", body=body)
+    raw.pop("ok", None)
     if getattr(args, "json", False):
-        sys.stdout.write(json.dumps(s) + "\n")
+        sys.stdout.write(json.dumps(raw) + "\n")
     else:
-        err = f" ({s['error']})" if s.get("error") else ""
+        s = read(raw, RecordStatus)
+        err = f" ({s.error})" if s.error else ""
         sys.stdout.write(
-            f"{s['state']}{err}  file {s['file'] or '-'}  size {s['size'] / 2**20:.2f} MiB  "
-            f"messages {s['written']}/{s['received']}  dropped {s['dropped']}  files {len(s['files'])}\n"
+            f"{s.state}{err}  file {s.file or '-'}  size {s.size / 2**20:.2f} MiB  "
+            f"messages {s.written}/{s.received}  dropped {s.dropped}  files {len(s.files)}\n"
         )
-        if s.get("refused_topics"):
-            sys.stdout.write(f"{_refused(s['refused_topics'], s.get('refused_from', {}))}\n")
+        if s.refused_topics:
+            sys.stdout.write(f"{_refused(s.refused_topics, s.refused_from)}\n")
     return 0
 
 
@@ -67,12 +69,12 @@ FETCH_TIMEOUT_S = 5.0
 
 class _Asker:
     """Requests to the board's ``recordings`` (the recorder's), patient with the board's rate
-    limit and lost replies (recstore.Patient); a refusal is the CLI's usual one. Its counts
+    limit and lost replies (fetching.Patient); a refusal is the CLI's usual one. Its counts
     of what was asked again end each fetch's line: a slow fetch says why."""
 
     def __init__(self, r: Remote) -> None:
         r.timeout = max(r.timeout, FETCH_TIMEOUT_S)
-        self.patient = recstore.Patient(lambda body: r.ask("recordings", body=body))
+        self.patient = fetching.Patient(lambda body: r.ask("recordings", body=body))
 
     def __call__(self, body: dict[str, Any]) -> dict[str, Any]:
         return self.patient(body)  # its refusals are the CLI's (exolink.refusal)
@@ -92,24 +94,25 @@ def _mib(n: float) -> str:
 @guard
 def cmd_record_list(args: argparse.Namespace) -> int:
     with remote(args) as r:
-        s = _Asker(r)(request_body(reqs.List()))
+        raw = _Asker(r)(request_body(reqs.List()))
     if args.json:
-        sys.stdout.write(json.dumps({"files": s["files"], "card": s["card"]}) + "\n")
+        sys.stdout.write(json.dumps({"files": raw["files"], "card": raw["card"]}) + "\n")
         return 0
-    for f in s["files"]:
-        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(f["mtime"]))
-        sys.stdout.write(f"{f['name']}  {_mib(f['size']):>12}  {when}  {f['state']}\n")
-    c = s["card"]
+    s = read(raw, Listing)
+    for f in s.files:
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(f.mtime))
+        sys.stdout.write(f"{f.name}  {_mib(f.size):>12}  {when}  {f.state}\n")
+    c = s.card
     sys.stdout.write(
-        f"{len(s['files'])} files; card {_mib(c['free'])} free of {_mib(c['total'])} "
-        f"(the recorder keeps {_mib(c['reserve'])})\n"
+        f"{len(s.files)} files; card {_mib(c.free)} free of {_mib(c.total)} "
+        f"(the recorder keeps {_mib(c.reserve)})\n"
     )
     return 0
 
 
 def _fetch_one(ask: _Asker, name: str, dest: Path, chunk: int) -> None:
     ask.patient.retried_lost = ask.patient.retried_rate = 0
-    f = recstore.fetch(ask, name, dest, chunk)
+    f = fetching.fetch(ask, name, dest, chunk)
     if f.skipped:
         sys.stdout.write(f"{name}: already here, sha256 {f.sha256}\n")
         return
@@ -154,11 +157,11 @@ def cmd_record_sync(args: argparse.Namespace) -> int:
     dest.mkdir(parents=True, exist_ok=True)
     with remote(args) as r:
         ask = _Asker(r)
-        listing = ask(request_body(reqs.List()))["files"]
-        lacking = recstore.missing(listing, dest)
+        listing = read(ask(request_body(reqs.List())), Listing).files
+        lacking = fetching.missing(listing, dest)
         for name in lacking:
             _fetch_one(ask, name, dest, args.chunk)
-    writing = [f["name"] for f in listing if f.get("state") == recstore.RECORDING]
+    writing = [f.name for f in listing if f.state == RECORDING]
     note = f"; {writing[0]} is still being recorded (sync again once it stops)" if writing else ""
     sys.stdout.write(
         f"synced {len(lacking)} files into {dest}; {len(listing) - len(writing) - len(lacking)} "
@@ -172,8 +175,8 @@ def cmd_record_delete(args: argparse.Namespace) -> int:
     with remote(args) as r:
         ask = _Asker(r)
         for name in args.names:
-            d = ask(request_body(reqs.Delete(name)))
-            sys.stdout.write(f"deleted {d['name']} ({_mib(d['size'])}) from the board\n")
+            d = read(ask(request_body(reqs.Delete(name))), Deleted)
+            sys.stdout.write(f"deleted {d.name} ({_mib(d.size)}) from the board\n")
     return 0
 
 

@@ -16,6 +16,7 @@ from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import Leaves, common, guard, integer, number, print_json
 from exolink.client import remote
 from exolink.control import requests
+from exolink.control.replies import Commanded, Frames
 from exolink.wire import management, replies
 from exolink.wire.requests import classes
 
@@ -27,13 +28,17 @@ def _angles(text: str) -> list[float]:
     return [number(p) for p in parts]
 
 
+def done_line(raw: dict[str, Any]) -> str:
+    """What a motion command did: held by an operator controller (the manager writes it each
+    cycle, ``Commanded``) or frames sent at once (``Frames``)."""
+    if "controller" in raw:
+        return f"ok held by controller {replies.read(raw, Commanded).controller}\n"
+    return "ok " + " ".join(replies.read(raw, Frames).frames) + "\n"
+
+
 def _h2_command(args: argparse.Namespace, body: dict[str, Any]) -> int:
     with remote(args) as r:
-        reply = r.call("h2", "command", body=body)
-    if reply.get("controller"):  # motion through the controller manager: it writes each cycle
-        sys.stdout.write(f"ok held by controller {reply['controller']}\n")
-    else:
-        sys.stdout.write("ok " + " ".join(reply.get("frames", [])) + "\n")
+        sys.stdout.write(done_line(r.call("h2", "command", body=body)))
     return 0
 
 

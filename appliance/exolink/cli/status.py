@@ -12,6 +12,7 @@ from exolink.cli.controllers import show
 from exolink.cli.options import common, guard, print_json
 from exolink.cli.update import describe
 from exolink.client import Refused, remote
+from exolink.control.replies import ManagerStatus
 from exolink.wire.replies import UNSET, NodeInfo, Nodes, Status, read
 
 
@@ -158,7 +159,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     if ctrl is not None and "error" in ctrl:
         sys.stdout.write(f"controllers  unavailable: {ctrl['error']}\n")
     elif ctrl is not None:
-        sys.stdout.write("controllers  " + show(ctrl) + "\n")
+        sys.stdout.write("controllers  " + show(read(ctrl, ManagerStatus)) + "\n")
     return 0
 
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import structlog
 
-from exolink.control import requests
+from exolink.control import replies, requests
 from exolink.refusal import Refused
 
 log = structlog.get_logger("exolink.control.holder")
@@ -48,12 +48,13 @@ class Holder:
         self.lost_after_s = 2.0
         self.ended = ""  # why the hold ended, when it did (taken over, not renewed)
 
-    def acquire(self, take_over: bool = False) -> dict[str, Any]:
+    def acquire(self, take_over: bool = False) -> replies.Held:
         """Take the hold and start renewing it; HoldRefused names who holds it."""
-        reply = self._hold(take_over)
-        if not reply.get("ok"):
-            raise HoldRefused(str(reply.get("error", "refused")))
-        self.lost_after_s = float(reply.get("presence_lost_after_s") or self.lost_after_s)
+        raw = self._hold(take_over)
+        if not raw.get("ok"):
+            raise HoldRefused(str(raw.get("error", "refused")))
+        reply = replies.read(raw, replies.Held)
+        self.lost_after_s = reply.presence_lost_after_s or self.lost_after_s
         # Four renewals within the manager's limit: one or two lost on a busy link are no loss.
         self.renew_s = max(0.05, min(1.0, self.lost_after_s / 4))
         self._thread = threading.Thread(target=self._renew, daemon=True, name="hold")

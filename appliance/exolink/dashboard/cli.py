@@ -18,11 +18,11 @@ from exolink.client import remote
 def cmd_dashboard(args: argparse.Namespace) -> int:
     import asyncio  # lazy: the dashboard command only: the others start without asyncio
 
-    from exolink.dashboard import server  # heavy: aiohttp; `exolink dashboard` only
+    from exolink.dashboard import guard, server  # heavy: aiohttp; `exolink dashboard` only
     from exolink.dashboard.hub import Hub  # heavy: the dashboard's Zenoh side; `dashboard` only
 
     try:
-        hosts = server.Hosts(args.port, args.allow_host)
+        hosts = guard.Hosts(args.port, args.allow_host)
     except ValueError as exc:
         return fail(f"--allow-host: {exc}", EXIT_USAGE)
     with remote(args) as r:

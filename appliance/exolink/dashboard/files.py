@@ -16,9 +16,11 @@ from exolink import messaging
 from exolink import nodes as node_plugins
 from exolink.client import Remote
 from exolink.protocol import h2
+from exolink.recordings import fetching
 from exolink.recordings import requests as reqs
 from exolink.recordings import store as recstore
 from exolink.recordings.readback import decode, info, iter_messages
+from exolink.recordings.replies import FileStat, read
 from exolink.wire.requests import body as request_body
 
 
@@ -45,18 +47,18 @@ class Files:
         the recorder's ``recordings`` (this dashboard's login must be allowed to fetch, and the
         file must be closed: roles.RECORDINGS, exolink.recordings.store), then the file itself when it
         is on this machine (the board's own dashboard; the sim), else fetched into a cache
-        (chunked, resumed, checked as `exolink record fetch`). recstore.Refused and
-        StoreError say why not."""
+        (chunked, resumed, checked as `exolink record fetch`). Refused and StoreError say
+        why not."""
         name = recstore.plain_name(Path(board_path).name)
-        ask = recstore.Patient(self._recordings_request)
-        st = ask(request_body(reqs.Stat(name)))
+        ask = fetching.Patient(self._recordings_request)
+        st = read(ask(request_body(reqs.Stat(name))), FileStat)
         local = Path(board_path)
-        if local.is_file() and local.stat().st_size == st["size"]:
+        if local.is_file() and local.stat().st_size == st.size:
             return local
         with self._fetching:  # two pages asking for one file must not share its .part
             cache = _cache_dir() / self.remote.device
             cache.mkdir(parents=True, exist_ok=True)
-            return recstore.fetch(ask, name, cache).path
+            return fetching.fetch(ask, name, cache).path
 
     def _recordings_request(self, body: dict[str, Any]) -> dict[str, Any]:
         key = messaging.mgmt_key(self.remote.device, "recordings")

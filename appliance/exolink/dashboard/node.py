@@ -17,7 +17,7 @@ import msgspec
 
 from exolink import roles
 from exolink.client import Remote
-from exolink.dashboard import server
+from exolink.dashboard import guard, server
 from exolink.dashboard.hub import Hub
 from exolink.loops import Every
 from exolink.node import Node
@@ -34,11 +34,11 @@ class DashboardParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # address a request came in on (any interface's, as the tablet reached it).
     allow_hosts: list[str] = msgspec.field(
         default_factory=lambda: [
-            server.DEVICE,
-            f"{server.DEVICE}.local",
-            server.HOSTNAME,
-            f"{server.HOSTNAME}.local",
-            server.ADDRESS,
+            guard.DEVICE,
+            f"{guard.DEVICE}.local",
+            guard.HOSTNAME,
+            f"{guard.HOSTNAME}.local",
+            guard.ADDRESS,
         ]
     )
 
@@ -65,11 +65,11 @@ class DashboardNode(Node):
     def configure(self) -> None:
         p = self.params
         assert p.role in roles.ROLES
-        self.hosts = server.Hosts(
+        self.hosts = guard.Hosts(
             p.port,
             p.allow_hosts,
             how_to_allow="add it to the dashboard node's allow_hosts param (the board's config)",
-            placeholders={server.DEVICE: self.ctx.config.device},
+            placeholders={guard.DEVICE: self.ctx.config.device},
         )
         self.hub = Hub(_NodeRemote(self, p.role), rate_hz=p.rate_hz)
         self._failed: BaseException | None = None

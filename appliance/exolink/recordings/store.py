@@ -1,5 +1,5 @@
-"""Recordings over the network: the board's side (``Store``: list, checksum, chunks, delete, the
-card's space) and the laptop's (``fetch``, ``sync``: chunked, resumable, checked).
+"""Recordings over the network, the board's side (``Store``: list, checksum, chunks, delete, the
+card's space); the laptop's is exolink.recordings.fetching.
 
 The recorder serves a ``Store`` (``exolink/<device>/recordings``) because it alone knows which
 file it is writing: that file is listed as ``recording`` and refused for fetch and delete. Every
@@ -25,15 +25,12 @@ import stat
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import structlog
 
-from exolink.recordings import requests as reqs
-from exolink.refusal import Refused
-from exolink.wire.requests import body
+from exolink.recordings.replies import Card, Chunk, Deleted, FileEntry, FileStat
 
 SUFFIX = ".mcap"
 PART = ".part"
@@ -52,26 +49,6 @@ _log = structlog.get_logger("exolink.recordings.store")
 
 class StoreError(Exception):
     """A request the store refuses; the text reaches the caller verbatim."""
-
-
-@dataclass(frozen=True, slots=True)
-class Entry:
-    """One file as the board lists it."""
-
-    name: str
-    size: int
-    mtime_ns: int
-    state: str  # RECORDING or CLOSED
-    sha256: str | None  # None until computed (closed files only)
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "size": self.size,
-            "mtime": self.mtime_ns / 1e9,
-            "state": self.state,
-            "sha256": self.sha256,
-        }
 
 
 def plain_name(name: object) -> str:
@@ -146,14 +123,14 @@ class Store:
             c = self._sums.get(name)
         return c[3] if c is not None and c[:3] == (st.st_ino, st.st_size, st.st_mtime_ns) else None
 
-    def entries(self) -> list[Entry]:
+    def entries(self) -> list[FileEntry]:
         """Every recording, oldest first; a closed one's sha256 if it was computed."""
         out = []
-        for name, st in self._files():
+        for name, st in sorted(self._files(), key=lambda f: (f[1].st_mtime_ns, f[0])):
             state = self._state(name)
             digest = self._cached(name, st) if state == CLOSED else None
-            out.append(Entry(name, st.st_size, st.st_mtime_ns, state, digest))
-        return sorted(out, key=lambda e: (e.mtime_ns, e.name))
+            out.append(FileEntry(name, st.st_size, st.st_mtime_ns / 1e9, state, digest))
+        return out
 
     def _closed(self, name: object, what: str) -> tuple[Path, os.stat_result]:
         """The path of a closed recording the board lists, or StoreError saying why not."""
@@ -174,18 +151,17 @@ class Store:
 
     # --- requests --------------------------------------------------------------------------
 
-    def stat(self, name: object) -> dict[str, Any]:
+    def stat(self, name: object) -> FileStat:
         """A closed file's size and sha256 (None while it is computed: ask again)."""
         path, st = self._closed(name, "fetch")
         digest = self._cached(path.name, st)
         if digest is None:
             self._hash_later(path.name)
-        out = Entry(path.name, st.st_size, st.st_mtime_ns, CLOSED, digest).as_dict()
         with self._lock:
-            out["hashed"] = st.st_size if digest is not None else self._hashing.get(path.name, 0)
-        return out
+            hashed = st.st_size if digest is not None else self._hashing.get(path.name, 0)
+        return FileStat(path.name, st.st_size, st.st_mtime_ns / 1e9, CLOSED, digest, hashed)
 
-    def chunk(self, name: object, offset: object, length: object) -> dict[str, Any]:
+    def chunk(self, name: object, offset: object, length: object) -> Chunk:
         """Up to ``length`` bytes at ``offset`` of a closed file (base64)."""
         path, st = self._closed(name, "fetch")
         if not isinstance(offset, int) or isinstance(offset, bool) or offset < 0:
@@ -203,20 +179,15 @@ class Store:
         finally:
             os.close(fd)
         self.pace.wait(len(data))
-        return {
-            "name": path.name,
-            "offset": offset,
-            "size": st.st_size,
-            "data": base64.b64encode(data).decode("ascii"),
-        }
+        return Chunk(path.name, offset, st.st_size, base64.b64encode(data).decode("ascii"))
 
-    def delete(self, name: object) -> dict[str, Any]:
+    def delete(self, name: object) -> Deleted:
         path, st = self._closed(name, "delete")
         path.unlink()
         with self._lock:
             self._sums.pop(path.name, None)
         _log.info("recording_deleted", name=path.name, size=st.st_size)
-        return {"name": path.name, "size": st.st_size}
+        return Deleted(path.name, st.st_size)
 
     # --- checksums -------------------------------------------------------------------------
 
@@ -254,10 +225,10 @@ class Store:
 
     # --- the card --------------------------------------------------------------------------
 
-    def card(self) -> dict[str, int]:
+    def card(self) -> Card:
         """The card's size and what a non-root writer may still use, in bytes."""
         u = shutil.disk_usage(self.dir)
-        return {"total": u.total, "free": u.free, "reserve": self.reserve_bytes}
+        return Card(u.total, u.free, self.reserve_bytes)
 
 
 class Pace:
@@ -319,152 +290,3 @@ def hours_left(free: int, reserve: int, rate_bps: float) -> float | None:
     if rate_bps <= 0:
         return None
     return max(0, free - reserve) / rate_bps / 3600
-
-
-# --- the laptop's side ---------------------------------------------------------------------------
-
-Ask = Callable[[dict[str, Any]], dict[str, Any]]  # one request to the board's store, its reply
-# Tries of one request: the board's admission refuses a fast fetch now and then ("too many
-# requests", "busy"), and the router drops a reply it cannot send at once rather than block
-# (messaging.ROUTER_QOS): a large chunk's reply is sometimes lost and its query times out.
-# Each chunk is asked for by offset, so asking again is all a retry is.
-TRIES = 8
-RETRY_S = 0.2
-
-
-@dataclass
-class Patient:
-    """``send`` (one request, the reply as it came, ``messaging.Unreachable`` on a timeout)
-    made patient: refusals for the board's load and lost replies are tried again, counted;
-    any other refusal raises ``Refused``."""
-
-    send: Callable[[dict[str, Any]], dict[str, Any]]
-    tries: int = TRIES
-    retried_rate: int = 0
-    retried_lost: int = 0
-
-    def __call__(self, body: dict[str, Any]) -> dict[str, Any]:
-        from exolink.messaging import (
-            Unreachable,  # heavy: Zenoh; a laptop's store needs it for fetches only
-        )
-
-        why = "no try"
-        for _ in range(self.tries):
-            try:
-                reply = self.send(body)
-            except Unreachable as exc:
-                self.retried_lost += 1
-                why = str(exc)
-                continue
-            if reply.get("ok"):
-                return reply
-            why = str(reply.get("error", "refused"))
-            if not why.startswith(("too many requests", "busy")):
-                raise Refused(why)
-            self.retried_rate += 1
-            time.sleep(RETRY_S)
-        raise Refused(f"{self.tries} tries, the last: {why}")
-
-
-@dataclass(frozen=True, slots=True)
-class Fetched:
-    name: str
-    path: Path
-    size: int
-    sha256: str
-    resumed_at: int  # bytes already in the .part file when this fetch began
-    seconds: float
-    skipped: bool = False  # already there, same size and checksum
-
-
-def fetch(
-    ask: Ask,
-    name: str,
-    dest: Path,
-    chunk: int = DEFAULT_CHUNK,
-    hash_wait_s: float = 60.0,
-    progress: Callable[[int, int], None] | None = None,
-) -> Fetched:
-    """Copy one closed recording into ``dest``: chunks appended to ``<name>.part`` (resumed
-    from its size), the whole checked against the board's sha256, renamed at the end. A
-    mismatch removes the .part (it cannot be trusted for a resume either) and says so."""
-    name = plain_name(name)
-    chunk = max(1, min(chunk, MAX_CHUNK))
-    t0 = time.monotonic()
-    st = ask(body(reqs.Stat(name)))
-    size = int(st["size"])
-    final, part = dest / name, dest / (name + PART)
-    if final.is_file() and final.stat().st_size == size:
-        digest = _wait_sum(ask, name, st, hash_wait_s)
-        if _local_sha256(final) == digest:
-            return Fetched(name, final, size, digest, size, 0.0, skipped=True)
-    have = part.stat().st_size if part.is_file() else 0
-    if have > size:  # not a prefix of this file
-        have = 0
-    resumed = have
-    with part.open("r+b" if have else "wb") as out:
-        out.truncate(have)
-        out.seek(have)
-        while have < size:
-            r = ask(body(reqs.Fetch(name, have, min(chunk, size - have))))
-            if int(r.get("size", -1)) != size or int(r.get("offset", -1)) != have:
-                raise StoreError(f"{name} changed on the board during the fetch; fetch it again")
-            data = base64.b64decode(r["data"], validate=True)
-            if not data:
-                raise StoreError(f"{name}: the board sent nothing at byte {have} of {size}")
-            out.write(data)
-            have += len(data)
-            if progress is not None:
-                progress(have, size)
-        out.flush()
-        os.fsync(out.fileno())
-    digest = _wait_sum(ask, name, st, hash_wait_s)
-    got = _local_sha256(part)
-    if got != digest:
-        part.unlink()
-        raise StoreError(
-            f"{name}: sha256 {got} here, {digest} on the board; the partial copy is removed, "
-            "fetch it again"
-        )
-    os.replace(part, final)
-    return Fetched(name, final, size, digest, resumed, time.monotonic() - t0)
-
-
-def _wait_sum(ask: Ask, name: str, st: dict[str, Any], wait_s: float) -> str:
-    """The board's sha256 of the file (it computes it once, on first ``stat``, paced): waited
-    for while its hashing moves on, given up after ``wait_s`` without progress."""
-    deadline, hashed = time.monotonic() + wait_s, None  # the board's bytes hashed so far
-    while st.get("sha256") is None:
-        now = time.monotonic()
-        if st.get("hashed") != hashed:
-            deadline, hashed = now + wait_s, st.get("hashed")
-        if now > deadline:
-            raise StoreError(f"{name}: the board's sha256 made no progress in {wait_s:g} s")
-        time.sleep(0.5)
-        st = ask(body(reqs.Stat(name)))
-    digest = str(st["sha256"])
-    if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
-        raise StoreError(f"{name}: the board's sha256 {digest[:80]!r} is not one")
-    return digest
-
-
-def _local_sha256(path: Path) -> str:
-    with path.open("rb") as f:
-        return file_sha256(f)
-
-
-def missing(listing: list[dict[str, Any]], dest: Path) -> list[str]:
-    """The board's closed recordings that ``dest`` lacks (no file of the same size): what
-    ``exolink record sync`` fetches. Names the board sent that are not plain are skipped."""
-    out = []
-    for e in listing:
-        try:
-            name = plain_name(e.get("name"))
-        except StoreError:
-            continue
-        if e.get("state") != CLOSED:
-            continue
-        local = dest / name
-        if not (local.is_file() and local.stat().st_size == e.get("size")):
-            out.append(name)
-    return out

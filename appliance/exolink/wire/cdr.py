@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 CDR_LE = b"\x00\x01\x00\x00"  # encapsulation: plain CDR, little endian
 
@@ -222,18 +222,32 @@ def joint_command(
     return bytes(w.buf)
 
 
-def pattern_state(ns: int, s: dict[str, Any], selected: Sequence[bool]) -> bytes:
-    """exolink_msgs/PatternState from the player's status dict."""
+class PatternFields(Protocol):
+    """What a PatternState says (the pattern player's status, exolink.control.replies)."""
+
+    state: str
+    reason: str
+    index: int
+    length: int
+    speed: int
+    period_ms: float
+    file: str
+    operator: str
+    timing: str
+
+
+def pattern_state(ns: int, s: PatternFields, selected: Sequence[bool]) -> bytes:
+    """exolink_msgs/PatternState from the player's status."""
     w = _Writer()
     w.stamp(ns)
-    w.string(str(s["state"]))
-    w.string(str(s["reason"]))
-    w.put("II", s["index"], s["length"])
-    w.put("B", s["speed"])
-    w.put("f", s["period_ms"])
+    w.string(s.state)
+    w.string(s.reason)
+    w.put("II", s.index, s.length)
+    w.put("B", s.speed)
+    w.put("f", s.period_ms)
     w.put("6?", *selected)
-    for key in ("file", "operator", "timing"):
-        w.string(str(s[key]))
+    for text in (s.file, s.operator, s.timing):
+        w.string(text)
     return bytes(w.buf)
 
 
