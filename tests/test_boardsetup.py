@@ -15,6 +15,7 @@ import yaml
 
 from benchmarks.harness import free_port
 from exolink import messaging
+from exolink.board import settings as boardsettings
 from exolink.board import setup as boardsetup
 from exolink.config import ConfigError, ZenohConfig, bundled, load
 
@@ -27,7 +28,7 @@ def card(tmp_path: Path) -> tuple[Path, Path]:
     """A boot partition with the shipped settings and a root with the image's appliance.yaml."""
     boot, root = tmp_path / "boot", tmp_path / "root"
     boot.mkdir()
-    shutil.copy(SHIPPED, boot / boardsetup.SETTINGS_FILE)
+    shutil.copy(SHIPPED, boot / boardsettings.SETTINGS_FILE)
     (root / "etc/exolink").mkdir(parents=True)
     text = bundled("board").read_text()
     (root / "etc/exolink/appliance.yaml").write_text(text)
@@ -36,7 +37,7 @@ def card(tmp_path: Path) -> tuple[Path, Path]:
 
 def edit(boot: Path, **changes: object) -> None:
     """Change keys the way a user would, in the shipped file's YAML."""
-    path = boot / boardsetup.SETTINGS_FILE
+    path = boot / boardsettings.SETTINGS_FILE
     data = yaml.safe_load(path.read_text())
     for dotted, value in changes.items():
         *parents, leaf = dotted.split("__")
@@ -48,7 +49,7 @@ def edit(boot: Path, **changes: object) -> None:
 
 
 def apply(boot: Path, root: Path) -> boardsetup.Plan:
-    s = boardsetup.load_settings(boot / boardsetup.SETTINGS_FILE)
+    s = boardsettings.load_settings(boot / boardsettings.SETTINGS_FILE)
     return boardsetup.apply(s, boot, root)
 
 
@@ -95,7 +96,7 @@ def test_short_zenoh_password_is_refused(card: tuple[Path, Path]) -> None:
     boot, _ = card
     edit(boot, zenoh__passwords={"operator": "short"})
     with pytest.raises(ConfigError, match=r"zenoh\.passwords"):
-        boardsetup.load_settings(boot / boardsetup.SETTINGS_FILE)
+        boardsettings.load_settings(boot / boardsettings.SETTINGS_FILE)
 
 
 def test_device_name_goes_into_appliance_yaml_keeping_comments(card: tuple[Path, Path]) -> None:
@@ -199,11 +200,11 @@ def test_bad_settings_name_the_key_and_change_nothing(
 
 def test_unknown_key_reports_file_and_line(card: tuple[Path, Path]) -> None:
     boot, _ = card
-    path = boot / boardsetup.SETTINGS_FILE
+    path = boot / boardsettings.SETTINGS_FILE
     path.write_text(path.read_text() + "wify:\n  ssid: lab\n")
     n = len(path.read_text().splitlines()) - 1
     with pytest.raises(ConfigError, match=rf"exolink-settings.yaml:{n}: wify: unknown key"):
-        boardsetup.load_settings(path)
+        boardsettings.load_settings(path)
 
 
 def test_cli_applies_and_reports_errors_with_exit_code(card: tuple[Path, Path]) -> None:

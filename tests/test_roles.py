@@ -16,6 +16,7 @@ from mcap.reader import make_reader
 
 from benchmarks.harness import Appliance, wait_for
 from exolink import messaging, roles
+from exolink.board import settings as boardsettings
 from exolink.board import setup as boardsetup
 from exolink.config import bundled
 
@@ -25,8 +26,8 @@ DEVICE = "sim"
 def board_logins(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
     """The board's Zenoh config (appliance login + dictionary) and one laptop file per role,
     as boardsetup renders them on a card whose settings ask for every role."""
-    settings = boardsetup.BoardSettings(
-        device=DEVICE, zenoh=boardsetup.ZenohAuth(logins=list(roles.ROLES))
+    settings = boardsettings.BoardSettings(
+        device=DEVICE, zenoh=boardsettings.ZenohAuth(logins=list(roles.ROLES))
     )
     plan = boardsetup.plan(settings, tmp_path / "root")
     users = tmp_path / "zenoh-users.txt"

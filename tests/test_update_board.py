@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from exolink import messaging, roles
-from exolink.board import update
+from exolink.board import update, update_agent
 from exolink.cli import update as cli_update
 from exolink.client import Refused
 from exolink.supervisor.api import ManagementApi
@@ -252,12 +252,12 @@ def test_a_refusal_names_raucs_reason_before_openssls_stack() -> None:
         "../crypto/cms/cms_sd.c:1004:\n"
     )
     r = subprocess.CompletedProcess([], 1, "", stderr)
-    assert update._rauc_error(r) == (
+    assert update_agent._rauc_error(r) == (
         "signature verification failed: error:0200008A:rsa routines::invalid padding"
     )
     only_openssl = subprocess.CompletedProcess([], 1, "", stderr.splitlines()[1] + "\n")
-    assert "padding check failed" in update._rauc_error(only_openssl)
-    assert update._rauc_error(subprocess.CompletedProcess([], 7, "", "")) == "rauc exited 7"
+    assert "padding check failed" in update_agent._rauc_error(only_openssl)
+    assert update_agent._rauc_error(subprocess.CompletedProcess([], 7, "", "")) == "rauc exited 7"
 
 
 def test_the_update_folder_is_the_boards_only_where_its_agent_is_installed(
@@ -282,5 +282,5 @@ def test_the_root_agent_refuses_a_request_file_that_is_not_one(tmp_path: Path, t
     """The agent runs as root on a file the unprivileged service wrote: read typed, anything
     else is dropped before rauc is asked anything (none is installed here to ask)."""
     (tmp_path / update.REQUEST).write_text(text)
-    assert update.agent_install(tmp_path, reboot=False) == 1
+    assert update_agent.agent_install(tmp_path, reboot=False) == 1
     assert not (tmp_path / update.REQUEST).exists()

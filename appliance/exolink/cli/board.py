@@ -41,7 +41,8 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 
 def cmd_up(args: argparse.Namespace) -> int:
     """The supervisor. A bad config starts nothing and exits non-zero (the caller sees why)."""
-    from exolink.supervisor.core import run, simulated  # heavy: the whole supervisor, `up` only
+    from exolink.supervisor.core import run  # heavy: the whole supervisor, `up` only
+    from exolink.supervisor.sim import simulated  # with the supervisor: `up` only
 
     path = args.config or (str(bundled("sim")) if args.sim else DEFAULT_CONFIG)
     cfg = load(path, check=())
@@ -56,9 +57,10 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_board_setup(args: argparse.Namespace) -> int:
 
     from exolink.board import setup as boardsetup  # the board's own setup: `board-setup` only
+    from exolink.board.settings import SETTINGS_FILE, load_settings
 
     logs.setup("board-setup")
     boot = Path(args.boot)
-    settings = boardsetup.load_settings(boot / boardsetup.SETTINGS_FILE)
+    settings = load_settings(boot / SETTINGS_FILE)
     boardsetup.apply(settings, boot, Path(args.root))
     return 0

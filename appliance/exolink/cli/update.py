@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from exolink import logs, messaging
-from exolink.board import update
+from exolink.board import update, update_agent
 from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
@@ -157,12 +157,12 @@ def cmd_update(args: argparse.Namespace) -> int:
 
 
 def cmd_update_agent(args: argparse.Namespace) -> int:
-    """The board's root side (systemd units; exolink.board.update)."""
+    """The board's root side (systemd units; exolink.board.update_agent)."""
     logs.setup("update-agent")
     action = {
-        "install": update.agent_install,
-        "boot-check": update.agent_boot_check,
-        "mark-good": update.agent_mark_good,
+        "install": update_agent.agent_install,
+        "boot-check": update_agent.agent_boot_check,
+        "mark-good": update_agent.agent_mark_good,
     }[args.action]
     return int(action())
 
@@ -183,7 +183,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=cmd_update)
     p = sub.add_parser(
-        "update-agent", help="board side, run by systemd as root (exolink.board.update)"
+        "update-agent", help="board side, run by systemd as root (exolink.board.update_agent)"
     )
     p.add_argument("action", choices=["install", "boot-check", "mark-good"])
     p.set_defaults(func=cmd_update_agent)

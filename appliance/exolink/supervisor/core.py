@@ -8,7 +8,6 @@ Stop order is the reverse with the safe action first.
 from __future__ import annotations
 
 import contextlib
-import functools
 import gc
 import os
 import shutil
@@ -25,12 +24,12 @@ import yaml
 from exolink import hardware, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
-from exolink.canbus import open_reader
-from exolink.config import SIM_MULTICAST_GROUP, ApplianceConfig, ConfigError
+from exolink.config import ApplianceConfig
 from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.runtime import profiled, stop_on_signals
 from exolink.supervisor import canlink, trigger
 from exolink.supervisor.api import ManagementApi
+from exolink.supervisor.device_watch import watch_device
 from exolink.supervisor.forking import Zygote, become_subreaper
 from exolink.supervisor.judging import NodeJudge
 from exolink.supervisor.memory import MemoryTrim
@@ -44,7 +43,7 @@ from exolink.supervisor.watchdog import Watchdog
 from exolink.wire import cdr, replies
 
 if TYPE_CHECKING:
-    from exolink.canbus.bcm import CyclicWatch
+    pass
 
 SUPERVISOR = "supervisor"  # its name as a ROS 2 node, in the logs and among the nodes' tokens
 STRAY_SWEEP_S = 5.0  # the loop looks for node processes it does not count as any node's
@@ -55,30 +54,6 @@ TRIGGER_TYPE = "exolink_msgs/msg/TriggerEvent"
 TRIM_PERIOD_S = 10.0
 TRIM_GROWTH_MB = 8.0
 PAGE_SIZE = os.sysconf("SC_PAGE_SIZE")
-
-
-def simulated(cfg: ApplianceConfig) -> ApplianceConfig:
-    """``--sim``: the same appliance on a udp_multicast bus with the device's simulator
-    (exolink.hardware: ``Device.simulator``) and a fake trigger."""
-    can = msgspec.structs.replace(
-        cfg.can,
-        interface="udp_multicast",
-        channel=cfg.can.channel if cfg.can.simulated else SIM_MULTICAST_GROUP,
-        bring_up=False,
-        require_overlay=False,
-    )
-    trig = msgspec.structs.replace(cfg.trigger, source="simulated", output=None)
-    nodes = list(cfg.nodes)
-    play = getattr(hardware.load(cfg.hardware), "simulator", None)
-    if play is None:  # a lab's device written before Device.simulator
-        raise ConfigError(
-            f"hardware {cfg.hardware!r} names no simulator (Device.simulator): --sim cannot "
-            "play it; add one, or list its simulator node in the config"
-        )
-    sim = play(cfg)
-    if not any(n.plugin == sim.plugin for n in nodes):
-        nodes.insert(0, sim)
-    return msgspec.structs.replace(cfg, can=can, trigger=trig, nodes=nodes)
 
 
 class _Stop(threading.Event):
@@ -135,39 +110,20 @@ class Supervisor(NodeJudge, NodeTelemetry):
                 canlink.check_overlay()
             if cfg.can.bring_up:
                 canlink.bring_up_apart(cfg.can)  # pyroute2 in a child, never resident here
-        # On SocketCAN the kernel's broadcast manager watches the device's pulse and command
-        # frames for the watchdog (exolink.canbus.bcm) and its own socket only sends; the simulated
-        # bus has no such thing.
-        watches: list[CyclicWatch] = []
-        reopen = None
-        try:
-            if cfg.can.interface == "socketcan":  # Linux only (the module's constants too)
-                from exolink.canbus.bcm import CyclicWatch
-
-                limit_s = cfg.watchdog.silence_ms / 1e3
-                watches.append(CyclicWatch(cfg.can.channel, dev.pulse_id, limit_s))
-                reopen = functools.partial(
-                    CyclicWatch, cfg.can.channel, dev.command_id, mask=dev.command_mask
-                )
-                watches.append(reopen())  # the first now: no can-bcm fails the start here
-                self.reader = open_reader(cfg.can, [])
-            else:  # the pulse never wakes it (read by its silence deadline); a command does
-                self.reader = open_reader(
-                    cfg.can, [dev.pulse_id, dev.command_id], wake_on=[dev.command_id]
-                )
-        except BaseException:
-            for w in watches:
-                w.close()
-            raise
+        eyes = watch_device(cfg, dev)  # the watchdog's reader, and the kernel's watches
+        self.reader = eyes.reader
         self.bus = self.reader.bus
         self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node=SUPERVISOR)
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE, raw=True)
-        # the kernel's watches of the pulse and the command frame (none on the simulated bus)
-        angles = watches[0] if watches else None
-        control = watches[1] if len(watches) > 1 else None
         self.watchdog = Watchdog(
-            cfg.watchdog, self.reader, self._publish_watchdog, dev, angles, control, reopen=reopen
+            cfg.watchdog,
+            self.reader,
+            self._publish_watchdog,
+            dev,
+            eyes.pulse,
+            eyes.command,
+            reopen=eyes.reopen,
         )
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
         self.watchdog.start()  # safe action before anything else can move
