@@ -23,6 +23,7 @@ from exolink.loops import Frames
 from exolink.messaging import Refused
 from exolink.node import Node
 from exolink.wire import management
+from exolink.wire.replies import TimingStats
 
 HIST_EDGES_US = [0, 10, 20, 50, 100, 200, 500, 1000, 5000]
 MAX_STAMPS = 200_000
@@ -175,7 +176,7 @@ class TimingMonitor(Node):
             ring = self.stamps[fid].copy()
         return ring.select(dlc, byte0)
 
-    def on_query(self, req: dict[str, Any]) -> dict[str, Any]:
+    def on_query(self, req: dict[str, Any]) -> TimingStats:
         ask = management.convert(req, management.Timing, "timing query")
         fid, byte0, dlc = ask.id, ask.byte0, ask.dlc
         if fid not in self.params.ids:
@@ -204,8 +205,7 @@ class TimingMonitor(Node):
         out = deviation_stats(stamps, None if exp is None else exp / 1000)
         # Frames the kernel dropped from this monitor's full queue since it started: a record
         # with holes shows gaps that were never on the bus.
-        out["socket_dropped"] = self.reader.dropped
-        return out
+        return TimingStats(**out, socket_dropped=self.reader.dropped)
 
     def loop(self) -> Frames:
         return Frames(self.reader, self.keep, READ_EVERY_S)

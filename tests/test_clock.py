@@ -11,6 +11,7 @@ import pytest
 from benchmarks.harness import Appliance
 from exolink.board import clock
 from exolink.cli import clock as cli_clock
+from exolink.wire.replies import ClockStatus, ClockStep
 
 
 def test_the_shortest_round_trip_sets_the_offset() -> None:
@@ -36,15 +37,12 @@ def test_offsets_within_the_round_trip_are_not_called_off() -> None:
 
 
 def test_the_status_line_warns_when_the_time_cannot_be_trusted() -> None:
-    unsynced = {"synchronised": False, "source": "unsynchronised", "from_laptop": True}
+    unsynced = ClockStatus(0.0, False, None, "unsynchronised", from_laptop=True)
     text = cli_clock.describe(unsynced, clock.Offset(3600.0, 0.001))
     assert "UNSYNCHRONISED" in text and "exolink clock sync" in text
     assert "3600000 ms off" in text
-    stepped = {
-        "synchronised": False,
-        "source": "laptop",
-        "last_step": {"by": "operator", "at": "2026-11-27T10:00:00Z"},
-    }
+    step = ClockStep("operator", "2026-11-27T10:00:00Z", 1.0, 1.0, 0.0)
+    stepped = ClockStatus(0.0, False, None, "laptop", from_laptop=True, last_step=step)
     text = cli_clock.describe(stepped, clock.Offset(0.002, 0.001))
     assert "set from a laptop by operator" in text and "WARNING" not in text
 

@@ -20,10 +20,12 @@ from exolink.nodes.pattern_player import DEFAULT_PATTERN
 
 from benchmarks.harness import EXOLINK, Appliance, collect, wait_for
 from exolink import messaging
+from exolink.control import replies as ctl_replies
 from exolink.control.gait import period_s
 from exolink.control.patterns import load_pattern
 from exolink.limits.joints import Limits, default_max, default_min
 from exolink.protocol import ProtocolError, h2, maccepa
+from exolink.wire import replies
 
 NODES = [
     {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
@@ -136,6 +138,30 @@ def test_pattern_reaches_joints_in_order_at_speed(app, mbus) -> None:  # type: i
     assert (
         int(json.loads(app.cli("pattern", "status", "--json").stdout or "{}").get("sent", 1)) >= 0
     )
+
+
+def test_the_replies_are_their_schemas_whole(app) -> None:  # type: ignore[no-untyped-def]
+    """Each reply read as its schema and written back is what the node sent: no field that a
+    schema leaves out, renames or retypes (the manager's while a pattern plays, the pattern
+    player's, the supervisor's clock and software, a node's params)."""
+    app.arm_and_hold()
+    assert app.cli("pattern", "start", "--detach").returncode == 0
+    asks = [
+        ("controllers", {"action": "list"}, ctl_replies.ManagerStatus),
+        ("controllers", {"action": "types"}, ctl_replies.Types),
+        ("controllers", {"action": "state", "name": "pattern"}, ctl_replies.StateOf),
+        ("pattern", {"action": "status"}, ctl_replies.PatternInfo),
+        ("clock", {}, replies.ClockStatus),
+        ("update", {}, replies.Software),
+        ("nodes/h2_reader/params", {}, replies.NodeParams),
+    ]
+    for path, body, schema in asks:
+        raw = app.call(path, body)
+        assert raw.pop("ok"), (path, raw)
+        assert replies.plain(replies.read(raw, schema)) == raw, (path, schema)
+    gait = replies.read(app.call("controllers", {"action": "list"}), ctl_replies.ManagerStatus)
+    pattern = next(c for c in gait.controllers if c.name == "pattern")
+    assert pattern.state == "active" and pattern.own["speed"] == 10  # its type's own status
 
 
 def test_speed_change_without_restart_and_pause(app, mbus) -> None:  # type: ignore[no-untyped-def]

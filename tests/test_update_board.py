@@ -22,7 +22,8 @@ from exolink.board import update, update_agent
 from exolink.cli import update as cli_update
 from exolink.client import Refused
 from exolink.supervisor.api import ManagementApi
-from exolink.wire import management
+from exolink.wire import management, replies
+from exolink.wire.replies import UploadAt
 from exolink.wire.requests import decode
 
 REPO = Path(__file__).resolve().parents[1]
@@ -33,24 +34,24 @@ def bundle_bytes(n: int = 3000) -> bytes:
     return update.SQUASHFS_MAGIC + os.urandom(n - 4)
 
 
-def begin(rx: update.Receiver, data: bytes, **over: Any) -> dict[str, Any]:
+def begin(rx: update.Receiver, data: bytes, **over: Any) -> UploadAt:
     """A begin as the supervisor hands it on: decoded from the laptop's JSON object."""
     req = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest(), "name": "b.raucb"}
     ask = decode({"action": "begin", **req, **over}, management.Update, "update action")
     return rx.begin(ask, "admin")
 
 
-def chunk(rx: update.Receiver, data: bytes | str, offset: int) -> dict[str, Any]:
+def chunk(rx: update.Receiver, data: bytes | str, offset: int) -> UploadAt:
     text = data if isinstance(data, str) else base64.b64encode(data).decode()
     return rx.chunk(management.Chunk(offset=offset, data=text))
 
 
 def test_a_bundle_in_chunks_becomes_a_request_for_the_agent(tmp_path: Path) -> None:
     rx, data = update.Receiver(tmp_path), bundle_bytes()
-    assert begin(rx, data)["offset"] == 0
-    assert chunk(rx, data[:1000], 0) == {"offset": 1000}
-    assert chunk(rx, data[1000:], 1000) == {"offset": len(data)}
-    assert rx.commit("admin")["accepted"]
+    assert begin(rx, data).offset == 0
+    assert chunk(rx, data[:1000], 0) == UploadAt(1000)
+    assert chunk(rx, data[1000:], 1000) == UploadAt(len(data))
+    assert rx.commit("admin").accepted
     req = json.loads((tmp_path / update.REQUEST).read_text())
     assert req["sha256"] == hashlib.sha256(data).hexdigest() and req["by"] == "admin"
     assert (tmp_path / update.INCOMING).read_bytes() == data
@@ -125,7 +126,7 @@ def test_update_is_refused_while_armed_and_says_why(tmp_path: Path) -> None:
     with pytest.raises(messaging.Refused, match="armed: an update ends in a reboot"):
         _sup(tmp_path, armed=True).update(req, caller)
     api = _sup(tmp_path, armed=False)
-    assert api.update(req, caller)["offset"] == 0
+    assert replies.plain(api.update(req, caller))["offset"] == 0
     b64 = base64.b64encode(data).decode()
     api.update({"action": "chunk", "offset": 0, "data": b64}, caller)
     api.sup.watchdog.armed = True  # armed between the last chunk and the commit
@@ -168,8 +169,8 @@ def test_the_laptop_checks_the_file_before_sending(tmp_path: Path) -> None:
 
 def test_status_line_names_version_slot_and_last_result() -> None:
     line = cli_update.describe(
-        {"version": "0.1.0", "slot": "B", "bundle_version": "0.1.0+abc", "result": "good",
-         "detail": "slot B runs version 0.1.0+abc", "since": "2026-11-28T03:00:00Z"}
+        replies.Software("0.1.0", "B", "0.1.0+abc", "good", "slot B runs version 0.1.0+abc",
+                         "2026-11-28T03:00:00Z", installing=False)
     )  # fmt: skip
     assert line.startswith("software exolink 0.1.0 on slot B (bundle 0.1.0+abc); last update: good")
 

@@ -38,7 +38,7 @@ from exolink.node import (
     vouches,
 )
 from exolink.plugins import find_node_class
-from exolink.wire import cdr, management
+from exolink.wire import cdr, management, replies
 
 STALL_LOG_EVERY_S = 10.0
 
@@ -116,12 +116,12 @@ class NodeRunner:
         )
         self._stalls_unlogged = 0
 
-    def _params(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _params(self, req: dict[str, Any]) -> replies.ParamSet | replies.NodeParams:
         ask = management.convert(req, management.Params, "params")
         if ask.set is not None:
             key = ask.set.key
-            return {"key": key, "value": self.node.set_param(key, ask.set.value)}
-        return {"params": msgspec.to_builtins(self.node.params)}
+            return replies.ParamSet(key, self.node.set_param(key, ask.set.value))
+        return replies.NodeParams(msgspec.to_builtins(self.node.params))
 
     def run(self) -> int:
         """Blocking: configure, run, shut down. Returns the process exit code."""

@@ -5,13 +5,15 @@ file read years later says how it was made and whether anything is missing."""
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Any
+
+import msgspec
 
 from exolink import __version__, roles
 from exolink.board import clock
 from exolink.config import ApplianceConfig
+from exolink.wire.replies import NodeStats
 
 RECEIVE_QUERY_S = 0.5  # the readers' receive counters, asked when a file opens and closes
 RECEIVE_DELTAS = ("dropped", "late", "frames")  # counters also given for the file alone
@@ -44,9 +46,12 @@ def receive_counters(session: Any, msg: Any, log: Any) -> dict[str, dict[str, An
         for reply in session.get(key, payload=b"{}", timeout=RECEIVE_QUERY_S):
             if reply.ok is None:
                 continue
-            stats = json.loads(reply.ok.payload.to_bytes())
-            if isinstance(stats.get("receive"), dict) and isinstance(stats.get("node"), str):
-                out[stats["node"]] = stats["receive"]
+            try:
+                stats = msgspec.json.decode(reply.ok.payload.to_bytes(), type=NodeStats)
+            except msgspec.DecodeError:  # not a node's stats: nothing to say of it
+                continue
+            if stats.receive is not None:
+                out[stats.node] = stats.receive
     except Exception as exc:  # the file is written either way; the gap is said in it
         log.warning("receive_counters_unavailable", error=str(exc))
     return out

@@ -31,6 +31,7 @@ from exolink.messaging import Refused
 from exolink.node import Node
 from exolink.protocol import h2, maccepa
 from exolink.wire import management
+from exolink.wire.replies import FaultInjected
 
 FAULTS = ("none", "silent", "malformed", "flood")
 PREPARE_S = 0.002  # the models step and the frames are built this long before they are due
@@ -313,14 +314,14 @@ class SimulatorNode(Node):
         self.sim = Simulator(self.reader.bus, self.params, self.reader)
         self.own(self.ctx.messaging.serve(("sim", "fault"), self._on_fault, roles.ADMIN))
 
-    def _on_fault(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _on_fault(self, req: dict[str, Any]) -> FaultInjected:
         ask = management.convert(req, management.Fault, "fault")
         try:
             self.sim.inject(ask.fault, ask.duration_s)
         except (TypeError, ValueError) as exc:
             raise Refused(str(exc)) from None
         self.log.warning("fault_injected", fault=ask.fault, duration_s=ask.duration_s)
-        return {"fault": ask.fault}
+        return FaultInjected(ask.fault)
 
     def run(self, stop: threading.Event) -> None:
         self.sim.run(stop, self.beat)

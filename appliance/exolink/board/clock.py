@@ -23,7 +23,6 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
-import json
 import math
 import os
 import time
@@ -32,7 +31,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from exolink.refusal import Refused
+from exolink.wire.replies import ClockStatus, ClockStep
 
 CLOCK_FILE = "clock.json"
 # `exolink status` warns when the board is further than this from the laptop (the issue's bound:
@@ -140,14 +142,14 @@ def measure(ask: Callable[[], float], samples: int = SAMPLES) -> Offset:
     return Offset(best[0], best[1] / 2)
 
 
-def source(k: Kernel, step: dict[str, Any] | None) -> str:
+def source(k: Kernel, step: ClockStep | None) -> str:
     """What set the clock: a time server, a laptop's step in this boot, or nothing."""
     return "time server" if k.synchronised else ("laptop" if step else "unsynchronised")
 
 
-def unset(status: dict[str, Any]) -> bool:
+def unset(status: ClockStatus) -> bool:
     """A board's clock (its ``status()``) that neither a time server nor a laptop has set."""
-    return status.get("source") == "unsynchronised"
+    return status.source == "unsynchronised"
 
 
 class BoardClock:
@@ -157,28 +159,29 @@ class BoardClock:
         self.path = state_dir / CLOCK_FILE if state_dir is not None else None
         self.from_laptop = from_laptop
 
-    def last_step(self) -> dict[str, Any] | None:
-        """The last laptop step of this boot (a step before a reboot no longer holds)."""
+    def last_step(self) -> ClockStep | None:
+        """The last laptop step of this boot (a step before a reboot no longer holds; a file
+        that is not one is no step)."""
         if self.path is None:
             return None
         try:
-            step = json.loads(self.path.read_text())
-        except (OSError, ValueError):
+            step = msgspec.json.decode(self.path.read_bytes(), type=ClockStep)
+        except (OSError, msgspec.DecodeError):
             return None
-        return step if isinstance(step, dict) and step.get("boot_id") == boot_id() else None
+        return step if step.boot_id == boot_id() else None
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> ClockStatus:
         k, step = kernel(), self.last_step()
-        return {
-            "now": time.time(),
-            "synchronised": k.synchronised,
-            "max_error_ms": k.max_error_ms,
-            "source": source(k, step),
-            "from_laptop": self.from_laptop,
-            "last_step": step,
-        }
+        return ClockStatus(
+            now=time.time(),
+            synchronised=k.synchronised,
+            max_error_ms=k.max_error_ms,
+            source=source(k, step),
+            from_laptop=self.from_laptop,
+            last_step=step,
+        )
 
-    def step(self, offset_s: Any, error_s: Any, login: str, armed: bool) -> dict[str, Any]:
+    def step(self, offset_s: Any, error_s: Any, login: str, armed: bool) -> ClockStep:
         """Step the wall clock by minus ``offset_s`` (the board's offset a laptop measured)."""
         for name, v in (("offset_s", offset_s), ("error_s", error_s)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
@@ -197,18 +200,18 @@ class BoardClock:
             raise ClockRefused("the motors are armed: disarm before the clock is stepped")
         before = time.time()
         time.clock_settime(time.CLOCK_REALTIME, time.time() - offset_s)
-        step = {
-            "by": login,
-            "at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "step_s": round(-offset_s, 6),
-            "error_ms": round(error_s * 1e3, 3),
-            "was": round(before, 3),
-            "boot_id": boot_id(),
-        }
+        step = ClockStep(
+            by=login,
+            at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            step_s=round(-offset_s, 6),
+            error_ms=round(error_s * 1e3, 3),
+            was=round(before, 3),
+            boot_id=boot_id(),
+        )
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             tmp = self.path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(step))
+            tmp.write_bytes(msgspec.json.encode(step))
             os.replace(tmp, self.path)
         return step
 
@@ -225,9 +228,9 @@ def recorded(state_dir: str | None) -> dict[str, str]:
         info["max_error_ms"] = f"{k.max_error_ms:g}"
     if step and not k.synchronised:
         info.update(
-            stepped_by=str(step.get("by")),
-            stepped_at=str(step.get("at")),
-            step_s=str(step.get("step_s")),
-            error_ms=str(step.get("error_ms")),
+            stepped_by=step.by,
+            stepped_at=step.at,
+            step_s=str(step.step_s),
+            error_ms=str(step.error_ms),
         )
     return info

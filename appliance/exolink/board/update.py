@@ -38,6 +38,7 @@ import structlog
 
 from exolink.refusal import Refused
 from exolink.wire import management
+from exolink.wire.replies import UNSET, Committed, Software, UploadAt, UploadProgress
 
 log = structlog.get_logger("exolink.board.update")
 
@@ -168,7 +169,7 @@ class Receiver:
         st = read_state(self.dir)
         return st.get("result") == "installing" and st.get("boot_id") == _boot_id_or_none()
 
-    def begin(self, req: management.Begin, by: str) -> dict[str, Any]:
+    def begin(self, req: management.Begin, by: str) -> UploadAt:
         """``req`` decoded (exolink.wire.management: size and hash well formed); what the board
         can take is checked here."""
         size, sha, name = req.size, req.sha256, req.name
@@ -190,7 +191,7 @@ class Receiver:
         self.upload = Upload(size, sha, name[:120], by, started=time.monotonic())
         self._hash = hashlib.sha256()
         log.info("update_upload_started", size=size, name=self.upload.name, by=by)
-        return {"offset": 0, "max_chunk": MAX_CHUNK}
+        return UploadAt(0, MAX_CHUNK)
 
     def _partial_bytes(self) -> int:
         try:
@@ -198,7 +199,7 @@ class Receiver:
         except OSError:
             return 0
 
-    def chunk(self, req: management.Chunk) -> dict[str, Any]:
+    def chunk(self, req: management.Chunk) -> UploadAt:
         up = self._current()
         offset, data = req.offset, req.data
         if offset != up.received:
@@ -218,9 +219,9 @@ class Receiver:
             f.write(raw)
         self._hash.update(raw)
         up.received += len(raw)
-        return {"offset": up.received}
+        return UploadAt(up.received)
 
-    def commit(self, by: str) -> dict[str, Any]:
+    def commit(self, by: str) -> Committed:
         up = self._current()
         if up.received != up.size:
             raise UpdateRefused(f"bundle incomplete: {up.received} of {up.size} bytes received")
@@ -235,7 +236,7 @@ class Receiver:
         took = time.monotonic() - up.started
         log.warning("update_requested", size=up.size, name=up.name, by=by, upload_s=round(took, 1))
         self.upload = None
-        return {"accepted": True, "upload_s": round(took, 1)}
+        return Committed(True, round(took, 1))
 
     def abort(self) -> None:
         self.upload = None
@@ -252,20 +253,24 @@ class Receiver:
         write_json(self.dir / HEALTHY, {"boot_id": boot_id(), "time": time.time()})
         log.info("update_healthy_marked")
 
-    def status(self, version: str) -> dict[str, Any]:
+    def status(self, version: str) -> Software:
+        """From the agent's state file, whose values are the agent's (root's) own."""
         st = read_state(self.dir)
-        out = {
-            "version": version,
-            "slot": st.get("slot") or slot_from_cmdline(),
-            "bundle_version": st.get("bundle_version"),
-            "result": st.get("result"),
-            "detail": st.get("detail"),
-            "since": st.get("since"),
-            "installing": self.installing,
-        }
-        if self.upload is not None:
-            out["upload"] = {"received": self.upload.received, "size": self.upload.size}
-        return out
+        up = self.upload
+        return Software(
+            version=version,
+            slot=_text(st.get("slot")) or slot_from_cmdline(),
+            bundle_version=_text(st.get("bundle_version")),
+            result=_text(st.get("result")),
+            detail=_text(st.get("detail")),
+            since=_text(st.get("since")),
+            installing=self.installing,
+            upload=UNSET if up is None else UploadProgress(up.received, up.size),
+        )
+
+
+def _text(value: Any) -> str | None:
+    return None if value is None else str(value)
 
 
 def _boot_id_or_none() -> str | None:

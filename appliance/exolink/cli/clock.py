@@ -15,6 +15,7 @@ from exolink.board import clock
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
 from exolink.wire import management
+from exolink.wire.replies import ClockStatus, read
 from exolink.wire.requests import body
 
 
@@ -27,11 +28,11 @@ def offset(r: Remote) -> clock.Offset:
     return clock.measure(lambda: float(r.call("clock")["now"]))
 
 
-def describe(status: dict[str, Any], off: clock.Offset | None) -> str:
+def describe(status: ClockStatus, off: clock.Offset | None) -> str:
     """One line, then a warning line when the board's time cannot be trusted."""
-    source = status.get("source", "?")
-    if source == "laptop" and (step := status.get("last_step")):
-        source = f"set from a laptop by {step.get('by')} at {step.get('at')}"
+    source = status.source
+    if source == "laptop" and (step := status.last_step):
+        source = f"set from a laptop by {step.by} at {step.at}"
     elif source == "unsynchronised":
         source = "UNSYNCHRONISED (no time server, not set from a laptop)"
     text = f"clock    {source}"
@@ -46,7 +47,7 @@ def describe(status: dict[str, Any], off: clock.Offset | None) -> str:
             "the board's clock is not synchronised: "
             + (
                 "`exolink clock sync` sets it"
-                if status.get("from_laptop")
+                if status.from_laptop
                 else "give it a time server (clock.from_laptop is false)"
             )
         )
@@ -62,13 +63,13 @@ def sync_at_arm(r: Remote) -> str:
     """The laptop's time, taken by a board that has no other (before the arm: steps are refused
     once armed). A line to show when it stepped or could not; "" when nothing was needed."""
     try:
-        st = r.call("clock")
+        st = read(r.call("clock"), ClockStatus)
     except Refused:  # an older supervisor: it has no clock to set
         return ""
-    if st.get("synchronised") or not st.get("from_laptop"):
+    if st.synchronised or not st.from_laptop:
         return ""
     off = offset(r)
-    if st.get("source") == "laptop" and not off.off():
+    if st.source == "laptop" and not off.off():
         return ""
     try:
         r.call("clock", body=step_body(off))
@@ -93,7 +94,7 @@ def cmd_clock(args: argparse.Namespace) -> int:
                 f"{after.offset_s * 1e3:+.1f} ms (+- {after.error_s * 1e3:.1f} ms) from this laptop\n"
             )
             off = after
-        sys.stdout.write(describe(r.call("clock"), off))
+        sys.stdout.write(describe(read(r.call("clock"), ClockStatus), off))
     return 0
 
 

@@ -19,6 +19,7 @@ from exolink.config import ZenohConfig
 from exolink.control import replies, requests
 from exolink.control.holder import Holder, HoldRefused, describe
 from exolink.wire import management
+from exolink.wire.replies import TimingStats
 from exolink.wire.requests import classes
 
 # --- pattern ----------------------------------------------------------------------------------
@@ -242,18 +243,20 @@ def cmd_timing(args: argparse.Namespace) -> int:
     body = timing_body(args)
     args.timeout = max(args.timeout, args.seconds + 5)
     with remote(args) as r:
-        s = r.call("timing", body=body)
-    s.pop("ok", None)
-    if not s.get("n"):
-        return fail(f"no timing for id {args.id}: {s.get('error', 'no frames')}", EXIT_UNREACHABLE)
+        raw = r.call("timing", body=body)
+    raw.pop("ok", None)
+    s = replies.read(raw, TimingStats)
+    if not s.n:
+        return fail(f"no timing for id {args.id}: {s.error or 'no frames'}", EXIT_UNREACHABLE)
     if args.json:
-        sys.stdout.write(json.dumps(s) + "\n")
+        sys.stdout.write(json.dumps(raw) + "\n")
         return 0
+    motor = f" motor {args.motor}" if args.motor is not None else ""
     sys.stdout.write(
-        f"id {args.id}{f' motor {args.motor}' if args.motor is not None else ''}: n={s['n']} period {s['mean_period_ms']} ms "
-        f"(expected {s['expected_ms']})  deviation mean {s['mean_dev_ms']} p99 {s['p99_dev_ms']} max {s['max_dev_ms']} ms\n"
+        f"id {args.id}{motor}: n={s.n} period {s.mean_period_ms} ms (expected {s.expected_ms})"
+        f"  deviation mean {s.mean_dev_ms} p99 {s.p99_dev_ms} max {s.max_dev_ms} ms\n"
     )
-    for k, v in s["histogram"].items():
+    for k, v in s.histogram.items():
         sys.stdout.write(f"  {k:>12} {v}\n")
     return 0
 

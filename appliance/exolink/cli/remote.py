@@ -18,6 +18,7 @@ from exolink.client import remote
 from exolink.control import requests
 from exolink.control.replies import Commanded, Frames
 from exolink.wire import management, replies
+from exolink.wire.replies import NodeParams, ParamSet
 from exolink.wire.requests import classes
 
 
@@ -198,10 +199,12 @@ def cmd_params(args: argparse.Namespace) -> int:
         if args.node not in names:
             return fail(f"no node {args.node} (nodes: {', '.join(names)})", EXIT_REFUSED)
         if args.set:
-            reply = r.call("nodes", args.node, "params", body=params_body(args))
-            sys.stdout.write(f"{args.node}.{reply['key']} = {json.dumps(reply['value'])}\n")
+            done = replies.read(
+                r.call("nodes", args.node, "params", body=params_body(args)), ParamSet
+            )
+            sys.stdout.write(f"{args.node}.{done.key} = {json.dumps(done.value)}\n")
         else:
-            print_json(r.call("nodes", args.node, "params")["params"])
+            print_json(replies.read(r.call("nodes", args.node, "params"), NodeParams).params)
     return 0
 
 

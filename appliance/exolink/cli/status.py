@@ -150,8 +150,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         f"bus      {bus.interface}:{bus.channel} {bus.state} "
         f"{bus.pulse} silent {bus.pulse_silent_s} s\n"
         f"trigger  {_or(trig.source, '')} count={trig.count}\n"
-        + (clock.describe(s.clock, off) if off is not None else "")
-        + update_line(s.software or None)
+        + (clock.describe(s.clock, off) if off is not None and s.clock is not None else "")
+        + describe(s.software)
         + _card_line(s.nodes)
         + _api_lines(s)
         + _node_table(s.nodes)
@@ -161,10 +161,6 @@ def cmd_status(args: argparse.Namespace) -> int:
     elif ctrl is not None:
         sys.stdout.write("controllers  " + show(read(ctrl, ManagerStatus)) + "\n")
     return 0
-
-
-def update_line(sw: dict[str, Any] | None) -> str:
-    return describe(sw)
 
 
 @guard

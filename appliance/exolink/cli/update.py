@@ -25,25 +25,26 @@ from exolink.cli.errors import EXIT_REFUSED, fail
 from exolink.cli.options import common, guard
 from exolink.client import Refused, Remote, remote
 from exolink.wire import management
+from exolink.wire.replies import UNSET, Software, UploadAt, read
 from exolink.wire.requests import body
 
 POLL_S = 5.0
 
 
-def describe(sw: dict[str, Any] | None) -> str:
+def describe(sw: Software | None) -> str:
     """The software line of ``exolink status``."""
-    if not sw:
+    if sw is None:
         return ""
-    text = f"software exolink {sw.get('version')} on slot {sw.get('slot') or '?'}"
-    if sw.get("bundle_version"):
-        text += f" (bundle {sw['bundle_version']})"
-    if sw.get("result"):
-        text += f"; last update: {sw['result']}"
-        if sw.get("detail"):
-            text += f" ({sw['detail']})"
-        if sw.get("since"):
-            text += f" at {sw['since']}"
-    if sw.get("installing"):
+    text = f"software exolink {sw.version} on slot {sw.slot or '?'}"
+    if sw.bundle_version:
+        text += f" (bundle {sw.bundle_version})"
+    if sw.result:
+        text += f"; last update: {sw.result}"
+        if sw.detail:
+            text += f" ({sw.detail})"
+        if sw.since:
+            text += f" at {sw.since}"
+    if sw.installing:
         text += "; INSTALLING an update (arming refused until the reboot)"
     return text + "\n"
 
@@ -70,8 +71,9 @@ def check_bundle(path: Path) -> tuple[int, str]:
 def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> float:
     """Chunks in order; a lost reply is asked again at the same offset. Returns seconds taken."""
     t0 = time.monotonic()
-    reply = r.call("update", body=body(management.Begin(size=size, sha256=sha, name=path.name)))
-    chunk = min(int(reply.get("max_chunk", update.MAX_CHUNK)), update.MAX_CHUNK)
+    begun = read(r.call("update", body=body(management.Begin(size, sha, path.name))), UploadAt)
+    chunk = update.MAX_CHUNK if begun.max_chunk is UNSET else begun.max_chunk
+    chunk = min(chunk, update.MAX_CHUNK)
     offset, shown = 0, -1
     with open(path, "rb") as f:
         while offset < size:
@@ -80,7 +82,7 @@ def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> f
             for attempt in range(5):
                 try:
                     ask = management.Chunk(offset=offset, data=data)
-                    reply = r.call("update", body=body(ask))
+                    at = read(r.call("update", body=body(ask)), UploadAt).offset
                     break
                 except messaging.Unreachable:
                     if attempt == 4:
@@ -88,11 +90,10 @@ def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> f
                 except Refused as exc:
                     # A chunk that arrived after all (its reply was lost): carry on from there.
                     if "expected" in str(exc) and attempt:
-                        expected = int(str(exc).rsplit(" ", 1)[-1])
-                        reply = {"offset": expected}
+                        at = int(str(exc).rsplit(" ", 1)[-1])
                         break
                     raise
-            offset = int(reply["offset"])
+            offset = at
             pct = offset * 100 // size
             if pct // 10 != shown // 10:
                 shown = pct
@@ -103,7 +104,7 @@ def send(r: Remote, path: Path, size: int, sha: str, out: Any = sys.stdout) -> f
     return time.monotonic() - t0
 
 
-def wait_outcome(args: argparse.Namespace, before: dict[str, Any], out: Any) -> int:
+def wait_outcome(args: argparse.Namespace, before: Software, out: Any) -> int:
     """Polls the board through its reboot until the update is good, rolled back or refused."""
     deadline = time.monotonic() + args.wait
     seen_down = False
@@ -112,7 +113,7 @@ def wait_outcome(args: argparse.Namespace, before: dict[str, Any], out: Any) -> 
         time.sleep(POLL_S)
         try:
             with remote(args) as r:
-                sw = r.call("update")
+                sw = read(r.call("update"), Software)
         except (messaging.Unreachable, Refused):
             if not seen_down:
                 out.write("board rebooting...\n")
@@ -124,15 +125,15 @@ def wait_outcome(args: argparse.Namespace, before: dict[str, Any], out: Any) -> 
             out.write(line)
             out.flush()
             last = line
-        result = sw.get("result")
-        if sw.get("since") == before.get("since"):
+        result = sw.result
+        if sw.since == before.since:
             continue  # the board's word from before this update (an earlier one's result)
         if result == "refused":
-            return fail(f"update refused by the board: {sw.get('detail')}", EXIT_REFUSED)
+            return fail(f"update refused by the board: {sw.detail}", EXIT_REFUSED)
         if result == "good":
             return 0
         if result == "rolled back":
-            return fail(f"update rolled back: {sw.get('detail')}", 1)
+            return fail(f"update rolled back: {sw.detail}", 1)
     return fail(f"no outcome within {args.wait:g} s; `exolink status` shows the board's word", 1)
 
 
@@ -142,7 +143,7 @@ def cmd_update(args: argparse.Namespace) -> int:
     size, sha = check_bundle(path)
     out = sys.stdout
     with remote(args) as r:
-        before = r.call("update")
+        before = read(r.call("update"), Software)
         out.write(describe(before))
         out.write(f"sending {path.name} ({size >> 20} MiB, sha256 {sha[:12]}...)\n")
         took = send(r, path, size, sha, out)

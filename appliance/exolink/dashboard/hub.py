@@ -38,6 +38,7 @@ from exolink.dashboard.live import LiveData
 from exolink.protocol import h2
 from exolink.recordings import requests as reqs
 from exolink.wire import cdr
+from exolink.wire.replies import ClockStatus, read
 from exolink.wire.requests import body as request_body
 
 log = structlog.get_logger("exolink.dashboard")
@@ -400,14 +401,19 @@ def _with_clock_offset(status: dict[str, Any], t0: float, t1: float) -> dict[str
     """The board's clock minus this laptop's, from the status round trip (exolink.board.clock: the
     page warns when the board's time cannot be trusted for a trial's recordings)."""
     c = status.get("clock")
-    if isinstance(c, dict) and isinstance(c.get("now"), int | float):
-        off = clock.Offset(c["now"] - (t0 + t1) / 2, (t1 - t0) / 2)
-        c.update(offset_ms=round(off.offset_s * 1e3, 1), error_ms=round(off.error_s * 1e3, 1))
-        c["warning"] = (
-            "not synchronised"
-            if clock.unset(c)
-            else f"{off.offset_s * 1e3:+.0f} ms off this laptop"
-            if off.off()
-            else ""
-        )
+    if not isinstance(c, dict):  # an older board's status has none
+        return status
+    try:
+        now = read(c, ClockStatus)
+    except ValueError:  # not a clock's status: nothing to say of it
+        return status
+    off = clock.Offset(now.now - (t0 + t1) / 2, (t1 - t0) / 2)
+    c.update(offset_ms=round(off.offset_s * 1e3, 1), error_ms=round(off.error_s * 1e3, 1))
+    c["warning"] = (
+        "not synchronised"
+        if clock.unset(now)
+        else f"{off.offset_s * 1e3:+.0f} ms off this laptop"
+        if off.off()
+        else ""
+    )
     return status

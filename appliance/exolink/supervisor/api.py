@@ -192,7 +192,7 @@ class ManagementApi:
             raise Refused("no trigger output configured (trigger.output in the config)")
         return replies.TriggerStatus(count=sup.trigger_count, last_ns=sup.last_trigger_ns)
 
-    def clock(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+    def clock(self, req: dict[str, Any], caller: messaging.Caller) -> replies.ClockStatus:
         """The board's clock (any role: a laptop measures its offset from ``now``), or a step
         to an operator laptop's time (exolink.board.clock: refused while armed or synchronised)."""
         clock = self.sup.clock
@@ -200,11 +200,13 @@ class ManagementApi:
             ask = decode(req, management.Clock, "clock action")
             step = clock.step(ask.offset_s, ask.error_s, caller.login, self.sup.watchdog.armed)
             self.sup.log.warning(
-                "clock_stepped", **{k: v for k, v in step.items() if k != "boot_id"}
+                "clock_stepped", by=step.by, at=step.at, step_s=step.step_s, error_ms=step.error_ms
             )
         return clock.status()
 
-    def update(self, req: dict[str, Any], caller: messaging.Caller) -> dict[str, Any]:
+    def update(
+        self, req: dict[str, Any], caller: messaging.Caller
+    ) -> replies.Software | replies.UploadAt | replies.Committed:
         """A new root file system from an admin laptop, in chunks (exolink.board.update; the
         requests: exolink.wire.management's ``Update``); no action is the software status (any
         role). Refused while armed: installing ends in a reboot, never under a walking patient;

@@ -104,6 +104,102 @@ class Fired(Reply):
     fired_ns: int | None
 
 
+class ClockStep(Reply):
+    """A laptop's step of the board's clock (exolink.board.clock), kept for its boot."""
+
+    by: str  # the login that stepped it
+    at: str  # UTC, ISO 8601, after the step
+    step_s: float
+    error_ms: float  # the laptop's measurement's
+    was: float  # the board's time before, s since the epoch
+    boot_id: str = ""
+
+
+class ClockStatus(Reply):
+    """The board's clock: what set it, and its time when asked (a laptop's offset from it)."""
+
+    now: float
+    synchronised: bool  # by a time server
+    max_error_ms: float | None
+    source: str  # time server | laptop | unsynchronised
+    from_laptop: bool  # the config lets a laptop step it
+    last_step: ClockStep | None = None  # this boot's
+
+
+class UploadProgress(Reply):
+    received: int
+    size: int
+
+
+class Software(Reply):
+    """The board's software (exolink.board.update): what runs, from which slot, and what
+    became of the last update."""
+
+    version: str  # exolink's, as installed
+    slot: str | None  # A | B (None: not booted by RAUC)
+    bundle_version: str | None
+    result: str | None  # installing | installed | good | rolled back | refused | ...
+    detail: str | None
+    since: str | None
+    installing: bool  # a bundle handed to the root agent: the board reboots when it is in
+    upload: UploadProgress | UnsetType = UNSET  # a bundle on its way in
+
+
+class UploadAt(Reply):
+    """An upload begun or a chunk taken: the offset the next chunk starts at."""
+
+    offset: int
+    max_chunk: int | UnsetType = UNSET  # only when it begins
+
+
+class Committed(Reply):
+    accepted: bool
+    upload_s: float
+
+
+class NodeParams(Reply):
+    """A node's params as it runs with them (``exolink params NODE``)."""
+
+    params: dict[str, Any]  # the node type's own schema (its ``Params``)
+
+
+class ParamSet(Reply):
+    """A param changed at run time, as the node now holds it."""
+
+    key: str
+    value: Any
+
+
+class TimingStats(Reply):
+    """The timing monitor's answer (``exolink timing``): one id's period deviations from its
+    kernel receive times."""
+
+    n: int  # periods measured (0: too few frames, ``error`` says so)
+    error: str = ""
+    expected_ms: float = 0.0
+    mean_period_ms: float = 0.0
+    mean_dev_ms: float = 0.0
+    p99_dev_ms: float = 0.0
+    max_dev_ms: float = 0.0
+    histogram: dict[str, int] = {}  # "0-50us" -> periods
+    socket_dropped: int | None = None  # frames the kernel dropped from the monitor's queue
+
+
+class FaultInjected(Reply):
+    """The simulator took a fault (``exolink sim fault``): it plays it for its duration."""
+
+    fault: str
+
+
+class NodeStats(Reply):
+    """What a node's ``stats`` says first, read by the recorder for each file: whose it is,
+    and its bus reader's receive counters (FrameReader.counters). The rest is the node's own
+    introspection (the h2 reader's frame counts), read by the benchmarks."""
+
+    node: str
+    receive: dict[str, Any] | None = None
+
+
 class Memory(Reply):
     rss_mb: float
     trims: int
@@ -121,8 +217,8 @@ class Status(Reply):
     trigger: TriggerStatus
     nodes: list[NodeInfo]
     memory: Memory
-    clock: dict[str, Any] = {}  # exolink.board.clock's status
-    software: dict[str, Any] = {}  # exolink.board.update's status
+    clock: ClockStatus | None = None  # None: an older supervisor's status
+    software: Software | None = None  # None: an older supervisor's status
     api: dict[str, int] = {}  # the API's handled and refused counts (messaging.Admission)
     bad_samples: dict[str, int] = {}
 
