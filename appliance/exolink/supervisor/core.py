@@ -287,8 +287,9 @@ class Supervisor(NodeJudge, NodeTelemetry):
 
     def _mark_healthy(self) -> None:
         """The first armable state of this boot (every critical node beating, the bus seen):
-        the root agent may now mark the booted slot good (exolink.board.update). Until then a new slot
-        is on trial and U-Boot falls back to the old one when its attempts run out."""
+        the root agent may now mark the booted slot good (exolink.board.update_agent). Until
+        then a new slot is on trial and U-Boot falls back to the old one when its attempts run
+        out."""
         if self._healthy_marked or self.arm_blockers():
             return
         self._healthy_marked = True
