@@ -39,10 +39,8 @@ R = TypeVar("R")
 
 SWITCH_WAIT_S = 1.0
 OPERATOR = "operator"  # prefix of the controllers that hold what `exolink send` asked
-DRIVE = ("setpoint", "duty")  # a board runs one of these at a time (closed / open loop)
 READS = ("list", "types", "state")  # what an observer may ask of the controllers
 PRESENCE = ("hold", "release")  # answered at once, never behind a switch
-JOINT_COMMAND = "exolink_msgs/msg/JointCommand"
 
 
 def _controllers_needs(request: dict[str, Any]) -> str:
