@@ -21,6 +21,7 @@ from exolink.nodes.recorder.metadata import file_metadata, receive_counters, rec
 from exolink.nodes.recorder.params import RecorderParams, Stats
 
 from exolink import messaging, roles
+from exolink.loops import Every
 from exolink.messaging import Refused, Unlogged
 from exolink.node import Node
 from exolink.recordings import requests as reqs
@@ -61,6 +62,8 @@ class Recorder(Node):
         self.stats = Stats()
         self.state, self.error = "idle", ""
         self.labels: dict[str, str] = {}
+        # when the loop next syncs the file, checks the card, publishes diagnostics (0: at once)
+        self._next_sync = self._next_card = self._next_diag = 0.0
         self.file: McapFile | None = None
         self.index = 0
         self.session_stamp = ""
@@ -335,42 +338,43 @@ class Recorder(Node):
         self._pending = 0
         self._diagnostics()
 
-    def run(self, stop: threading.Event) -> None:
-        next_sync = next_diag = next_card = time.monotonic()
-        while not stop.is_set():
-            self.beat()
-            stopping = self.state == "stopping"  # seen before the take: it holds all until now
-            try:
-                items = self._take(time.monotonic() + DRAIN_SLICE_S)
-                if self.file is None and (items or self.state == "recording"):
-                    self._open()  # only while recording does the take keep anything
-                self._write_all(items)
-                now = time.monotonic()
-                if self.file is not None and now >= next_sync:
-                    next_sync = now + self.params.fsync_interval_s
-                    self.file.sync()
-                if self._need_split():
-                    self._close()
-                    self.index += 1
-                if now >= next_card:
-                    next_card = now + CARD_CHECK_S
-                    self._check_card()
-                if stopping:
-                    self._write_all(self._take(float("inf")))
-                    self._close()
-                    self.state = "idle"
-                    self._unsubscribe_if_idle()
-                    self.log.info(
-                        "recording_stopped",
-                        **{k: v for k, v in vars(self.stats).items() if k != "files"},
-                    )
-            except OSError as exc:
-                self._fail(exc)
+    def loop(self) -> Every:
+        """Every INTAKE_PERIOD_S: the intake's batch written, then what is due (the file's
+        sync, its split, the card's check, the diagnostics)."""
+        return Every(INTAKE_PERIOD_S, self._tick)
+
+    def _tick(self) -> None:
+        stopping = self.state == "stopping"  # seen before the take: it holds all until now
+        try:
+            items = self._take(time.monotonic() + DRAIN_SLICE_S)
+            if self.file is None and (items or self.state == "recording"):
+                self._open()  # only while recording does the take keep anything
+            self._write_all(items)
+            now = time.monotonic()
+            if self.file is not None and now >= self._next_sync:
+                self._next_sync = now + self.params.fsync_interval_s
+                self.file.sync()
+            if self._need_split():
+                self._close()
+                self.index += 1
+            if now >= self._next_card:
+                self._next_card = now + CARD_CHECK_S
+                self._check_card()
+            if stopping:
+                self._write_all(self._take(float("inf")))
+                self._close()
+                self.state = "idle"
                 self._unsubscribe_if_idle()
-            if time.monotonic() >= next_diag:
-                next_diag = time.monotonic() + 1.0
-                self._diagnostics()
-            stop.wait(INTAKE_PERIOD_S)
+                self.log.info(
+                    "recording_stopped",
+                    **{k: v for k, v in vars(self.stats).items() if k != "files"},
+                )
+        except OSError as exc:
+            self._fail(exc)
+            self._unsubscribe_if_idle()
+        if time.monotonic() >= self._next_diag:
+            self._next_diag = time.monotonic() + 1.0
+            self._diagnostics()
 
     def _write_all(self, items: list[Item]) -> None:
         self._pending = len(items)
