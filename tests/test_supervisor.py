@@ -79,13 +79,24 @@ def test_kill9_of_critical_node_disables_motors_and_node_returns(app, mbus, vict
     r = app.cli("send", "position", "r_knee", "40")
     assert r.returncode == 5 and f"watchdog is tripped ({reason})" in r.stderr
     assert collect(mbus, 0.3, {70}) == []
-    app.arm()
-    assert app.cli("send", "position", "r_knee", "40").returncode == 0
-    wait_for(
-        lambda: any(h2.decode(m).r_knee == 40 for m in collect(mbus, 0.1, {110})),
-        timeout=5,
-        explain=lambda: app.status()["watchdog"],
-    )
+    # Re-armed, motion is accepted again. One second chance, only for a trip of the simulated
+    # H2's own silence: the restarted node's start on a 2-core host can starve the simulator
+    # past the watchdog's 100 ms just after the arm (seen once in 5 full runs); any other
+    # trip, or a second one, fails.
+    for chance in (1, 2):
+        app.arm()
+        assert app.cli("send", "position", "r_knee", "40").returncode == 0
+        try:
+            wait_for(
+                lambda: any(h2.decode(m).r_knee == 40 for m in collect(mbus, 0.1, {110})),
+                timeout=5,
+                explain=lambda: app.status()["watchdog"],
+            )
+            break
+        except AssertionError:
+            wd = app.status()["watchdog"]
+            if chance == 2 or (wd["state"], wd["reason"]) != ("tripped", "h2 data silent"):
+                raise
 
 
 def test_sigstop_trips_on_heartbeat_deadline(app, mbus) -> None:  # type: ignore[no-untyped-def]
