@@ -159,28 +159,21 @@ class Recorder(Node):
         return self.state == "stopping" or (self.state == "recording" and self.file is None)
 
     def status(self) -> RecordStatus:
-        with self.lock:
-            st = self.stats
-            counts = (st.received, st.written, st.dropped, st.duplicates, st.malformed)
-            refused, refused_from, files = st.refused_topics, dict(st.refused_from), list(st.files)
+        with self.lock:  # the counters as one copy (Stats' fields are RecordStatus' own)
+            counts = vars(self.stats).copy()
+            counts["files"] = list(self.stats.files)
+            counts["refused_from"] = dict(self.stats.refused_from)
         f, card = self.file, self.card
-        received, written, dropped, duplicates, malformed = counts
+        size = f.size() if f else 0
         return RecordStatus(
             state=self.state,
             error=self.error,
             file=str(f.path) if f else None,
-            size=f.size() if f else 0,
+            size=size,
             labels=self.labels,
             queue=self._pending,
-            received=received,
-            written=written,
-            dropped=dropped,
-            duplicates=duplicates,
-            malformed=malformed,
-            refused_topics=refused,
-            refused_from=refused_from,
-            files=files,
-            bytes=self._bytes + (f.size() if f else 0),  # this recording's files, all
+            **counts,
+            bytes=self._bytes + size,  # this recording's files, all
             card=card,
             rate_bps=round(self.rate.last, 1),
             hours_left=recstore.hours_left(card.free, card.reserve, self.rate.last),
