@@ -822,7 +822,20 @@ def test_operator_motion_goes_through_the_manager(routed, mbus) -> None:  # type
     # a joint another controller drives: refused with that controller named, nothing sent
     assert ctl(app, "activate", "gait").returncode == 0
     assert ctl(app, "command", "gait", "r_knee=10").returncode == 0
-    wait_for(lambda: [f.setpoint for f in joint_frames(collect(mbus, 0.1, {70}), 2)][-1:] == [10])
+    seen: list[Any] = []
+
+    def knee_at_10() -> bool:
+        seen[:] = collect(mbus, 0.1, {70})
+        return [f.setpoint for f in joint_frames(seen, 2)][-1:] == [10]
+
+    wait_for(  # if not: the watchdog, the controller and the last frames say why
+        knee_at_10,
+        explain=lambda: (
+            app.status()["watchdog"],
+            listing(app)["gait"],
+            joint_frames(seen, 2)[-5:],
+        ),
+    )
     r = app.cli("send", "position", "r_knee", "30")
     assert r.returncode == 5 and "r_knee is driven by controller gait" in r.stderr, r.stderr
     assert {f.setpoint for f in joint_frames(collect(mbus, 0.3, {70}), 2)} == {10}
