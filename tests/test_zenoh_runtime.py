@@ -39,56 +39,6 @@ def test_the_router_transmits_on_its_own_thread_while_it_opens() -> None:
         assert router == "(app: (worker_threads: 3))"  # an operator's own is left alone
 
 
-def _sockets(pid: int) -> set[int]:
-    """The inodes of a process's sockets."""
-    fds = Path(f"/proc/{pid}/fd")
-    links = (os.readlink(fds / fd) for fd in os.listdir(fds))
-    return {int(x[8:-1]) for x in links if x.startswith("socket:[")}
-
-
-def _tcp_remote_ports(pid: int) -> dict[int, int]:
-    """socket inode -> remote port, of the TCP sockets in the process's network namespace."""
-    out: dict[int, int] = {}
-    for name in ("tcp", "tcp6"):
-        for line in Path(f"/proc/{pid}/net/{name}").read_text().splitlines()[1:]:
-            f = line.split()
-            out[int(f[9])] = int(f[2].rsplit(":", 1)[1], 16)
-    return out
-
-
-def _unix_paths(pid: int) -> dict[int, str]:
-    """socket inode -> path, of the unix sockets bound to or accepted on a path."""
-    rows = (ln.split() for ln in Path(f"/proc/{pid}/net/unix").read_text().splitlines()[1:])
-    return {int(f[6]): f[7] for f in rows if len(f) > 7}
-
-
-def test_node_link_unix_or_tcp(tmp_path: Path) -> None:
-    env: dict[str, str] = {}
-    at = messaging.node_link(ZenohConfig(), tmp_path, env)
-    assert at == f"unixsock-stream/{tmp_path}/router.sock" == env["EXOLINK_NODE_LINK"]
-    assert messaging.node_link(ZenohConfig(node_link="tcp"), tmp_path, env) is None and env == {}
-
-
-def test_nodes_reach_the_router_on_a_unix_socket_in_the_supervisors_own_directory(
-    write_config, spawn
-) -> None:  # type: ignore[no-untyped-def]
-    """Each node's session is on the node link: no TCP connection of a node to the router's
-    port, one accepted unix connection per node on the router's socket, in a directory only
-    the appliance's user may enter."""
-    app = Appliance(write_config(), spawn)
-    port = int(app.at.rsplit(":", 1)[1])
-    sup = app.proc.p.pid
-    pids = [n["pid"] for n in app.call("status")["nodes"] if n.get("pid")]
-    assert pids
-    tcp = _tcp_remote_ports(sup)
-    for pid in pids:
-        assert [i for i in _sockets(pid) if tcp.get(i) == port] == [], pid
-    paths = _unix_paths(sup)
-    on_link = [paths[i] for i in _sockets(sup) if paths.get(i, "").endswith("/router.sock")]
-    assert len(on_link) >= len(pids) + 1, on_link  # the listener and an accepted one per node
-    assert Path(on_link[0]).parent.stat().st_mode & 0o077 == 0
-
-
 def test_one_zenoh_thread_per_process_and_nested_commands_answer(write_config, spawn) -> None:  # type: ignore[no-untyped-def]
     env_before = os.environ.get("ZENOH_RUNTIME")
     app = Appliance(write_config(zenoh={"threads": 1}), spawn)

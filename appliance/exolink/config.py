@@ -95,9 +95,6 @@ class ZenohConfig(_Strict, frozen=True):
     # a message larger than a link's transmit queue (~128 KB) stalled it 5 s and was lost, and
     # with two app threads too.
     threads: Annotated[int, msgspec.Meta(ge=1, le=4)] | None = None
-    # How a supervisor's nodes reach its router (messaging.node_link): a unix socket in its
-    # private directory, or TCP on loopback (the first `listen` port, as a local tool does).
-    node_link: Literal["unix", "tcp"] = "unix"
 
 
 class WatchdogConfig(_Strict, frozen=True):

@@ -180,42 +180,18 @@ def local_endpoint(zcfg: ZenohConfig) -> str:
     return f"{proto}/127.0.0.1:{port}"
 
 
-NODE_LINK_ENV = "EXOLINK_NODE_LINK"  # the endpoint a supervisor's nodes connect to (node_link)
-
-
-def node_link(
-    zcfg: ZenohConfig, workdir: Path, env: MutableMapping[str, str] = os.environ
-) -> str | None:
-    """The endpoint where a supervisor's nodes reach its router, put in the environment
-    before the zygote and any node start (they inherit it): with ``zenoh.node_link: unix``,
-    a unix socket in the supervisor's private ``workdir``; None: TCP on loopback.
-
-    Why: a sample crosses a local link twice (node -> router -> node), and on the board proxy
-    a hop over a unix socket cost about a third less CPU than over TCP on loopback (units.py,
-    4 x 5 samples: router 262 -> 184 us, subscriber 366 -> 240 us, publisher 233 -> 180 us).
-    The directory's mode (0700) keeps other local users off that link; the login is checked
-    on it as on TCP."""
-    if zcfg.node_link != "unix":
-        env.pop(NODE_LINK_ENV, None)
-        return None
-    endpoint = f"unixsock-stream/{workdir / 'router.sock'}"
-    env[NODE_LINK_ENV] = endpoint
-    return endpoint
-
-
 def open_node_session(cfg: ApplianceConfig) -> zenoh.Session:
-    """A node's client session, with the appliance's own login when the board has logins:
-    on its supervisor's node link (``node_link``), else TCP on loopback (a node run alone)."""
-    endpoint = os.environ.get(NODE_LINK_ENV) or local_endpoint(cfg.zenoh)
+    """A node's client session, with the appliance's own login when the board has logins."""
+    endpoint = local_endpoint(cfg.zenoh)
     zcfg = session_config(cfg.zenoh, connect=[endpoint], mode="client")
     return open_session(zcfg, f"supervisor's Zenoh router at {endpoint}")
 
 
-def open_hub_session(cfg: ApplianceConfig, nodes_at: str | None = None) -> zenoh.Session:
-    """The supervisor's (or a standalone run's) session: listens where laptops connect, and
-    on ``nodes_at`` (``node_link``) for its own nodes."""
-    listen = [*cfg.zenoh.listen, *([nodes_at] if nodes_at else [])]
-    zcfg = session_config(cfg.zenoh, listen=listen, connect=cfg.zenoh.connect, mode="router")
+def open_hub_session(cfg: ApplianceConfig) -> zenoh.Session:
+    """The supervisor's (or a standalone run's) session: listens where laptops connect."""
+    zcfg = session_config(
+        cfg.zenoh, listen=cfg.zenoh.listen, connect=cfg.zenoh.connect, mode="router"
+    )
     with router_runtime(cfg.zenoh):
         return open_session(zcfg, f"listening on {', '.join(cfg.zenoh.listen)}")
 

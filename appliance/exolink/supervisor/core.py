@@ -104,7 +104,6 @@ class Supervisor(NodeJudge, NodeTelemetry):
         runtime = messaging.zenoh_runtime(cfg.zenoh)  # before any session: nodes inherit it
         if runtime is not None:
             self.log.info("zenoh_runtime", setting=runtime)
-        nodes_at = messaging.node_link(cfg.zenoh, self._workdir)  # before the zygote: inherited
         self.zygote = self._start_zygote()  # a fork: before any socket, session or thread
         if cfg.can.interface == "socketcan":
             if cfg.can.require_overlay:
@@ -114,7 +113,7 @@ class Supervisor(NodeJudge, NodeTelemetry):
         eyes = watch_device(cfg, dev)  # the watchdog's reader, and the kernel's watches
         self.reader = eyes.reader
         self.bus = self.reader.bus
-        self.session = messaging.open_hub_session(cfg, nodes_at)
+        self.session = messaging.open_hub_session(cfg)
         self.msg = messaging.Messaging(self.session, cfg, ros_node=SUPERVISOR)
         self.pub_wd = self.msg.publisher(WATCHDOG_TOPIC, WATCHDOG_TYPE, raw=True)
         self.watchdog = Watchdog(
