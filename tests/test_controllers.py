@@ -1076,6 +1076,8 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     timer = json.loads(ctl(app, "list", "--json").stdout)["timer"]
     assert timer["sending"] and timer["runs"] >= 1, timer
     assert angles / 4 <= len(hips) <= angles / 2 + 3, (len(hips), angles, timer)
+    # what the timer sent is counted (both joints, as of its last renewal): at least the hip's
+    assert timer["sent"] >= len(hips), (timer, len(hips))
     runs = dedup(hips[20:])  # values repeat: compare runs of equal values
     # in the pattern's order: a slot is where the pattern is at its time, the same fraction f of
     # the way from one row to the next each slot (the timer's phase against the pattern's);

@@ -432,8 +432,10 @@ def derived(m: dict[str, Any]) -> dict[str, Any]:
         out["pattern_state_end"] = p1.get("state")
         out["pattern_sent"] = p1["sent"] - p0["sent"]
     c0, c1 = b.get("controllers", {}), a.get("controllers", {})
-    if p1.get("timing") == "manager" and "written" in c0 and "written" in c1:
-        out["pattern_sent"] = c1["written"] - c0["written"]  # the manager writes the pattern
+    if "written" in c0 and "written" in c1:  # the manager writes the pattern: its cycle
+        t0, t1 = c0.get("timer", {}), c1.get("timer", {})  # loop's frames and its timer's
+        timer = t1["sent"] - t0["sent"] if "sent" in t0 and "sent" in t1 else 0
+        out["pattern_sent"] = c1["written"] - c0["written"] + timer
     for name, x0, x1 in (("h2_reader", r0, r1), ("controller_manager", c0, c1)):
         if "loop_cpu" in x0 and "loop_cpu" in x1:  # where each loop's CPU went (phaseclock)
             out[f"{name}_loop_cpu"] = phaseclock.window(x0["loop_cpu"], x1["loop_cpu"])

@@ -45,6 +45,7 @@ class TimerLoop:
         self.refused = ""
         self.lapses = 0
         self.renewals = 0  # of the ops that ended
+        self.sent = 0  # frames the ops that ended sent, by the kernel's count
         self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
 
     @property
@@ -58,6 +59,8 @@ class TimerLoop:
             "sending": timed is not None,
             "runs": self.runs,
             "renewals": self.renewals + (timed.renewals if timed else 0),
+            # frames the timer sent: the running op's as of its last renewal
+            "sent": self.sent + (timed.base if timed else 0),
             "lapses": self.lapses,
             "refused": self.refused,
             # slots computed through the manager, and the cycle replayed (0: none yet)
@@ -247,7 +250,9 @@ class TimerLoop:
 
     def _end(self) -> None:
         n = self.node
-        self.renewals += self.timed.renewals if self.timed is not None else 0
+        if self.timed is not None:
+            self.renewals += self.timed.renewals
+            self.sent += self.timed.base
         self.timed = None
         if n.reader is not None and n.reader.ids != frozenset(n.read_ids):
             n.reader.set_ids(n.read_ids)
