@@ -14,13 +14,13 @@ from typing import Any
 from exolink.nodes.recorder import RecorderParams
 
 from benchmarks.bench_recorder import joint_states, write
-from benchmarks.harness import Appliance, cpu_s
+from benchmarks.harness import Appliance, board_cycles_per_read, cpu_s
 from exolink import messaging
 from exolink.recordings import fetching
 
 
 def _nodes(directory: Path, fetch_mb_s: float) -> list[dict[str, Any]]:
-    every = {"cycles_per_read": 10}  # the board's cadence: 100 Hz topics come bundled
+    every = {"cycles_per_read": board_cycles_per_read()}  # 100 Hz topics come bundled
     return [
         {"name": "simulator", "plugin": "simulator", "params": {"maccepa_boards": [0]}},
         {"name": "h2_reader", "plugin": "h2_reader", "params": every},

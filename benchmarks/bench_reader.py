@@ -11,7 +11,15 @@ from typing import Any
 
 import yaml
 
-from benchmarks.harness import Appliance, cpu_s, free_port, group, pct, pss_mb
+from benchmarks.harness import (
+    Appliance,
+    board_cycles_per_read,
+    cpu_s,
+    free_port,
+    group,
+    pct,
+    pss_mb,
+)
 from exolink import messaging
 from exolink.canbus import open_bus
 from exolink.config import CanConfig, bundled
@@ -164,13 +172,6 @@ def max_rate(quick: bool) -> dict[str, Any]:
         "max_zero_loss_frames_per_s": max(ok) if ok else 0,
         "note": "udp_multicast itself drops frames near 10k/s; vcan figures come with the kernel tests",
     }
-
-
-def board_cycles_per_read() -> int:
-    """The h2 reader's ``cycles_per_read`` in board.yaml: what the board runs."""
-    nodes = yaml.safe_load(bundled("board").read_text())["nodes"]
-    reader = next(n for n in nodes if n["plugin"] == "h2_reader")
-    return int(reader.get("params", {}).get("cycles_per_read", 1))
 
 
 def run(quick: bool) -> dict[str, Any]:

@@ -165,6 +165,13 @@ def _as_hardware(node: dict[str, Any], bundled_nodes: list[dict[str, Any]]) -> d
 RATE_RETRY_S = 0.1  # a request the appliance refused for its rate limit is asked again after this
 
 
+def board_cycles_per_read() -> int:
+    """The h2 reader's ``cycles_per_read`` in board.yaml: what the board runs."""
+    nodes = yaml.safe_load(bundled("board").read_text())["nodes"]
+    reader = next(n for n in nodes if n["plugin"] == "h2_reader")
+    return int(reader.get("params", {}).get("cycles_per_read", 1))
+
+
 def wait_for(
     pred: Callable[[], object],
     timeout: float = 10.0,

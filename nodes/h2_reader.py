@@ -61,7 +61,8 @@ class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # Wake once per this many H2 cycles and publish their samples back to back (canbus.Cadence:
     # on the board a wake-up and a Zenoh hop cost more than a sample). Subscribers get every
     # sample, up to N-1 cycles later; the watchdog and controller manager read the bus itself.
-    cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
+    # At most 25: a quarter second, what a live plot still follows.
+    cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=25)] = 1
     # Foot switches + battery: on change, and at least this often (s); 0: every cycle.
     foot_switches_refresh_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 1.0
     # MACCEPA boards whose state this reader publishes too (maccepa/b<N>/state, as the MACCEPA

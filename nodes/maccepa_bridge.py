@@ -37,7 +37,7 @@ class BridgeParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     wake_on_base: Literal[0, 50, 60, 70] = maccepa.CONTROLLER_BASE
     # Wake once per this many board cycles and publish their samples back to back (see the
     # h2 reader's param of the same name; canbus.Cadence).
-    cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=10)] = 1
+    cycles_per_read: Annotated[int, msgspec.Meta(ge=1, le=25)] = 1
 
 
 class MaccepaBridge(Node):
