@@ -41,7 +41,8 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 FOOT_SWITCHES = "exolink_msgs/msg/FootSwitches"
 DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = math.pi / 180.0
-_RANGES = [h2.RANGES[j] for j in h2.JOINTS]
+_LOW = tuple(h2.RANGES[j][0] for j in h2.JOINTS)  # each joint's mechanical range
+_HIGH = tuple(h2.RANGES[j][1] for j in h2.JOINTS)
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -197,7 +198,6 @@ class H2Reader(Node):
             self.boards.handle(msg)
             return
         frame = h2.decode(msg)
-        ts = msg.timestamp
         st = self.stats
         if isinstance(frame, h2.Unknown):
             if frame.reason == "bad length":
@@ -205,11 +205,12 @@ class H2Reader(Node):
             else:
                 st.unknown += 1
             return
-        fid = msg.arbitration_id
+        ts, fid = msg.timestamp, msg.arbitration_id
         st.frames[fid] += 1
         st.missing[fid] += self.gaps.missed(fid, ts)
         if isinstance(frame, h2.JointAngles):
-            if not all(lo <= a <= hi for a, (lo, hi) in zip(frame, _RANGES, strict=True)):
+            # in C, not a generator per joint: 100 frames a second on the board's one core
+            if not (all(map(int.__le__, _LOW, frame)) and all(map(int.__le__, frame, _HIGH))):
                 st.out_of_range += 1  # still published: the diagnostics say it is a fault
             if self._pending is not None:  # the torque frame of the last cycle never came
                 st.without_torque += 1

@@ -58,6 +58,16 @@ def test_a_lost_frame_keeps_its_last_values_and_sets_its_stale_bit() -> None:
     assert cycle.add(controller(33), 1.032) == [(1.030, 0, values(13, 23, 33))]
 
 
+def test_a_frames_fields_after_board_are_maccepa_states_values_in_order() -> None:
+    """BoardCycle keeps a frame's fields after ``board`` as MaccepaState's int16 values."""
+    msg = (messaging.MSG_DIR / "exolink_msgs" / "msg" / "MaccepaState.msg").read_text()
+    values = [ln.split()[1] for ln in msg.splitlines() if ln.startswith("int16 ")]
+    kinds = (maccepa.Sensors, maccepa.Positions, maccepa.Controller)
+    fields = [f for cls in kinds for f in cls._fields[1:]]
+    assert len(values) == len(fields), (values, fields)
+    assert all(v.startswith(f) for v, f in zip(values, fields, strict=True)), (values, fields)
+
+
 def test_a_bridge_that_starts_mid_cycle_marks_what_it_never_saw() -> None:
     cycle = BoardCycle()
     assert cycle.add(controller(30), 1.002) == [(1.002, 3, [0] * 8 + [30, 31, 32])]

@@ -18,13 +18,11 @@ from exolink.wire import cdr
 
 STATE = cdr.MaccepaStateCdr.TYPE
 
-# The frames of a board cycle, in protocol order: the frame's int16 fields in MaccepaState's
-# order, and the frame's bit in its ``stale`` field. The controller frame ends the cycle.
-_PARTS: dict[type, tuple[int, tuple[str, ...]]] = {
-    maccepa.Sensors: (1, ("current", "temperature", "velocity", "load")),
-    maccepa.Positions: (2, ("link", "lever", "extra_position", "extra_sensor")),
-    maccepa.Controller: (4, ("setpoint", "actuation", "process_variable")),
-}
+# The frames of a board cycle, in protocol order, and each one's bit in MaccepaState's
+# ``stale`` field; a frame's fields after ``board`` are MaccepaState's int16 values in order
+# (the protocol's NamedTuples say so, and tests/test_maccepa_bridge.py checks it). The
+# controller frame ends the cycle.
+_PARTS: dict[type, int] = {maccepa.Sensors: 1, maccepa.Positions: 2, maccepa.Controller: 4}
 _ALL_PARTS = 7
 _CYCLE_END = 4
 
@@ -37,19 +35,23 @@ class BoardCycle:
     """One board's frames of the cycle under way, and the last values of each kind of frame."""
 
     def __init__(self) -> None:
-        self.values = {cls: [0] * len(fields) for cls, (_bit, fields) in _PARTS.items()}
+        self.values: dict[type, tuple[int, ...]] = {
+            cls: (0,) * (len(cls._fields) - 1)  # type: ignore[attr-defined]
+            for cls in _PARTS
+        }
         self.seen = 0  # bits of the frames this cycle brought
         self.first_ts = 0.0
 
     def add(self, frame: Any, ts: float) -> list[tuple[float, int, list[int]]]:
         """The cycles this frame ends: its own at the controller frame, the one before when a
         frame of a kind the cycle already has shows a new cycle began (a controller frame lost)."""
-        bit, fields = _PARTS[type(frame)]
+        kind = type(frame)
+        bit = _PARTS[kind]
         done = [self._end()] if self.seen & bit else []
         if not self.seen:
             self.first_ts = ts
         self.seen |= bit
-        self.values[type(frame)] = [getattr(frame, name) for name in fields]
+        self.values[kind] = frame[1:]  # its values, in MaccepaState's order
         if bit == _CYCLE_END:
             done.append(self._end())
         return done
@@ -57,7 +59,8 @@ class BoardCycle:
     def _end(self) -> tuple[float, int, list[int]]:
         """(first frame's time, stale bits, the eleven values) of the cycle; starts the next."""
         stale = _ALL_PARTS & ~self.seen
-        out = [v for cls in _PARTS for v in self.values[cls]]
+        values = self.values
+        out = [*values[maccepa.Sensors], *values[maccepa.Positions], *values[maccepa.Controller]]
         self.seen = 0
         return self.first_ts, stale, out
 
@@ -83,11 +86,11 @@ class BoardStates:
 
     def handle(self, msg: Any) -> None:
         f = maccepa.decode(msg)
-        board: int | None = getattr(f, "board", None)
-        cycle = self.cycles.get(board) if board is not None and type(f) in _PARTS else None
-        if cycle is None or board is None:
+        cycle = self.cycles.get(f[0]) if type(f) in _PARTS else None  # f[0]: its board
+        if cycle is None:
             self.malformed += 1
             return
+        board = f[0]
         for ts, stale, values in cycle.add(f, msg.timestamp):
             ns = int(ts * 1e9)
             self.emit(board, self.template.encode(ns, board, stale, values), ns)
