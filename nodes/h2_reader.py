@@ -20,7 +20,9 @@ batches straight from the socket (``canbus.FrameReader``) and published from CDR
 from __future__ import annotations
 
 import math
+import operator
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Annotated, Any, Literal
 
@@ -43,6 +45,9 @@ DIAGNOSTICS = messaging.DIAGNOSTICS_TYPE
 _DEG = math.pi / 180.0
 _LOW = tuple(h2.RANGES[j][0] for j in h2.JOINTS)  # each joint's mechanical range
 _HIGH = tuple(h2.RANGES[j][1] for j in h2.JOINTS)
+# <= in C for the range check; operator.le, not int.__le__, whose NotImplemented for a float
+# (a scaled angle) is truthy and would pass every frame
+_LE: Callable[[float, float], bool] = operator.le
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -210,7 +215,7 @@ class H2Reader(Node):
         st.missing[fid] += self.gaps.missed(fid, ts)
         if isinstance(frame, h2.JointAngles):
             # in C, not a generator per joint: 100 frames a second on the board's one core
-            if not (all(map(int.__le__, _LOW, frame)) and all(map(int.__le__, frame, _HIGH))):
+            if not (all(map(_LE, _LOW, frame)) and all(map(_LE, frame, _HIGH))):
                 st.out_of_range += 1  # still published: the diagnostics say it is a fault
             if self._pending is not None:  # the torque frame of the last cycle never came
                 st.without_torque += 1

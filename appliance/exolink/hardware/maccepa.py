@@ -59,8 +59,7 @@ class BoardCycle:
     def _end(self) -> tuple[float, int, list[int]]:
         """(first frame's time, stale bits, the eleven values) of the cycle; starts the next."""
         stale = _ALL_PARTS & ~self.seen
-        values = self.values
-        out = [*values[maccepa.Sensors], *values[maccepa.Positions], *values[maccepa.Controller]]
+        out = [v for cls in _PARTS for v in self.values[cls]]  # in _PARTS' (the protocol's) order
         self.seen = 0
         return self.first_ts, stale, out
 
