@@ -377,8 +377,14 @@ def main() -> int:
     p.add_argument(
         "--cap-after-start",
         action="store_true",
-        help="with --cpu-quota: set the quota once every node beats, not from boot (the "
+        help="with --cpu-quota: set the quota once every node beats and 10 s more, not from boot (the "
         "budget of the running appliance; the cold start under the cap is another question)",
+    )
+    p.add_argument(
+        "--timeline",
+        action="store_true",
+        help="CPU per thread of the appliance's cgroup every 0.25 s from the nodes' start "
+        "(or the cap) to the end (benchmarks/board/timeline.py): who took the core when",
     )
     p.add_argument(
         "--pid",
@@ -453,6 +459,7 @@ def main() -> int:
             args.estop,
             args.fetch_mb,
             args.cap_after_start,
+            args.timeline,
         )
     if args.only != "guest":
         result["native"] = _guarded(

@@ -24,6 +24,7 @@ import yaml
 from benchmarks.board import card as cardlib
 from benchmarks.board import ladder as ladderlib
 from benchmarks.board import profile, scenario
+from benchmarks.board import timeline as timelinelib
 from benchmarks.board.guest import Guest
 from benchmarks.harness import free_port
 from exolink import messaging
@@ -33,6 +34,8 @@ log = structlog.get_logger("bench-board")
 
 PROBE = Path(__file__).with_name("probe.py")
 GUEST_PROBE = "/run/exolink-probe.py"
+TIMELINE = Path(__file__).with_name("timeline.py")
+GUEST_TIMELINE = "/run/exolink-timeline.py"
 UNITS = Path(__file__).with_name("units.py")
 ESTOP = Path(__file__).parents[1] / "estop.py"
 GUEST_ESTOP, GUEST_LOGIN = "/run/exolink-estop.py", "/run/exolink-estop-login.json5"
@@ -40,6 +43,7 @@ ESTOP_TRIALS = 20
 UNITS_SECONDS = 10.0
 DEVICE = "exo-01"
 SETTLE_S = 10.0
+UNCAPPED_PCT = 200  # a quota of the guest's 2 CPUs: no limit
 LOG_PATTERNS = (
     r"loop_stalled|node_hung_killed|node_exited|watchdog_trip|tripped|Watchdog timeout|Failed with"
 )
@@ -243,6 +247,7 @@ def run_guest(
     estop: bool = False,
     fetch_mb: int = 0,
     cap_after_start: bool = False,
+    timeline: bool = False,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
@@ -251,7 +256,9 @@ def run_guest(
     window, e-stop -> first disable frame in the guest, beside hostile clients on this host;
     ``fetch_mb``: a closed recording of this size on the card, fetched by the laptop's
     ``exolink record fetch`` from the window's start; ``cap_after_start``: the quota set once
-    every node beats (``systemctl set-property --runtime``), so the start is not under it."""
+    every node beats and SETTLE_S more (``systemctl set-property --runtime``), so the start is
+    not under it, the arm and the gait's start are;
+    ``timeline``: CPU per thread every 0.25 s from then to the end (timeline.py)."""
     if cprofile:
         env = (
             *env,
@@ -277,7 +284,9 @@ def run_guest(
         (py_spy,) if py_spy else (),
         env,
         without,
-        None if cap_after_start else cpu_quota,
+        # Set later (_cap_now): from boot, a quota no larger than the guest's two CPUs, so
+        # systemd enables the cgroup's cpu controller and its cpu.max is there to write.
+        (UNCAPPED_PCT if cpu_quota else None) if cap_after_start else cpu_quota,
     )
     result["config"] = cfg
     result["cpu_quota_pct"] = cpu_quota
@@ -323,10 +332,19 @@ def run_guest(
         log.info("nodes", laptop=laptop is not None, boot_s=round(boot_s, 1))
         if cpu_quota:
             result["simulator_cgroup"] = _simulator_out_of_the_quota(guest)
-        if cpu_quota and cap_after_start:
-            result["cpu_quota_set"] = _cap_now(guest, cpu_quota)
+        if timeline:
+            guest.upload(TIMELINE, GUEST_TIMELINE)
+            guest.ssh(
+                f"nohup taskset -c 1 python3 {GUEST_TIMELINE} --out {GUEST_TIMELINE}l "
+                ">/dev/null 2>&1 &"
+            )
         fetch = _stage_recording(guest, work, fetch_mb, result) if fetch_mb else None
         time.sleep(SETTLE_S)
+        if cpu_quota and cap_after_start:
+            # Once the nodes' first seconds are over: set as the last node beat, the cap caught
+            # the pattern player and the manager still settling (B63: 1.1 and 0.4 s stalls, two
+            # hung-kills before any load), which is the start's budget, not the load's.
+            result["cpu_quota_set"] = _cap_now(guest, cpu_quota)
 
         guest.upload(PROBE, GUEST_PROBE)
 
@@ -366,6 +384,8 @@ def run_guest(
                 line.split(" ", 1) for line in stat.stdout.splitlines() if " " in line
             )
         result["supervisor_threads_at_end"] = _supervisor_threads(guest)
+        if timeline:
+            result["timeline"] = _fetch_timeline(guest, work)
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
@@ -447,9 +467,10 @@ def _hostile_clients(case: str, at: str, login: str, device: str) -> list[subpro
 def _cap_now(guest: Guest, pct: int) -> dict[str, Any]:
     """The service's quota set at run time, with the cgroup's counters then: the figures at
     the end minus these are the load's alone."""
-    guest.ssh(
-        f"systemctl set-property --runtime exolink.service CPUQuota={pct}% CPUQuotaPeriodSec=10ms"
-    )
+    # The cgroup's file, as CPUQuota= and CPUQuotaPeriodSec=10ms write it: `systemctl
+    # set-property` reloads systemd's units first, which stalled the whole guest ~1.5 s under
+    # TCG (the timeline's samples stopped) and hung-killed the h2 reader at the cap (C63).
+    guest.ssh(f"echo '{pct * 100} 10000' > /sys/fs/cgroup/system.slice/exolink.service/cpu.max")
     r = guest.ssh(
         "cat /sys/fs/cgroup/system.slice/exolink.service/cpu.max "
         "/sys/fs/cgroup/system.slice/exolink.service/cpu.stat"
@@ -513,6 +534,26 @@ def _fetch_profile(
     text = profile.render(summary, PROFILE_RATE * seconds)
     (work / "profile-guest-top.txt").write_text(text + "\n")
     return {"raw": str(raw), "rate_hz": PROFILE_RATE, "summary": summary}
+
+
+def _fetch_timeline(guest: Guest, work: Path) -> dict[str, Any]:
+    """The sampler stopped, its lines saved beside the console log and summarized there as
+    ``timeline-top.txt`` (one line per interval: wall clock, the cgroup's use and throttled
+    periods, the busiest threads), to read beside the journal's trips."""
+    guest.ssh(f"pkill -f {GUEST_TIMELINE}")
+    r = guest.ssh(f"cat {GUEST_TIMELINE}l", timeout=300)
+    raw = work / "timeline.jsonl"
+    raw.write_text(r.stdout)
+    rows = timelinelib.summarize(r.stdout.splitlines(), top=8)
+    text = "\n".join(
+        f"{time.strftime('%H:%M:%S', time.gmtime(row['wall']))}.{int(row['wall'] % 1 * 100):02d}"
+        f" cpu {row['cpu_pct']:5.1f} usage {row.get('usage_pct', '-')}"
+        f" thr {row.get('throttled', '-')} cpu0 {row.get('cpu0', '-')} | "
+        + ", ".join(f"{k} {s}" for k, s in row["top"])
+        for row in rows
+    )
+    (work / "timeline-top.txt").write_text(text + "\n")
+    return {"raw": str(raw), "text": str(work / "timeline-top.txt"), "intervals": len(rows)}
 
 
 GUEST_CPROFILE = "/var/lib/exolink/profile"  # the service may write there (ReadWritePaths)

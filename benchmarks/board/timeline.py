@@ -1,0 +1,174 @@
+"""CPU per thread over time in the appliance's cgroup, for the seconds a window's averages hide.
+
+Why: under a CPU cap the watchdog trips at the load's start (arm, the pattern's start, the
+laptop's sessions), never in a steady window, and the probe's 60 s averages cannot say who took
+the core then. Runs in the guest like the probe (stdlib only, on CPU 1): every ``--every``
+seconds it writes one JSON line with each thread's cumulative CPU ticks (utime + stime), its
+nice, and the cgroup's throttling counters, until killed. The host turns the lines into
+per-second shares with :func:`summarize`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import sys
+import time
+from typing import Any
+
+CLK = os.sysconf("SC_CLK_TCK")
+
+
+def _read(path: str) -> str:
+    with open(path) as f:
+        return f.read()
+
+
+def _threads(cgroup: str) -> dict[str, list[int]]:
+    """``"proc/thread": [ticks, nice]`` for every thread of every process in the cgroup; a
+    thread's name is its comm (Zenoh's rx-0, app-0, ...; the node's own thread is the process's)."""
+    out: dict[str, list[int]] = {}
+    try:
+        pids = _read(f"{cgroup}/cgroup.procs").split()
+    except OSError:
+        return out
+    for pid in pids:
+        try:
+            proc = _read(f"/proc/{pid}/comm").strip()
+            tids = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                stat = _read(f"/proc/{pid}/task/{tid}/stat")
+            except OSError:
+                continue
+            comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+            f = stat.rsplit(")", 1)[1].split()
+            key = f"{proc}/{comm}" if comm != proc else proc
+            ticks, nice = int(f[11]) + int(f[12]), int(f[16])
+            old = out.get(key)
+            out[key] = [ticks + (old[0] if old else 0), nice]
+    return out
+
+
+def _throttling(cgroup: str) -> dict[str, int]:
+    try:
+        text = _read(f"{cgroup}/cpu.stat")
+    except OSError:
+        return {}
+    keep = ("usage_usec", "nr_periods", "nr_throttled", "throttled_usec")
+    return {k: int(v) for k, v in (ln.split() for ln in text.splitlines()) if k in keep}
+
+
+def _others(cgroup: str) -> dict[str, list[int]]:
+    """Every process outside the cgroup by comm, summed (ksoftirqd/0, systemd, sshd, ...):
+    CPU 0 busy while the appliance is throttled below its quota is theirs or the kernel's."""
+    try:
+        inside = set(_read(f"{cgroup}/cgroup.procs").split())
+    except OSError:
+        inside = set()
+    out: dict[str, list[int]] = {}
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit() or pid in inside:
+            continue
+        try:
+            stat = _read(f"/proc/{pid}/stat")
+        except OSError:
+            continue
+        f = stat.rsplit(")", 1)[1].split()
+        comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+        key = "~" + (
+            comm.split("-")[0] if comm.startswith("kworker") else comm
+        )  # its work's name varies
+        old = out.get(key)
+        out[key] = [int(f[11]) + int(f[12]) + (old[0] if old else 0), int(f[16])]
+    return out
+
+
+def _cpu0() -> list[int]:
+    """CPU 0's ticks: user nice system idle iowait irq softirq (/proc/stat)."""
+    for line in _read("/proc/stat").splitlines():
+        if line.startswith("cpu0 "):
+            return [int(x) for x in line.split()[1:8]]
+    return []
+
+
+def sample(cgroup: str, others: bool = True) -> dict[str, Any]:
+    """``others``: the processes outside the cgroup too (a walk of all /proc: at every 0.25 s
+    sample it took 35-100 % of CPU 1 under TCG, where the simulator runs; E63)."""
+    return {
+        "wall": time.time(),
+        "mono": time.monotonic(),
+        "threads": _threads(cgroup) | (_others(cgroup) if others else {}),
+        "cpu_stat": _throttling(cgroup),
+        "cpu0": _cpu0(),
+    }
+
+
+def summarize(lines: list[str], top: int = 6) -> list[dict[str, Any]]:
+    """Per interval between samples: the cgroup's CPU share and throttled periods, CPU 0's
+    idle / irq / softirq, and the ``top`` threads by CPU share (% of one CPU), largest first;
+    processes outside the cgroup are named ``~comm`` (all their threads summed; they run on
+    either CPU), over the span since the last sample that walked them. Threads that appear
+    between samples (a node restarted) count from zero."""
+    samples = [json.loads(ln) for ln in lines if ln.startswith("{")]
+    out = []
+    walked = samples[0] if samples else None  # the last sample with the processes outside
+    for a, b in itertools.pairwise(samples):
+        dt = b["mono"] - a["mono"]
+        if dt <= 0:
+            continue
+        shares = {
+            k: 100.0 * (v[0] - a["threads"].get(k, [0])[0]) / CLK / dt
+            for k, v in b["threads"].items()
+            if k[0] != "~"
+        }
+        if walked is not None and any(k[0] == "~" for k in b["threads"]):
+            span = b["mono"] - walked["mono"]
+            shares |= {
+                k: 100.0 * (v[0] - walked["threads"].get(k, v)[0]) / CLK / span
+                for k, v in b["threads"].items()
+                if k[0] == "~"
+            }
+            walked = b
+        best = sorted(((s, k) for k, s in shares.items() if s > 0), reverse=True)[:top]
+        sa, sb = a["cpu_stat"], b["cpu_stat"]
+        row: dict[str, Any] = {
+            "wall": round(b["wall"], 2),
+            "cpu_pct": round(sum(s for k, s in shares.items() if s > 0 and k[0] != "~"), 1),
+            "top": [[k, round(s, 1)] for s, k in best],
+        }
+        if a.get("cpu0") and b.get("cpu0"):  # CPU 0's idle, irq and softirq shares
+            d = [y - x for x, y in zip(a["cpu0"], b["cpu0"], strict=True)]
+            row["cpu0"] = {
+                k: round(100.0 * d[i] / CLK / dt, 1)
+                for k, i in (("idle", 3), ("irq", 5), ("si", 6))
+            }
+        if "nr_periods" in sa and "nr_periods" in sb:  # a quota's counters, once it is set
+            row["usage_pct"] = round((sb["usage_usec"] - sa["usage_usec"]) / 1e4 / dt, 1)
+            periods = sb["nr_periods"] - sa["nr_periods"]
+            row["throttled"] = f"{sb['nr_throttled'] - sa['nr_throttled']}/{periods}"
+        out.append(row)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--cgroup", default="/sys/fs/cgroup/system.slice/exolink.service")
+    ap.add_argument("--every", type=float, default=0.25)
+    ap.add_argument("--others-every", type=int, default=8, help="walk all /proc every N samples")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    with open(args.out, "a") as f:
+        for n in itertools.count():
+            walk = n % args.others_every == 0
+            f.write(json.dumps(sample(args.cgroup, walk), separators=(",", ":")) + "\n")
+            f.flush()
+            time.sleep(args.every)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
