@@ -213,3 +213,44 @@ def test_outputs_that_do_not_repeat_in_whole_slots_are_planned_every_slot() -> N
     m.request(Switch(["reach"], []))
     m.cycle(STATE, 1000.01, h2.PERIOD_S, None)
     assert m.repeats_slots(0.02) is None  # a trajectory does not repeat
+
+
+def test_a_lease_whose_timer_ended_at_a_renewal_is_a_lapse_not_a_silent_gait(buses) -> None:  # type: ignore[no-untyped-def]
+    """The kernel's race (CyclicLease): the lease's last frame goes out between a renewal's
+    TX_READ and its SETTIMER, which sets the new count on a timer that has ended. The op is
+    then silent with a full count, and each later renewal reads no progress. Timed calls that a
+    lapse (the manager goes back to its cycle loop and starts a new op), not a gait that runs
+    with nothing on the bus (the board proxy under a CPU cap: 73 s of renewals, no frame)."""
+    tx, rx = buses
+    m = gait_manager()
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
+    timed = Timed(lease, m.position_joints(), 0.02, 3, 1000.0, time.monotonic())
+    try:
+        assert timed.begin(m, STATE, None) is None
+        time.sleep(0.03)
+        with lease._cond:  # the timer ends with a count left, as the race leaves the kernel's op
+            lease._running = False
+        drain(rx, 0.01)
+        time.sleep(0.04)
+        assert timed.keep(m, STATE, None, time.monotonic()) is None
+        assert not timed.lapsed  # frames went out since the start: a renewal like any
+        assert drain(rx, 0.05) == []  # the renewal set a count, the timer stays ended
+        assert timed.keep(m, STATE, None, time.monotonic()) is None
+        assert timed.lapsed  # no frame in two slots since the renewal
+    finally:
+        timed.abort()
+
+
+def test_a_lease_renewed_after_it_ran_out_stays_silent_with_its_count(buses) -> None:  # type: ignore[no-untyped-def]
+    """ThreadLease as the kernel's op: a renewal of an ended timer sets the count (TX_READ
+    says so) and sends nothing; ``sent`` no longer moves."""
+    tx, rx = buses
+    op = ThreadLease(tx, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], LEASE)
+        assert slots_of(drain(rx, 0.3)) == list(range(LEASE))
+        assert op.renew({k: slot(k) for k in range(LEASE, LEASE + 8)}, LEASE) == LEASE
+        assert op.remaining() == LEASE and drain(rx, 0.1) == []
+        assert op.sent() == LEASE
+    finally:
+        op.close()

@@ -36,6 +36,7 @@ PLAN_PER_WAKE = 3
 # A renewal once this many slots passed since the last: the 100 ms lease then reaches at least
 # three slots past the next renewal.
 RENEW_AFTER_SLOTS = 1.5
+STALLED_SLOTS = 2  # no frame sent in this many slots since a renewal: the op's timer ended
 
 
 class Plan(Mapping[int, bytes]):
@@ -246,6 +247,11 @@ class Timed:
         sent = self.lease.renew(self.plan, self.lease_slots * n)
         if sent >= self.base + last_lease:
             self.lapsed = True  # the loop came later than the lease: nothing went out since
+        elif sent == self.base and now - self.renewed_at >= STALLED_SLOTS * self.slot_s:
+            # Not one frame in slots' time: the op's timer ended between the last renewal's
+            # read and its setup (CyclicLease), and it would stay silent with a full count
+            # while this loop renewed it, the gait "running" with nothing on the bus.
+            self.lapsed = True
         self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
         self.base = sent
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)

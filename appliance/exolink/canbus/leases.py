@@ -71,7 +71,11 @@ class CyclicLease:
     the index). A frame the kernel sends between that read and the renewal was already at
     its position: nothing is repeated or skipped, the phase never slips, and the lease ends
     one frame later than counted (``sent`` is then one short). So a lease never reaches a
-    position the renewal did not write, it is at most the frames planned minus one.
+    position the renewal did not write, it is at most the frames planned minus one. If that
+    frame was the lease's last, the op's timer ended before the setup, which sets the new
+    count but does not start it: the op stays silent with a full count, and every later
+    renewal reads no progress (the board proxy under a CPU cap, I63); Timed.keep ends such a
+    lease as lapsed.
     """
 
     def __init__(self, channel: str, can_id: int, period_s: float, ring: int = 16) -> None:
@@ -220,22 +224,25 @@ class ThreadLease:
             self._cond.notify()
 
     def remaining(self) -> int:
+        """The op's count, as TX_READ says it: a renewal sets it even on a timer that ended."""
         with self._cond:
-            return self._count if self._running else 0
+            return self._count
 
     def sent(self) -> int:
         with self._cond:
-            return self._base + self._lease - (self._count if self._running else 0)
+            return self._base + self._lease - self._count
 
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
+        """As the kernel's SETTIMER without STARTTIMER: the new count is set, and a timer that
+        ended (its count reached 0, even between this renewal's read and its setup) stays
+        ended, the op silent with a full count (Timed.keep tells that from a stall)."""
         with self._cond:
-            n = self._base + self._lease - (self._count if self._running else 0)
+            n = self._base + self._lease - self._count
             k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
             self._written = max(self._written, k)
             lease = min(lease, k - n - 1)  # the kernel's rule (CyclicLease.renew)
             _check_lease(lease, k - n - 1, self.ring)
-            self._base, self._lease = n, lease
-            self._count = lease if self._running else 0
+            self._base, self._lease, self._count = n, lease, lease
             return n
 
     def _put(self, slot: int, payload: bytes) -> None:
