@@ -79,6 +79,34 @@ def test_bad_params_refuse_the_load_with_the_reason() -> None:
     assert m.status()["controllers"] == []
 
 
+def test_a_controller_type_found_is_kept_and_a_missing_one_is_looked_up_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The lookup reads every installed package's metadata (a burst at each gait start on the
+    board): a type found once is not looked up again; one not found is, at every load, so a
+    lab's type installed while the manager runs is seen at its first load."""
+    import exolink.entrypoints
+    from exolink import plugins
+
+    looked: list[str] = []
+    real = exolink.entrypoints.entry_points
+
+    def counted(**kw: Any) -> Any:
+        looked.append(kw.get("group", ""))
+        return real(**kw)
+
+    monkeypatch.setattr(exolink.entrypoints, "entry_points", counted)
+    monkeypatch.setattr(plugins, "_FOUND", {})
+    first = plugins.find_controller_class("gait_pattern")
+    n = len(looked)
+    assert n >= 1 and plugins.find_controller_class("gait_pattern") is first
+    assert len(looked) == n  # kept
+    for _ in range(2):
+        with pytest.raises(plugins.PluginError, match="unknown controller type 'nosuch'"):
+            plugins.find_controller_class("nosuch")
+    assert len(looked) > n + 1  # looked up at each
+
+
 def test_a_replacement_is_checked_before_the_one_it_replaces_is_touched() -> None:
     """``load --replace``: bad params refuse the new one and leave the loaded one as it was; an
     active one is replaced only once it is deactivated (the node does that at a cycle)."""

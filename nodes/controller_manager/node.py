@@ -50,6 +50,7 @@ from before the reader closed (boards, torques, feet) is dropped with it.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from pathlib import Path
@@ -82,6 +83,7 @@ from exolink.limits.maccepa import target
 from exolink.liveness import Pace
 from exolink.node import Node
 from exolink.phaseclock import PhaseClock
+from exolink.plugins import PluginError, find_controller_class
 from exolink.protocol import h2, maccepa
 from exolink.wire import cdr
 
@@ -94,6 +96,7 @@ IDLE_BEAT_S = 0.2
 # again after ACTIVITY_REFRESH_S without one: followers (the pattern player) listen instead of
 # asking: five state queries a second were four Zenoh hops and a handler each, on one core.
 ACTIVITY_REFRESH_S = 60.0
+GAIT_TYPE = "gait_pattern"  # the pattern player's controller (pyproject's exolink.controllers)
 
 
 class ControllerManagerNode(Node):
@@ -139,6 +142,10 @@ class ControllerManagerNode(Node):
                 self.manager.load(spec.name, spec.type, spec.params, spec.budget_ms)
             except ManagerRefused as exc:
                 raise ValueError(f"{self.name} params: controllers[{n}]: {exc}") from None
+        # The pattern player's controller type found now, while idle, not at the operator's
+        # first gait start (exolink.plugins: a read of every installed package's metadata).
+        with contextlib.suppress(PluginError):  # not installed: its load says so
+            find_controller_class(GAIT_TYPE)
         self.safe_mode = h2.MODES["disabled" if p.safe_action == "disable" else "stopped"]
         self.board_ids = set(boards)
         # Status frames (50/60/70 + board) and duty/stop (80 + board): a stop from anyone.
