@@ -1,8 +1,8 @@
 """The loops a node declares instead of writing its own (``Node.loop``): how it wakes, what it
 reads and what it does after. The runtime runs the declared loop and beats for the node on every
 wake, so a node is its handlers plus one line saying when they run, and the rules every loop
-must keep (beat on every wake, read a wake's frames in one batch, publish after the read, time
-the phases on the thread's CPU clock) are kept here once.
+must keep (beat on every wake, and after a cadence's read; read a wake's frames in one batch,
+publish after the read, time the phases on the thread's CPU clock) are kept here once.
 
 - ``Every(period_s, step)``: wake every period, then ``step`` (None: the node's work is in its
   handlers and threads, the loop only proves it alive).
@@ -99,6 +99,13 @@ class Frames:
             beat()
             clock.mark("beat")
             frames = read(timeout)
+            if cadence is not None:
+                # Once more after a cadence's wait and read: the top's beat is a whole cadence
+                # before this wake's work ends, and a wake starved under a CPU cap (the h2
+                # reader: ~25 ms of the board proxy's CPU every 200 ms) crossed its 500 ms
+                # deadline by 1-27 ms at a gait's start and stop (docs/performance.md). A loop
+                # stuck in its read or its handling still misses it.
+                beat()
             clock.mark("read")
             if frames:
                 handle(frames)
