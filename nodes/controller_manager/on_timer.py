@@ -199,6 +199,7 @@ class TimerLoop:
             self.lapses += 1
             n.log.warning(
                 "timer_lease_lapsed",
+                how=timed.lapsed,
                 renewals=timed.renewals,
                 renewal_gap_ms=round(timed.since_renewal_s * 1e3, 1),
                 lease_ms=n.params.lease_ms,

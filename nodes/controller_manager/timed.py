@@ -154,7 +154,7 @@ class Timed:
         self.renewals = 0
         self.computed = 0  # slots planned through the manager (the rest replayed)
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
-        self.lapsed = False
+        self.lapsed = ""  # why the lease lapsed ("ran out", "stalled"); "" while it holds
 
     @property
     def per_slot(self) -> int:
@@ -205,10 +205,11 @@ class Timed:
         return None
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
-        """Plan the first slots and start the op (slot 0 now). A few only: each is a cycle of
-        the manager's (a lease's worth took tens of ms under TCG, in one wake); the renewals
-        catch up, ``PLAN_PER_WAKE`` at a time."""
-        first = min(PLAN_PER_WAKE, self.lease_slots)
+        """Plan a lease's worth of slots and start the op (slot 0 now); the renewals plan
+        ``PLAN_PER_WAKE`` at a time. Not fewer: a first lease of three slots (60 ms) ran out
+        before the first renewal at most gait starts under a 50 % CPU cap, and each restart
+        planned again (three lapses in 0.6 s, then the manager 108 ms late: J63)."""
+        first = self.lease_slots
         # Alive before the first slot is planned too: the loop's last beat was by its own
         # deadline (50 ms on the board), and a first slot preempted for that long (a CPU capped
         # by its quota: docs/performance.md) tripped the watchdog at every gait start. Nothing
@@ -220,6 +221,7 @@ class Timed:
         frames = [self.plan[i] for i in range(min(self.lease.ring, self.plan.slots * n))]
         self.lease.start(frames, first * n)
         self.lease_frames = first * n
+        self.renewed_at = time.monotonic()  # the op's start, not before its planning
         return None
 
     def due(self, now: float) -> bool:
@@ -246,12 +248,12 @@ class Timed:
         last_lease = self.lease_frames
         sent = self.lease.renew(self.plan, self.lease_slots * n)
         if sent >= self.base + last_lease:
-            self.lapsed = True  # the loop came later than the lease: nothing went out since
+            self.lapsed = "ran out"  # the loop came later than the lease: nothing went out since
         elif sent == self.base and now - self.renewed_at >= STALLED_SLOTS * self.slot_s:
             # Not one frame in slots' time: the op's timer ended between the last renewal's
             # read and its setup (CyclicLease), and it would stay silent with a full count
             # while this loop renewed it, the gait "running" with nothing on the bus.
-            self.lapsed = True
+            self.lapsed = "stalled"
         self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
         self.base = sent
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)
