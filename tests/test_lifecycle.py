@@ -205,12 +205,16 @@ def _named_child(name: str) -> subprocess.Popen[bytes]:
     return p
 
 
-def test_node_processes_nobody_counts_are_killed_and_named() -> None:
+@pytest.mark.parametrize("leader_only", [False, True])
+def test_node_processes_nobody_counts_are_killed_and_named(leader_only: bool) -> None:
+    """Both sweeps: every thread's children, and the main thread's alone (the 5 s one; a
+    forked node's parent is the main thread, where the kernel re-parents a subreaper's
+    orphans, and these are the main thread's own)."""
     from exolink.supervisor.osproc import kill_strays
 
     stray, known, other = _named_child("exo-stray"), _named_child("exo-known"), _named_child("x")
     try:
-        killed = kill_strays(lambda: {known.pid})
+        killed = kill_strays(lambda: {known.pid}, leader_only)
         assert killed == [(stray.pid, "exo-stray")]
         # Ended within 5 s of its 60 s sleep (wait raises otherwise): killed. kill_strays reaps
         # what died at once, and then Popen finds no child to wait for and says 0 (ECHILD).
@@ -220,6 +224,37 @@ def test_node_processes_nobody_counts_are_killed_and_named() -> None:
         for p in (stray, known, other):
             p.kill()
             p.wait()
+
+
+def test_a_child_of_another_thread_waits_for_the_full_sweep() -> None:
+    """What the main thread's sweep does not see (a child of a worker thread that still
+    runs) the full one, every STRAY_FULL_SWEEP_S, does. (Once that thread ends, the kernel
+    gives its children to the main thread.)"""
+    import threading
+
+    from exolink.supervisor.osproc import kill_strays
+
+    box: list[subprocess.Popen[bytes]] = []
+    started, done = threading.Event(), threading.Event()
+
+    def worker() -> None:
+        box.append(_named_child("exo-thr"))
+        started.set()
+        done.wait(30)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    assert started.wait(30)
+    stray = box[0]
+    try:
+        assert kill_strays(set, leader_only=True) == []
+        assert stray.poll() is None
+        assert kill_strays(set) == [(stray.pid, "exo-thr")]
+    finally:
+        done.set()
+        t.join()
+        stray.kill()
+        stray.wait()
 
 
 def test_a_nodes_orphan_is_killed_by_the_supervisor(write_config, spawn, in_node) -> None:  # type: ignore[no-untyped-def]

@@ -47,6 +47,10 @@ if TYPE_CHECKING:
 
 SUPERVISOR = "supervisor"  # its name as a ROS 2 node, in the logs and among the nodes' tokens
 STRAY_SWEEP_S = 5.0  # the loop looks for node processes it does not count as any node's
+# ... in the main thread's children (a forked node's parent: osproc.children), and in every
+# thread's this often: reading ~50 threads' lists every 5 s was a ~50-70 ms burst of the
+# supervisor's Python on the board proxy (0.6 points of CPU 0: docs/performance.md)
+STRAY_FULL_SWEEP_S = 60.0
 HEALTH_PERIOD_S = 2.0
 SLOW_LOOP_S = 0.5  # one pass of the loop taking this long is logged (a CPU starved of it)
 STATE_PERIOD_S = 1.0
@@ -305,14 +309,17 @@ class Supervisor(NodeJudge, NodeTelemetry):
         its largest share of one A8 core with nothing due."""
         next_state = time.monotonic()
         ping = self.notifier.ping_interval_s
-        next_ping = next_stray = time.monotonic()
+        next_ping = next_stray = next_full = time.monotonic()
         while not self.stop_event.is_set():
             now = time.monotonic()
             self.watchdog.check()
             self._check_nodes(now)
             if now >= next_stray:
                 next_stray = now + STRAY_SWEEP_S
-                self._kill_strays()
+                full = now >= next_full
+                if full:
+                    next_full = now + STRAY_FULL_SWEEP_S
+                self._kill_strays(leader_only=not full)
             if now >= next_state:
                 next_state = now + STATE_PERIOD_S
                 self._publish_watchdog(self.watchdog.snapshot())
@@ -352,8 +359,8 @@ class Supervisor(NodeJudge, NodeTelemetry):
                     pids.add(node.proc.pid)
         return pids
 
-    def _kill_strays(self) -> None:
-        for pid, name in kill_strays(self._own_pids):
+    def _kill_strays(self, leader_only: bool = False) -> None:
+        for pid, name in kill_strays(self._own_pids, leader_only):
             self.log.error(
                 "stray_node_killed",
                 pid=pid,
