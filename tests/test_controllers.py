@@ -96,7 +96,7 @@ def test_a_controller_type_found_is_kept_and_a_missing_one_is_looked_up_again(
         return real(**kw)
 
     monkeypatch.setattr(exolink.entrypoints, "entry_points", counted)
-    monkeypatch.setattr(plugins, "_FOUND", {})
+    plugins.find_controller_class.cache_clear()
     first = plugins.find_controller_class("gait_pattern")
     n = len(looked)
     assert n >= 1 and plugins.find_controller_class("gait_pattern") is first

@@ -37,24 +37,19 @@ def controller_types() -> dict[str, str]:
     return names(CONTROLLER_GROUP)
 
 
+@cache
 def find_controller_class(kind: str) -> type:
     """Import the controller type asked for; PluginError names what is installed.
 
-    A type found once is kept: the lookup reads every installed package's metadata, which
+    Cached, as find_node_class: the lookup reads every installed package's metadata, which
     was nearly all of a gait start's controller load on x86 (py-spy, 30 of 32 samples) and a
-    burst of the manager's CPU at each start on the board. Only a type not found yet is looked
-    up again, so one a lab installs while the manager runs is still seen at its first load
-    (a class already imported would not change with a reinstall anyway)."""
-    if (cls := _FOUND.get(kind)) is not None:
-        return cls
+    burst of the manager's CPU at each start on the board. A PluginError is not cached, so a
+    type a lab installs while the manager runs is still seen at its first load (a class
+    already imported would not change with a reinstall anyway)."""
     cls, where = load(CONTROLLER_GROUP, kind, "controller type", controller_types)
     if not issubclass(cls, Controller):
         raise PluginError(f"controller type {kind!r} ({where}) is not an exolink Controller")
-    _FOUND[kind] = cls
     return cls
-
-
-_FOUND: dict[str, type] = {}
 
 
 __all__ = [
