@@ -99,6 +99,7 @@ class Frames:
             beat()
             clock.mark("beat")
             frames = read(timeout)
+            clock.mark("read")
             if cadence is not None:
                 # Once more after a cadence's wait and read: the top's beat is a whole cadence
                 # before this wake's work ends, and a wake starved under a CPU cap (the h2
@@ -106,7 +107,7 @@ class Frames:
                 # deadline by 1-27 ms at a gait's start and stop (docs/performance.md). A loop
                 # stuck in its read or its handling still misses it.
                 beat()
-            clock.mark("read")
+                clock.mark("beat")  # the phase's sum: both beats, the read's figure unchanged
             if frames:
                 handle(frames)
             clock.mark("handle")
