@@ -256,8 +256,8 @@ def run_guest(
     window, e-stop -> first disable frame in the guest, beside hostile clients on this host;
     ``fetch_mb``: a closed recording of this size on the card, fetched by the laptop's
     ``exolink record fetch`` from the window's start; ``cap_after_start``: the quota set once
-    every node beats and SETTLE_S more (``systemctl set-property --runtime``), so the start is
-    not under it, the arm and the gait's start are;
+    every node beats and SETTLE_S more (``_cap_now``), so the start is not under it, the arm
+    and the gait's start are;
     ``timeline``: CPU per thread every 0.25 s from then to the end (timeline.py)."""
     if cprofile:
         env = (
@@ -286,7 +286,7 @@ def run_guest(
         without,
         # Set later (_cap_now): from boot, a quota no larger than the guest's two CPUs, so
         # systemd enables the cgroup's cpu controller and its cpu.max is there to write.
-        (UNCAPPED_PCT if cpu_quota else None) if cap_after_start else cpu_quota,
+        UNCAPPED_PCT if cpu_quota and cap_after_start else cpu_quota,
     )
     result["config"] = cfg
     result["cpu_quota_pct"] = cpu_quota

@@ -26,14 +26,33 @@ def _read(path: str) -> str:
         return f.read()
 
 
-def _threads(cgroup: str) -> dict[str, list[int]]:
-    """``"proc/thread": [ticks, nice]`` for every thread of every process in the cgroup; a
+def _stat(path: str) -> tuple[str, int, int] | None:
+    """(comm, utime + stime ticks, nice) of a /proc/.../stat; None when it is gone."""
+    try:
+        stat = _read(path)
+    except OSError:
+        return None
+    f = stat.rsplit(")", 1)[1].split()
+    return stat[stat.index("(") + 1 : stat.rindex(")")], int(f[11]) + int(f[12]), int(f[16])
+
+
+def _add(out: dict[str, list[int]], key: str, ticks: int, nice: int) -> None:
+    """Ticks of the same name summed (threads of one name, processes of one comm)."""
+    old = out.get(key)
+    out[key] = [ticks + (old[0] if old else 0), nice]
+
+
+def _procs(cgroup: str) -> list[str]:
+    try:
+        return _read(f"{cgroup}/cgroup.procs").split()
+    except OSError:
+        return []
+
+
+def _threads(pids: list[str]) -> dict[str, list[int]]:
+    """``"proc/thread": [ticks, nice]`` for every thread of these processes (the cgroup's); a
     thread's name is its comm (Zenoh's rx-0, app-0, ...; the node's own thread is the process's)."""
     out: dict[str, list[int]] = {}
-    try:
-        pids = _read(f"{cgroup}/cgroup.procs").split()
-    except OSError:
-        return out
     for pid in pids:
         try:
             proc = _read(f"/proc/{pid}/comm").strip()
@@ -41,16 +60,9 @@ def _threads(cgroup: str) -> dict[str, list[int]]:
         except OSError:
             continue
         for tid in tids:
-            try:
-                stat = _read(f"/proc/{pid}/task/{tid}/stat")
-            except OSError:
-                continue
-            comm = stat[stat.index("(") + 1 : stat.rindex(")")]
-            f = stat.rsplit(")", 1)[1].split()
-            key = f"{proc}/{comm}" if comm != proc else proc
-            ticks, nice = int(f[11]) + int(f[12]), int(f[16])
-            old = out.get(key)
-            out[key] = [ticks + (old[0] if old else 0), nice]
+            if (st := _stat(f"/proc/{pid}/task/{tid}/stat")) is not None:
+                comm, ticks, nice = st
+                _add(out, f"{proc}/{comm}" if comm != proc else proc, ticks, nice)
     return out
 
 
@@ -63,28 +75,16 @@ def _throttling(cgroup: str) -> dict[str, int]:
     return {k: int(v) for k, v in (ln.split() for ln in text.splitlines()) if k in keep}
 
 
-def _others(cgroup: str) -> dict[str, list[int]]:
-    """Every process outside the cgroup by comm, summed (ksoftirqd/0, systemd, sshd, ...):
-    CPU 0 busy while the appliance is throttled below its quota is theirs or the kernel's."""
-    try:
-        inside = set(_read(f"{cgroup}/cgroup.procs").split())
-    except OSError:
-        inside = set()
+def _others(inside: set[str]) -> dict[str, list[int]]:
+    """Every process but ``inside`` (the cgroup's) by comm, summed (ksoftirqd/0, systemd,
+    sshd, ...): CPU 0 busy while the appliance is throttled below its quota is theirs or the
+    kernel's."""
     out: dict[str, list[int]] = {}
     for pid in os.listdir("/proc"):
-        if not pid.isdigit() or pid in inside:
-            continue
-        try:
-            stat = _read(f"/proc/{pid}/stat")
-        except OSError:
-            continue
-        f = stat.rsplit(")", 1)[1].split()
-        comm = stat[stat.index("(") + 1 : stat.rindex(")")]
-        key = "~" + (
-            comm.split("-")[0] if comm.startswith("kworker") else comm
-        )  # its work's name varies
-        old = out.get(key)
-        out[key] = [int(f[11]) + int(f[12]) + (old[0] if old else 0), int(f[16])]
+        if pid.isdigit() and pid not in inside and (st := _stat(f"/proc/{pid}/stat")):
+            comm, ticks, nice = st
+            name = comm.split("-")[0] if comm.startswith("kworker") else comm  # work varies
+            _add(out, "~" + name, ticks, nice)
     return out
 
 
@@ -99,10 +99,11 @@ def _cpu0() -> list[int]:
 def sample(cgroup: str, others: bool = True) -> dict[str, Any]:
     """``others``: the processes outside the cgroup too (a walk of all /proc: at every 0.25 s
     sample it took 35-100 % of CPU 1 under TCG, where the simulator runs; E63)."""
+    pids = _procs(cgroup)
     return {
         "wall": time.time(),
         "mono": time.monotonic(),
-        "threads": _threads(cgroup) | (_others(cgroup) if others else {}),
+        "threads": _threads(pids) | (_others(set(pids)) if others else {}),
         "cpu_stat": _throttling(cgroup),
         "cpu0": _cpu0(),
     }
