@@ -215,6 +215,25 @@ def test_outputs_that_do_not_repeat_in_whole_slots_are_planned_every_slot() -> N
     assert m.repeats_slots(0.02) is None  # a trajectory does not repeat
 
 
+def test_a_renewal_late_by_slots_still_grants_a_whole_lease(buses) -> None:  # type: ignore[no-untyped-def]
+    """A renewal plans what a whole lease from it needs, however long since the last wake.
+    Three slots a wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease shrank to
+    the plan and ran out, and every restart planned again (the board proxy: a lapse every
+    ~0.3 s for 8 s, then a trip)."""
+    tx, rx = buses
+    m = gait_manager()
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=16)
+    timed = Timed(lease, m.position_joints(), 0.02, 5, 1000.001, time.monotonic())
+    try:
+        assert timed.begin(m, STATE, None) is None
+        time.sleep(0.07)  # 3.5 slots: the first lease (5) still holds
+        assert timed.keep(m, STATE, None, time.monotonic()) is None
+        assert not timed.lapsed
+        assert timed.lease_frames == 5, timed.lease_frames  # three slots a wake left 3 (or 2)
+    finally:
+        timed.abort()
+
+
 def test_a_lease_whose_timer_ended_at_a_renewal_is_a_lapse_not_a_silent_gait(buses) -> None:  # type: ignore[no-untyped-def]
     """The kernel's race (CyclicLease): the lease's last frame goes out between a renewal's
     TX_READ and its SETTIMER, which sets the new count on a timer that has ended. The op is

@@ -31,8 +31,6 @@ from exolink.control.controller import State
 from exolink.protocol import h2
 
 log = structlog.get_logger()
-# Slots planned at most per wake of the loop (one every 20 ms, renewing every second slot).
-PLAN_PER_WAKE = 3
 # A renewal once this many slots passed since the last: the 100 ms lease then reaches at least
 # three slots past the next renewal.
 RENEW_AFTER_SLOTS = 1.5
@@ -205,8 +203,8 @@ class Timed:
         return None
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
-        """Plan a lease's worth of slots and start the op (slot 0 now); the renewals plan
-        ``PLAN_PER_WAKE`` at a time. Not fewer: a first lease of three slots (60 ms) ran out
+        """Plan a lease's worth of slots and start the op (slot 0 now); each renewal plans
+        what a whole lease from it needs. Not fewer at the start: a first lease of three slots (60 ms) ran out
         before the first renewal at most gait starts under a 50 % CPU cap, and each restart
         planned again (three lapses in 0.6 s, then the manager 108 ms late: J63)."""
         first = self.lease_slots
@@ -242,7 +240,12 @@ class Timed:
             return None
         n = self.per_slot
         at = int((now - self.started) / self.slot_s)  # the slot going out about now
-        until = min(at + self.lease_slots + 2, self.plan.slots + PLAN_PER_WAKE)
+        # A whole lease from the next slot, however long since the last wake. Three slots a
+        # wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease shrank to the
+        # plan and ran out, and each restart planned from scratch (a lapse every ~0.3 s for
+        # 8 s, the manager at 20 % of CPU 0, the h2 reader starved into a trip: D64). Each
+        # slot is planned once either way; the node beats after each (``alive``).
+        until = at + self.lease_slots + 2
         if (broke := self._plan_until(manager, state, until, not_armed)) is not None:
             return broke
         last_lease = self.lease_frames
