@@ -220,7 +220,7 @@ def test_a_renewal_late_by_slots_still_grants_a_whole_lease(buses) -> None:  # t
     Three slots a wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease shrank to
     the plan and ran out, and every restart planned again (the board proxy: a lapse every
     ~0.3 s for 8 s, then a trip)."""
-    tx, rx = buses
+    tx, _rx = buses
     m = gait_manager()
     lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=16)
     timed = Timed(lease, m.position_joints(), 0.02, 5, 1000.001, time.monotonic())
