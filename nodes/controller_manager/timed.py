@@ -240,12 +240,15 @@ class Timed:
             return None
         n = self.per_slot
         at = int((now - self.started) / self.slot_s)  # the slot going out about now
-        # A whole lease from the next slot, however long since the last wake. Three slots a
-        # wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease shrank to the
-        # plan and ran out, and each restart planned from scratch (a lapse every ~0.3 s for
-        # 8 s, the manager at 20 % of CPU 0, the h2 reader starved into a trip: D64). Each
-        # slot is planned once either way; the node beats after each (``alive``).
-        until = at + self.lease_slots + 2
+        # A whole lease from wherever the op is, however long since the last wake: from the
+        # clock's slot, and from the most the last lease let it send (the kernel's timer
+        # catches up a late expiry frame by frame, so the op can run ahead of the clock).
+        # Three slots a wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease
+        # shrank to the plan and ran out, and each restart planned from scratch (a lapse
+        # every ~0.3 s for 8 s, the manager at 20 % of CPU 0, the h2 reader starved into a
+        # trip: D64). Each slot is planned once either way; the node beats after each.
+        most = -(-(self.base + self.lease_frames + 1) // n)  # slots the op may have reached
+        until = max(at + 2, most) + self.lease_slots
         if (broke := self._plan_until(manager, state, until, not_armed)) is not None:
             return broke
         last_lease = self.lease_frames
