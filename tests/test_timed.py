@@ -234,6 +234,29 @@ def test_a_renewal_late_by_slots_still_grants_a_whole_lease(buses) -> None:  # t
         timed.abort()
 
 
+def test_planning_never_holds_up_a_renewal(buses) -> None:  # type: ignore[no-untyped-def]
+    """Slots planned slowly (15 ms each here; a gait's first cycle on the proxy under a 50 %
+    cap: 40-110 ms of wall time for five) after the op started: the lease is renewed between
+    two slots when due, so the op never runs out while the plan grows (planned before the
+    renewal, the lease ran out and every restart planned again: D64, E64)."""
+    tx, rx = buses
+    m = gait_manager()
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=16)
+    timed = Timed(lease, m.position_joints(), 0.02, 5, 1000.001, time.monotonic())
+    timed.alive = lambda: time.sleep(0.015)
+    try:
+        assert timed.begin(m, STATE, None) is None  # 5 slots, the op, then the plan ahead
+        assert timed.plan.slots >= 5 + 5, timed.plan.slots  # longer than the first lease
+        assert not timed.lapsed, timed.lapsed
+        assert timed.renewals >= 2, timed.renewals  # made while planning
+        stamps = [m.timestamp for m in iter(lambda: rx.recv(0), None)]  # what went out
+    finally:
+        timed.abort()
+    assert len(stamps) >= 5, stamps
+    gaps = [b - a for a, b in itertools.pairwise(stamps)]
+    assert max(gaps) < 0.1, gaps  # never a lease's silence
+
+
 def test_a_lease_whose_timer_ended_at_a_renewal_is_a_lapse_not_a_silent_gait(buses) -> None:  # type: ignore[no-untyped-def]
     """The kernel's race (CyclicLease): the lease's last frame goes out between a renewal's
     TX_READ and its SETTIMER, which sets the new count on a timer that has ended. The op is

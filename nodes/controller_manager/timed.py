@@ -152,7 +152,8 @@ class Timed:
         self.renewals = 0
         self.computed = 0  # slots planned through the manager (the rest replayed)
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
-        self.lapsed = ""  # why the lease lapsed ("ran out", "stalled"); "" while it holds
+        self.lapsed = ""  # why the lease lapsed ("ran out", "stalled", "plan ran short"); "" holds
+        self.sending = False  # the op started
 
     @property
     def per_slot(self) -> int:
@@ -200,11 +201,15 @@ class Timed:
             plan.add(k, frames, tuple(w.setpoint for w in writes))
             self.computed += 1
             self.alive()
+            if self.sending and not self.lapsed:  # a long plan never holds up a renewal
+                now = time.monotonic()
+                if now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s:
+                    self._renew(now)
         return None
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
-        """Plan a lease's worth of slots and start the op (slot 0 now); each renewal plans
-        what a whole lease from it needs. Not fewer at the start: a first lease of three slots (60 ms) ran out
+        """Plan a lease's worth of slots, start the op (slot 0 now), then plan what the first
+        renewal needs (``_plan_ahead``). Not fewer before the start: a first lease of three slots (60 ms) ran out
         before the first renewal at most gait starts under a 50 % CPU cap, and each restart
         planned again (three lapses in 0.6 s, then the manager 108 ms late: J63)."""
         first = self.lease_slots
@@ -220,7 +225,19 @@ class Timed:
         self.lease.start(frames, first * n)
         self.lease_frames = first * n
         self.renewed_at = time.monotonic()  # the op's start, not before its planning
-        return None
+        self.sending = True
+        return self._plan_ahead(manager, state, not_armed)
+
+    def _plan_ahead(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
+        """After a start or a renewal, never before one: the plan reaches what the next
+        renewal needs for a whole lease, even a lease late. Planned before the renewal, a
+        gait's first cycle (1-4 ms of the proxy's CPU a slot, 40-110 ms of wall time for five
+        under a 50 % cap) held the renewal up until the lease ran out, and every restart
+        planned again: a lapse every ~0.3 s for 8 s, the manager at 20 % of CPU 0 and the h2
+        reader starved into a trip (D64, E64). A renewal falls due meanwhile: it is made
+        between two slots (``_plan_slots``)."""
+        at = int((time.monotonic() - self.started) / self.slot_s)  # the slot going out about now
+        return self._plan_until(manager, state, at + 2 * self.lease_slots + 2, not_armed)
 
     def due(self, now: float) -> bool:
         """At each wake while the lease is short (a new op's first), then every second slot
@@ -234,25 +251,24 @@ class Timed:
     def keep(
         self, manager: Manager, state: State, not_armed: str | None, now: float
     ) -> Cycle | None:
-        """Renew the lease if due: plan what it needs and hand it over. A Cycle when the plan
-        broke (see ``_plan_until``)."""
+        """Renew the lease if due, from what is planned, then plan ahead for the next renewal.
+        A Cycle when the plan broke (see ``_plan_until``)."""
         if not self.due(now):
             return None
+        self._renew(now)
+        if self.lapsed:
+            return None
+        return self._plan_ahead(manager, state, not_armed)
+
+    def _renew(self, now: float) -> None:
+        """A lease of up to ``lease_slots`` from where the op is, as far as the plan goes."""
         n = self.per_slot
-        at = int((now - self.started) / self.slot_s)  # the slot going out about now
-        # A whole lease from wherever the op is, however long since the last wake: from the
-        # clock's slot, and from the most the last lease let it send (the kernel's timer
-        # catches up a late expiry frame by frame, so the op can run ahead of the clock).
-        # Three slots a wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease
-        # shrank to the plan and ran out, and each restart planned from scratch (a lapse
-        # every ~0.3 s for 8 s, the manager at 20 % of CPU 0, the h2 reader starved into a
-        # trip: D64). Each slot is planned once either way; the node beats after each.
-        most = -(-(self.base + self.lease_frames + 1) // n)  # slots the op may have reached
-        until = max(at + 2, most) + self.lease_slots
-        if (broke := self._plan_until(manager, state, until, not_armed)) is not None:
-            return broke
         last_lease = self.lease_frames
-        sent = self.lease.renew(self.plan, self.lease_slots * n)
+        try:
+            sent = self.lease.renew(self.plan, self.lease_slots * n)
+        except ValueError:  # under two frames planned past the op's: its lease ends now
+            self.lapsed = "plan ran short"
+            return
         if sent >= self.base + last_lease:
             self.lapsed = "ran out"  # the loop came later than the lease: nothing went out since
         elif sent == self.base and now - self.renewed_at >= STALLED_SLOTS * self.slot_s:
@@ -265,7 +281,6 @@ class Timed:
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)
         self.renewals += 1
         self.plan.forget_before(sent // n - 1)
-        return None
 
     def abort(self) -> None:
         """Nothing more from the op, now (TX_DELETE): every stop and trip path."""
