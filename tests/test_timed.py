@@ -236,19 +236,27 @@ def test_a_renewal_late_by_slots_still_grants_a_whole_lease(buses) -> None:  # t
 
 def test_planning_never_holds_up_a_renewal(buses) -> None:  # type: ignore[no-untyped-def]
     """Slots planned slowly (15 ms each here; a gait's first cycle on the proxy under a 50 %
-    cap: 40-110 ms of wall time for five) after the op started: the lease is renewed between
-    two slots when due, so the op never runs out while the plan grows (planned before the
-    renewal, the lease ran out and every restart planned again: D64, E64)."""
+    cap: 40-110 ms of wall time for five) after the op started: the lease is renewed first and
+    between two slots when due, so the op never runs out while the plan grows (planned before
+    the renewal, the lease ran out and every restart planned again: D64, E64); and planning
+    comes back to the node's loop after a chunk, so a disable on the bus is read meanwhile."""
     tx, rx = buses
     m = gait_manager()
     lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=16)
     timed = Timed(lease, m.position_joints(), 0.02, 5, 1000.001, time.monotonic())
     timed.alive = lambda: time.sleep(0.015)
     try:
-        assert timed.begin(m, STATE, None) is None  # 5 slots, the op, then the plan ahead
+        t = time.monotonic()
+        assert timed.begin(m, STATE, None) is None  # 5 slots, the op, a chunk of the plan ahead
+        calls = [time.monotonic() - t]
+        while timed.behind:  # the node's loop: it reads the bus, then plans on at once
+            t = time.monotonic()
+            assert timed.keep(m, STATE, None, t) is None
+            calls.append(time.monotonic() - t)
+            assert not timed.lapsed, timed.lapsed
         assert timed.plan.slots >= 5 + 5, timed.plan.slots  # longer than the first lease
-        assert not timed.lapsed, timed.lapsed
-        assert timed.renewals >= 2, timed.renewals  # made while planning
+        assert timed.renewals >= 2, timed.renewals
+        assert max(calls[1:]) < 0.1, calls  # a chunk (20 ms) and a slot, not the whole plan
         stamps = [m.timestamp for m in iter(lambda: rx.recv(0), None)]  # what went out
     finally:
         timed.abort()

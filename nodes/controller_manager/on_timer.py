@@ -150,8 +150,8 @@ class TimerLoop:
         n, clock = self.node, self.node.clock  # its phases: "timer <phase>" in loop_cpu
         reader, timed = n.reader, self.timed
         assert reader is not None and timed is not None
-        try:
-            frames = reader.read(self.beat_s)
+        try:  # no wait while the plan is behind its horizon (a gait's first cycle)
+            frames = reader.read(0.0 if timed.behind else self.beat_s)
         except (can.CanError, OSError) as exc:
             n.log.error("bus_read_error", error=str(exc))
             self.leave(orderly=False)

@@ -35,6 +35,10 @@ log = structlog.get_logger()
 # three slots past the next renewal.
 RENEW_AFTER_SLOTS = 1.5
 STALLED_SLOTS = 2  # no frame sent in this many slots since a renewal: the op's timer ended
+# Planning ahead stops after this much wall time (after a slot at least), and the loop reads
+# the bus before it goes on (``behind``: at once): anyone's disable ends the op within this,
+# whatever a gait's first cycle costs (1-4 ms of the proxy's CPU a slot).
+PLAN_CHUNK_S = 0.02
 
 
 class Plan(Mapping[int, bytes]):
@@ -154,17 +158,29 @@ class Timed:
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
         self.lapsed = ""  # why the lease lapsed ("ran out", "stalled", "plan ran short"); "" holds
         self.sending = False  # the op started
+        self.horizon = 0  # the slot the plan is to reach (``_plan_ahead``)
 
     @property
     def per_slot(self) -> int:
         return len(self.plan.joints)
 
+    @property
+    def behind(self) -> bool:
+        """The plan has not reached its horizon: the loop reads the bus and plans on, at once."""
+        return self.plan.cycle_from is None and self.plan.slots < self.horizon
+
     def _plan_until(
-        self, manager: Manager, state: State, slot: int, not_armed: str | None
+        self,
+        manager: Manager,
+        state: State,
+        slot: int,
+        not_armed: str | None,
+        until_s: float = float("inf"),
     ) -> Cycle | None:
-        """Plan slots up to ``slot`` (exclusive); a Cycle when one cannot be planned (a
-        controller failed, or wrote other joints): the plan ends there and the caller acts on
-        it (safe frames, leaving the timer)."""
+        """Plan slots up to ``slot`` (exclusive), stopping after the one that ends past
+        ``until_s`` (monotonic); a Cycle when one cannot be planned (a controller failed, or
+        wrote other joints): the plan ends there and the caller acts on it (safe frames,
+        leaving the timer)."""
         plan = self.plan
         if plan.cycle_from is not None:  # replayed: nothing to compute, no CPU clock to read
             plan.slots = max(plan.slots, slot)  # (a system call, ~0.4 ms under TCG)
@@ -172,12 +188,18 @@ class Timed:
         steps = max(1, round(self.slot_s / h2.PERIOD_S))
         c0 = time.thread_time()
         try:
-            return self._plan_slots(manager, state, slot, not_armed, steps)
+            return self._plan_slots(manager, state, slot, not_armed, steps, until_s)
         finally:
             self.plan_cpu_s += time.thread_time() - c0
 
     def _plan_slots(
-        self, manager: Manager, state: State, slot: int, not_armed: str | None, steps: int
+        self,
+        manager: Manager,
+        state: State,
+        slot: int,
+        not_armed: str | None,
+        steps: int,
+        until_s: float,
     ) -> Cycle | None:
         plan = self.plan
         while plan.slots < slot:
@@ -201,10 +223,12 @@ class Timed:
             plan.add(k, frames, tuple(w.setpoint for w in writes))
             self.computed += 1
             self.alive()
-            if self.sending and not self.lapsed:  # a long plan never holds up a renewal
-                now = time.monotonic()
-                if now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s:
-                    self._renew(now)
+            now = time.monotonic()
+            late = now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s
+            if self.sending and not self.lapsed and late:  # a long plan never holds one up
+                self._renew(now)
+            if now >= until_s:
+                break
         return None
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
@@ -234,10 +258,13 @@ class Timed:
         gait's first cycle (1-4 ms of the proxy's CPU a slot, 40-110 ms of wall time for five
         under a 50 % cap) held the renewal up until the lease ran out, and every restart
         planned again: a lapse every ~0.3 s for 8 s, the manager at 20 % of CPU 0 and the h2
-        reader starved into a trip (D64, E64). A renewal falls due meanwhile: it is made
-        between two slots (``_plan_slots``)."""
-        at = int((time.monotonic() - self.started) / self.slot_s)  # the slot going out about now
-        return self._plan_until(manager, state, at + 2 * self.lease_slots + 2, not_armed)
+        reader starved into a trip (D64, E64). A renewal that falls due meanwhile is made
+        between two slots; after ``PLAN_CHUNK_S`` the loop reads the bus (a disable ends the
+        op) and comes back at once while ``behind``."""
+        now = time.monotonic()
+        at = int((now - self.started) / self.slot_s)  # the slot going out about now
+        self.horizon = max(self.horizon, at + 2 * self.lease_slots + 2)
+        return self._plan_until(manager, state, self.horizon, not_armed, now + PLAN_CHUNK_S)
 
     def due(self, now: float) -> bool:
         """At each wake while the lease is short (a new op's first), then every second slot
@@ -251,12 +278,14 @@ class Timed:
     def keep(
         self, manager: Manager, state: State, not_armed: str | None, now: float
     ) -> Cycle | None:
-        """Renew the lease if due, from what is planned, then plan ahead for the next renewal.
-        A Cycle when the plan broke (see ``_plan_until``)."""
-        if not self.due(now):
-            return None
-        self._renew(now)
-        if self.lapsed:
+        """Renew the lease if due, from what is planned, then plan ahead for the next renewal
+        (also when not due, while ``behind``). A Cycle when the plan broke (see
+        ``_plan_until``)."""
+        if self.due(now):
+            self._renew(now)
+            if self.lapsed:
+                return None
+        elif not self.behind:
             return None
         return self._plan_ahead(manager, state, not_armed)
 
