@@ -222,12 +222,12 @@ class Timed:
             frames = [self.encode(w.motor, w.mode, w.setpoint, w.stiffness) for w in writes]
             plan.add(k, frames, tuple(w.setpoint for w in writes))
             self.computed += 1
-            self.alive()
             now = time.monotonic()
             late = now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s
             if self.sending and not self.lapsed and late:  # a long plan never holds one up
                 self._renew(now)
-            if now >= until_s:
+            self.alive()  # after the renewal: the op never outlives the last beat's deadline
+            if now >= until_s or self.lapsed:
                 break
         return None
 
@@ -290,7 +290,10 @@ class Timed:
         return self._plan_ahead(manager, state, not_armed)
 
     def _renew(self, now: float) -> None:
-        """A lease of up to ``lease_slots`` from where the op is, as far as the plan goes."""
+        """A lease of up to ``lease_slots`` from where the op is, as far as the plan goes
+        (none after a lapse: the node leaves the timer)."""
+        if self.lapsed:
+            return
         n = self.per_slot
         last_lease = self.lease_frames
         try:
