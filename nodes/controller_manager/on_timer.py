@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 from exolink.nodes.controller_manager.frames import joint_payload
-from exolink.nodes.controller_manager.timed import Timed
+from exolink.nodes.controller_manager.timed import PLAN_CHUNK_S, Timed
 
 from exolink import logs
 from exolink.canbus import CanOpenError
@@ -150,8 +150,9 @@ class TimerLoop:
         n, clock = self.node, self.node.clock  # its phases: "timer <phase>" in loop_cpu
         reader, timed = n.reader, self.timed
         assert reader is not None and timed is not None
-        try:  # no wait while the plan is behind its horizon (a gait's first cycle)
-            frames = reader.read(0.0 if timed.behind else self.beat_s)
+        try:  # a chunk's wait while the plan is behind (a gait's first cycle): planning takes
+            # half the loop's time, not all of it (at nice -20 that starved the h2 reader: H64)
+            frames = reader.read(PLAN_CHUNK_S if timed.behind else self.beat_s)
         except (can.CanError, OSError) as exc:
             n.log.error("bus_read_error", error=str(exc))
             self.leave(orderly=False)

@@ -36,8 +36,8 @@ log = structlog.get_logger()
 RENEW_AFTER_SLOTS = 1.5
 STALLED_SLOTS = 2  # no frame sent in this many slots since a renewal: the op's timer ended
 # Planning ahead stops after this much wall time (after a slot at least), and the loop reads
-# the bus before it goes on (``behind``: at once): anyone's disable ends the op within this,
-# whatever a gait's first cycle costs (1-4 ms of the proxy's CPU a slot).
+# the bus before it goes on (``behind``: after as long again): anyone's disable ends the op
+# within this, whatever a gait's first cycle costs (1-4 ms of the proxy's CPU a slot).
 PLAN_CHUNK_S = 0.02
 
 
@@ -166,7 +166,7 @@ class Timed:
 
     @property
     def behind(self) -> bool:
-        """The plan has not reached its horizon: the loop reads the bus and plans on, at once."""
+        """The plan has not reached its horizon: the loop reads the bus and plans on soon."""
         return self.plan.cycle_from is None and self.plan.slots < self.horizon
 
     def _plan_until(
@@ -260,7 +260,7 @@ class Timed:
         planned again: a lapse every ~0.3 s for 8 s, the manager at 20 % of CPU 0 and the h2
         reader starved into a trip (D64, E64). A renewal that falls due meanwhile is made
         between two slots; after ``PLAN_CHUNK_S`` the loop reads the bus (a disable ends the
-        op) and comes back at once while ``behind``."""
+        op) and comes back after as long while ``behind``."""
         now = time.monotonic()
         at = int((now - self.started) / self.slot_s)  # the slot going out about now
         self.horizon = max(self.horizon, at + 2 * self.lease_slots + 2)
