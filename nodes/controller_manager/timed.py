@@ -233,9 +233,10 @@ class Timed:
 
     def begin(self, manager: Manager, state: State, not_armed: str | None) -> Cycle | None:
         """Plan a lease's worth of slots, start the op (slot 0 now), then plan what the first
-        renewal needs (``_plan_ahead``). Not fewer before the start: a first lease of three slots (60 ms) ran out
-        before the first renewal at most gait starts under a 50 % CPU cap, and each restart
-        planned again (three lapses in 0.6 s, then the manager 108 ms late: J63)."""
+        renewal needs (``_plan_ahead``). Not fewer before the start: a first lease of three
+        slots (60 ms) ran out before the first renewal at most gait starts under a 50 % CPU
+        cap, and each restart planned again (three lapses in 0.6 s, then the manager 108 ms
+        late: J63)."""
         first = self.lease_slots
         # Alive before the first slot is planned too: the loop's last beat was by its own
         # deadline (50 ms on the board), and a first slot preempted for that long (a CPU capped
