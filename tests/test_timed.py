@@ -111,6 +111,14 @@ def gait_manager() -> Manager:
     return m
 
 
+def gait_timed(tx: can.BusABC, lease_slots: int, ring: int, t0: float) -> tuple[Manager, Timed]:
+    """The gait's manager and a Timed on a ThreadLease of ``ring`` frames over ``tx`` (20 ms
+    slots, ``lease_slots`` a lease, slot 0 at controller time ``t0``)."""
+    m = gait_manager()
+    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=ring)
+    return m, Timed(lease, m.position_joints(), 0.02, lease_slots, t0, time.monotonic())
+
+
 def test_the_plan_is_the_patterns_rows_one_per_slot_through_the_managers_limits(buses) -> None:  # type: ignore[no-untyped-def]
     tx, rx = buses
     m = gait_manager()
@@ -150,9 +158,7 @@ def test_the_node_is_alive_before_the_first_slot_is_planned_and_after_each(buses
 
 def test_leaving_the_timer_gives_the_step_limit_what_was_sent(buses) -> None:  # type: ignore[no-untyped-def]
     tx, rx = buses
-    m = gait_manager()
-    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
-    timed = Timed(lease, m.position_joints(), 0.02, 3, 1000.0, time.monotonic())
+    m, timed = gait_timed(tx, 3, 8, 1000.0)
     assert timed.begin(m, STATE, None) is None
     time.sleep(0.03)  # two slots out (0 and 1), five planned
     back = timed.leave()
@@ -216,14 +222,12 @@ def test_outputs_that_do_not_repeat_in_whole_slots_are_planned_every_slot() -> N
 
 
 def test_a_renewal_late_by_slots_still_grants_a_whole_lease(buses) -> None:  # type: ignore[no-untyped-def]
-    """A renewal plans what a whole lease from it needs, however long since the last wake.
-    Three slots a wake fell behind wakes 60-110 ms apart under a 50 % cap: the lease shrank to
-    the plan and ran out, and every restart planned again (the board proxy: a lapse every
-    ~0.3 s for 8 s, then a trip)."""
+    """A renewal grants a whole lease however long since the last wake: the plan is ahead of
+    it. Three slots planned a wake fell behind wakes 60-110 ms apart under a 50 % cap: the
+    lease shrank to the plan and ran out, and every restart planned again (the board proxy: a
+    lapse every ~0.3 s for 8 s, then a trip)."""
     tx, _rx = buses
-    m = gait_manager()
-    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=16)
-    timed = Timed(lease, m.position_joints(), 0.02, 5, 1000.001, time.monotonic())
+    m, timed = gait_timed(tx, 5, 16, 1000.001)
     try:
         assert timed.begin(m, STATE, None) is None
         time.sleep(0.07)  # 3.5 slots: the first lease (5) still holds
@@ -241,9 +245,7 @@ def test_planning_never_holds_up_a_renewal(buses) -> None:  # type: ignore[no-un
     the renewal, the lease ran out and every restart planned again: D64, E64); and planning
     comes back to the node's loop after a chunk, so a disable on the bus is read meanwhile."""
     tx, rx = buses
-    m = gait_manager()
-    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=16)
-    timed = Timed(lease, m.position_joints(), 0.02, 5, 1000.001, time.monotonic())
+    m, timed = gait_timed(tx, 5, 16, 1000.001)
     timed.alive = lambda: time.sleep(0.015)
     try:
         t = time.monotonic()
@@ -272,9 +274,9 @@ def test_a_lease_whose_timer_ended_at_a_renewal_is_a_lapse_not_a_silent_gait(bus
     lapse (the manager goes back to its cycle loop and starts a new op), not a gait that runs
     with nothing on the bus (the board proxy under a CPU cap: 73 s of renewals, no frame)."""
     tx, rx = buses
-    m = gait_manager()
-    lease = ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8)
-    timed = Timed(lease, m.position_joints(), 0.02, 3, 1000.0, time.monotonic())
+    m, timed = gait_timed(tx, 3, 8, 1000.0)
+    lease = timed.lease
+    assert isinstance(lease, ThreadLease)
     try:
         assert timed.begin(m, STATE, None) is None
         time.sleep(0.03)
