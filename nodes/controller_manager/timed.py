@@ -223,8 +223,7 @@ class Timed:
             plan.add(k, frames, tuple(w.setpoint for w in writes))
             self.computed += 1
             now = time.monotonic()
-            late = now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s
-            if self.sending and not self.lapsed and late:  # a long plan never holds one up
+            if self.sending and not self.lapsed and self._late(now):  # a long plan holds none up
                 self._renew(now)
             self.alive()  # after the renewal: the op never outlives the last beat's deadline
             if now >= until_s or self.lapsed:
@@ -272,8 +271,11 @@ class Timed:
         by the time since the last renewal (with wakes every slot: every second wake). Not by
         the op's count against the clock: the kernel's timer runs late under load, and that
         made every wake a renewal."""
-        if self.lease_frames < self.lease_slots * self.per_slot:
-            return True
+        return self.lease_frames < self.lease_slots * self.per_slot or self._late(now)
+
+    def _late(self, now: float) -> bool:
+        """``RENEW_AFTER_SLOTS`` since the last renewal (between two planned slots, only this:
+        a short lease would otherwise be renewed after every slot)."""
         return now - self.renewed_at >= RENEW_AFTER_SLOTS * self.slot_s
 
     def keep(
