@@ -223,6 +223,38 @@ def test_a_frozen_laptop_stops_the_gait_within_operator_lost_ms(app, mbus) -> No
         start.wait()
 
 
+@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGTERM])
+def test_a_holder_told_to_stop_stops_the_gait_itself(app, mbus, how) -> None:  # type: ignore[no-untyped-def]
+    """Ctrl-C or ``kill`` of the attached `pattern start` stops the pattern and lets go, even
+    when it inherited SIGINT ignored (started in the background of a script, as the board
+    bench's laptop did: its Ctrl-C was ignored, and 30 s later its kill tripped the watchdog
+    on the lost presence). No trip: the operator stopped it."""
+    app.arm()
+    start = subprocess.Popen(
+        [*EXOLINK, "pattern", "start", "--at", app.at],
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        wait_for(lambda: "running" in app.cli("pattern", "status").stdout, timeout=15)
+        wait_for(lambda: knee(collect(mbus, 0.1, {70})), timeout=10)
+        start.send_signal(how)
+        out, _ = start.communicate(timeout=10)
+        assert start.returncode == 0, out
+        assert "stopped" in app.cli("pattern", "status").stdout
+        collect(mbus, 0.3)  # frames in flight
+        assert knee(collect(mbus, 0.5, {70})) == []
+        time.sleep(LOST_MS / 1000 + 0.5)  # past operator_lost_ms: the holder let go, no trip
+        watchdog = app.status()["watchdog"]
+        assert watchdog["state"] == "armed", watchdog
+    finally:
+        if start.poll() is None:
+            start.kill()
+            start.wait()
+
+
 def test_a_second_holder_is_refused_or_takes_over_visibly(app) -> None:  # type: ignore[no-untyped-def]
     first = subprocess.Popen([*EXOLINK, "hold", "--at", app.at], stdout=subprocess.PIPE, text=True)
     try:

@@ -14,6 +14,7 @@ from exolink import messaging
 from exolink.cli.errors import EXIT_REFUSED, EXIT_UNREACHABLE, fail
 from exolink.cli.options import Leaves, common, decimal, frame_id, guard, integer, number
 from exolink.cli.remote import done_line, hold
+from exolink.cli.stopping import stop_on_signals
 from exolink.client import remote
 from exolink.config import ZenohConfig
 from exolink.control import replies, requests
@@ -69,7 +70,8 @@ def cmd_pattern(args: argparse.Namespace) -> int:
         if action != "start" or args.detach:  # detached: whoever holds motion watches it
             sys.stdout.write(_show(r.call("pattern", body=body)) + "\n")
             return 0
-        return _attached(r, body, args.take_over)
+        with stop_on_signals():
+            return _attached(r, body, args.take_over)
 
 
 def _attached(r: Any, body: dict[str, Any], take_over: bool) -> int:
@@ -132,7 +134,7 @@ def cmd_hold(args: argparse.Namespace) -> int:
     """Hold motion until Ctrl-C (or another client takes over): what an operator keeps running
     while motion is commanded from other terminals, the dashboard or ROS 2."""
     ended = threading.Event()
-    with remote(args) as r:
+    with remote(args) as r, stop_on_signals():
         holder = _holder(r, "exolink hold", ended)
         try:
             reply = holder.acquire(args.take_over)
