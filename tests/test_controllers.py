@@ -1106,6 +1106,16 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     assert angles / 4 <= len(hips) <= angles / 2 + 3, (len(hips), angles, timer)
     # what the timer sent is counted (both joints, as of its last renewal): at least the hip's
     assert timer["sent"] >= len(hips), (timer, len(hips))
+
+    # and counted as the pattern's own: its `written` (the pattern player's "sent") kept step
+    # with the bus once the gait's cycle was replayed (it stood at the first cycle's slots)
+    def written() -> int:
+        listed = json.loads(ctl(app, "list", "--json").stdout)["controllers"]
+        return int(next(c["written"] for c in listed if c["name"] == "pattern"))
+
+    before = written()
+    time.sleep(1.5)  # ~150 set-points of two joints, one each a 20 ms slot
+    assert written() - before >= 50, (before, written())
     runs = dedup(hips[20:])  # values repeat: compare runs of equal values
     # in the pattern's order: a slot is where the pattern is at its time, the same fraction f of
     # the way from one row to the next each slot (the timer's phase against the pattern's);

@@ -190,6 +190,17 @@ class Manager(Loaded, Switching):
                 if self.last_pos[j] is not None:
                     self.last_pos[j] = v
 
+    def credit_sent(self, frames: dict[int, int]) -> None:
+        """Frames the timer sent (joint index -> how many since the last credit) counted as
+        their owner's ``written``: a planned slot is counted when the kernel sends it, not
+        when it is planned (a replayed gait's are planned once, and its status stood still)."""
+        with self.lock:
+            for j, count in frames.items():
+                keys = _JOINT_KEYS[j][:2]  # position, torque: a planned write is one of them
+                owner = next((o for k in keys if (o := self.owners.get(k)) in self.slots), None)
+                if owner is not None and count > 0:
+                    self.slots[owner].written += count
+
     def cycle(
         self,
         state: State,
@@ -321,7 +332,8 @@ class Manager(Loaded, Switching):
                 self.last_pos[j] = sp2
             else:
                 self.last_torque[j] = sp2
-            self.slots[owner].written += 1
+            if part is None or not part[1]:  # a planned slot counts when sent (credit_sent)
+                self.slots[owner].written += 1
             out.writes.append(Write(j + 1, mode, sp2, st2))
         if self.boards and not (part is not None and part[1]):
             self.gaps += self.mc.compose(out, owners, held, self.slots)
