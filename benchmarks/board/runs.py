@@ -142,6 +142,11 @@ def _load_window(
         if fetching is not None:
             out["fetch"] = _fetched(*fetching, work / "fetched" / fetch)  # type: ignore[operator]
     out["held_pattern_cli"] = laptop.stop_pattern()
+    # The trial is over: disarmed, as an operator ends one. The monitor's `info jit` read below
+    # stalls the whole guest (QEMU's global lock), and armed that was a trip on the H2's
+    # silence 4 s after a clean stop (F65), a bench's artifact in the journal.
+    disarm = laptop.cli("disarm")
+    out["disarmed"] = disarm.returncode == 0 or (disarm.stdout + disarm.stderr).strip()
     if jit is not None:
         # Not while the gait's stop is handled: under a CPU cap the manager's leave and the
         # laptop's queries then met the read's stall, and the manager was 139 ms late (K63).
