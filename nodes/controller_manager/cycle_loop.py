@@ -199,5 +199,6 @@ class CycleLoop:
             frames.append(frame)
             n.mc_written += 1
         if out.writes or out.maccepa:
+            n.after_timer = False
             n.beat()  # driving from this cycle on: its own deadline, before it drives
         n._send(frames)

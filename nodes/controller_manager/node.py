@@ -169,6 +169,12 @@ class ControllerManagerNode(Node):
         self.mc_safe_sent = 0
         self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
         self.written = 0
+        # The timer's op ended and the cycle loop has sent no set-point since: nothing drives,
+        # whatever is still active (a stop's deactivation waits for a cycle boundary), so the
+        # node is held to the idle deadline until the cycle loop's beat before its first send.
+        # Under a 50 % CPU cap the stop's leave and switch took 61 ms on the manager's own
+        # 50 ms deadline, with nothing on the bus: a trip at every such stop (I65).
+        self.after_timer = False
         self.safe_sent = 0
         self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
         # Where the loop's CPU goes, by phase (status: loop_cpu). One cycle in 32: a sampled
@@ -290,7 +296,8 @@ class ControllerManagerNode(Node):
             # reader's opening and an activation (hundreds of ms on the board: its stock
             # 50 ms deadline tripped the watchdog at every gait start) come before the first
             # set-point, and _send says "not idle" before that one goes out.
-            self.beat(Pace.OWN if busy and self.manager.driving() else Pace.IDLE)
+            driving = busy and not self.after_timer and self.manager.driving()
+            self.beat(Pace.OWN if driving else Pace.IDLE)
             self.api.check_presence()
             self.maybe_tell()
             clock.mark("beat")
