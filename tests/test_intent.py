@@ -192,21 +192,38 @@ def test_nothing_moves_without_a_holder(app, mbus) -> None:  # type: ignore[no-u
     assert knee(collect(mbus, 0.5, {70})) == []
 
 
+def attached_start(
+    app: Appliance, mbus: Any, sigint_ignored: bool = False
+) -> subprocess.Popen[str]:
+    """An attached `pattern start` (its own session, as a laptop's terminal), once the knee
+    moves; ``sigint_ignored``: as a process started in a script's background inherits it."""
+    start = subprocess.Popen(
+        [*EXOLINK, "pattern", "start", "--at", app.at],
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+        if sigint_ignored
+        else None,
+    )
+    try:
+        wait_for(lambda: "running" in app.cli("pattern", "status").stdout, timeout=15)
+        wait_for(lambda: knee(collect(mbus, 0.1, {70})), timeout=10)
+    except BaseException:
+        start.kill()
+        start.wait()
+        raise
+    return start
+
+
 def test_a_frozen_laptop_stops_the_gait_within_operator_lost_ms(app, mbus) -> None:  # type: ignore[no-untyped-def]
     """SIGSTOP of the attached `pattern start` (what a Wi-Fi drop looks like: no TCP close)
     kept the gait running ~12 s, Zenoh's session lease plus operator_lost_ms. The keep-alive is
     the application's own now: the first disable frame comes within operator_lost_ms + 1 s
     (asserted with room for a loaded machine; the bench measures it)."""
     app.arm()
-    start = subprocess.Popen(
-        [*EXOLINK, "pattern", "start", "--at", app.at],
-        stdout=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    start = attached_start(app, mbus)
     try:
-        wait_for(lambda: "running" in app.cli("pattern", "status").stdout, timeout=15)
-        wait_for(lambda: knee(collect(mbus, 0.1, {70})), timeout=10)
         mbus.q.queue.clear()
         t0 = time.time()
         os.kill(start.pid, signal.SIGSTOP)
@@ -230,16 +247,8 @@ def test_a_holder_told_to_stop_stops_the_gait_itself(app, mbus, how) -> None:  #
     bench's laptop did: its Ctrl-C was ignored, and 30 s later its kill tripped the watchdog
     on the lost presence). No trip: the operator stopped it."""
     app.arm()
-    start = subprocess.Popen(
-        [*EXOLINK, "pattern", "start", "--at", app.at],
-        stdout=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
-    )
+    start = attached_start(app, mbus, sigint_ignored=True)
     try:
-        wait_for(lambda: "running" in app.cli("pattern", "status").stdout, timeout=15)
-        wait_for(lambda: knee(collect(mbus, 0.1, {70})), timeout=10)
         start.send_signal(how)
         out, _ = start.communicate(timeout=10)
         assert start.returncode == 0, out
