@@ -158,7 +158,8 @@ class H2Reader(Node):
         )
         self.stats = ReaderStats()
         self.gaps = GapCounter(h2.PERIOD_S)
-        self.clock = PhaseClock()  # where the loop's CPU goes, by phase (stats: loop_cpu)
+        # where the loop's CPU goes, by phase, and each phase's longest wall (stats: loop_cpu)
+        self.clock = PhaseClock(walls=True)
         self.own(m.serve(("nodes", self.name, "stats"), lambda _req: self._stats()))
         self.js = cdr.JointStateCdr(h2.JOINTS)
         self._reported_out_of_range = 0

@@ -220,6 +220,23 @@ def test_phase_clock_charges_cpu_to_the_phase_that_used_it_not_to_a_sleep() -> N
     assert phaseclock.window(c, c) == {"iterations": 0, "us_per_iteration": {}}
     with pytest.raises(ValueError, match="every must be >= 1"):
         phaseclock.PhaseClock(every=0)
+    assert "wall_max_ms" not in c  # only asked for
+
+
+def test_phase_clock_walls_say_where_a_slow_iteration_waited_and_start_over() -> None:
+    """``walls``: each phase's longest wall time since the last reading, on every iteration
+    (sampled or not): a phase that waited shows its wait, which its CPU figure cannot."""
+    from exolink import phaseclock
+
+    clock = phaseclock.PhaseClock(every=100, walls=True)  # no iteration CPU-sampled
+    for wait in (0.005, 0.06, 0.01):
+        clock.start()
+        time.sleep(wait)
+        clock.mark("read")
+        clock.mark("handle")
+    walls = clock.counters()["wall_max_ms"]
+    assert walls["read"] >= 60 and walls["handle"] < walls["read"] / 2, walls
+    assert clock.counters()["wall_max_ms"] == {}  # read: from scratch
 
 
 class Released:

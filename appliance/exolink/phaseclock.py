@@ -16,9 +16,14 @@ from typing import Any
 
 class PhaseClock:
     """``start()`` at the top of each iteration, ``mark(phase)`` after each phase: the CPU the
-    thread used since the previous mark is added to that phase, on sampled iterations only."""
+    thread used since the previous mark is added to that phase, on sampled iterations only.
 
-    def __init__(self, every: int = 8) -> None:
+    ``walls``: also each phase's longest wall time, every iteration (the monotonic clock, no
+    system call), since the last ``counters()``: where a loop that missed its deadline spent
+    the time, which the CPU figures cannot say (the h2 reader went 509 ms without a beat with
+    CPU 0 mostly idle, H65 in docs/performance.md)."""
+
+    def __init__(self, every: int = 8, walls: bool = False) -> None:
         if every < 1:
             raise ValueError(f"PhaseClock every must be >= 1, got {every}")
         self.every = every
@@ -27,15 +32,25 @@ class PhaseClock:
         self.on = False
         self._last = 0.0
         self._spent: dict[str, float] = {}
+        self.walls = walls
+        self._wall_last = 0.0
+        self._wall_max: dict[str, float] = {}
 
     def start(self) -> None:
         self.iterations += 1
         self.on = self.iterations % self.every == 0
+        if self.walls:
+            self._wall_last = time.monotonic()
         if self.on:
             self.sampled += 1
             self._last = time.thread_time()
 
     def mark(self, phase: str) -> None:
+        if self.walls:
+            now = time.monotonic()
+            if now - self._wall_last > self._wall_max.get(phase, 0.0):
+                self._wall_max[phase] = now - self._wall_last
+            self._wall_last = now
         if self.on:
             now = time.thread_time()
             self._spent[phase] = self._spent.get(phase, 0.0) + now - self._last
@@ -43,9 +58,10 @@ class PhaseClock:
 
     def counters(self) -> dict[str, Any]:
         """Mean CPU per iteration of each phase (us) over the sampled iterations, and the sums
-        (``us_sum``), from which two readings give a window's own means (``window``)."""
+        (``us_sum``), from which two readings give a window's own means (``window``); with
+        ``walls``, each phase's longest wall time (ms, ``wall_max_ms``) since the last reading."""
         n = self.sampled
-        return {
+        out = {
             "iterations": self.iterations,
             "sampled": n,
             "every": self.every,
@@ -54,6 +70,10 @@ class PhaseClock:
             else {},
             "us_sum": {k: round(v * 1e6) for k, v in self._spent.items()},
         }
+        if self.walls:  # the longest since the last reading, then from scratch
+            out["wall_max_ms"] = {k: round(v * 1e3, 1) for k, v in self._wall_max.items()}
+            self._wall_max = {}
+        return out
 
 
 def window(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]:

@@ -150,6 +150,10 @@ def table(result: dict[str, Any]) -> str:
             if isinstance(w, dict):
                 phases = " ".join(f"{k} {v:g}" for k, v in w["us_per_iteration"].items())
                 lines.append(f"  {run['kind']:6} {w['iterations']} iterations: {phases}")
+            walls = get(run, "derived", f"{node}_loop_wall_max_ms")
+            if isinstance(walls, dict):
+                longest = " ".join(f"{k} {v:g}" for k, v in walls.items())
+                lines.append(f"  {run['kind']:6} longest wall per phase (ms): {longest}")
     row("watchdog trips in window", *pair("derived", "watchdog_trips_in_window"))
     row("watchdog state at end", *pair("derived", "watchdog_state_end"))
     row("watchdog reason", *pair("derived", "watchdog_reason_end"))

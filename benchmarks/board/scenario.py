@@ -446,6 +446,8 @@ def derived(m: dict[str, Any]) -> dict[str, Any]:
     for name, x0, x1 in (("h2_reader", r0, r1), ("controller_manager", c0, c1)):
         if "loop_cpu" in x0 and "loop_cpu" in x1:  # where each loop's CPU went (phaseclock)
             out[f"{name}_loop_cpu"] = phaseclock.window(x0["loop_cpu"], x1["loop_cpu"])
+            if "wall_max_ms" in x1["loop_cpu"]:  # since the reading before the window
+                out[f"{name}_loop_wall_max_ms"] = x1["loop_cpu"]["wall_max_ms"]
     if "cycles" in c0 and "cycles" in c1:
         out["manager_cycles"] = c1["cycles"] - c0["cycles"]
         if m.get("counters_span_s"):
