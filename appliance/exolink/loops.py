@@ -1,8 +1,9 @@
 """The loops a node declares instead of writing its own (``Node.loop``): how it wakes, what it
 reads and what it does after. The runtime runs the declared loop and beats for the node on every
 wake, so a node is its handlers plus one line saying when they run, and the rules every loop
-must keep (beat on every wake, and after a cadence's read and handling; read a wake's frames in one batch,
-publish after the read, time the phases on the thread's CPU clock) are kept here once.
+must keep (beat on every wake, and after a cadence's read and handling; read a wake's frames
+in one batch, publish after the read, time the phases on the thread's CPU clock) are kept
+here once.
 
 - ``Every(period_s, step)``: wake every period, then ``step`` (None: the node's work is in its
   handlers and threads, the loop only proves it alive).

@@ -51,7 +51,6 @@ class TimerLoop:
         self.renewals = 0  # of the ops that ended
         self.sent = 0  # frames the ops that ended sent, by the kernel's count
         self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
-        self.credited = 0  # the running op's frames counted as their controllers' (credit)
 
     @property
     def sending(self) -> bool:
@@ -134,7 +133,6 @@ class TimerLoop:
                 n._send(n._safe_frames(broke))
                 return
             self.timed, self.version, self.beside = timed, n.manager.version, beside
-            self.credited = 0
             n.after_timer = False  # the op drives: judged by its lease (beside: its own)
             self.runs += 1
             if n.reader is not None and n._one_socket() and not self.beside:
@@ -219,14 +217,14 @@ class TimerLoop:
     def credit(self, timed: Timed) -> None:
         """The frames the op sent since the last credit (by its count at the last renewal)
         to their controllers' ``written``: frame k of the op is joint k mod n's."""
-        a, b, joints = self.credited, timed.base, timed.plan.joints
+        a, b, joints = timed.credited, timed.base, timed.plan.joints
         if b <= a:
             return
         n = len(joints)
         self.node.manager.credit_sent(
             {j: (b - i + n - 1) // n - (a - i + n - 1) // n for i, j in enumerate(joints)}
         )
-        self.credited = b
+        timed.credited = b
 
     def _echoed(self, frames: list[Any]) -> list[tuple[Any, Any]]:
         """Frames read while the timer sends, decoded: the timer's own set-points as the bus

@@ -154,6 +154,7 @@ class Timed:
         self.renewed_at = now  # monotonic
         self.since_renewal_s = 0.0  # between the last two renewals (a lapse: how late)
         self.renewals = 0
+        self.credited = 0  # the op's frames counted as their controllers' (TimerLoop.credit)
         self.computed = 0  # slots planned through the manager (the rest replayed)
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
         self.lapsed = ""  # why the lease lapsed ("ran out", "stalled", "plan ran short"); "" holds
