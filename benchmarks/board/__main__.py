@@ -92,6 +92,13 @@ def table(result: dict[str, Any]) -> str:
         return get(run, "window", "probe", "idle_pct", cpu)
 
     row("CPU 0 idle %", idle(g, "cpu0"), idle(n, "cpu0"))
+    core = get(g, "host_core") or {}
+    row(
+        "  the board's vCPU on the host",
+        f"CPU {core['host_cpu']}, nice {core['nice']}" if core.get("own") else "shared",
+        "",
+    )
+    row("  host CPU it had in the window %", get(g, "host_core_pct"), "")
     row("calibration (CPU ms, fixed Python loop)", *pair("window", "probe", "calibration_ms"))
     # units.py on CPU 0 after the window: what the appliance's CPU is made of on each machine
     row("unit: Python loop (CPU ms)", *pair("units", "python_loop_ms"))
@@ -411,6 +418,12 @@ def main() -> int:
         help="a closed recording of MIB MiB put on the card before the load and fetched by "
         "the laptop's `exolink record fetch` from the window's start (its cost to the gait)",
     )
+    p.add_argument(
+        "--own-core",
+        action="store_true",
+        help="the board's vCPU on host CPU 0 at nice -20, the laptop and qemu's other threads "
+        "there only while it idles (guest.py; by default it shares the host's cores)",
+    )
     p.add_argument("--show", metavar="JSON", help="only print the table of an earlier run")
     args = p.parse_args()
     if args.show:
@@ -464,6 +477,7 @@ def main() -> int:
             args.fetch_mb,
             args.cap_after_start,
             args.timeline,
+            args.own_core,
         )
     if args.only != "guest":
         result["native"] = _guarded(

@@ -76,6 +76,7 @@ def _run_load(
     jit: Callable[[], dict[str, Any]] | None = None,
     fetch: str | None = None,
     work: Path | None = None,
+    core_cpu: Callable[[], float | None] | None = None,
 ) -> dict[str, Any]:
     """Arm, the pattern held, settle, then the window measured by the probe and the laptop
     (and ``fetch``, a recording on the card, fetched into ``work`` from the window's start).
@@ -89,7 +90,7 @@ def _run_load(
         [*probe_cmd, "--go"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
     )
     try:
-        return _load_window(laptop, probe, seconds, profiler, jit, fetch, work)
+        return _load_window(laptop, probe, seconds, profiler, jit, fetch, work, core_cpu)
     finally:
         if probe.poll() is None:
             probe.kill()
@@ -103,6 +104,7 @@ def _load_window(
     jit: Callable[[], dict[str, Any]] | None,
     fetch: str | None = None,
     work: Path | None = None,
+    core_cpu: Callable[[], float | None] | None = None,
 ) -> dict[str, Any]:
     assert probe.stdin is not None and probe.stdout is not None
     out: dict[str, Any] = {}
@@ -135,8 +137,12 @@ def _load_window(
     fetching = None
     if fetch is not None and work is not None:
         fetching = (laptop.fetch(fetch, work / "fetched"), time.monotonic())
+    cpu0 = (core_cpu() if core_cpu else None, time.monotonic())
     try:
         out["window"] = scenario.measure(laptop, probe, seconds)
+        cpu1 = (core_cpu() if core_cpu else None, time.monotonic())
+        if cpu0[0] is not None and cpu1[0] is not None:  # the host's CPU for the board's vCPU
+            out["host_core_pct"] = round(100 * (cpu1[0] - cpu0[0]) / (cpu1[1] - cpu0[1]), 1)
     finally:
         _end_profiler(prof, out)
         if fetching is not None:
@@ -257,6 +263,7 @@ def run_guest(
     fetch_mb: int = 0,
     cap_after_start: bool = False,
     timeline: bool = False,
+    own_core: bool = False,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
@@ -267,7 +274,8 @@ def run_guest(
     ``exolink record fetch`` from the window's start; ``cap_after_start``: the quota set once
     every node beats and SETTLE_S more (``_cap_now``), so the start is not under it, the arm
     and the gait's start are;
-    ``timeline``: CPU per thread every 0.25 s from then to the end (timeline.py)."""
+    ``timeline``: CPU per thread every 0.25 s from then to the end (timeline.py);
+    ``own_core``: the board's vCPU on a host core of its own at nice -20 (guest.py)."""
     if cprofile:
         env = (
             *env,
@@ -304,9 +312,10 @@ def run_guest(
     user, pw = ("admin", cardlib.admin_password(password)) if admin else ("operator", password)
     login = {"transport": {"auth": {"usrpwd": {"user": user, "password": pw}}}}
     laptop_cfg.write_text(json.dumps(login) + "\n")
-    guest = Guest(card, work, key, journal_console)
+    guest = Guest(card, work, key, journal_console, own_core=own_core)
     result["qemu_command"] = " ".join(guest.cmd)
     console = guest.start()
+    result["host_core"] = guest.core
     laptop = None
     try:
         try:
@@ -381,7 +390,9 @@ def run_guest(
             result["logs"] = _guest_logs(guest, result)
             return result
         if laptop is not None and "laptop_error" not in result:
-            result |= _run_load(laptop, probe_cmd, seconds, profiler, guest.jit, fetch, work)
+            result |= _run_load(
+                laptop, probe_cmd, seconds, profiler, guest.jit, fetch, work, guest.core_cpu_s
+            )
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
         if estop and laptop is not None:
