@@ -79,6 +79,24 @@ def test_an_owner_that_stops_renewing_gets_its_lease_and_no_more(buses) -> None:
         op.close()
 
 
+def test_a_lapsed_lease_resumes_at_its_next_slot_in_order(buses) -> None:  # type: ignore[no-untyped-def]
+    """ThreadLease as CyclicLease.resume (tests/kernel/test_lease.py): after the lease ran out,
+    and after a count was set on an ended timer, the next frame is the next slot."""
+    tx, rx = buses
+    op = ThreadLease(tx, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], 3)
+        assert slots_of(drain(rx, 0.1)) == [0, 1, 2]
+        assert op.resume({k: slot(k) for k in range(3, 11)}, 3) == 3
+        assert slots_of(drain(rx, 0.1)) == [3, 4, 5]
+        op.renew({k: slot(k) for k in range(6, 14)}, 3)
+        assert drain(rx, 0.05) == []
+        assert op.resume({k: slot(k) for k in range(6, 14)}, 4) == 6
+        assert slots_of(drain(rx, 0.1)) == [6, 7, 8, 9]
+    finally:
+        op.close()
+
+
 def test_stop_is_immediate_and_a_bad_lease_is_refused(buses) -> None:  # type: ignore[no-untyped-def]
     tx, rx = buses
     op = ThreadLease(tx, ID, PERIOD)
@@ -267,12 +285,13 @@ def test_planning_never_holds_up_a_renewal(buses) -> None:  # type: ignore[no-un
     assert max(gaps) < 0.1, gaps  # never a lease's silence
 
 
-def test_a_lease_whose_timer_ended_at_a_renewal_is_a_lapse_not_a_silent_gait(buses) -> None:  # type: ignore[no-untyped-def]
+def test_a_lease_whose_timer_ended_at_a_renewal_is_resumed_not_a_silent_gait(buses) -> None:  # type: ignore[no-untyped-def]
     """The kernel's race (CyclicLease): the lease's last frame goes out between a renewal's
     TX_READ and its SETTIMER, which sets the new count on a timer that has ended. The op is
     then silent with a full count, and each later renewal reads no progress. Timed calls that a
-    lapse (the manager goes back to its cycle loop and starts a new op), not a gait that runs
-    with nothing on the bus (the board proxy under a CPU cap: 73 s of renewals, no frame)."""
+    lapse, not a gait that runs with nothing on the bus (the board proxy under a CPU cap: 73 s
+    of renewals, no frame), and resumes it from the slot after the last one sent: the
+    positions on the bus go on in the plan's order, nothing skipped or repeated."""
     tx, rx = buses
     m, timed = gait_timed(tx, 3, 8, 1000.0)
     lease = timed.lease
@@ -282,13 +301,39 @@ def test_a_lease_whose_timer_ended_at_a_renewal_is_a_lapse_not_a_silent_gait(bus
         time.sleep(0.03)
         with lease._cond:  # the timer ends with a count left, as the race leaves the kernel's op
             lease._running = False
-        drain(rx, 0.01)
+        before = [h2.decode(f).setpoint for f in drain(rx, 0.01)]  # type: ignore[union-attr]
         time.sleep(0.04)
         assert timed.keep(m, STATE, None, time.monotonic()) is None
-        assert not timed.lapsed  # frames went out since the start: a renewal like any
+        assert not timed.lapsed and not timed.resumed  # frames went out: a renewal like any
         assert drain(rx, 0.05) == []  # the renewal set a count, the timer stays ended
         assert timed.keep(m, STATE, None, time.monotonic()) is None
-        assert timed.lapsed == "stalled"  # no frame in two slots since the renewal
+        assert not timed.lapsed and [how for how, _ in timed.resumed] == ["stalled"]
+        after = [h2.decode(f).setpoint for f in drain(rx, 0.05)]  # type: ignore[union-attr]
+        timed.abort()  # every stop and trip path (TimerLoop.abort): the resumed op ends at once
+        assert drain(rx, 0.05) == []
+    finally:
+        timed.abort()
+    ref = Timed(ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8), (0,), 0.02, 3, 1000.0, 0.0)
+    try:  # the same gait planned on its own: what the bus should carry, in order
+        assert ref._plan_until(gait_manager(), STATE, 20, None) is None
+    finally:
+        ref.abort()
+    planned = [ref.plan.position(k)[0] for k in range(len(before) + len(after))]  # type: ignore[index]
+    assert after and before + after == planned, (before, after, planned)
+
+
+def test_a_lapse_longer_than_two_leases_hands_the_joints_back(buses) -> None:  # type: ignore[no-untyped-def]
+    """A renewal that comes two leases after the last is no hiccup: ``lapsed``, and the node
+    leaves the timer (its cycle loop starts over from the bus)."""
+    tx, rx = buses
+    m, timed = gait_timed(tx, 3, 8, 1000.0)
+    try:
+        assert timed.begin(m, STATE, None) is None
+        time.sleep(0.15)  # the 60 ms lease ran out 90 ms ago: 150 ms > two leases (120 ms)
+        assert drain(rx, 0.01)  # the lease's slots (three, unless planning renewed it)
+        assert timed.keep(m, STATE, None, time.monotonic()) is None
+        assert timed.lapsed == "ran out" and not timed.resumed
+        assert drain(rx, 0.05) == []  # not restarted
     finally:
         timed.abort()
 

@@ -48,6 +48,7 @@ class TimerLoop:
         self.beside = False  # the cycle loop runs beside the timer (see ``start``)
         self.refused = ""
         self.lapses = 0
+        self.resumes = 0  # of the lapses, resumed in place (Timed._renew)
         self.renewals = 0  # of the ops that ended
         self.sent = 0  # frames the ops that ended sent, by the kernel's count
         self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
@@ -66,6 +67,7 @@ class TimerLoop:
             # frames the timer sent: the running op's as of its last renewal
             "sent": self.sent + (timed.base if timed else 0),
             "lapses": self.lapses,
+            "resumes": self.resumes,
             "refused": self.refused,
             # slots computed through the manager, and the cycle replayed (0: none yet)
             "computed": timed.computed if timed else 0,
@@ -203,16 +205,25 @@ class TimerLoop:
                 n._send(n._safe_frames(broke))
         if timed.renewals % CREDIT_EVERY == 0:
             self.credit(timed)
+        for how, gap_s in timed.resumed:
+            self._lapse(how, gap_s, timed.renewals, resumed=True)
+        timed.resumed.clear()
         if timed.lapsed:
-            self.lapses += 1
-            n.log.warning(
-                "timer_lease_lapsed",
-                how=timed.lapsed,
-                renewals=timed.renewals,
-                renewal_gap_ms=round(timed.since_renewal_s * 1e3, 1),
-                lease_ms=n.params.lease_ms,
-            )
+            self._lapse(timed.lapsed, timed.since_renewal_s, timed.renewals, resumed=False)
             self.leave(orderly=True)
+
+    def _lapse(self, how: str, gap_s: float, renewals: int, resumed: bool) -> None:
+        """A lapse counted and logged: resumed in place, or the joints handed back."""
+        self.lapses += 1
+        self.resumes += resumed
+        self.node.log.warning(
+            "timer_lease_lapsed",
+            how=how,
+            resumed=resumed,
+            renewals=renewals,
+            renewal_gap_ms=round(gap_s * 1e3, 1),
+            lease_ms=self.node.params.lease_ms,
+        )
 
     def credit(self, timed: Timed) -> None:
         """The frames the op sent since the last credit (by its count at the last renewal)

@@ -15,6 +15,15 @@ Its beats meanwhile are judged by the leased deadline (exolink.liveness), at lea
 stock, 100 ms both, so the op has ended by the watchdog's first disable frame (a frame's
 interval later at most: the count a renewal reads may be one short). Any stop, trip or switch
 deletes the op first (``abort``).
+
+A renewal that finds the lease lapsed (the loop came after it ran out, or the kernel's race
+left the timer ended) resumes the op from the plan's next slot, in a new phase, when the last
+renewal was at most ``RESUME_WITHIN_LEASES`` leases ago: the H2 held the last set-point
+meanwhile, and the next one is a slot's step from it, as planned and checked. The gait is
+late by the lapse, nothing else. On the board proxy under a 50 % CPU cap, leaving the timer
+instead (the cycle loop, then a new op that planned the gait's cycle again: 13-21 ms of the
+core at nice -20 each) made lapses come in cascades that starved the h2 reader into a trip
+(M65, B66).
 """
 
 from __future__ import annotations
@@ -35,6 +44,9 @@ log = structlog.get_logger()
 # three slots past the next renewal.
 RENEW_AFTER_SLOTS = 1.5
 STALLED_SLOTS = 2  # no frame sent in this many slots since a renewal: the op's timer ended
+# A lapse found by a renewal at most this many leases after the last is resumed in place (the
+# plan's next slot now: ``_renew``); a later one is no hiccup, and the node leaves the timer.
+RESUME_WITHIN_LEASES = 2
 # Planning ahead stops after this much wall time (after a slot at least), and the loop reads
 # the bus before it goes on (``behind``: after as long again): anyone's disable ends the op
 # within this, whatever a gait's first cycle costs (1-4 ms of the proxy's CPU a slot).
@@ -158,6 +170,7 @@ class Timed:
         self.computed = 0  # slots planned through the manager (the rest replayed)
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
         self.lapsed = ""  # why the lease lapsed ("ran out", "stalled", "plan ran short"); "" holds
+        self.resumed: list[tuple[str, float]] = []  # lapses resumed in place: why, the gap (s)
         self.sending = False  # the op started
         self.horizon = 0  # the slot the plan is to reach (``_plan_ahead``)
 
@@ -294,8 +307,9 @@ class Timed:
         return self._plan_ahead(manager, state, not_armed)
 
     def _renew(self, now: float) -> None:
-        """A lease of up to ``lease_slots`` from where the op is, as far as the plan goes
-        (none after a lapse: the node leaves the timer)."""
+        """A lease of up to ``lease_slots`` from where the op is, as far as the plan goes; a
+        lapse resumed in place when it is short (module docstring), else ``lapsed`` and the
+        node leaves the timer."""
         if self.lapsed:
             return
         n = self.per_slot
@@ -305,13 +319,22 @@ class Timed:
         except ValueError:  # under two frames planned past the op's: its lease ends now
             self.lapsed = "plan ran short"
             return
+        lapse = ""
         if sent >= self.base + last_lease:
-            self.lapsed = "ran out"  # the loop came later than the lease: nothing went out since
+            lapse = "ran out"  # the loop came later than the lease: nothing went out since
         elif sent == self.base and now - self.renewed_at >= STALLED_SLOTS * self.slot_s:
             # Not one frame in slots' time: the op's timer ended between the last renewal's
             # read and its setup (CyclicLease), and it would stay silent with a full count
             # while this loop renewed it, the gait "running" with nothing on the bus.
-            self.lapsed = "stalled"
+            lapse = "stalled"
+        if lapse:
+            gap = now - self.renewed_at
+            if gap > RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s:
+                self.lapsed = lapse
+            else:
+                sent = self.lease.resume(self.plan, self.lease_slots * n)  # slot `sent` now
+                self.started = now - sent / n * self.slot_s  # the new phase (``_plan_ahead``)
+                self.resumed.append((lapse, gap))
         self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
         self.base = sent
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)

@@ -74,8 +74,9 @@ class CyclicLease:
     position the renewal did not write, it is at most the frames planned minus one. If that
     frame was the lease's last, the op's timer ended before the setup, which sets the new
     count but does not start it: the op stays silent with a full count, and every later
-    renewal reads no progress (the board proxy under a CPU cap, I63); Timed.keep ends such a
-    lease as lapsed.
+    renewal reads no progress (the board proxy under a CPU cap, I63). ``resume`` starts such
+    an op's timer again (STARTTIMER without resetting the index): the slot it would have sent
+    next goes out now, the rest one a period after it, a new phase (Timed: a lapse resumed).
     """
 
     def __init__(self, channel: str, can_id: int, period_s: float, ring: int = 16) -> None:
@@ -153,6 +154,16 @@ class CyclicLease:
         self._base = n
         return n
 
+    def resume(self, frames_from: Mapping[int, bytes], lease: int) -> int:
+        """A renewal that also starts the timer: the op's next slot now (its index kept, so
+        each slot stays at its ring position), then one per period; for an op whose lease ran
+        out, or whose timer ended at a renewal. A new phase, as ``start``'s. Returns the slot
+        that goes out now, as the kernel counts it (one short after the race above: the
+        kernel's index is then a slot ahead, whose frame is at its position too)."""
+        n = self.renew(frames_from, lease)
+        self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, self._lease)
+        return n
+
     def stop(self) -> None:
         """TX_DELETE: nothing more from this op, now."""
         head = HEAD.pack(socket.CAN_BCM_TX_DELETE, 0, 0, 0, 0, 0, 0, self.can_id, 0)
@@ -175,6 +186,7 @@ class Lease(Protocol):
     def start(self, frames: list[bytes], lease: int) -> None: ...
     def sent(self) -> int: ...
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
+    def resume(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
     def stop(self) -> None: ...
     def close(self) -> None: ...
 
@@ -188,7 +200,8 @@ class ThreadLease:
     """``CyclicLease``'s contract on a bus without a broadcast manager (the simulated bus, the
     virtual one): a thread of the owner's process sends the slots through ``bus``, one per
     ``period_s`` from ``start``, at most ``lease`` after the last ``start`` or ``renew``, with
-    the same slot arithmetic (a renewal keeps the phase; a lapsed lease is not restarted).
+    the same slot arithmetic (a renewal keeps the phase and does not restart a lapsed lease;
+    ``resume`` does, in a new phase).
 
     Only the owner's failure modes differ, to the safe side: stopped or killed with its owner,
     where the kernel's op sends out its lease (stopped) or ends at once (killed)."""
@@ -243,6 +256,15 @@ class ThreadLease:
             lease = min(lease, k - n - 1)  # the kernel's rule (CyclicLease.renew)
             _check_lease(lease, k - n - 1, self.ring)
             self._base, self._lease, self._count = n, lease, lease
+            return n
+
+    def resume(self, frames_from: Mapping[int, bytes], lease: int) -> int:
+        """``CyclicLease.resume``: renewed, and the timer started again now from the op's next
+        frame (its index kept)."""
+        with self._cond:
+            n = self.renew(frames_from, lease)  # the Condition's lock is reentrant
+            self._running, self._next_at = True, time.monotonic()
+            self._cond.notify()
             return n
 
     def _put(self, slot: int, payload: bytes) -> None:
