@@ -972,9 +972,11 @@ def test_a_hung_or_killed_manager_ends_the_gaits_timer(gait, mbus, sig) -> None:
     app.arm_and_hold()
     assert app.cli("pattern", "start", "--detach").returncode == 0
     wait_for(lambda: json.loads(ctl(app, "list", "--json").stdout)["timer"]["sending"])
-    # only the timer sends: the supervisor judges the manager by its leased deadline (a lapse
-    # on a loaded host hands the joints to the cycle loop for a moment: then by its own)
+    # only the timer sends: the supervisor judges the manager by its leased deadline
     wait_for(lambda: app.node("controller_manager")["leased"])
+    # the gait's set-points are the timer's alone, its first one too: the cycle loop wrote none
+    # (written there, it put the manager on its own 50 ms for the activation: node.py)
+    assert json.loads(ctl(app, "list", "--json").stdout)["written"] == 0
     pid = app.node("controller_manager")["pid"]
     mbus.q.queue.clear()
     at = time.time()

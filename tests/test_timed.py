@@ -322,6 +322,33 @@ def test_a_lease_whose_timer_ended_at_a_renewal_is_resumed_not_a_silent_gait(bus
     assert after and before + after == planned, (before, after, planned)
 
 
+def test_a_plan_slower_than_the_op_waits_and_resumes_in_order(buses) -> None:  # type: ignore[no-untyped-def]
+    """Slots planned slower than the op sends them (30 ms a slot against 20 ms slots: a gait's
+    first cycle under a 50 % cap): a renewal that finds too little planned is not made, the op
+    stops at the plan's end and is resumed once more is planned. No lapse, and the bus carries
+    the plan's positions in order, each once (before, a lapse that planned it all again)."""
+    tx, rx = buses
+    m, timed = gait_timed(tx, 3, 8, 1000.0)
+    timed.alive = lambda: time.sleep(0.03)
+    try:
+        assert timed.begin(m, STATE, None) is None
+        end = time.monotonic() + 0.6
+        while time.monotonic() < end:  # the node's loop: a wake every 10 ms while behind
+            assert timed.keep(m, STATE, None, time.monotonic()) is None
+            assert not timed.lapsed, timed.lapsed
+            time.sleep(0.01)
+        got = [h2.decode(f).setpoint for f in drain(rx, 0.01)]  # type: ignore[union-attr]
+    finally:
+        timed.abort()
+    assert timed.resumed, "the op never ran short"  # the point of the test: it did, and went on
+    ref = Timed(ThreadLease(tx, h2.JOINT_CONTROL, 0.02, ring=8), (0,), 0.02, 3, 1000.0, 0.0)
+    try:
+        assert ref._plan_until(gait_manager(), STATE, 60, None) is None
+    finally:
+        ref.abort()
+    assert got == [ref.plan.position(k)[0] for k in range(len(got))]  # type: ignore[index]
+
+
 def test_a_lapse_longer_than_two_leases_hands_the_joints_back(buses) -> None:  # type: ignore[no-untyped-def]
     """A renewal that comes two leases after the last is no hiccup: ``lapsed``, and the node
     leaves the timer (its cycle loop starts over from the bus)."""

@@ -182,7 +182,8 @@ class CycleLoop:
             period,
             n.not_armed(),
             switches=not timed,
-            part=UNPLANNED if timed else None,
+            # the timer's controllers are its own, also before its op starts
+            part=UNPLANNED if timed or n.timer_takes_planned() else None,
         )
         self._controller_s = out.controller_s
         n.clock.mark("cycle")
@@ -199,6 +200,5 @@ class CycleLoop:
             frames.append(frame)
             n.mc_written += 1
         if out.writes or out.maccepa:
-            n.after_timer = False
             n.beat()  # driving from this cycle on: its own deadline, before it drives
         n._send(frames)

@@ -169,12 +169,6 @@ class ControllerManagerNode(Node):
         self.mc_safe_sent = 0
         self.arming = self.own(ArmingState(self.ctx.messaging)) if p.require_armed else None
         self.written = 0
-        # The timer's op ended and the cycle loop has sent no set-point since: nothing drives,
-        # whatever is still active (a stop's deactivation waits for a cycle boundary), so the
-        # node is held to the idle deadline until the cycle loop's beat before its first send.
-        # Under a 50 % CPU cap the stop's leave and switch took 61 ms on the manager's own
-        # 50 ms deadline, with nothing on the bus: a trip at every such stop (I65).
-        self.after_timer = False
         self.safe_sent = 0
         self.late_cycles = 0  # angle frames read behind a newer one: not run (see _cycle)
         # Where the loop's CPU goes, by phase (status: loop_cpu). One cycle in 32: a sampled
@@ -296,7 +290,7 @@ class ControllerManagerNode(Node):
             # reader's opening and an activation (hundreds of ms on the board: its stock
             # 50 ms deadline tripped the watchdog at every gait start) come before the first
             # set-point, and _send says "not idle" before that one goes out.
-            driving = busy and not self.after_timer and self.manager.driving()
+            driving = busy and self.cycle_drives()
             self.beat(Pace.OWN if driving else Pace.IDLE)
             self.api.check_presence()
             self.maybe_tell()
@@ -316,6 +310,24 @@ class ControllerManagerNode(Node):
                 if self.timer.sending and not self.timer.beside:
                     continue
             self.cycle.step(stop)
+
+    def timer_takes_planned(self) -> bool:
+        """Planned controllers' set-points go out on the timer alone: from their activation
+        on, the cycle loop writes none (the first goes out with the op's start). Written by
+        the cycle loop, the gait's first set-point put the node on its own 50 ms deadline
+        for the activation's cycle and the timer's start, and on the board proxy under a
+        50 % CPU cap that deadline tripped the watchdog at gait starts (K65, D66); so did the
+        stop's leave and switch (I65), the gait still active with nothing on the bus. Nothing
+        is sent until the op starts, so a hang meanwhile moves nothing. Without a timer
+        (``timer: false``, or refused) the cycle loop writes them, as every controller."""
+        return self.params.timer and not self.timer.refused
+
+    def cycle_drives(self) -> bool:
+        """The cycle loop writes motion: a feedback controller is active, or a planned one
+        the timer does not take (``timer_takes_planned``)."""
+        if self.timer_takes_planned():
+            return self.manager.unplanned()
+        return self.manager.driving()
 
     def _one_socket(self) -> bool:
         return one_socket(self.ctx.config.can.interface, self.read_ids, self.board_ids)

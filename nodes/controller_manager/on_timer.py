@@ -135,7 +135,6 @@ class TimerLoop:
                 n._send(n._safe_frames(broke))
                 return
             self.timed, self.version, self.beside = timed, n.manager.version, beside
-            n.after_timer = False  # the op drives: judged by its lease (beside: its own)
             self.runs += 1
             if n.reader is not None and n._one_socket() and not self.beside:
                 # no angle frame wakes it now (with a feedback controller, every cycle does)
@@ -283,7 +282,6 @@ class TimerLoop:
     def _end(self) -> None:
         n = self.node
         if self.timed is not None:
-            n.after_timer = True  # idle until the cycle loop sends (ControllerManagerNode)
             self.credit(self.timed)
             self.renewals += self.timed.renewals
             self.sent += self.timed.base

@@ -20,7 +20,9 @@ A renewal that finds the lease lapsed (the loop came after it ran out, or the ke
 left the timer ended) resumes the op from the plan's next slot, in a new phase, when the last
 renewal was at most ``RESUME_WITHIN_LEASES`` leases ago: the H2 held the last set-point
 meanwhile, and the next one is a slot's step from it, as planned and checked. The gait is
-late by the lapse, nothing else. On the board proxy under a 50 % CPU cap, leaving the timer
+late by the lapse, nothing else. A renewal that finds too little planned (a gait's first
+cycle planned slower than the op sends it) is not made: the op stops at the plan's end, and a
+later renewal resumes it. On the board proxy under a 50 % CPU cap, leaving the timer
 instead (the cycle loop, then a new op that planned the gait's cycle again: 13-21 ms of the
 core at nice -20 each) made lapses come in cascades that starved the h2 reader into a trip
 (M65, B66).
@@ -45,7 +47,8 @@ log = structlog.get_logger()
 RENEW_AFTER_SLOTS = 1.5
 STALLED_SLOTS = 2  # no frame sent in this many slots since a renewal: the op's timer ended
 # A lapse found by a renewal at most this many leases after the last is resumed in place (the
-# plan's next slot now: ``_renew``); a later one is no hiccup, and the node leaves the timer.
+# plan's next slot now: ``_renew``), a plan that ran short waited for; a later one is no
+# hiccup, and the node leaves the timer.
 RESUME_WITHIN_LEASES = 2
 # Planning ahead stops after this much wall time (after a slot at least), and the loop reads
 # the bus before it goes on (``behind``: after as long again): anyone's disable ends the op
@@ -316,8 +319,12 @@ class Timed:
         last_lease = self.lease_frames
         try:
             sent = self.lease.renew(self.plan, self.lease_slots * n)
-        except ValueError:  # under two frames planned past the op's: its lease ends now
-            self.lapsed = "plan ran short"
+        except ValueError:  # under two frames planned past the op's: no renewal yet
+            # The op sends out its lease (never past the plan) and stops; planning goes on and
+            # a later renewal resumes it. A gait's first cycle planned under a 50 % cap fell
+            # behind the op this way, and leaving planned it all again (M64, M65, D66).
+            if now - self.renewed_at > RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s:
+                self.lapsed = "plan ran short"
             return
         lapse = ""
         if sent >= self.base + last_lease:
