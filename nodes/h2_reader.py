@@ -8,6 +8,15 @@ frame's kernel time (no transition is lost or moved), and at least every
 core (benchmarks/board/units.py), and 100 copies a second of an unchanged state were a fifth of
 the appliance's samples. ``foot_switches_refresh_s: 0`` publishes every cycle.
 
+On SocketCAN the kernel compares the foot-switch frames (a broadcast-manager receive op,
+``exolink.canbus.bcm.CyclicWatch``, every bit in its mask): only a change, the first frame
+after a silence, or a silence of ``FEET_SILENCE_S`` reaches this process, not 100 frames a
+second (a third of the reader's frames, each ~200 us of the board proxy's CPU to receive and
+~130 us to handle). Then ``frames["130"]`` counts the changes the kernel reported,
+``missing["130"]`` the silences, and a refresh is stamped when it is made: the kernel would
+have told of any change or silence before it. Not with ``foot_switches_refresh_s: 0`` or a
+reader woken by id 130 (``wake_on_id``), nor on the simulated bus: there every frame is read.
+
 Every message carries the CAN frame's kernel receive time, never the time Python got to it.
 A 10 ms stream makes gaps measurable: a period longer than 1.5x nominal counts the frames it
 lost. Malformed frames are counted and skipped. Counters go out on ``diagnostics`` every second.
@@ -48,6 +57,9 @@ _HIGH = tuple(h2.RANGES[j][1] for j in h2.JOINTS)
 # <= in C for the range check; operator.le, not int.__le__, whose NotImplemented for a float
 # (a scaled angle) is truthy and would pass every frame
 _LE: Callable[[float, float], bool] = operator.le
+# No foot-switch frame for this long: a silence (the kernel's watch); five H2 periods, so one
+# late frame on a busy bus is none
+FEET_SILENCE_S = 0.05
 
 
 class ReaderParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -87,6 +99,7 @@ class ReaderStats:
     published_joint_states: int = 0
     published_foot_switches: int = 0
     foot_switch_changes: int = 0  # published because the switches or the battery count changed
+    feet_on_change: bool = False  # id 130 watched by the kernel: only changes reach the reader
     without_torque: int = 0
     stream_restarts: int = 0
     socket_dropped: int | None = 0  # kernel drops from a full receive buffer (None: not known)
@@ -136,17 +149,19 @@ class H2Reader(Node):
         self.boards = maccepa_state.BoardStates(
             boards, lambda b, payload, ns: self.out.add(self.pub_boards[b], payload, ns)
         )
+        self.feet_watch = self._watch_feet()
+        ids = [i for i in h2.DATA_IDS if not (self.feet_watch and i == h2.FOOT_SWITCHES)]
         self.reader = self.own(
             open_reader(
                 self.ctx.config.can,
-                [*h2.DATA_IDS, *sorted(self.boards.ids)],
+                [*ids, *sorted(self.boards.ids)],
                 every_s=self.cadence.every_s,
                 wake_on=[wake] if wake else None,
                 stale_s=self.params.stale_after_s,
                 # the H2's own frames on a board's ids (joint control on board 0's 70)
                 drop=[Drop(i, n) for i, n in self.boards.drops()],
                 # a wake's frames in one read: 3 a cycle from the H2, 3 from each board
-                batch=self.cadence.batch(len(h2.DATA_IDS) + len(self.boards.ids)),
+                batch=self.cadence.batch(len(ids) + len(self.boards.ids)),
             )
         )
         self.bus = self.reader.bus
@@ -156,7 +171,7 @@ class H2Reader(Node):
         self.pub_diag = self.own(
             m.publisher(f"nodes/{self.name}/diagnostics", DIAGNOSTICS, raw=True)
         )
-        self.stats = ReaderStats()
+        self.stats = ReaderStats(feet_on_change=self.feet_watch is not None)
         self.gaps = GapCounter(h2.PERIOD_S)
         # where the loop's CPU goes, by phase, and each phase's longest wall (stats: loop_cpu)
         self.clock = PhaseClock(walls=True)
@@ -166,12 +181,51 @@ class H2Reader(Node):
         self._reported_dropped: float = 0  # frames: the stale count may come as a float
         self.fs = cdr.FootSwitchesCdr()
         self._last_feet: tuple[h2.FootSwitches, float] | None = None  # the last published, when
+        self._feet_silent = False  # the kernel's watch said the frames stopped (and not resumed)
         self._pending: tuple[float, h2.JointAngles] | None = None
         self._cycle = 0
         self._next_diag = time.monotonic() + self.params.diagnostics_period_s
         self._last_restart = time.monotonic()
         if self.params.start_stream:
             self.bus.send(h2.encode_stream(True))
+
+    def _watch_feet(self) -> Any:
+        """The kernel's watch of the foot-switch frames (module docstring), or None: every frame
+        is read."""
+        can_cfg, p = self.ctx.config.can, self.params
+        if can_cfg.interface != "socketcan" or not p.foot_switches_refresh_s:
+            return None
+        if p.wake_on_id == h2.FOOT_SWITCHES:
+            return None
+        from exolink.canbus.bcm import CyclicWatch  # Linux only (its socket constants)
+
+        used = h2.dlc_of(h2.FOOT_SWITCHES) or 8  # the frame's bytes, not the padding after them
+        mask = (b"\xff" * used).ljust(8, b"\0")
+        return self.own(CyclicWatch(can_cfg.channel, h2.FOOT_SWITCHES, FEET_SILENCE_S, mask))
+
+    def _feet_changes(self) -> None:
+        """What the kernel's watch reported since the last wake: each change handled as its
+        frame (on its kernel time), a silence counted; then the refresh of an unchanged state
+        that is still streaming, stamped now."""
+        watch = self.feet_watch
+        if watch is None:
+            return
+        st, now = self.stats, time.time()  # before the poll: a change read after has a later stamp
+        for at, frame in watch.poll():
+            if frame is None:  # no frame for FEET_SILENCE_S: no state to refresh until one
+                st.missing[h2.FOOT_SWITCHES] += 1
+                self._feet_silent = True
+                continue
+            self._feet_silent = False
+            decoded = h2.decode(frame)
+            if not isinstance(decoded, h2.FootSwitches):  # a length change: reported too
+                st.malformed += 1
+                continue
+            st.frames[h2.FOOT_SWITCHES] += 1
+            self._feet(at, decoded)
+        last, refresh = self._last_feet, self.params.foot_switches_refresh_s
+        if last is not None and not self._feet_silent and not 0 <= now - last[1] < refresh:
+            self._publish_feet(now, last[0])
 
     def _publish_joints(self, ts: float, angles: h2.JointAngles, torques: Any) -> None:
         ns = int(ts * 1e9)
@@ -324,7 +378,11 @@ class H2Reader(Node):
             self.reader,
             each(self.handle),
             self.cadence,
-            after=[("publish", self.out.flush), ("rest", self._periodic)],
+            after=[
+                ("feet", self._feet_changes),
+                ("publish", self.out.flush),
+                ("rest", self._periodic),
+            ],
             clock=self.clock,
         )
 
