@@ -13,6 +13,7 @@ import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -280,3 +281,70 @@ def debian_lock() -> dict[str, str]:
     bad = [line for line in lines if not re.fullmatch(r"[a-z0-9][a-z0-9+.-]*=\S+", line)]
     assert bad == [], "not name=version"
     return dict(line.split("=", 1) for line in lines)
+
+
+# --- foot switches streamed to an h2 reader (tests/test_data_path.py, tests/kernel) -----------
+
+FEET_A, FEET_B, FEET_C = (1, 0, 0, 1), (0, 1, 1, 0), (0, 0, 0, 0)
+# cycles: 40 of A, 30 of B, 2 of C, 28 of A again, then A with another battery count
+FEET_STATES = (
+    [(FEET_A, 200)] * 40
+    + [(FEET_B, 200)] * 30
+    + [(FEET_C, 200)] * 2
+    + [(FEET_A, 200)] * 28
+    + [(FEET_A, 199)] * 5
+)
+# its transitions, as a subscriber sees them (switches as booleans)
+FEET_RUNS = [
+    (tuple(bool(x) for x in sw), bat)
+    for sw, bat in [(FEET_A, 200), (FEET_B, 200), (FEET_C, 200), (FEET_A, 200), (FEET_A, 199)]
+]
+FeetSample = tuple[int, tuple[bool, ...], int]  # stamp (ns), switches, battery count
+
+
+def stream_feet(bus: can.BusABC) -> None:
+    """FEET_STATES as the H2 sends them: angles, torques, foot switches every 10 ms."""
+    from exolink.protocol import h2
+
+    t = time.monotonic()
+    for sw, battery in FEET_STATES:
+        for frame in (
+            h2.JointAngles(10, 20, 0, 10, 20, 0),
+            h2.JointTorques(0, 0, 0, 0, 0, 0),
+            h2.FootSwitches(*sw, battery),
+        ):
+            bus.send(h2.encode(frame))
+        t += 0.01
+        time.sleep(max(0.0, t - time.monotonic()))
+
+
+def feet_subscriber(hub: Any) -> tuple[Any, list[FeetSample]]:
+    """A subscriber of ``foot_switches`` on ``hub`` and the samples it got, in order."""
+    from exolink import messaging
+
+    key = messaging.topic_key(0, "h2", "foot_switches", "exolink_msgs/msg/FootSwitches")
+    got: list[FeetSample] = []
+
+    def on(sample: Any) -> None:
+        m = messaging.deserialize(sample.payload.to_bytes(), "exolink_msgs/msg/FootSwitches")
+        sw = (m.r_heel, m.r_toe, m.l_heel, m.l_toe)
+        got.append((messaging.stamp_ns(m.header.stamp), sw, m.battery_raw))
+
+    return hub.declare_subscriber(key, on), got
+
+
+def feet_runs(got: list[FeetSample]) -> list[tuple[tuple[bool, ...], int]]:
+    """The transitions in what a subscriber got (a refresh repeats a state: not one)."""
+    return [
+        (sw, bat) for i, (_t, sw, bat) in enumerate(got) if i == 0 or got[i - 1][1:] != (sw, bat)
+    ]
+
+
+def reader_stats(hub: Any, timeout_s: float = 3) -> dict[str, Any] | None:
+    """The sim config's h2 reader's stats, or None while its queryable is not declared yet."""
+    from exolink import messaging
+
+    try:
+        return messaging.request(hub, "exolink/sim/nodes/h2_reader/stats", timeout_s=timeout_s)
+    except messaging.Unreachable:
+        return None

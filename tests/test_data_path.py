@@ -14,7 +14,15 @@ import can
 import numpy as np
 import pytest
 import zenoh
-from conftest import wait_alive
+from conftest import (
+    FEET_RUNS,
+    FEET_STATES,
+    feet_runs,
+    feet_subscriber,
+    reader_stats,
+    stream_feet,
+    wait_alive,
+)
 from rosbags.typesys import Stores, get_typestore
 
 from benchmarks.harness import EXOLINK, collect, connect, wait_for
@@ -366,41 +374,17 @@ def test_foot_switches_go_out_on_change_and_as_a_refresh(write_config, spawn) ->
     cfg_path = write_config(nodes=[{"name": "h2_reader", "plugin": "h2_reader", "params": params}])
     cfg = load(cfg_path)
     hub = messaging.open_hub_session(cfg)
-    key = messaging.topic_key(0, "h2", "foot_switches", "exolink_msgs/msg/FootSwitches")
-    got: list[tuple[int, tuple[bool, ...], int]] = []
-
-    def on(sample) -> None:  # type: ignore[no-untyped-def]
-        m = messaging.deserialize(sample.payload.to_bytes(), "exolink_msgs/msg/FootSwitches")
-        sw = (m.r_heel, m.r_toe, m.l_heel, m.l_toe)
-        got.append((messaging.stamp_ns(m.header.stamp), sw, m.battery_raw))
-
-    sub = hub.declare_subscriber(key, on)
+    sub, got = feet_subscriber(hub)
     spawn("node", "run", "h2_reader", "-c", str(cfg_path))
-    stats_key = "exolink/sim/nodes/h2_reader/stats"
 
     def stats() -> dict | None:
-        try:
-            return messaging.request(hub, stats_key, timeout_s=3)
-        except messaging.Unreachable:
-            return None
+        return reader_stats(hub)
 
-    # cycles: 40 of A, 30 of B, 2 of C, 28 of A again, then A with another battery count
-    a, b, c = (1, 0, 0, 1), (0, 1, 1, 0), (0, 0, 0, 0)
-    states = [(a, 200)] * 40 + [(b, 200)] * 30 + [(c, 200)] * 2 + [(a, 200)] * 28 + [(a, 199)] * 5
     bus = open_bus(cfg.can)
     try:
         wait_for(lambda: stats() is not None, timeout=20)
-        t = time.monotonic()
-        for sw, battery in states:
-            for frame in (
-                h2.JointAngles(10, 20, 0, 10, 20, 0),
-                h2.JointTorques(0, 0, 0, 0, 0, 0),
-                h2.FootSwitches(*sw, battery),
-            ):
-                bus.send(h2.encode(frame))
-            t += 0.01
-            time.sleep(max(0.0, t - time.monotonic()))
-        wait_for(lambda: (st := stats()) and st["frames"]["130"] == len(states), timeout=10)
+        stream_feet(bus)
+        wait_for(lambda: (st := stats()) and st["frames"]["130"] == len(FEET_STATES), timeout=10)
         time.sleep(0.5)
         st = stats()
     finally:
@@ -408,14 +392,7 @@ def test_foot_switches_go_out_on_change_and_as_a_refresh(write_config, spawn) ->
         sub.undeclare()
         hub.close()
     assert st is not None
-    runs = [
-        (sw, bat) for i, (_t, sw, bat) in enumerate(got) if i == 0 or got[i - 1][1:] != (sw, bat)
-    ]
-    as_bools = [
-        (tuple(bool(x) for x in sw), bat)
-        for sw, bat in [(a, 200), (b, 200), (c, 200), (a, 200), (a, 199)]
-    ]
-    assert runs == as_bools  # every transition, in order, none invented
+    assert feet_runs(got) == FEET_RUNS  # every transition, in order, none invented
     assert st["foot_switch_changes"] == 4
     # Unchanged states: one refresh per 0.3 s at most (1.05 s of frames: ~4), not 100 a second.
     assert len(got) == st["published_foot_switches"] <= 5 + 4 + 2, got

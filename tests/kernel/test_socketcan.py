@@ -15,7 +15,15 @@ from pathlib import Path
 import can
 import pytest
 import yaml
-from conftest import read_cycle
+from conftest import (
+    FEET_RUNS,
+    FEET_STATES,
+    feet_runs,
+    feet_subscriber,
+    read_cycle,
+    reader_stats,
+    stream_feet,
+)
 from exolink.nodes.simulator import SimParams, Simulator
 
 from benchmarks.harness import EXOLINK, wait_for
@@ -794,45 +802,18 @@ def test_the_reader_hears_of_foot_switches_only_when_they_change(  # type: ignor
     )
     cfg = load(cfg_path)
     hub = messaging.open_hub_session(cfg)
-    key = messaging.topic_key(0, "h2", "foot_switches", "exolink_msgs/msg/FootSwitches")
-    got: list[tuple[int, tuple[bool, ...], int]] = []
-
-    def on(sample) -> None:  # type: ignore[no-untyped-def]
-        m = messaging.deserialize(sample.payload.to_bytes(), "exolink_msgs/msg/FootSwitches")
-        got.append(
-            (
-                messaging.stamp_ns(m.header.stamp),
-                (m.r_heel, m.r_toe, m.l_heel, m.l_toe),
-                m.battery_raw,
-            )
-        )
-
-    sub = hub.declare_subscriber(key, on)
+    sub, got = feet_subscriber(hub)
     spawn("node", "run", "h2_reader", "-c", str(cfg_path))
 
     def stats() -> dict | None:
-        try:
-            return messaging.request(hub, "exolink/sim/nodes/h2_reader/stats", timeout_s=5)
-        except messaging.Unreachable:
-            return None
+        return reader_stats(hub, timeout_s=5)
 
-    a, b, c = (1, 0, 0, 1), (0, 1, 1, 0), (0, 0, 0, 0)
-    states = [(a, 200)] * 40 + [(b, 200)] * 30 + [(c, 200)] * 2 + [(a, 200)] * 28 + [(a, 199)] * 5
     bus = listener(vcan0)
     try:
         wait_for(lambda: stats() is not None, timeout=90)
         before = stats()
         assert before is not None
-        t = time.monotonic()
-        for sw, battery in states:
-            for frame in (
-                h2.JointAngles(10, 20, 0, 10, 20, 0),
-                h2.JointTorques(0, 0, 0, 0, 0, 0),
-                h2.FootSwitches(*sw, battery),
-            ):
-                bus.send(h2.encode(frame))
-            t += 0.01
-            time.sleep(max(0.0, t - time.monotonic()))
+        stream_feet(bus)
         silences = before["missing"]["130"]  # one already if the op's timer ran before a frame
         wait_for(lambda: (st := stats()) and st["missing"]["130"] > silences, timeout=20)
         st = stats()
@@ -842,11 +823,7 @@ def test_the_reader_hears_of_foot_switches_only_when_they_change(  # type: ignor
         hub.close()
     assert st is not None
     assert st["feet_on_change"] is True
-    runs = [
-        (sw, bat) for i, (_t, sw, bat) in enumerate(got) if i == 0 or got[i - 1][1:] != (sw, bat)
-    ]
-    expect = [(a, 200), (b, 200), (c, 200), (a, 200), (a, 199)]
-    assert runs == [(tuple(bool(x) for x in sw), bat) for sw, bat in expect]  # in order, all
+    assert feet_runs(got) == FEET_RUNS  # every transition, in order, none invented
     print("reader with the kernel's foot-switch watch:", json.dumps(st))
     # the first frame and 4 changes; a silence (this guest stalls its sender at times) makes
     # the next frame a report too, and ends with one at the end
@@ -855,5 +832,5 @@ def test_the_reader_hears_of_foot_switches_only_when_they_change(  # type: ignor
     assert 5 <= st["frames"]["130"] <= 5 + silences - 1 and st["foot_switch_changes"] == 4
     # the raw socket read the angle and torque frames alone: two a cycle, no foot switch
     raw = st["receive"]["frames"] - before["receive"]["frames"]
-    assert raw == 2 * len(states), raw
-    assert st["frames"]["110"] == len(states)
+    assert raw == 2 * len(FEET_STATES), raw
+    assert st["frames"]["110"] == len(FEET_STATES)
