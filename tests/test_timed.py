@@ -80,18 +80,21 @@ def test_an_owner_that_stops_renewing_gets_its_lease_and_no_more(buses) -> None:
 
 
 def test_a_lapsed_lease_resumes_at_its_next_slot_in_order(buses) -> None:  # type: ignore[no-untyped-def]
-    """ThreadLease as CyclicLease.resume (tests/kernel/test_lease.py): after the lease ran out,
-    and after a count was set on an ended timer, the next frame is the next slot."""
+    """ThreadLease as CyclicLease.resume (tests/kernel/test_lease.py): a renewal after the lease
+    ran out, or of a count already set on an ended timer, then ``resume``: the next frame is
+    the next slot."""
     tx, rx = buses
     op = ThreadLease(tx, ID, PERIOD)
     try:
         op.start([slot(k) for k in range(8)], 3)
         assert slots_of(drain(rx, 0.1)) == [0, 1, 2]
-        assert op.resume({k: slot(k) for k in range(3, 11)}, 3) == 3
+        assert op.renew({k: slot(k) for k in range(3, 11)}, 3) == 3  # on an ended timer
+        op.resume()
         assert slots_of(drain(rx, 0.1)) == [3, 4, 5]
         op.renew({k: slot(k) for k in range(6, 14)}, 3)
         assert drain(rx, 0.05) == []
-        assert op.resume({k: slot(k) for k in range(6, 14)}, 4) == 6
+        assert op.renew({k: slot(k) for k in range(6, 14)}, 4) == 6
+        op.resume()
         assert slots_of(drain(rx, 0.1)) == [6, 7, 8, 9]
     finally:
         op.close()

@@ -317,32 +317,32 @@ class Timed:
             return
         n = self.per_slot
         last_lease = self.lease_frames
+        gap = now - self.renewed_at
+        resumable = gap <= RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s
         try:
             sent = self.lease.renew(self.plan, self.lease_slots * n)
         except ValueError:  # under two frames planned past the op's: no renewal yet
             # The op sends out its lease (never past the plan) and stops; planning goes on and
             # a later renewal resumes it. A gait's first cycle planned under a 50 % cap fell
             # behind the op this way, and leaving planned it all again (M64, M65, D66).
-            if now - self.renewed_at > RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s:
+            if not resumable:
                 self.lapsed = "plan ran short"
             return
         lapse = ""
         if sent >= self.base + last_lease:
             lapse = "ran out"  # the loop came later than the lease: nothing went out since
-        elif sent == self.base and now - self.renewed_at >= STALLED_SLOTS * self.slot_s:
+        elif sent == self.base and gap >= STALLED_SLOTS * self.slot_s:
             # Not one frame in slots' time: the op's timer ended between the last renewal's
             # read and its setup (CyclicLease), and it would stay silent with a full count
             # while this loop renewed it, the gait "running" with nothing on the bus.
             lapse = "stalled"
-        if lapse:
-            gap = now - self.renewed_at
-            if gap > RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s:
-                self.lapsed = lapse
-            else:
-                sent = self.lease.resume(self.plan, self.lease_slots * n)  # slot `sent` now
-                self.started = now - sent / n * self.slot_s  # the new phase (``_plan_ahead``)
-                self.resumed.append((lapse, gap))
-        self.since_renewal_s, self.renewed_at = now - self.renewed_at, now
+        if lapse and not resumable:
+            self.lapsed = lapse
+        elif lapse:
+            self.lease.resume()  # slot `sent` now, with the count this renewal set
+            self.started = now - sent / n * self.slot_s  # the new phase (``_plan_ahead``)
+            self.resumed.append((lapse, gap))
+        self.since_renewal_s, self.renewed_at = gap, now
         self.base = sent
         self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)
         self.renewals += 1

@@ -152,19 +152,21 @@ def test_an_owner_stopped_or_killed_leaves_at_most_its_lease(vcan0: str, how: in
 
 
 def test_a_lapsed_lease_resumes_at_its_next_slot_in_order(vcan0: str) -> None:
-    """``resume`` after the lease ran out, and after the race's state (a renewal's count set on
-    an ended timer): the kernel's next frame is the next slot, then on in order, each slot
-    once: the index is kept, only the phase is new."""
+    """A renewal, then ``resume``, after the lease ran out and after the race's state (a
+    renewal's count set on an ended timer): the kernel's next frame is the next slot, then on
+    in order, each slot once: the index is kept, only the phase is new."""
     bus = listen(vcan0)
     op = CyclicLease(vcan0, ID, PERIOD)
     try:
         op.start([slot(k) for k in range(8)], 3)
         assert slots_of(drain(bus, 0.1)) == [0, 1, 2]  # the lease ran out
-        assert op.resume(plan(op.sent()), 3) == 3
+        assert op.renew(plan(op.sent()), 3) == 3  # a count on the ended timer
+        op.resume()
         assert slots_of(drain(bus, 0.1)) == [3, 4, 5]
         op.renew(plan(op.sent()), 3)  # a count on an ended timer: silent, as after the race
         assert drain(bus, 0.05) == []
-        assert op.resume(plan(op.sent()), 4) == 6
+        assert op.renew(plan(op.sent()), 4) == 6
+        op.resume()
         got = slots_of(drain(bus, 0.1))
     finally:
         op.close()

@@ -154,15 +154,13 @@ class CyclicLease:
         self._base = n
         return n
 
-    def resume(self, frames_from: Mapping[int, bytes], lease: int) -> int:
-        """A renewal that also starts the timer: the op's next slot now (its index kept, so
-        each slot stays at its ring position), then one per period; for an op whose lease ran
-        out, or whose timer ended at a renewal. A new phase, as ``start``'s. Returns the slot
-        that goes out now, as the kernel counts it (one short after the race above: the
-        kernel's index is then a slot ahead, whose frame is at its position too)."""
-        n = self.renew(frames_from, lease)
+    def resume(self) -> None:
+        """After a renewal of an op whose timer ended (its lease ran out, or the race above):
+        the timer started again with the count that renewal set, the slot it returned now (its
+        index kept, so each slot stays at its ring position; one slot ahead after the race,
+        whose frame is at its position too), then one per period. A new phase, as
+        ``start``'s."""
         self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, self._lease)
-        return n
 
     def stop(self) -> None:
         """TX_DELETE: nothing more from this op, now."""
@@ -186,7 +184,7 @@ class Lease(Protocol):
     def start(self, frames: list[bytes], lease: int) -> None: ...
     def sent(self) -> int: ...
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
-    def resume(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
+    def resume(self) -> None: ...
     def stop(self) -> None: ...
     def close(self) -> None: ...
 
@@ -258,14 +256,13 @@ class ThreadLease:
             self._base, self._lease, self._count = n, lease, lease
             return n
 
-    def resume(self, frames_from: Mapping[int, bytes], lease: int) -> int:
-        """``CyclicLease.resume``: renewed, and the timer started again now from the op's next
-        frame (its index kept)."""
+    def resume(self) -> None:
+        """``CyclicLease.resume``: the timer started again now, from the op's next frame (its
+        index kept), for the count the last renewal set."""
         with self._cond:
-            n = self.renew(frames_from, lease)  # the Condition's lock is reentrant
-            self._running, self._next_at = True, time.monotonic()
-            self._cond.notify()
-            return n
+            if self._count > 0:
+                self._running, self._next_at = True, time.monotonic()
+                self._cond.notify()
 
     def _put(self, slot: int, payload: bytes) -> None:
         self._frames[slot % self.ring] = bytes(_checked(slot, payload))
