@@ -208,8 +208,7 @@ class H2Reader(Node):
         frame (on its kernel time), a silence counted; then the refresh of an unchanged state
         that is still streaming, stamped now."""
         watch = self.feet_watch
-        if watch is None:
-            return
+        assert watch is not None  # a phase of the loop only with the watch
         st, now = self.stats, time.time()  # before the poll: a change read after has a later stamp
         for at, frame in watch.poll():
             if frame is None:  # no frame for FEET_SILENCE_S: no state to refresh until one
@@ -373,18 +372,12 @@ class H2Reader(Node):
         return float("inf") if last is None else time.time() - last
 
     def loop(self) -> Frames:
-        """A wake's frames, then their samples out together, then the periodic work."""
-        return Frames(
-            self.reader,
-            each(self.handle),
-            self.cadence,
-            after=[
-                ("feet", self._feet_changes),
-                ("publish", self.out.flush),
-                ("rest", self._periodic),
-            ],
-            clock=self.clock,
-        )
+        """A wake's frames (and the kernel's foot-switch reports, when it watches them), then
+        their samples out together, then the periodic work."""
+        after = [("publish", self.out.flush), ("rest", self._periodic)]
+        if self.feet_watch is not None:  # no phase (and no clock mark) a wake without it
+            after.insert(0, ("feet", self._feet_changes))
+        return Frames(self.reader, each(self.handle), self.cadence, after=after, clock=self.clock)
 
     def _periodic(self) -> None:
         """Diagnostics every period; with ``start_stream``, the stream asked for again while the

@@ -815,7 +815,16 @@ def test_the_reader_hears_of_foot_switches_only_when_they_change(  # type: ignor
         assert before is not None
         stream_feet(bus)
         silences = before["missing"]["130"]  # one already if the op's timer ran before a frame
-        wait_for(lambda: (st := stats()) and st["missing"]["130"] > silences, timeout=20)
+        # the end's silence, and every angle frame read (a read that stopped at its batch
+        # limit leaves the rest for the next wake, after that wake's watch report)
+        wait_for(
+            lambda: (
+                (st := stats())
+                and st["missing"]["130"] > silences
+                and st["frames"]["110"] == len(FEET_STATES)
+            ),
+            timeout=20,
+        )
         st = stats()
     finally:
         bus.shutdown()
