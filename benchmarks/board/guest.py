@@ -85,7 +85,7 @@ class Guest:
     ) -> None:
         self.card, self.work, self.ssh_key = card, work, ssh_key
         self.own_core = own_core
-        self.core: dict[str, Any] = {"own": False}  # what give_core did
+        self.core: dict[str, Any] = {"own": False}  # what board_core found and did
         self.zenoh_port, self.ssh_port = free_port(), free_port()
         # short paths: a unix socket's is limited to 107 bytes, and the work dir may be deep
         self._sockets = Path(tempfile.mkdtemp(prefix="exo-bench-"))
