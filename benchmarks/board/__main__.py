@@ -47,7 +47,13 @@ def table(result: dict[str, Any]) -> str:
         f"{result['seconds']:g} s window, {result['timings']} watchdog timings, nominal load "
         "(H2 100 Hz + MACCEPA board 0 simulated on CPU 1, pattern speed 10 armed, recorder on, "
         "timing monitor on, 1 laptop subscriber)"
-        + (f" WITHOUT {', '.join(result['without'])}" if result.get("without") else ""),
+        + (f" WITHOUT {', '.join(result['without'])}" if result.get("without") else "")
+        + (f", a PID on {result['pid_joint']}" if result.get("pid_joint") else "")
+        + (
+            f", manager cycles_per_update {result['cycles_per_update']}"
+            if result.get("cycles_per_update")
+            else ""
+        ),
         "",
         f"{'process':16} {'cpus':>5} {'guest %cpu':>10} {'guest PSS':>10} "
         f"{'native %cpu':>11} {'native PSS':>10} {'ratio':>6}",
@@ -405,6 +411,13 @@ def main() -> int:
         "manager's 100 Hz feedback loop; e.g. l_ankle, which the pattern does not drive)",
     )
     p.add_argument(
+        "--cycles-per-update",
+        type=int,
+        metavar="N",
+        help="the controller manager's cycles_per_update (board.yaml ships 2: a feedback "
+        "controller every second H2 cycle; 1 runs --pid's loop at 100 Hz)",
+    )
+    p.add_argument(
         "--estop",
         action="store_true",
         help="after the window: e-stop -> first disable frame in the guest, idle and beside "
@@ -432,6 +445,7 @@ def main() -> int:
     structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     scenario.ONE_BY_ONE = args.laptop_one_by_one
     scenario.PID_JOINT = args.pid
+    scenario.MANAGER_CYCLES = args.cycles_per_update
     ladder_nodes = None if args.ladder is None else tuple(filter(None, args.ladder.split(",")))
     without = tuple(filter(None, args.without.split(",")))
     t0 = time.monotonic()
@@ -444,6 +458,7 @@ def main() -> int:
         "cpu_quota_pct": args.cpu_quota,
         "cap_after_start": args.cap_after_start,
         "pid_joint": args.pid or None,
+        "cycles_per_update": args.cycles_per_update,
         "fetch_mb": args.fetch_mb or None,
         "laptop_joint_states": "one by one" if args.laptop_one_by_one else "bundles if bundled",
         "checkout": cardlib.checkout_info(REPO),

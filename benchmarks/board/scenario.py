@@ -34,6 +34,9 @@ SIMULATOR_CPU = 1
 ONE_BY_ONE = False
 # A PID controller on this joint during the window (bench-board --pid JOINT), or none.
 PID_JOINT = ""
+# The manager's cycles_per_update for the run (bench-board --cycles-per-update N), or the config's:
+# 1 runs a feedback controller at 100 Hz where board.yaml ships 2.
+MANAGER_CYCLES: int | None = None
 HANDSHAKE_S = 60.0
 PATTERN_JOINTS = ["r_hip", "r_knee", "l_hip", "l_knee"]
 PATTERN_SPEED = 10
@@ -119,6 +122,8 @@ def bench_config(
             for key in ("update_budget_ms", "h2_timeout_ms"):
                 if key in TIMINGS[timings]:
                     n["params"] = {**n.get("params", {}), key: TIMINGS[timings][key]}
+            if MANAGER_CYCLES is not None:
+                n["params"] = {**n.get("params", {}), "cycles_per_update": MANAGER_CYCLES}
         if timings == "relaxed" and n.get("heartbeat_deadline_ms"):
             # a node's own deadline (the motion nodes' 50 ms) relaxed too: on a saturated CPU
             # the supervisor SIGKILLed the pattern player every few seconds (seen this stop);
