@@ -895,6 +895,14 @@ def dedup(values: list[int]) -> list[int]:
     return [v for i, v in enumerate(values) if i == 0 or v != values[i - 1]]
 
 
+def mean_step(values: list[int]) -> float:
+    """How far a joint's set-point moves from one frame to the next, on average: the gait's
+    speed as the bus carries it (a frame each 20 ms slot on the timer)."""
+    steps = [abs(b - a) for a, b in itertools.pairwise(values)]
+    assert steps, values
+    return sum(steps) / len(steps)
+
+
 def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:  # type: ignore[no-untyped-def]
     """Stopped for 150 ms (what a full core does to it), the manager finds ~15 cycles queued: it
     runs the newest and counts the others (late_cycles). Replaying them wrote their set-points
@@ -1131,9 +1139,15 @@ def test_pattern_through_the_manager_owns_its_joints(gait, mbus) -> None:  # typ
     assert s["state"] == "active" and s["type"] == "gait_pattern"
     shown = app.cli("status").stdout  # each controller's state, claims, update times, overruns
     assert "pattern" in shown and "gait_pattern" in shown and "r_knee/position" in shown, shown
-    # speed and pause through the same CLI; pause stops the manager writing
-    assert app.cli("pattern", "speed", "5").returncode == 0
-    assert listing(app)["pattern"]["own"]["speed"] == 5
+    # speed and pause through the same CLI; pause stops the manager writing. The new speed
+    # is on the bus, not only in the status: with the gait's cycle replayed by the timer, a
+    # speed once changed nothing there (the plan is made again: Manager.plan_key)
+    fast = mean_step(hips[20:])
+    assert app.cli("pattern", "speed", "2").returncode == 0
+    assert listing(app)["pattern"]["own"]["speed"] == 2
+    collect(mbus, 0.3)  # the timer's plan made again
+    slow = mean_step([f.setpoint for f in joint_frames(collect(mbus, 1.0, {70}), 1)])
+    assert slow < fast / 2, (slow, fast)  # a row every 180 ms instead of 20: ~1/9 a slot
     assert app.cli("pattern", "pause").returncode == 0
     collect(mbus, 0.2)
     assert joint_frames(collect(mbus, 0.3, {70}), 1) == []

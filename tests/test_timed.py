@@ -381,3 +381,34 @@ def test_a_lease_renewed_after_it_ran_out_stays_silent_with_its_count(buses) -> 
         assert op.sent() == LEASE
     finally:
         op.close()
+
+
+def test_a_plan_is_stale_once_its_controller_is_commanded_not_when_a_neighbour_fails() -> None:
+    """``Manager.plan_key``, what the timer's plan was made from: a speed given to a gait whose
+    cycle the timer replayed changed nothing on the bus (it must end the plan), while a PID's
+    failure beside the gait ended the gait's timer for nothing (a 108 ms stall on the board
+    proxy, A67): only whether the cycle loop runs beside it changes."""
+    m = gait_manager()
+    key = m.plan_key()
+    m.load("pid", "pid", {"joints": ["l_ankle"]})
+    m.request(Switch(["pid"], []))
+    m.cycle(STATE, 1000.01, h2.PERIOD_S, None)
+    assert m.slots["pid"].state == "active" and m.unplanned()
+    assert m.plan_key() == key  # a feedback controller beside the plan: it stands
+
+    def boom(*_a: object) -> dict:
+        raise RuntimeError("the PID broke")
+
+    m.slots["pid"].ctrl.update = boom  # type: ignore[method-assign]
+    m.cycle(STATE, 1000.02, h2.PERIOD_S, None)
+    assert m.slots["pid"].state == "inactive" and not m.unplanned()
+    assert m.plan_key() == key and m.slots["gait"].state == "active"
+    m.command("gait", {"speed": 5})  # the gait's own command: its plan is stale
+    assert m.plan_key() != key
+    key = m.plan_key()
+    m.set_limits(Limits.configured(LimitsConfig(max_step_deg=5)))  # narrower: planned again
+    assert m.plan_key() != key
+    key = m.plan_key()
+    m.request(Switch([], ["gait"]))
+    m.cycle(STATE, 1000.03, h2.PERIOD_S, None)
+    assert m.plan_key() != key and not m.plannable()

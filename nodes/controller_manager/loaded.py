@@ -152,7 +152,10 @@ class Loaded(Held):
     def command(self, name: str, request: dict[str, Any]) -> dict[str, Any]:
         with self.lock:
             slot = self._slot(name)
-        return slot.ctrl.command(request)  # a controller's Refused is the caller's
+        reply = slot.ctrl.command(request)  # a controller's Refused is the caller's
+        with self.lock:
+            slot.revision += 1
+        return reply
 
     def state_of(self, name: str) -> StateOf:
         """One controller's state and why it stopped: what a node that follows a controller

@@ -74,12 +74,14 @@ class Manager(Loaded, Switching):
         self.gaps = 0  # cycles where a claimed joint got no frame (no value yet)
         self.overhead_s: deque[float] = deque(maxlen=2000)
         self.version = 0  # counts loads, unloads and state changes: what `activity` describes
+        self.limits_version = 0  # counts ``set_limits``: part of ``plan_key``
 
     def set_limits(self, limits: Limits) -> None:
         """The limits in force from the next cycle on (an operator narrowed or reset them)."""
         with self.lock:
             self.limits = limits
             self.version += 1
+            self.limits_version += 1
 
     # --- the loop ---------------------------------------------------------------------------
 
@@ -152,6 +154,17 @@ class Manager(Loaded, Switching):
         in the cycle loop: ``cycle(part=UNPLANNED)``)."""
         with self.lock:
             return not self.pending and bool(self._planned())
+
+    def plan_key(self) -> tuple[object, ...]:
+        """What a plan on the kernel's timer was made from: the limits, and each planned
+        controller with its revision (activations, commands). A speed or index given to a gait while its cycle
+        was replayed changed nothing on the bus (the timer went on replaying the old speed),
+        so the timer ends when this changes; a feedback controller loaded, stopped or failed
+        beside the plan does not change it (its failure ended the gait's timer on the board
+        proxy, and the plan's restart was a 108 ms stall: A67)."""
+        with self.lock:
+            planned = sorted(self._planned())
+            return self.limits_version, tuple((n, self.slots[n].revision) for n in planned)
 
     def unplanned(self) -> bool:
         """An active controller is not planned: the cycle loop runs beside the timer."""

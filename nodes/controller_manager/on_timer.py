@@ -44,7 +44,7 @@ class TimerLoop:
         self.beat_s = beat_s  # the loop's wake while the timer sends
         self.timed: Timed | None = None
         self.runs = 0
-        self.version = -1  # the manager's version the op was planned from
+        self.plan_key: tuple[object, ...] = ()  # what the op was planned from (Manager.plan_key)
         self.beside = False  # the cycle loop runs beside the timer (see ``start``)
         self.refused = ""
         self.lapses = 0
@@ -90,10 +90,10 @@ class TimerLoop:
             if not joints or self.timed is not None:
                 return
             # Feedback controllers beside the plan: the cycle loop runs too, and the node is
-            # judged by its own deadline. Read once: any change of the controllers changes the
-            # version, which ends the timer first. Alone, the lease bounds a hang's motion, and
-            # it is judged by that from here: nothing is sent until the op starts, and the op's
-            # opening and first slots, preempted on a capped CPU, outlasted its own 50 ms.
+            # judged by its own deadline (followed by ``keep`` as they come and go). Alone, the
+            # lease bounds a hang's motion, and it is judged by that from here: nothing is sent
+            # until the op starts, and the op's opening and first slots, preempted on a capped
+            # CPU, outlasted its own 50 ms.
             beside = n.manager.unplanned()
             pace = Pace.OWN if beside else Pace.LEASED
             n.beat(pace)
@@ -134,11 +134,9 @@ class TimerLoop:
                 timed.abort()
                 n._send(n._safe_frames(broke))
                 return
-            self.timed, self.version, self.beside = timed, n.manager.version, beside
+            self.timed, self.plan_key = timed, n.manager.plan_key()
             self.runs += 1
-            if n.reader is not None and n._one_socket() and not self.beside:
-                # no angle frame wakes it now (with a feedback controller, every cycle does)
-                n.reader.set_ids([i for i in n.read_ids if i != h2.JOINT_ANGLES])
+            self._beside(beside)
         n.log.info(
             "timer_started",
             joints=[h2.JOINTS[j] for j in joints],
@@ -181,20 +179,34 @@ class TimerLoop:
         n.maybe_tell()
         clock.mark("timer rest")
 
+    def _beside(self, beside: bool) -> None:
+        """Whether the cycle loop runs beside the timer (a feedback controller is active), and
+        the frames that wake the node with it: alone, no angle frame (with a feedback
+        controller, every cycle's)."""
+        n, self.beside = self.node, beside
+        if n.reader is not None and n._one_socket():
+            skip = () if beside else (h2.JOINT_ANGLES,)
+            n.reader.set_ids([i for i in n.read_ids if i not in skip])
+
     def keep(self) -> None:
-        """The timer's lease renewed when due; anything that changed (arming, a switch waiting,
-        a controller stopped, the limits) hands the joints back to the cycle loop first."""
+        """The timer's lease renewed when due; anything the plan was made from that changed
+        (arming, a switch waiting, a planned controller stopped or commanded, the limits)
+        hands the joints back to the cycle loop first. A feedback controller that stops
+        beside it changes only whether the cycle loop runs too."""
         n = self.node
         timed = self.timed
         if timed is None:
             return
         not_armed = n.not_armed()
-        changed = n.manager.version != self.version
+        changed = n.manager.plan_key() != self.plan_key
         if not_armed or changed or not n.manager.plannable():
             why = not_armed or ("the controllers changed" if changed else "not all planned")
             n.log.info("timer_left", why=why, renewals=timed.renewals)
             self.leave(orderly=not not_armed)
             return
+        if (beside := n.manager.unplanned()) != self.beside:
+            with n.io_lock:
+                self._beside(beside)
         with n.io_lock:
             if self.timed is None:
                 return

@@ -50,6 +50,8 @@ class Slot:
     overran_last: float = 0.0  # CPU of the last update if it overran the budget, else 0
     limited: int = 0
     written: int = 0  # joint set-points written for it
+    revision: int = 0  # its activations and commands taken (a gait's speed, index): a plan
+    # made before is stale (Manager.plan_key)
 
     def joints(self) -> set[int]:
         return {JOINTS.index(t) for t in (c.split("/")[0] for c in self.claims) if t in JOINTS}

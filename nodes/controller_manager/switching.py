@@ -141,6 +141,7 @@ class Switching(Held):
         continues from what its previous owner last wrote; one nobody was writing starts from
         where it is (a board's lever; 0 for a velocity controller; a torque from 0)."""
         slot.state, slot.error = "active", ""
+        slot.revision += 1
         self.version += 1
         for c in slot.claims:
             self.owners[c] = slot.name
