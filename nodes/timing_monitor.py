@@ -194,10 +194,10 @@ class TimingMonitor(Node):
         seconds = ask.seconds
         if not 0 <= seconds <= 600:
             raise Refused("seconds must be 0..600")
-        since = time.time()
-        if seconds:  # measure fresh frames only, once the loop has read the window's last ones
-            time.sleep(seconds + READ_EVERY_S + 0.05)
+        since = time.time() - (seconds if ask.past else 0.0)
         until = since + seconds
+        if seconds:  # the window's last frames read by the loop (its next wake) before selecting
+            time.sleep(max(0.0, until - time.time()) + READ_EVERY_S + 0.05)
         stamps = [
             t for t in self._key_stamps(fid, dlc, byte0) if not seconds or since <= t <= until
         ]

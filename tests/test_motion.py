@@ -345,6 +345,12 @@ def test_timing_monitor_measures_the_pattern(app) -> None:  # type: ignore[no-un
     assert s["mean_period_ms"] == pytest.approx(20.0, abs=0.5)
     assert sum(s["histogram"].values()) == s["n"]
     assert s["socket_dropped"] == 0  # a record without holes
+    # --past: the 2 s before the question, from what the monitor kept (the gait still runs)
+    r = app.cli("timing", "70", "--motor", "1", "--dlc", "6", "--seconds", "2", "--past", "--json")
+    assert r.returncode == 0, r.stderr
+    past = json.loads(r.stdout)
+    assert 80 <= past["n"] <= 101
+    assert past["mean_period_ms"] == pytest.approx(20.0, abs=0.5)
     r = app.cli("timing", "99")
     assert r.returncode == 5 and "id 99 is not monitored" in r.stderr
 

@@ -16,7 +16,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -355,25 +354,15 @@ def counters(laptop: Laptop) -> dict[str, Any]:
     return out
 
 
-@contextlib.contextmanager
-def timing_query(
-    laptop: Laptop, seconds: float, query: dict[str, Any] = TIMING_QUERY
-) -> Iterator[dict[str, Any]]:
-    """The timing monitor's period deviation of ``query``'s frames over the window."""
-    result: dict[str, Any] = {}
-
-    def ask() -> None:
-        try:
-            result.update(
-                laptop.call("timing", body={**query, "seconds": seconds}, timeout=seconds + 60)
-            )
-        except messaging.Unreachable as exc:
-            result["error"] = str(exc)
-
-    t = threading.Thread(target=ask, daemon=True)
-    t.start()
-    yield result
-    t.join(90)
+def timing_query(laptop: Laptop, seconds: float, query: dict[str, Any]) -> dict[str, Any]:
+    """The timing monitor's period deviation of ``query``'s frames over the ``seconds`` before
+    now (``past``: asked after the window, so two questions do not queue behind each other's
+    wait, as they did in J66), with the span it covers."""
+    body = {**query, "seconds": round(seconds, 1), "past": True}
+    try:
+        return laptop.call("timing", body=body, timeout=60) | {"span_s": body["seconds"]}
+    except messaging.Unreachable as exc:
+        return {"error": str(exc)}
 
 
 def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float) -> dict[str, Any]:
@@ -389,22 +378,20 @@ def measure(laptop: Laptop | None, probe: subprocess.Popen[str], seconds: float)
     else:
         return {"error": f"probe ended before its first snapshot: {line!r}"}
     t0 = time.monotonic()
-    timing: dict[str, Any] = {}
-    angles: dict[str, Any] = {}
-    with contextlib.ExitStack() as stack:
-        if laptop is not None:
-            laptop.joint_states.counting = True
-            timing = stack.enter_context(timing_query(laptop, seconds))
-            angles = stack.enter_context(timing_query(laptop, seconds, ANGLES_QUERY))
-        result = ""
-        for line in probe.stdout:
-            if line.startswith("PROBE_RESULT "):
-                result = line.split(" ", 1)[1]
-        probe.wait()
+    if laptop is not None:
+        laptop.joint_states.counting = True
+    result = ""
+    for line in probe.stdout:
+        if line.startswith("PROBE_RESULT "):
+            result = line.split(" ", 1)[1]
+    probe.wait()
     out: dict[str, Any] = {"probe": json.loads(result) if result else {"error": "no probe result"}}
     if laptop is None:
         return out
     laptop.joint_states.counting = False
+    span = time.monotonic() - t0  # the window and the probe's end: the gait still runs
+    timing = timing_query(laptop, span, TIMING_QUERY)
+    angles = timing_query(laptop, span, ANGLES_QUERY)
     after = counters(laptop)
     return out | {
         "joint_states": laptop.joint_states.summary(t0, seconds)

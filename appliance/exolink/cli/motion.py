@@ -236,14 +236,16 @@ def _watch(args: argparse.Namespace) -> int:
 
 def timing_body(args: argparse.Namespace) -> dict[str, Any]:
     """The timing monitor request of a parsed `exolink timing ...` (also the dashboard's)."""
-    ask = management.Timing(args.id, args.seconds, args.motor, args.dlc, args.expected_ms)
+    ask = management.Timing(
+        args.id, args.seconds, args.motor, args.dlc, args.expected_ms, past=args.past
+    )
     return requests.body(ask)
 
 
 @guard
 def cmd_timing(args: argparse.Namespace) -> int:
     body = timing_body(args)
-    args.timeout = max(args.timeout, args.seconds + 5)
+    args.timeout = max(args.timeout, 5 if args.past else args.seconds + 5)
     with remote(args) as r:
         raw = r.call("timing", body=body)
     raw.pop("ok", None)
@@ -328,5 +330,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="only frames of this length (id 70 is also MACCEPA board 0's, 8 bytes)",
     )
     p.add_argument("--expected-ms", type=decimal)
+    p.add_argument(
+        "--past",
+        action="store_true",
+        help="the --seconds before now, answered at once (default: the next --seconds)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_timing)

@@ -140,14 +140,18 @@ class Params(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True, fro
 
 class Timing(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True, frozen=True):
     """The timing monitor's figures for frame ``id`` (only those ``dlc`` long with first byte
-    ``byte0``, if given): over the last ``seconds`` measured from now (0: what it holds), against
-    ``expected_ms`` (None: the mean period)."""
+    ``byte0``, if given): over the next ``seconds`` from now (0: what it holds), or with ``past``
+    the ``seconds`` before the question, answered at once; against ``expected_ms`` (None: the
+    mean period). The monitor answers one question at a time: two windows of 60 s asked at once
+    took 120 s, so the bench's second one timed out (J66); asked with ``past`` after the window,
+    neither holds up the other."""
 
     id: int
     seconds: float = 0.0
     byte0: int | None = None
     dlc: int | None = None
     expected_ms: float | None = None
+    past: bool = False
 
 
 class Fault(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True, frozen=True):
