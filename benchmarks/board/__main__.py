@@ -105,6 +105,16 @@ def table(result: dict[str, Any]) -> str:
         "",
     )
     row("  host CPU it had in the window %", get(g, "host_core_pct"), "")
+    vcpu = g.get("vcpu0") or {}
+    if vcpu.get("worst"):  # the host's runqueue held the board's core (CoreSampler)
+        row(
+            "  vCPU 0 ran / waited on the host, run %",
+            f"{vcpu['run_pct']} / {vcpu['waited_pct']}",
+            "",
+        )
+        w = vcpu["worst"][-1]
+        row("  its worst 0.5 s waited % (UTC)", f"{w['waited_pct']} ({w['at_utc']})", "")
+        row("  guest clock ahead of the host (s)", get(g, "guest_clock_ahead_s"), "")
     row("calibration (CPU ms, fixed Python loop)", *pair("window", "probe", "calibration_ms"))
     # units.py on CPU 0 after the window: what the appliance's CPU is made of on each machine
     row("unit: Python loop (CPU ms)", *pair("units", "python_loop_ms"))

@@ -28,6 +28,7 @@ the stock 50 ms deadline (seen with QEMU 7.2, ftrace in the guest and ``info jit
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import re
 import shutil
@@ -160,6 +161,24 @@ class Guest:
             return None
         return thread_cpu_s(self.proc.pid, tid)
 
+    def core_sampler(self) -> CoreSampler | None:
+        """The vCPU's host scheduling sampled from now on (CoreSampler), if it was found."""
+        tid = self.core.get("tid")
+        if tid is None or self.proc is None:
+            return None
+        return CoreSampler(self.proc.pid, tid, self.work / "vcpu0-schedstat.txt").start()
+
+    def clock_ahead_s(self) -> float | None:
+        """How far the guest's wall clock is ahead of the host's (s, +- half an ssh round
+        trip): to put the guest journal's times beside CoreSampler's."""
+        t0 = time.time()
+        r = self.ssh("date +%s.%N")
+        t1 = time.time()
+        try:
+            return round(float(r.stdout.strip()) - (t0 + t1) / 2, 3)
+        except ValueError:
+            return None
+
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
 
@@ -271,3 +290,62 @@ def thread_cpu_s(pid: int, tid: int) -> float | None:
         return None
     fields = stat.rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class CoreSampler:
+    """The board's vCPU as the host scheduled it, every ``every_s`` into ``path`` (host wall
+    time, then the thread's run and runqueue-wait ns from its schedstat).
+
+    Why: the guest charges CPU 0's busy time to whatever it ran, so a stretch in which the host
+    did not run the vCPU (a laptop CLI's start, qemu's network thread) looks to the watchdog like
+    a node that stopped. F66's and K66's stops tripped on the h2 reader with CPU 0 ~0.4 s busy
+    and no thread holding the time; this says whether the host had the vCPU waiting then."""
+
+    def __init__(self, pid: int, tid: int, path: Path, every_s: float = 0.05) -> None:
+        self.file = Path(f"/proc/{pid}/task/{tid}/schedstat")
+        self.path, self.every_s = path, every_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="vcpu0-sampler")
+
+    def start(self) -> CoreSampler:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        with open(self.path, "w") as out:
+            while not self._stop.wait(self.every_s):
+                try:
+                    run_ns, wait_ns, _ = self.file.read_text().split()
+                except (OSError, ValueError):
+                    return
+                out.write(f"{time.time():.3f} {run_ns} {wait_ns}\n")
+
+    def stop(self, worst: int = 8, span_s: float = 0.5) -> dict[str, Any]:
+        """Totals, and the ``worst`` stretches of ``span_s`` by the share the vCPU waited."""
+        self._stop.set()
+        self._thread.join(2)
+        rows = [ln.split() for ln in self.path.read_text().splitlines()]
+        pts = [(float(t), int(r), int(w)) for t, r, w in rows]
+        if len(pts) < 2:
+            return {"error": "no samples"}
+        wall = pts[-1][0] - pts[0][0]
+        out: dict[str, Any] = {
+            "samples": str(self.path),
+            "run_pct": round((pts[-1][1] - pts[0][1]) / 1e7 / wall, 1),
+            "waited_pct": round((pts[-1][2] - pts[0][2]) / 1e7 / wall, 1),
+        }
+        step = max(1, round(span_s / self.every_s))
+        spans = []
+        for a, b in itertools.pairwise(pts[::step]):
+            dt = b[0] - a[0]
+            spans.append(
+                (
+                    round((b[2] - a[2]) / 1e7 / dt, 1),
+                    round((b[1] - a[1]) / 1e7 / dt, 1),
+                    time.strftime("%H:%M:%S", time.gmtime(a[0])) + f"{a[0] % 1:.2f}"[1:],
+                )
+            )
+        out["worst"] = [
+            {"at_utc": at, "waited_pct": w, "ran_pct": r} for w, r, at in sorted(spans)[-worst:]
+        ]
+        return out

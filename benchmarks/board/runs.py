@@ -316,6 +316,7 @@ def run_guest(
     result["qemu_command"] = " ".join(guest.cmd)
     console = guest.start()
     result["host_core"] = guest.core
+    sampler = guest.core_sampler()
     laptop = None
     try:
         try:
@@ -409,6 +410,7 @@ def run_guest(
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
+        result["guest_clock_ahead_s"] = guest.clock_ahead_s()  # the journal's against the host's
         result["units"] = _guest_units(guest)  # stops the service: the profiles are written
         if cprofile:
             result["cprofile"] = _fetch_cprofiles(guest, work, cprofile)
@@ -420,6 +422,8 @@ def run_guest(
     finally:
         if laptop is not None:
             laptop.close()
+        if sampler is not None:
+            result["vcpu0"] = sampler.stop()
         guest.stop()
         result["console_log"] = str(work / "console.log")
 
