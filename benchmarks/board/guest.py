@@ -27,6 +27,7 @@ the stock 50 ms deadline (seen with QEMU 7.2, ftrace in the guest and ``info jit
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import itertools
 import os
@@ -320,12 +321,16 @@ class CoreSampler:
                     return
                 out.write(f"{time.time():.3f} {run_ns} {wait_ns}\n")
 
+    def points(self) -> list[tuple[float, int, int]]:
+        """The samples so far: (host wall time, run ns, runqueue-wait ns)."""
+        rows = (ln.split() for ln in self.path.read_text().splitlines())
+        return [(float(t), int(r), int(w)) for t, r, w in rows]
+
     def stop(self, worst: int = 8, span_s: float = 0.5) -> dict[str, Any]:
         """Totals, and the ``worst`` stretches of ``span_s`` by the share the vCPU waited."""
         self._stop.set()
         self._thread.join(2)
-        rows = [ln.split() for ln in self.path.read_text().splitlines()]
-        pts = [(float(t), int(r), int(w)) for t, r, w in rows]
+        pts = self.points()
         if len(pts) < 2:
             return {"error": "no samples"}
         wall = pts[-1][0] - pts[0][0]
@@ -349,3 +354,14 @@ class CoreSampler:
             {"at_utc": at, "waited_pct": w, "ran_pct": r} for w, r, at in sorted(spans)[-worst:]
         ]
         return out
+
+
+def ran_pct(points: list[tuple[float, int, int]], t0: float, t1: float) -> float | None:
+    """The share of host wall time ``t0``..``t1`` the vCPU ran (CoreSampler's ``points``; None
+    without two samples in it). Beside the guest's own count of CPU 0 busy, a stretch the
+    guest calls busy that the host did not run is the host's (qemu's lock, say)."""
+    i, j = bisect.bisect_left(points, (t0,)), bisect.bisect_right(points, (t1, 1 << 62))
+    if j - i < 2 or points[j - 1][0] <= points[i][0]:
+        return None
+    a, b = points[i], points[j - 1]
+    return round((b[1] - a[1]) / 1e7 / (b[0] - a[0]), 1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import hashlib
+import itertools
 import json
 import os
 import re
@@ -25,7 +26,7 @@ from benchmarks.board import card as cardlib
 from benchmarks.board import ladder as ladderlib
 from benchmarks.board import profile, scenario
 from benchmarks.board import timeline as timelinelib
-from benchmarks.board.guest import Guest
+from benchmarks.board.guest import CoreSampler, Guest, ran_pct
 from benchmarks.harness import free_port
 from exolink import messaging
 from exolink.config import bundled
@@ -405,12 +406,15 @@ def run_guest(
                 line.split(" ", 1) for line in stat.stdout.splitlines() if " " in line
             )
         result["supervisor_threads_at_end"] = _supervisor_threads(guest)
+        result["guest_clock_ahead_s"] = guest.clock_ahead_s()  # the journal's against the host's
         if timeline:
-            result["timeline"] = _fetch_timeline(guest, work)
+            ahead = result["guest_clock_ahead_s"]
+            result["timeline"] = _fetch_timeline(
+                guest, work, sampler if ahead is not None else None, ahead or 0.0
+            )
         result["logs"] = _guest_logs(guest, result)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
-        result["guest_clock_ahead_s"] = guest.clock_ahead_s()  # the journal's against the host's
         result["units"] = _guest_units(guest)  # stops the service: the profiles are written
         if cprofile:
             result["cprofile"] = _fetch_cprofiles(guest, work, cprofile)
@@ -560,20 +564,28 @@ def _fetch_profile(
     return {"raw": str(raw), "rate_hz": PROFILE_RATE, "summary": summary}
 
 
-def _fetch_timeline(guest: Guest, work: Path) -> dict[str, Any]:
+def _fetch_timeline(
+    guest: Guest, work: Path, vcpu: CoreSampler | None = None, ahead_s: float = 0.0
+) -> dict[str, Any]:
     """The sampler stopped, its lines saved beside the console log and summarized there as
     ``timeline-top.txt`` (one line per interval: wall clock, the cgroup's use and throttled
-    periods, the busiest threads), to read beside the journal's trips."""
+    periods, CPU 0's idle, with ``vcpu`` the share the host ran the board's vCPU, the busiest
+    threads), to read beside the journal's trips. ``ahead_s``: the guest's clock against the
+    host's."""
     guest.ssh(f"pkill -f {GUEST_TIMELINE}")
     r = guest.ssh(f"cat {GUEST_TIMELINE}l", timeout=300)
     raw = work / "timeline.jsonl"
     raw.write_text(r.stdout)
     rows = timelinelib.summarize(r.stdout.splitlines(), top=8)
+    if vcpu is not None:
+        points = vcpu.points()
+        for a, b in itertools.pairwise(rows):
+            b["host_ran"] = ran_pct(points, a["wall"] - ahead_s, b["wall"] - ahead_s)
     text = "\n".join(
         f"{time.strftime('%H:%M:%S', time.gmtime(row['wall']))}.{int(row['wall'] % 1 * 100):02d}"
         f" cpu {row['cpu_pct']:5.1f} usage {row.get('usage_pct', '-')}"
-        f" thr {row.get('throttled', '-')} cpu0 {row.get('cpu0', '-')} | "
-        + ", ".join(f"{k} {s}" for k, s in row["top"])
+        f" thr {row.get('throttled', '-')} cpu0 {row.get('cpu0', '-')}"
+        f" host ran {row.get('host_ran', '-')} | " + ", ".join(f"{k} {s}" for k, s in row["top"])
         for row in rows
     )
     (work / "timeline-top.txt").write_text(text + "\n")
