@@ -19,7 +19,9 @@ the stock 50 ms deadline (seen with QEMU 7.2, ftrace in the guest and ``info jit
   a CLI command's start. ``own_core`` gives that vCPU host CPU 0 at nice -20
   (``board_core``): tried once (A66), the calibration was 14 % slower and the window tripped
   anyway, so it is an option, not the default. The host CPU the vCPU had in the window is
-  reported either way.
+  reported either way, and ``CoreSampler`` follows its host scheduling every 50 ms: a stretch
+  the guest counts as busy while the host neither ran the vCPU nor had it waiting for a core
+  is a stall inside qemu (C67: the monitor's ``info jit``, 0.45 s at 0-13 % run).
 - Each ssh login (key exchange, PAM session, logind) stalled CPU 0 although sshd runs on CPU 1;
   commands sent over one connection opened after boot did not: every ssh here shares it
   (OpenSSH connection multiplexing).

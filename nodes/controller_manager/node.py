@@ -353,12 +353,14 @@ class ControllerManagerNode(Node):
 
     def _stops(self, decoded: list[tuple[Any, Any]]) -> None:
         """Safety first: a disable/stop anywhere in the batch stops its joints' controllers
-        before any set-point of this batch is computed (and a timer's, at once)."""
+        before any set-point of this batch is computed (and the timer's op at once, if it
+        drives one of them; one that drives others goes on, as their controllers do)."""
         stopped, halted = self.view.stops(decoded)
         if stopped:
             names = ", ".join(h2.JOINTS[j] for j in sorted(stopped))
             with self.io_lock:
-                self.timer.abort()
+                if self.timer.drives(stopped):
+                    self.timer.abort()
                 self.manager.joints_disabled(stopped, f"{names} disabled or stopped on the bus")
         if halted:
             names = ", ".join(target(b) for b in sorted(halted))

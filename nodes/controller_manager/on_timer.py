@@ -259,6 +259,10 @@ class TimerLoop:
                 self.echoed[d.motor - 1] = d.setpoint
         return decoded
 
+    def drives(self, joints: set[int]) -> bool:
+        """The op sends set-points for one of ``joints`` (indices)."""
+        return self.timed is not None and not joints.isdisjoint(self.timed.plan.joints)
+
     def abort(self) -> None:
         """Under ``io_lock``: the timer's op ends now (every stop and trip path)."""
         if self.timed is not None:
