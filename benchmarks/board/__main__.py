@@ -452,7 +452,14 @@ def main() -> int:
     if args.show:
         print(table(json.loads(Path(args.show).read_text())))
         return 0
-    structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
+    structlog.configure(
+        processors=[  # UTC to the millisecond: each bench action beside the guest's journal
+            structlog.processors.add_log_level,
+            structlog.processors.TimeStamper(fmt="%H:%M:%S.%f", utc=True),
+            structlog.dev.ConsoleRenderer(colors=False),
+        ],
+        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+    )
     scenario.ONE_BY_ONE = args.laptop_one_by_one
     scenario.PID_JOINT = args.pid
     scenario.MANAGER_CYCLES = args.cycles_per_update

@@ -118,7 +118,9 @@ def _load_window(
     # walks every translated block holding QEMU's global lock, a 100 ms stall of the guest
     # (the watchdog tripped on H2 silence at a window's start when it was read there).
     jit0 = jit() if jit is not None else {}
+    log.info("probe ready: arming")
     out["operator"] = laptop.arm_and_start_pattern()
+    log.info("pattern started", armed=out["operator"].get("armed"))
     time.sleep(SETTLE_S)
     if not _pattern_running(laptop):
         out["first_attempt"] = {
@@ -147,7 +149,9 @@ def _load_window(
         _end_profiler(prof, out)
         if fetching is not None:
             out["fetch"] = _fetched(*fetching, work / "fetched" / fetch)  # type: ignore[operator]
+    log.info("window over: stopping the pattern")
     out["held_pattern_cli"] = laptop.stop_pattern()
+    log.info("pattern stopped: disarming")
     # The trial is over: disarmed, as an operator ends one.
     disarm = laptop.cli("disarm")
     out["disarmed"] = disarm.returncode == 0 or (disarm.stdout + disarm.stderr).strip()
@@ -364,6 +368,7 @@ def run_guest(
             result["cpu_quota_set"] = _cap_now(guest, cpu_quota)
 
         guest.upload(PROBE, GUEST_PROBE)
+        log.info("probe uploaded")
 
         def guest_probe(secs: float, nodes: list[str]) -> list[str]:
             return guest.ssh_cmd(
@@ -498,6 +503,7 @@ def _cap_now(guest: Guest, pct: int) -> dict[str, Any]:
     # set-property` reloads systemd's units first, which stalled the whole guest ~1.5 s under
     # TCG (the timeline's samples stopped) and hung-killed the h2 reader at the cap (C63).
     guest.ssh(f"echo '{pct * 100} 10000' > /sys/fs/cgroup/system.slice/exolink.service/cpu.max")
+    log.info("capped", pct=pct)
     r = guest.ssh(
         "cat /sys/fs/cgroup/system.slice/exolink.service/cpu.max "
         "/sys/fs/cgroup/system.slice/exolink.service/cpu.stat"
