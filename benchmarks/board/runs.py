@@ -16,6 +16,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -77,9 +78,11 @@ def _run_load(
     fetch: str | None = None,
     work: Path | None = None,
     core_cpu: Callable[[], float | None] | None = None,
+    cap: Callable[[], dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Arm, the pattern held, settle, then the window measured by the probe and the laptop
     (and ``fetch``, a recording on the card, fetched into ``work`` from the window's start).
+    ``cap``: the service's quota set once the probe is ready, SETTLE_S before the arm.
 
     The probe starts and calibrates before the arm and waits (``--go``): on the proxy its
     interpreter's start and calibration take seconds of CPU 1, where the simulated H2 streams,
@@ -90,7 +93,7 @@ def _run_load(
         [*probe_cmd, "--go"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
     )
     try:
-        return _load_window(laptop, probe, seconds, profiler, jit, fetch, work, core_cpu)
+        return _load_window(laptop, probe, seconds, profiler, jit, fetch, work, core_cpu, cap)
     finally:
         if probe.poll() is None:
             probe.kill()
@@ -105,6 +108,7 @@ def _load_window(
     fetch: str | None = None,
     work: Path | None = None,
     core_cpu: Callable[[], float | None] | None = None,
+    cap: Callable[[], dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     assert probe.stdin is not None and probe.stdout is not None
     out: dict[str, Any] = {}
@@ -115,10 +119,21 @@ def _load_window(
         out["window"] = {"error": f"the probe ended before it was ready (rc {probe.wait()})"}
         return out
     # Read before the load and after it, not at the window's edges: the monitor's `info jit`
-    # walks every translated block holding QEMU's global lock, a 100 ms stall of the guest
+    # walks every translated block holding QEMU's global lock, a stall of the whole guest
     # (the watchdog tripped on H2 silence at a window's start when it was read there).
+    log.info("probe ready: reading qemu's jit counters")
     jit0 = jit() if jit is not None else {}
-    log.info("probe ready: arming")
+    log.info("jit read")
+    if cap is not None:
+        # After that read, not before: it held the vCPU 0.8 s (H67: the host ran it 0-3 %,
+        # never waiting for a core), the cgroup that was running was charged the stall, and
+        # under the cap that debt held every node at zero CPU with CPU 0 idle (0 usage, 37 of
+        # 37 periods throttled): hung-kills before the arm in M65, C66, E66, M66, G67, H67.
+        # A bench artifact the cap tripled, not the load's.
+        time.sleep(SETTLE_S / 2)
+        out["cpu_quota_set"] = cap()
+        time.sleep(SETTLE_S)
+    log.info("arming")
     out["operator"] = laptop.arm_and_start_pattern()
     log.info("pattern started", armed=out["operator"].get("armed"))
     time.sleep(SETTLE_S)
@@ -361,7 +376,8 @@ def run_guest(
             )
         fetch = _stage_recording(guest, work, fetch_mb, result) if fetch_mb else None
         time.sleep(SETTLE_S)
-        if cpu_quota and cap_after_start:
+        loaded = laptop is not None and "laptop_error" not in result and ladder is None
+        if cpu_quota and cap_after_start and not loaded:
             # Once the nodes' first seconds are over: set as the last node beat, the cap caught
             # the pattern player and the manager still settling (B63: 1.1 and 0.4 s stalls, two
             # hung-kills before any load), which is the start's budget, not the load's.
@@ -393,9 +409,11 @@ def run_guest(
             result["ladder"] = ladderlib.run(laptop, cfg, probe, seconds, ladder)
             result["logs"] = _guest_logs(guest, result)
             return result
-        if laptop is not None and "laptop_error" not in result:
+        if loaded:
+            assert laptop is not None
+            cap = partial(_cap_now, guest, cpu_quota) if cpu_quota and cap_after_start else None
             result |= _run_load(
-                laptop, probe_cmd, seconds, profiler, guest.jit, fetch, work, guest.core_cpu_s
+                laptop, probe_cmd, seconds, profiler, guest.jit, fetch, work, guest.core_cpu_s, cap
             )
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
