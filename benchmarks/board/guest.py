@@ -12,16 +12,16 @@ the stock 50 ms deadline (seen with QEMU 7.2, ftrace in the guest and ``info jit
   guest with ssh logins, ~40 MB each); its flush stops every vCPU while the hot
   code is translated again: ``TB_SIZE_MB`` holds a whole run, and the monitor's flush count is
   read before the load and after it (``jit``; never during: it stalls the guest too).
-- Suspected, not shown: the host's two cores also run the laptop (its subscriber, each CLI
-  command's interpreter) and qemu's own threads, and time the host takes from the vCPU that is
-  the board's CPU 0 is charged by the guest to the task it ran: under a 50 % quota a debt
-  twice as long. M65 had the whole service at 0 CPU for 0.75 s, every thread throttled, about
-  a CLI command's start. ``own_core`` gives that vCPU host CPU 0 at nice -20
-  (``board_core``): tried once (A66), the calibration was 14 % slower and the window tripped
-  anyway, so it is an option, not the default. The host CPU the vCPU had in the window is
-  reported either way, and ``CoreSampler`` follows its host scheduling every 50 ms: a stretch
-  the guest counts as busy while the host neither ran the vCPU nor had it waiting for a core
-  is a stall inside qemu (C67: the monitor's ``info jit``, 0.45 s at 0-13 % run).
+- Time the vCPU that is the board's CPU 0 does not run is charged by the guest to the task it
+  was running, and under a 50 % quota the cgroup then owes it: every node at zero CPU over an
+  idle core for twice as long (H67: 37 of 37 periods throttled with 0 usage). ``CoreSampler``
+  follows the vCPU's host scheduling every 50 ms; a stretch the guest counts as busy while the
+  host neither ran the vCPU nor had it waiting for a core is a stall inside qemu: the
+  monitor's ``info jit`` (C67: 0.45 s at 0-13 % run; H67: 0.8 s), so the cap is set after
+  the first read and the second comes once the service is stopped. Host cores taken by the
+  laptop show as the vCPU waiting (1-3 % over a run). ``own_core`` gives that vCPU host CPU 0
+  at nice -20 (``board_core``): tried once (A66), the calibration was 14 % slower and the
+  window tripped anyway, so it is an option, not the default.
 - Each ssh login (key exchange, PAM session, logind) stalled CPU 0 although sshd runs on CPU 1;
   commands sent over one connection opened after boot did not: every ssh here shares it
   (OpenSSH connection multiplexing).
