@@ -315,7 +315,7 @@ class CoreSampler:
         return self
 
     def _run(self) -> None:
-        with open(self.path, "w") as out:
+        with open(self.path, "w", buffering=1) as out:  # lines readable as written (points)
             while not self._stop.wait(self.every_s):
                 try:
                     run_ns, wait_ns, _ = self.file.read_text().split()
