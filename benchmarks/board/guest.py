@@ -297,7 +297,9 @@ def thread_cpu_s(pid: int, tid: int) -> float | None:
 
 class CoreSampler:
     """The board's vCPU as the host scheduled it, every ``every_s`` into ``path`` (host wall
-    time, then the thread's run and runqueue-wait ns from its schedstat).
+    time, then the thread's run and runqueue-wait ns from its schedstat, then the run ns of
+    qemu's main thread: its main loop, where the guest's network (user networking) and its
+    timers' host side are served).
 
     Why: the guest charges CPU 0's busy time to whatever it ran, so a stretch in which the host
     did not run the vCPU (a laptop CLI's start, qemu's network thread) looks to the watchdog like
@@ -306,6 +308,7 @@ class CoreSampler:
 
     def __init__(self, pid: int, tid: int, path: Path, every_s: float = 0.05) -> None:
         self.file = Path(f"/proc/{pid}/task/{tid}/schedstat")
+        self.main = Path(f"/proc/{pid}/task/{pid}/schedstat")
         self.path, self.every_s = path, every_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name="vcpu0-sampler")
@@ -319,14 +322,15 @@ class CoreSampler:
             while not self._stop.wait(self.every_s):
                 try:
                     run_ns, wait_ns, _ = self.file.read_text().split()
-                except (OSError, ValueError):
+                    main_ns = self.main.read_text().split()[0]
+                except (OSError, ValueError, IndexError):
                     return
-                out.write(f"{time.time():.3f} {run_ns} {wait_ns}\n")
+                out.write(f"{time.time():.3f} {run_ns} {wait_ns} {main_ns}\n")
 
-    def points(self) -> list[tuple[float, int, int]]:
-        """The samples so far: (host wall time, run ns, runqueue-wait ns)."""
+    def points(self) -> list[tuple[float, int, int, int]]:
+        """The samples so far: (host wall time, run ns, runqueue-wait ns, main loop run ns)."""
         rows = (ln.split() for ln in self.path.read_text().splitlines())
-        return [(float(t), int(r), int(w)) for t, r, w in rows]
+        return [(float(t), int(r), int(w), int(m)) for t, r, w, m in rows]
 
     def stop(self, worst: int = 8, span_s: float = 0.5) -> dict[str, Any]:
         """Totals, and the ``worst`` stretches of ``span_s`` by the share the vCPU waited."""
@@ -340,6 +344,7 @@ class CoreSampler:
             "samples": str(self.path),
             "run_pct": round((pts[-1][1] - pts[0][1]) / 1e7 / wall, 1),
             "waited_pct": round((pts[-1][2] - pts[0][2]) / 1e7 / wall, 1),
+            "qemu_main_pct": round((pts[-1][3] - pts[0][3]) / 1e7 / wall, 1),
         }
         step = max(1, round(span_s / self.every_s))
         spans = []
@@ -358,12 +363,15 @@ class CoreSampler:
         return out
 
 
-def ran_pct(points: list[tuple[float, int, int]], t0: float, t1: float) -> float | None:
-    """The share of host wall time ``t0``..``t1`` the vCPU ran (CoreSampler's ``points``; None
-    without two samples in it). Beside the guest's own count of CPU 0 busy, a stretch the
-    guest calls busy that the host did not run is the host's (qemu's lock, say)."""
+def ran_pct(
+    points: list[tuple[float, int, int, int]], t0: float, t1: float, column: int = 1
+) -> float | None:
+    """The share of host wall time ``t0``..``t1`` the vCPU ran (CoreSampler's ``points``;
+    ``column`` 3: qemu's main loop; None without two samples in it). Beside the guest's own
+    count of CPU 0 busy, a stretch the guest calls busy that the host did not run is the
+    host's (qemu's lock, say)."""
     i, j = bisect.bisect_left(points, (t0,)), bisect.bisect_right(points, (t1, 1 << 62))
     if j - i < 2 or points[j - 1][0] <= points[i][0]:
         return None
     a, b = points[i], points[j - 1]
-    return round((b[1] - a[1]) / 1e7 / (b[0] - a[0]), 1)
+    return round((b[column] - a[column]) / 1e7 / (b[0] - a[0]), 1)

@@ -603,12 +603,15 @@ def _fetch_timeline(
     if vcpu is not None:
         points = vcpu.points()
         for a, b in itertools.pairwise(rows):
-            b["host_ran"] = ran_pct(points, a["wall"] - ahead_s, b["wall"] - ahead_s)
+            t0, t1 = a["wall"] - ahead_s, b["wall"] - ahead_s
+            b["host_ran"] = ran_pct(points, t0, t1)
+            b["qemu_main"] = ran_pct(points, t0, t1, column=3)
     text = "\n".join(
         f"{time.strftime('%H:%M:%S', time.gmtime(row['wall']))}.{int(row['wall'] % 1 * 100):02d}"
         f" cpu {row['cpu_pct']:5.1f} usage {row.get('usage_pct', '-')}"
         f" thr {row.get('throttled', '-')} cpu0 {row.get('cpu0', '-')}"
-        f" host ran {row.get('host_ran', '-')} | " + ", ".join(f"{k} {s}" for k, s in row["top"])
+        f" host ran {row.get('host_ran', '-')} qemu main {row.get('qemu_main', '-')} | "
+        + ", ".join(f"{k} {s}" for k, s in row["top"])
         for row in rows
     )
     (work / "timeline-top.txt").write_text(text + "\n")
