@@ -144,12 +144,15 @@ class Manager(Loaded, Switching):
         unload and state change counts): asked five times a cycle with a feedback controller
         beside the gait, it was ~0.5 ms of each 100 Hz cycle on the board proxy (cProfile, F67)."""
         if self._planned_at[0] != self.version:
-            self._planned_at = self.version, frozenset(
-                s.name
-                for s in self.slots.values()
-                if s.state == "active"
-                and type(s.ctrl).planned
-                and all(c.endswith("/position") for c in s.claims)
+            self._planned_at = (
+                self.version,
+                frozenset(
+                    s.name
+                    for s in self.slots.values()
+                    if s.state == "active"
+                    and type(s.ctrl).planned
+                    and all(c.endswith("/position") for c in s.claims)
+                ),
             )
         return self._planned_at[1]
 
