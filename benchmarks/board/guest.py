@@ -339,39 +339,44 @@ class CoreSampler:
         pts = self.points()
         if len(pts) < 2:
             return {"error": "no samples"}
-        wall = pts[-1][0] - pts[0][0]
+        a, b = pts[0], pts[-1]
         out: dict[str, Any] = {
             "samples": str(self.path),
-            "run_pct": round((pts[-1][1] - pts[0][1]) / 1e7 / wall, 1),
-            "waited_pct": round((pts[-1][2] - pts[0][2]) / 1e7 / wall, 1),
-            "qemu_main_pct": round((pts[-1][3] - pts[0][3]) / 1e7 / wall, 1),
+            "run_pct": _share(a, b, RUN),
+            "waited_pct": _share(a, b, WAITED),
+            "qemu_main_pct": _share(a, b, MAIN),
         }
         step = max(1, round(span_s / self.every_s))
-        spans = []
-        for a, b in itertools.pairwise(pts[::step]):
-            dt = b[0] - a[0]
-            spans.append(
-                (
-                    round((b[2] - a[2]) / 1e7 / dt, 1),
-                    round((b[1] - a[1]) / 1e7 / dt, 1),
-                    time.strftime("%H:%M:%S", time.gmtime(a[0])) + f"{a[0] % 1:.2f}"[1:],
-                )
+        spans = [
+            (
+                _share(a, b, WAITED),
+                _share(a, b, RUN),
+                time.strftime("%H:%M:%S", time.gmtime(a[0])) + f"{a[0] % 1:.2f}"[1:],
             )
+            for a, b in itertools.pairwise(pts[::step])
+        ]
         out["worst"] = [
             {"at_utc": at, "waited_pct": w, "ran_pct": r} for w, r, at in sorted(spans)[-worst:]
         ]
         return out
 
 
+RUN, WAITED, MAIN = 1, 2, 3  # CoreSampler's columns after the wall time
+
+
+def _share(a: tuple[float, ...], b: tuple[float, ...], column: int) -> float:
+    """A column's ns between two samples as % of the wall time between them."""
+    return round((b[column] - a[column]) / 1e7 / (b[0] - a[0]), 1)
+
+
 def ran_pct(
-    points: list[tuple[float, int, int, int]], t0: float, t1: float, column: int = 1
+    points: list[tuple[float, int, int, int]], t0: float, t1: float, column: int = RUN
 ) -> float | None:
     """The share of host wall time ``t0``..``t1`` the vCPU ran (CoreSampler's ``points``;
-    ``column`` 3: qemu's main loop; None without two samples in it). Beside the guest's own
+    ``column`` MAIN: qemu's main loop; None without two samples in it). Beside the guest's own
     count of CPU 0 busy, a stretch the guest calls busy that the host did not run is the
     host's (qemu's lock, say)."""
     i, j = bisect.bisect_left(points, (t0,)), bisect.bisect_right(points, (t1, 1 << 62))
     if j - i < 2 or points[j - 1][0] <= points[i][0]:
         return None
-    a, b = points[i], points[j - 1]
-    return round((b[column] - a[column]) / 1e7 / (b[0] - a[0]), 1)
+    return _share(points[i], points[j - 1], column)

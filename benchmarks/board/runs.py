@@ -27,7 +27,7 @@ from benchmarks.board import card as cardlib
 from benchmarks.board import ladder as ladderlib
 from benchmarks.board import profile, scenario
 from benchmarks.board import timeline as timelinelib
-from benchmarks.board.guest import CoreSampler, Guest, ran_pct
+from benchmarks.board.guest import MAIN, CoreSampler, Guest, ran_pct
 from benchmarks.harness import free_port
 from exolink import messaging
 from exolink.config import bundled
@@ -605,7 +605,7 @@ def _fetch_timeline(
         for a, b in itertools.pairwise(rows):
             t0, t1 = a["wall"] - ahead_s, b["wall"] - ahead_s
             b["host_ran"] = ran_pct(points, t0, t1)
-            b["qemu_main"] = ran_pct(points, t0, t1, column=3)
+            b["qemu_main"] = ran_pct(points, t0, t1, column=MAIN)
     text = "\n".join(
         f"{time.strftime('%H:%M:%S', time.gmtime(row['wall']))}.{int(row['wall'] % 1 * 100):02d}"
         f" cpu {row['cpu_pct']:5.1f} usage {row.get('usage_pct', '-')}"

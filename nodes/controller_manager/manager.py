@@ -165,11 +165,11 @@ class Manager(Loaded, Switching):
 
     def plan_key(self) -> tuple[object, ...]:
         """What a plan on the kernel's timer was made from: the limits, and each planned
-        controller with its revision (activations, commands). A speed or index given to a gait while its cycle
-        was replayed changed nothing on the bus (the timer went on replaying the old speed),
-        so the timer ends when this changes; a feedback controller loaded, stopped or failed
-        beside the plan does not change it (its failure ended the gait's timer on the board
-        proxy, and the plan's restart was a 108 ms stall: A67)."""
+        controller with its revision (activations, commands). A speed or index given to a gait
+        while its cycle was replayed changed nothing on the bus (the timer went on replaying the
+        old speed), so the timer ends when this changes; a feedback controller loaded, stopped
+        or failed beside the plan does not change it (its failure ended the gait's timer on the
+        board proxy, and the plan's restart was a 108 ms stall: A67)."""
         with self.lock:
             planned = sorted(self._planned())
             return self.limits_version, tuple((n, self.slots[n].revision) for n in planned)
