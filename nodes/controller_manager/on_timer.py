@@ -72,6 +72,10 @@ class TimerLoop:
             # slots computed through the manager, and the cycle replayed (0: none yet)
             "computed": timed.computed if timed else 0,
             "plan_cpu_ms": round(timed.plan_cpu_s * 1e3, 1) if timed else 0,
+            # the op's frames the kernel's count had lost and their echoes found, and the
+            # kernel's interval (trimmed)
+            "recounted": timed.lease.recounted if timed else 0,
+            "interval_us": round(timed.lease.interval_s * 1e6, 1) if timed else 0,
             "repeating": timed.plan.period or 0
             if timed and timed.plan.cycle_from is not None
             else 0,
