@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Protocol
 
 from exolink.canbus.bcm import HEAD
+from exolink.canbus.filters import Drop, attach
 from exolink.canbus.frames import CAN_EFF_FLAG, CAN_FRAME, CAN_RTR_FLAG, STD_MASK
 from exolink.canbus.mmsg import BatchReceiver
 from exolink.canbus.opening import CanOpenError
@@ -197,7 +198,11 @@ class CyclicLease:
         for k, f in enumerate(frames[: self.ring]):
             self._put(k, f)
         self._written = min(len(frames), self.ring)
-        while self._echoes.receive_fixed()[0]:  # frames from before the op are not its own
+        lengths = {len(f) for f in frames}
+        if len(lengths) == 1:  # another length on the id is another sender's: the kernel drops it
+            (own,) = lengths
+            attach(self._echo, [Drop(self.can_id, n) for n in range(9) if n != own])
+        while self._echoes.receive_bytes():  # frames from before the op are not its own
             pass
         self._setup(
             socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
@@ -258,17 +263,19 @@ class CyclicLease:
         against what was placed for each slot (byte for byte: no parsing). Another sender's
         frame on the id matches nothing; an echo lost to a full queue skips only itself."""
         k, ring, frames, size = self._seen, self.ring, self._frames, CAN_FRAME.size
-        oldest = self._written - ring  # slots below this were overwritten by later ones
-        while True:
-            got, data, _whole, _stamps = self._echoes.receive_fixed()
-            echoes = data.tobytes()
-            for i in range(0, got * size, size):
+        oldest, written = self._written - ring, self._written  # slots held in the ring
+        full = self._echoes.batch * size
+        while echoes := self._echoes.receive_bytes():
+            for i in range(0, len(echoes), size):
                 frame = echoes[i : i + size]
-                for j in range(max(k, oldest), min(k + ECHO_SEARCH, self._written)):
+                if oldest <= k < written and frames[k % ring] == frame:
+                    k += 1  # the next slot: the rule
+                    continue
+                for j in range(max(k + 1, oldest), min(k + ECHO_SEARCH, written)):
                     if frames[j % ring] == frame:
                         k = j + 1
                         break
-            if got < self._echoes.batch:
+            if len(echoes) < full:
                 break
         self._seen = k
         return k
