@@ -117,16 +117,15 @@ def test_a_renewal_the_timer_races_loses_no_slot_its_echoes_count_them(
     right."""
     import exolink.canbus.leases as leases
 
-    place = leases._place_ahead
+    check = leases._check_lease
 
-    def slow(*args: object) -> int:  # the Python between the read and the setup, as on TCG
-        k = place(*args)  # type: ignore[arg-type]
+    def slow(*args: int) -> None:  # Python between the read and the setup, as on TCG before
+        check(*args)
         until = time.perf_counter() + 0.003
         while time.perf_counter() < until:
             pass
-        return k
 
-    monkeypatch.setattr(leases, "_place_ahead", slow)
+    monkeypatch.setattr(leases, "_check_lease", slow)
     bus = listen(vcan0)
     ring, lease = 36, 20
     op = CyclicLease(vcan0, ID, PERIOD, ring=ring)

@@ -177,13 +177,14 @@ class CyclicLease:
         """The interval the kernel is given: the period, trimmed (``PeriodTrim``)."""
         return self._trim.ival_s
 
-    def _setup(self, flags: int, lease: int) -> None:
+    def _setup(self, flags: int, lease: int, ring: bytes | None = None) -> None:
+        """TX_SETUP with the ring's frames (``ring``: joined ahead, by ``renew``)."""
         ival = self._trim.ival_s
         sec, usec = int(ival), round((ival % 1) * 1e6)
         head = HEAD.pack(
             socket.CAN_BCM_TX_SETUP, flags, lease, sec, usec, 0, 0, self.can_id, self.ring
         )
-        self._sock.send(head + b"".join(self._frames))
+        self._sock.send(head + (b"".join(self._frames) if ring is None else ring))
         self._lease = lease
 
     def _put(self, slot: int, payload: bytes) -> None:
@@ -233,29 +234,33 @@ class CyclicLease:
 
         The kernel's count loses a frame each time the timer sends one between a renewal's
         read and its setup, and the loss stays: with ~2 ms of Python between the two (the
-        board proxy), about a third of renewals, and once the count was a ring behind, the
-        op sent slots a ring old (the gait jumping back 180 ms; tests/kernel/test_lease.py).
-        The op's own frames read back from the bus (``_echoed``) make it good, by at most the
-        frames those windows could have held: a forged echo moves nothing further."""
-        t0 = time.monotonic()
-        n = self.sent()
+        board proxy), in 60 % of renewals (B68), and once the count was a ring behind, the op
+        sent slots a ring old (the gait jumping back 180 ms; tests/kernel/test_lease.py). So
+        the slots are placed before the read, from what surely went out (a frame is placed
+        over one already sent), and the read is followed by the setup alone; the op's own
+        frames read back from the bus (``_echoed``) make good what is still lost, by at most
+        the frames those windows could have held: a forged echo moves nothing further."""
         seen = self._echoed()
+        k = _place_ahead(frames_from, max(self._base, seen), self._written, self.ring, self._put)
+        self._written = max(self._written, k)
+        ring = b"".join(self._frames)
+        t0 = time.monotonic()
+        n = self.sent()  # from here to the setup, a frame the timer sends is not counted
         if seen > n and self._unsure:
             found = min(seen - n, self._unsure)
             n += found
             self._unsure -= found
             self.recounted += found
-        k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
-        self._written = max(self._written, k)
         lease = min(lease, k - n - 1)  # never past the plan, even one frame late
         _check_lease(lease, k - n - 1, self.ring)
-        if n < self._base + self._lease:  # not run out: a run-out op is resumed, a new phase
-            self._trim.update(time.monotonic(), n)
-        self._setup(socket.CAN_BCM_SETTIMER, lease)
+        ran_out = n >= self._base + self._lease  # resumed by the caller: a new phase
+        self._setup(socket.CAN_BCM_SETTIMER, lease, ring)
         # a frame the timer sent in the window, and one more for each period it lasted
         window = 1 + int((time.monotonic() - t0) / self.period_s)
         self._unsure = min(UNSURE_MAX, self._unsure + window)
         self._base = n
+        if not ran_out:
+            self._trim.update(t0, n)  # the interval for the next renewal's setup
         return n
 
     def _echoed(self) -> int:
