@@ -320,7 +320,9 @@ def _after(channel: str, act, seconds: float = 1.0) -> dict:  # type: ignore[no-
 
 def _motor_timing(channel: str, motor: int, seconds: float, slot_ms: float = 20.0) -> dict:
     """One joint's set-points for ``seconds``: their count, mean period and deviation from the
-    slot (ms), from an independent socket's kernel timestamps, read while they come."""
+    slot (ms), from an independent socket's kernel timestamps, read while they come, and the
+    largest step between two of them (deg): what the step limit allowed, unless the op sent a
+    slot out of its order (a count behind by a ring sent slots a ring old)."""
     bus = can.Bus(
         interface="socketcan",
         channel=channel,
@@ -331,9 +333,9 @@ def _motor_timing(channel: str, motor: int, seconds: float, slot_ms: float = 20.
         frames = drain(bus, seconds)
     finally:
         bus.shutdown()
-    stamps = [
-        m.timestamp for m in frames if len(m.data) == 6 and m.data[0] == motor and m.data[1] == 1
-    ]
+    ours = [m for m in frames if len(m.data) == 6 and m.data[0] == motor and m.data[1] == 1]
+    stamps = [m.timestamp for m in ours]
+    points = [h2.decode(m).setpoint for m in ours]  # type: ignore[union-attr]
     dev = sorted(abs((b - a) * 1e3 - slot_ms) for a, b in itertools.pairwise(stamps))
     if len(stamps) < 2:
         return {"n": len(stamps)}
@@ -343,6 +345,7 @@ def _motor_timing(channel: str, motor: int, seconds: float, slot_ms: float = 20.
         "p50_dev_ms": round(dev[len(dev) // 2], 4),
         "p99_dev_ms": round(dev[int(len(dev) * 0.99)], 4),
         "max_dev_ms": round(dev[-1], 4),
+        "max_step_deg": max(abs(b - a) for a, b in itertools.pairwise(points)),
     }
 
 
@@ -411,6 +414,10 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
             hog.wait()
         out["timer_with_hog"] = _manager()["timer"]
         assert out["timing"]["n"] > 300 and out["timing_with_hog"]["n"] > 300, out
+        # what the bus carried is what the manager checked: a slot's step within the limit
+        step = data["limits"]["max_step_deg"] * 2  # two 10 ms cycles a 20 ms slot
+        assert out["timing"]["max_step_deg"] <= step, out["timing"]
+        assert out["timing_with_hog"]["max_step_deg"] <= step, out["timing_with_hog"]
         # a trip: the manager hears it and deletes the op
         out["estop"] = _after(vcan0, lambda: _cli("estop"), 10.0)
         # SIGSTOP of the manager: the kernel sends out the lease, the watchdog trips
