@@ -68,6 +68,7 @@ TRIM_MAX = 0.2
 # how far ahead an echo is matched (the echo socket's queue overflowed: the next ones match).
 UNSURE_MAX = 8
 ECHO_SEARCH = 8
+PACKED_MAX = 4096  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
 
 
 class PeriodTrim:
@@ -155,6 +156,7 @@ class CyclicLease:
         self._seen = 0  # the op's frames read back from the bus since ``start``, in order
         self.recounted = 0  # frames the count lost and the echoes found (``renew``)
         self._trim = PeriodTrim(period_s)
+        self._packed: dict[bytes, bytes] = {}  # payload -> its can_frame (``_put``)
         try:
             self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
         except OSError as exc:
@@ -188,10 +190,15 @@ class CyclicLease:
         self._lease = lease
 
     def _put(self, slot: int, payload: bytes) -> None:
-        payload = _checked(slot, payload)
-        self._frames[slot % self.ring] = CAN_FRAME.pack(
-            self.can_id, len(payload), payload.ljust(8, b"\0")
-        )
+        """A replayed gait places the same ~200 payloads over and over: each is packed once."""
+        frame = self._packed.get(payload)
+        if frame is None:
+            payload = _checked(slot, payload)
+            frame = CAN_FRAME.pack(self.can_id, len(payload), payload.ljust(8, b"\0"))
+            if len(self._packed) >= PACKED_MAX:
+                self._packed.clear()
+            self._packed[payload] = frame
+        self._frames[slot % self.ring] = frame
 
     def start(self, frames: list[bytes], lease: int) -> None:
         """Slot 0 (``frames[0]``) now, then one frame per period: a new phase."""
