@@ -253,13 +253,12 @@ class CyclicLease:
         ring = b"".join(self._frames)
         t0 = time.monotonic()
         n = self.sent()  # from here to the setup, a frame the timer sends is not counted
-        if seen > n and self._unsure:
-            found = min(seen - n, self._unsure)
-            n += found
-            self._unsure -= found
-            self.recounted += found
+        found = min(seen - n, self._unsure) if seen > n else 0
+        n += found
         lease = min(lease, k - n - 1)  # never past the plan, even one frame late
-        _check_lease(lease, k - n - 1, self.ring)
+        _check_lease(lease, k - n - 1, self.ring)  # ValueError: no renewal, nothing counted
+        self._unsure -= found
+        self.recounted += found
         ran_out = n >= self._base + self._lease  # resumed by the caller: a new phase
         self._setup(socket.CAN_BCM_SETTIMER, lease, ring)
         # a frame the timer sent in the window, and one more for each period it lasted
