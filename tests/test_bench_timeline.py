@@ -44,3 +44,34 @@ def test_a_busy_process_in_the_cgroup_is_named_with_its_share(tmp_path: Path) ->
     assert all("cpu0" in r and 0 <= r["cpu0"]["idle"] <= 100 * 1.5 for r in rows), rows
     # no quota on a plain directory: no throttling figures made up
     assert all("throttled" not in r for r in rows)
+
+
+def test_watched_threads_are_read_every_sample_and_kept_out_of_the_cgroups_share(
+    tmp_path: Path,
+) -> None:
+    """The kernel threads and daemons named in ``WATCH`` are found by comm; a watched pid (a
+    burning child here, standing in for ksoftirqd) is read at every sample as ``^comm`` and
+    counted apart from the cgroup's share."""
+    import subprocess
+    import sys
+
+    assert timeline.watched(
+        {"1": "ksoftirqd/0", "2": "bash", "3": "kworker/0:1-events", "4": "ksoftirqd/1"}
+    ) == ["1", "3"]
+    (tmp_path / "cgroup.procs").write_text(f"{os.getpid()}\n")
+    burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        comm = Path(f"/proc/{burner.pid}/comm").read_text().strip()
+        lines = []
+        for _ in range(5):
+            lines.append(json.dumps(timeline.sample(str(tmp_path), False, [str(burner.pid)])))
+            time.sleep(0.15)
+    finally:
+        burner.kill()
+        burner.wait()
+    assert all(f"^{comm}" in json.loads(ln)["threads"] for ln in lines)
+    rows = timeline.summarize(lines, top=50)
+    burned = [dict(r["top"]).get(f"^{comm}", 0.0) for r in rows]
+    assert max(burned) > 0, rows
+    # the cgroup's share is this (sleeping) test's, never the watched burner's
+    assert all(r["cpu_pct"] < 50 for r in rows), rows

@@ -88,6 +88,42 @@ def _others(inside: set[str]) -> dict[str, list[int]]:
     return out
 
 
+# Kernel threads and system daemons read at every sample (found at each walk), named ``^comm``:
+# the stop's stalls had CPU 0 busy with system time that no appliance thread held (F66, J67,
+# D68, H68), and a walk every 2 s is too coarse to say whose it was.
+WATCH = ("ksoftirqd/0", "kworker/0", "kworker/u", "rcu", "migration/0", "systemd-journal", "jbd2")
+
+
+def watched(processes: dict[str, str]) -> list[str]:
+    """The pids of ``processes`` (pid -> comm) to read at every sample (``WATCH``)."""
+    return [pid for pid, comm in processes.items() if comm.startswith(WATCH)]
+
+
+def _comms() -> dict[str, str]:
+    out = {}
+    for pid in os.listdir("/proc"):
+        if pid.isdigit() and (comm := _read_quiet(f"/proc/{pid}/comm")):
+            out[pid] = comm.strip()
+    return out
+
+
+def _read_quiet(path: str) -> str:
+    try:
+        return _read(path)
+    except OSError:
+        return ""
+
+
+def _kernel(pids: list[str]) -> dict[str, list[int]]:
+    """``"^comm": [ticks, nice]`` of the watched pids, a kworker's work suffix dropped."""
+    out: dict[str, list[int]] = {}
+    for pid in pids:
+        if (st := _stat(f"/proc/{pid}/stat")) is not None:
+            comm, ticks, nice = st
+            _add(out, "^" + comm.split("-")[0], ticks, nice)
+    return out
+
+
 def _cpu0() -> list[int]:
     """CPU 0's ticks: user nice system idle iowait irq softirq (/proc/stat)."""
     for line in _read("/proc/stat").splitlines():
@@ -109,14 +145,15 @@ def _irqs0() -> dict[str, int]:
     return out
 
 
-def sample(cgroup: str, others: bool = True) -> dict[str, Any]:
+def sample(cgroup: str, others: bool = True, watch: list[str] | None = None) -> dict[str, Any]:
     """``others``: the processes outside the cgroup too (a walk of all /proc: at every 0.25 s
-    sample it took 35-100 % of CPU 1 under TCG, where the simulator runs; E63)."""
+    sample it took 35-100 % of CPU 1 under TCG, where the simulator runs; E63); ``watch``:
+    pids read at every sample (``watched``)."""
     pids = _procs(cgroup)
     return {
         "wall": time.time(),
         "mono": time.monotonic(),
-        "threads": _threads(pids) | (_others(set(pids)) if others else {}),
+        "threads": _threads(pids) | (_others(set(pids)) if others else {}) | _kernel(watch or []),
         "cpu_stat": _throttling(cgroup),
         "cpu0": _cpu0(),
         "irqs0": _irqs0(),
@@ -127,7 +164,8 @@ def summarize(lines: list[str], top: int = 6) -> list[dict[str, Any]]:
     """Per interval between samples: the cgroup's CPU share and throttled periods, CPU 0's
     idle / irq / softirq, and the ``top`` threads by CPU share (% of one CPU), largest first;
     processes outside the cgroup are named ``~comm`` (all their threads summed; they run on
-    either CPU), over the span since the last sample that walked them. Threads that appear
+    either CPU), over the span since the last sample that walked them; the watched kernel
+    threads and daemons ``^comm``, per interval (not in the cgroup's share). Threads that appear
     between samples (a node restarted) count from zero."""
     samples = [json.loads(ln) for ln in lines if ln.startswith("{")]
     out = []
@@ -153,7 +191,7 @@ def summarize(lines: list[str], top: int = 6) -> list[dict[str, Any]]:
         sa, sb = a["cpu_stat"], b["cpu_stat"]
         row: dict[str, Any] = {
             "wall": round(b["wall"], 2),
-            "cpu_pct": round(sum(s for k, s in shares.items() if s > 0 and k[0] != "~"), 1),
+            "cpu_pct": round(sum(s for k, s in shares.items() if s > 0 and k[0] not in "~^"), 1),
             "top": [[k, round(s, 1)] for s, k in best],
         }
         if a.get("cpu0") and b.get("cpu0"):  # CPU 0's idle, irq and softirq shares
@@ -177,10 +215,14 @@ def main() -> int:
     ap.add_argument("--others-every", type=int, default=8, help="walk all /proc every N samples")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
+    watch: list[str] = []
     with open(args.out, "a") as f:
         for n in itertools.count():
             walk = n % args.others_every == 0
-            f.write(json.dumps(sample(args.cgroup, walk), separators=(",", ":")) + "\n")
+            if walk:
+                watch = watched(_comms())
+            line = sample(args.cgroup, walk, watch)
+            f.write(json.dumps(line, separators=(",", ":")) + "\n")
             f.flush()
             time.sleep(args.every)
 
