@@ -120,7 +120,8 @@ def _kernel(pids: list[str]) -> dict[str, list[int]]:
     for pid in pids:
         if (st := _stat(f"/proc/{pid}/stat")) is not None:
             comm, ticks, nice = st
-            _add(out, "^" + comm.split("-")[0], ticks, nice)
+            name = comm.split("-")[0] if comm.startswith("kworker") else comm  # work varies
+            _add(out, "^" + name, ticks, nice)
     return out
 
 
