@@ -25,12 +25,13 @@ def test_a_busy_process_in_the_cgroup_is_named_with_its_share(tmp_path: Path) ->
     appear only in the rows that end a walk of /proc."""
     (tmp_path / "cgroup.procs").write_text(f"{os.getpid()}\n")
     me = Path("/proc/self/comm").read_text().strip()
-    lines = [json.dumps(timeline.sample(str(tmp_path)))]
+    lines = [json.dumps(timeline.sample(str(tmp_path), timeline.walk()))]
     burner = threading.Thread(target=_burn, args=(time.monotonic() + 0.6,))
     burner.start()
     for n in range(1, 7):
         time.sleep(0.15)
-        lines.append(json.dumps(timeline.sample(str(tmp_path), others=n % 3 == 0)))
+        procs = timeline.walk() if n % 3 == 0 else None
+        lines.append(json.dumps(timeline.sample(str(tmp_path), procs)))
     burner.join()
     rows = timeline.summarize(lines, top=50)
     assert len(rows) == 6
@@ -55,16 +56,15 @@ def test_watched_threads_are_read_every_sample_and_kept_out_of_the_cgroups_share
     import subprocess
     import sys
 
-    assert timeline.watched(
-        {"1": "ksoftirqd/0", "2": "bash", "3": "kworker/0:1-events", "4": "ksoftirqd/1"}
-    ) == ["1", "3"]
+    comms = {"1": "ksoftirqd/0", "2": "bash", "3": "kworker/0:1-events", "4": "ksoftirqd/1"}
+    assert timeline.watched({pid: (c, 0, 0) for pid, c in comms.items()}) == ["1", "3"]
     (tmp_path / "cgroup.procs").write_text(f"{os.getpid()}\n")
     burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         comm = Path(f"/proc/{burner.pid}/comm").read_text().strip()
         lines = []
         for _ in range(5):
-            lines.append(json.dumps(timeline.sample(str(tmp_path), False, [str(burner.pid)])))
+            lines.append(json.dumps(timeline.sample(str(tmp_path), None, [str(burner.pid)])))
             time.sleep(0.15)
     finally:
         burner.kill()

@@ -75,16 +75,32 @@ def _throttling(cgroup: str) -> dict[str, int]:
     return {k: int(v) for k, v in (ln.split() for ln in text.splitlines()) if k in keep}
 
 
-def _others(inside: set[str]) -> dict[str, list[int]]:
+Procs = dict[str, tuple[str, int, int]]  # pid -> (comm, ticks, nice): a walk of /proc
+
+
+def walk() -> Procs:
+    """Every process's stat (a walk of all /proc: at every 0.25 s sample it took 35-100 % of
+    CPU 1 under TCG, where the simulator runs; E63)."""
+    out: Procs = {}
+    for pid in os.listdir("/proc"):
+        if pid.isdigit() and (st := _stat(f"/proc/{pid}/stat")):
+            out[pid] = st
+    return out
+
+
+def _name(comm: str) -> str:
+    """A kworker's comm without its work suffix (the work varies), any other as it is."""
+    return comm.split("-")[0] if comm.startswith("kworker") else comm
+
+
+def _others(procs: Procs, inside: set[str]) -> dict[str, list[int]]:
     """Every process but ``inside`` (the cgroup's) by comm, summed (ksoftirqd/0, systemd,
     sshd, ...): CPU 0 busy while the appliance is throttled below its quota is theirs or the
     kernel's."""
     out: dict[str, list[int]] = {}
-    for pid in os.listdir("/proc"):
-        if pid.isdigit() and pid not in inside and (st := _stat(f"/proc/{pid}/stat")):
-            comm, ticks, nice = st
-            name = comm.split("-")[0] if comm.startswith("kworker") else comm  # work varies
-            _add(out, "~" + name, ticks, nice)
+    for pid, (comm, ticks, nice) in procs.items():
+        if pid not in inside:
+            _add(out, "~" + _name(comm), ticks, nice)
     return out
 
 
@@ -94,34 +110,18 @@ def _others(inside: set[str]) -> dict[str, list[int]]:
 WATCH = ("ksoftirqd/0", "kworker/0", "kworker/u", "rcu", "migration/0", "systemd-journal", "jbd2")
 
 
-def watched(processes: dict[str, str]) -> list[str]:
-    """The pids of ``processes`` (pid -> comm) to read at every sample (``WATCH``)."""
-    return [pid for pid, comm in processes.items() if comm.startswith(WATCH)]
-
-
-def _comms() -> dict[str, str]:
-    out = {}
-    for pid in os.listdir("/proc"):
-        if pid.isdigit() and (comm := _read_quiet(f"/proc/{pid}/comm")):
-            out[pid] = comm.strip()
-    return out
-
-
-def _read_quiet(path: str) -> str:
-    try:
-        return _read(path)
-    except OSError:
-        return ""
+def watched(procs: Procs) -> list[str]:
+    """The pids of a walk to read at every sample (``WATCH``)."""
+    return [pid for pid, (comm, _, _) in procs.items() if comm.startswith(WATCH)]
 
 
 def _kernel(pids: list[str]) -> dict[str, list[int]]:
-    """``"^comm": [ticks, nice]`` of the watched pids, a kworker's work suffix dropped."""
+    """``"^comm": [ticks, nice]`` of the watched pids."""
     out: dict[str, list[int]] = {}
     for pid in pids:
         if (st := _stat(f"/proc/{pid}/stat")) is not None:
             comm, ticks, nice = st
-            name = comm.split("-")[0] if comm.startswith("kworker") else comm  # work varies
-            _add(out, "^" + name, ticks, nice)
+            _add(out, "^" + _name(comm), ticks, nice)
     return out
 
 
@@ -146,15 +146,18 @@ def _irqs0() -> dict[str, int]:
     return out
 
 
-def sample(cgroup: str, others: bool = True, watch: list[str] | None = None) -> dict[str, Any]:
-    """``others``: the processes outside the cgroup too (a walk of all /proc: at every 0.25 s
-    sample it took 35-100 % of CPU 1 under TCG, where the simulator runs; E63); ``watch``:
-    pids read at every sample (``watched``)."""
+def sample(
+    cgroup: str, procs: Procs | None = None, watch: list[str] | None = None
+) -> dict[str, Any]:
+    """``procs``: a ``walk`` to add the processes outside the cgroup from; ``watch``: pids read
+    at every sample (``watched``)."""
     pids = _procs(cgroup)
     return {
         "wall": time.time(),
         "mono": time.monotonic(),
-        "threads": _threads(pids) | (_others(set(pids)) if others else {}) | _kernel(watch or []),
+        "threads": _threads(pids)
+        | (_others(procs, set(pids)) if procs is not None else {})
+        | _kernel(watch or []),
         "cpu_stat": _throttling(cgroup),
         "cpu0": _cpu0(),
         "irqs0": _irqs0(),
@@ -219,10 +222,10 @@ def main() -> int:
     watch: list[str] = []
     with open(args.out, "a") as f:
         for n in itertools.count():
-            walk = n % args.others_every == 0
-            if walk:
-                watch = watched(_comms())
-            line = sample(args.cgroup, walk, watch)
+            procs = walk() if n % args.others_every == 0 else None
+            if procs is not None:
+                watch = watched(procs)
+            line = sample(args.cgroup, procs, watch)
             f.write(json.dumps(line, separators=(",", ":")) + "\n")
             f.flush()
             time.sleep(args.every)
