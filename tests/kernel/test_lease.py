@@ -52,6 +52,13 @@ def drain(bus: can.BusABC, seconds: float) -> list[can.Message]:
     return out
 
 
+def steps_of(frames: list[can.Message]) -> tuple[list[int], list[int]]:
+    """The slots the bus carried and the steps between them (all 1: every slot once, in
+    order)."""
+    got = slots_of(frames)
+    return got, [b - a for a, b in itertools.pairwise(got)]
+
+
 def plan(n: int, ahead: int = 8) -> dict[int, bytes]:
     return {k: slot(k) for k in range(n, n + ahead)}
 
@@ -67,7 +74,6 @@ def test_renewed_set_points_leave_on_the_kernels_timer_without_gap_or_skip(vcan0
     op = CyclicLease(vcan0, ID, PERIOD)
     try:
         op.start([slot(k) for k in range(8)], LEASE)
-        frames: list[can.Message] = []
         renewals, end = 0, time.monotonic() + 3.0
         while time.monotonic() < end:
             time.sleep(2 * PERIOD)  # the owner wakes every second period, as the manager
@@ -75,12 +81,11 @@ def test_renewed_set_points_leave_on_the_kernels_timer_without_gap_or_skip(vcan0
             op.renew(plan(n), LEASE)
             renewals += 1
         op.stop()
-        frames += drain(bus, 0.3)
+        frames = drain(bus, 0.3)
     finally:
         op.close()
         bus.shutdown()
-    got = slots_of(frames)
-    steps = [b - a for a, b in itertools.pairwise(got)]
+    got, steps = steps_of(frames)
     # every slot once, in order: a frame sent while a renewal was on its way was already at its
     # ring position, so it is neither repeated nor skipped
     assert got[0] == 0 and set(steps) == {1}, steps
@@ -147,8 +152,7 @@ def test_a_renewal_the_timer_races_loses_no_slot_its_echoes_count_them(
     finally:
         op.close()
         bus.shutdown()
-    got = slots_of(frames)
-    steps = [b - a for a, b in itertools.pairwise(got)]
+    got, steps = steps_of(frames)
     assert got[0] == 0 and set(steps) == {1}, sorted(set(steps))
     assert len(got) > 300, len(got)
     # the count after the last renewal: at most that renewal's own race short

@@ -132,8 +132,8 @@ class CyclicLease:
     the timer (SETTIMER without STARTTIMER keeps the phase; the same number of frames keeps
     the index). A frame the kernel sends between that read and the renewal was already at
     its position: nothing is repeated or skipped, the phase never slips, and the lease ends
-    one frame later than counted (``sent`` is then one short, until the owner's echoes make it
-    good: ``renew``'s ``seen``). So a lease never reaches a
+    one frame later than counted (``sent`` is then one short, until the op's own echoes make
+    it good at the next renewal: ``_echoed``). So a lease never reaches a
     position the renewal did not write, it is at most the frames planned minus one. If that
     frame was the lease's last, the op's timer ended before the setup, which sets the new
     count but does not start it: the op stays silent with a full count, and every later
