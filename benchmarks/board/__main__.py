@@ -414,6 +414,12 @@ def main() -> int:
         "(or the cap) to the end (benchmarks/board/timeline.py): who took the core when",
     )
     p.add_argument(
+        "--kernel-work",
+        action="store_true",
+        help="trace the guest's workqueue items (function, CPU time) from the nodes' start to "
+        "the end (benchmarks/board/kernelwork.py): which kernel work held CPU 0 when",
+    )
+    p.add_argument(
         "--pid",
         metavar="JOINT",
         default="",
@@ -510,6 +516,7 @@ def main() -> int:
             args.cap_after_start,
             args.timeline,
             args.own_core,
+            args.kernel_work,
         )
     if args.only != "guest":
         result["native"] = _guarded(

@@ -24,8 +24,8 @@ import structlog
 import yaml
 
 from benchmarks.board import card as cardlib
+from benchmarks.board import kernelwork, profile, scenario
 from benchmarks.board import ladder as ladderlib
-from benchmarks.board import profile, scenario
 from benchmarks.board import timeline as timelinelib
 from benchmarks.board.guest import MAIN, CoreSampler, Guest, ran_pct
 from benchmarks.harness import free_port
@@ -281,6 +281,7 @@ def run_guest(
     cap_after_start: bool = False,
     timeline: bool = False,
     own_core: bool = False,
+    kernel_work: bool = False,
 ) -> dict[str, Any]:
     """``ladder``: the nodes to step through (empty: every one; None: the nominal load
     instead); ``env``: KEY=VALUE for the appliance's service on the guest; ``cprofile``: these
@@ -292,7 +293,8 @@ def run_guest(
     every node beats and SETTLE_S more (``_cap_now``), so the start is not under it, the arm
     and the gait's start are;
     ``timeline``: CPU per thread every 0.25 s from then to the end (timeline.py);
-    ``own_core``: the board's vCPU on a host core of its own at nice -20 (guest.py)."""
+    ``own_core``: the board's vCPU on a host core of its own at nice -20 (guest.py);
+    ``kernel_work``: the guest's workqueue items traced from then to the end (kernelwork.py)."""
     if cprofile:
         env = (
             *env,
@@ -374,6 +376,10 @@ def run_guest(
                 f"nohup taskset -c 1 python3 {GUEST_TIMELINE} --out {GUEST_TIMELINE}l "
                 ">/dev/null 2>&1 &"
             )
+        if kernel_work:
+            armed = guest.ssh(kernelwork.arm_command())
+            if armed.returncode != 0:
+                result["notes"].append(f"kernel work not traced: {armed.stderr.strip()[-200:]}")
         fetch = _stage_recording(guest, work, fetch_mb, result) if fetch_mb else None
         time.sleep(SETTLE_S)
         loaded = laptop is not None and "laptop_error" not in result and ladder is None
@@ -433,6 +439,8 @@ def run_guest(
                 guest, work, sampler if ahead is not None else None, ahead or 0.0
             )
         result["logs"] = _guest_logs(guest, result)
+        if kernel_work:
+            result["kernel_work"] = _fetch_kernel_work(guest, work)
         if py_spy is not None:
             result["profile"] = _fetch_profile(guest, work, result, seconds)
         result["units"] = _guest_units(guest)  # stops the service: the profiles are written
@@ -616,6 +624,33 @@ def _fetch_timeline(
     )
     (work / "timeline-top.txt").write_text(text + "\n")
     return {"raw": str(raw), "text": str(work / "timeline-top.txt"), "intervals": len(rows)}
+
+
+def _fetch_kernel_work(guest: Guest, work: Path) -> dict[str, Any]:
+    """The workqueue trace stopped and saved beside the console log (``workqueue-trace.txt``),
+    summarized for the whole run and for 2 s from each of the manager's ``timer_left`` (the
+    pattern's stop, where J68's kworker held CPU 0), with those journal lines."""
+    r = guest.ssh(kernelwork.stop_command(), timeout=300)
+    (work / "workqueue-trace.txt").write_text(r.stdout)
+    done = kernelwork.items(r.stdout)
+    left = guest.ssh(
+        "journalctl -b --no-pager -o short-monotonic -u exolink "
+        "| grep -E 'timer_left|timer_lease_lapsed|watchdog_trip|node_hung_killed' | tail -20"
+    ).stdout.splitlines()
+    edges = []
+    for line in left:
+        m = re.match(r"\[\s*(\d+\.\d+)\]", line)
+        if m and "timer_left" in line:
+            t = float(m.group(1))
+            edges.append(
+                {"t": t, **kernelwork.summarize([i for i in done if t <= i["t"] <= t + 2.0], 10)}
+            )
+    return {
+        "raw": str(work / "workqueue-trace.txt"),
+        **kernelwork.summarize(done),
+        "journal": left,
+        "after_timer_left": edges,
+    }
 
 
 GUEST_CPROFILE = "/var/lib/exolink/profile"  # the service may write there (ReadWritePaths)

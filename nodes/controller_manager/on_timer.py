@@ -17,7 +17,7 @@ from exolink.nodes.controller_manager.timed import PLAN_CHUNK_S, Timed
 
 from exolink import logs
 from exolink.canbus import CanOpenError
-from exolink.canbus.leases import open_lease
+from exolink.canbus.leases import EchoTap, open_echoes, open_lease
 from exolink.limits.joints import POSITION
 from exolink.liveness import Pace
 from exolink.protocol import h2
@@ -52,6 +52,8 @@ class TimerLoop:
         self.renewals = 0  # of the ops that ended
         self.sent = 0  # frames the ops that ended sent, by the kernel's count
         self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
+        # the ops' echoes, opened at the first op and kept for the node's life (EchoTap)
+        self.echoes: EchoTap | None = None
 
     @property
     def sending(self) -> bool:
@@ -106,6 +108,9 @@ class TimerLoop:
             ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
             t0 = time.perf_counter()
             try:
+                if self.echoes is None:
+                    tap = open_echoes(can_cfg.interface, can_cfg.channel, h2.JOINT_CONTROL)
+                    self.echoes = n.own(tap) if tap is not None else None
                 lease = open_lease(
                     can_cfg.interface,
                     can_cfg.channel,
@@ -113,6 +118,7 @@ class TimerLoop:
                     h2.JOINT_CONTROL,
                     ival_us / 1e6,
                     ring,
+                    self.echoes,
                 )
             except (CanOpenError, ValueError) as exc:  # the cycle loop goes on writing them
                 self.refused = str(exc)

@@ -19,7 +19,7 @@ import can
 import pytest
 
 from benchmarks.harness import EXOLINK, motion_nodes
-from exolink.canbus.leases import CyclicLease
+from exolink.canbus.leases import CyclicLease, EchoTap
 from exolink.protocol import h2
 
 pytestmark = pytest.mark.kernel
@@ -157,6 +157,31 @@ def test_a_renewal_the_timer_races_loses_no_slot_its_echoes_count_them(
     assert len(got) > 300, len(got)
     # the count after the last renewal: at most that renewal's own race short
     assert len(got) - 1 <= counted <= len(got), (counted, len(got))
+
+
+def test_ops_that_share_their_owners_echoes_count_only_their_own(vcan0: str) -> None:
+    """The manager keeps one EchoTap for its life: closing a filtered socket frees its BPF
+    program in a kernel worker, ~190 ms of CPU 0 on the board proxy. Between two ops the tap
+    queues nothing, though the id's frames go on; each op counts its own frames from its
+    start, and closing an op leaves the tap open for the next."""
+    other = can.Bus(interface="socketcan", channel=vcan0)
+    tap = EchoTap(vcan0, ID)
+    try:
+        for _ in range(2):
+            op = CyclicLease(vcan0, ID, PERIOD, echoes=tap)
+            try:
+                op.start([slot(k) for k in range(8)], 8)
+                time.sleep(12 * PERIOD)  # its 8 frames, then the lease ran out
+                assert op._echoed() == op.sent() == 8
+            finally:
+                op.close()
+            for k in range(5):  # the id's frames between the ops (another sender's)
+                other.send(can.Message(arbitration_id=ID, data=slot(100 + k), is_extended_id=False))
+            time.sleep(0.05)
+            assert tap.receive_bytes() == b""
+    finally:
+        tap.close()
+        other.shutdown()
 
 
 OWNER = """

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Protocol
 
 from exolink.canbus.bcm import HEAD
-from exolink.canbus.filters import Drop, attach
+from exolink.canbus.filters import SO_DETACH_FILTER, Drop, attach
 from exolink.canbus.frames import CAN_EFF_FLAG, CAN_FRAME, CAN_RTR_FLAG, STD_MASK
 from exolink.canbus.mmsg import BatchReceiver
 from exolink.canbus.opening import CanOpenError
@@ -142,7 +142,14 @@ class CyclicLease:
     next goes out now, the rest one a period after it, a new phase (Timed: a lapse resumed).
     """
 
-    def __init__(self, channel: str, can_id: int, period_s: float, ring: int = 16) -> None:
+    def __init__(
+        self,
+        channel: str,
+        can_id: int,
+        period_s: float,
+        ring: int = 16,
+        echoes: EchoTap | None = None,
+    ) -> None:
         if not 0 < period_s < 60:
             raise ValueError(f"broadcast-manager period must be in (0, 60) s, got {period_s}")
         if not 2 <= ring <= 256:
@@ -167,12 +174,15 @@ class CyclicLease:
             self._sock.close()
             raise CanOpenError(f"cannot reach {channel} for the broadcast manager: {exc}") from exc
         self._sock.settimeout(1.0)  # a TX_READ's answer is immediate; never wait forever
+        self._own_echoes = echoes is None  # else the owner's, for its life (EchoTap)
         try:
-            self._echo = _echo_socket(channel, can_id)
-        except OSError as exc:
+            self._echoes = EchoTap(channel, can_id) if echoes is None else echoes
+        except CanOpenError:
             self._sock.close()
-            raise CanOpenError(f"cannot read {channel}'s frames back: {exc}") from exc
-        self._echoes = BatchReceiver(self._echo, CAN_FRAME.size)
+            raise
+        if self._echoes.can_id != can_id:
+            self._sock.close()
+            raise ValueError(f"echoes of id {self._echoes.can_id} cannot count id {can_id}'s op")
 
     @property
     def interval_s(self) -> float:
@@ -207,11 +217,7 @@ class CyclicLease:
             self._put(k, f)
         self._written = min(len(frames), self.ring)
         lengths = {len(f) for f in frames}
-        if len(lengths) == 1:  # another length on the id is another sender's: the kernel drops it
-            (own,) = lengths
-            attach(self._echo, [Drop(self.can_id, n) for n in range(9) if n != own])
-        while self._echoes.receive_bytes():  # frames from before the op are not its own
-            pass
+        self._echoes.begin(lengths.pop() if len(lengths) == 1 else None)
         self._setup(
             socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
             lease,
@@ -310,7 +316,10 @@ class CyclicLease:
     def close(self) -> None:
         """Closing the socket deletes its op in the kernel."""
         self._sock.close()
-        self._echo.close()
+        if self._own_echoes:
+            self._echoes.close()
+        else:
+            self._echoes.end()
 
 
 class Lease(Protocol):
@@ -461,25 +470,81 @@ class ThreadLease:
                     self._bus.send(msg)
 
 
-def _echo_socket(channel: str, can_id: int) -> socket.socket:
-    """A raw socket that reads ``can_id``'s standard data frames, the op's own among them
-    (SocketCAN loops a frame sent on the host back to every other socket), never blocking."""
-    sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-    try:
+class EchoTap:
+    """``can_id``'s standard data frames read back from the bus, the op's own among them
+    (SocketCAN loops a frame sent on the host back to every other socket), for
+    ``CyclicLease``'s count; never blocking.
+
+    Its owner keeps one for its life, not one per op: closing a socket that carries a BPF
+    filter frees the program in a kernel worker, and on the board proxy each free held CPU 0
+    for ~190 ms without preemption (A69: two of them right after the timer's end, and the h2
+    reader missed its 500 ms deadline there in 3 of 9 runs of stop 68). Between ops it reads
+    nothing (an empty id filter), so it costs the bus no copies and queues no memory."""
+
+    def __init__(self, channel: str, can_id: int) -> None:
+        self.can_id = can_id
+        self._sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        try:
+            self._listen(False)
+            self._sock.bind((channel,))
+            self._sock.setblocking(False)
+        except OSError as exc:
+            self._sock.close()
+            raise CanOpenError(f"cannot read {channel}'s frames back: {exc}") from exc
+        self._rx = BatchReceiver(self._sock, CAN_FRAME.size)
+        self.batch = self._rx.batch
+        self._length: int | None = None  # the one length kept by the BPF filter (None: all)
+
+    def _listen(self, on: bool) -> None:
         mask = STD_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG
-        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, struct.pack("=II", can_id, mask))
-        sock.bind((channel,))
-        sock.setblocking(False)
-    except OSError:
-        sock.close()
-        raise
-    return sock
+        rule = struct.pack("=II", self.can_id, mask) if on else b""  # no filter: no frame
+        self._sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, rule)
+
+    def begin(self, length: int | None) -> None:
+        """The id's frames from now on (an op's start): of ``length`` bytes only, when given
+        (another length on the id is another sender's: the kernel drops it). A filter is
+        attached only when the length changes, so an owner whose frames keep one length
+        (the H2's 6 bytes) compiles and frees no program after its first op."""
+        if length != self._length:
+            if length is None:
+                self._sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
+            else:
+                attach(self._sock, [Drop(self.can_id, n) for n in range(9) if n != length])
+            self._length = length
+        self._listen(True)
+        while self._rx.receive_bytes():  # frames from before the op are not its own
+            pass
+
+    def receive_bytes(self) -> bytes:
+        """The packed frames queued now, a batch at most (b"": none)."""
+        return self._rx.receive_bytes()
+
+    def end(self) -> None:
+        """The op is over: nothing more is read or queued until the next ``begin``."""
+        with contextlib.suppress(OSError):
+            self._listen(False)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def open_echoes(interface: str, channel: str, can_id: int) -> EchoTap | None:
+    """The echoes a ``CyclicLease`` of ``can_id`` counts with, for the caller's life; None
+    where leases are ``ThreadLease``s (they count their own sends)."""
+    return EchoTap(channel, can_id) if interface == "socketcan" else None
 
 
 def open_lease(
-    interface: str, channel: str, bus: can.BusABC, can_id: int, period_s: float, ring: int
+    interface: str,
+    channel: str,
+    bus: can.BusABC,
+    can_id: int,
+    period_s: float,
+    ring: int,
+    echoes: EchoTap | None = None,
 ) -> Lease:
-    """The kernel's broadcast manager on SocketCAN, a thread of this process elsewhere."""
+    """The kernel's broadcast manager on SocketCAN (``echoes``: the caller's, from
+    ``open_echoes``; else its own), a thread of this process elsewhere."""
     if interface == "socketcan":
-        return CyclicLease(channel, can_id, period_s, ring)
+        return CyclicLease(channel, can_id, period_s, ring, echoes)
     return ThreadLease(bus, can_id, period_s, ring)
