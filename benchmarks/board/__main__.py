@@ -157,6 +157,19 @@ def table(result: dict[str, Any]) -> str:
     row("pattern running at window start", *pair("pattern_running_at_start"))
     row("pattern frames sent", *pair("derived", "pattern_sent"))
     row("pattern state at end", *pair("derived", "pattern_state_end"))
+    sp = g.get("setpoints") or {}
+    if "motors" in sp:  # what the set-points said (benchmarks/board/setpoints.py)
+        steps = "/".join(str(m["max_step"]) for m in sp["motors"].values())
+        row(
+            "set-point max step per motor (deg)",
+            f"{steps} (limit {sp.get('step_limit_deg')})",
+            "n/a",
+        )
+        row(
+            "  steps over the limit, out of range",
+            f"{sp.get('over_step_limit')}, {sp.get('out_of_range')}",
+            "n/a",
+        )
     row("pattern timing id70 motor1 mean dev ms", *pair("window", "timing", "mean_dev_ms"))
     row("pattern timing p99 dev ms", *pair("window", "timing", "p99_dev_ms"))
     row("pattern timing max dev ms", *pair("window", "timing", "max_dev_ms"))

@@ -11,9 +11,12 @@ allowed on, per-CPU idle, CAN link counters and kernel CAN stats.
 from __future__ import annotations
 
 import argparse
+import base64
 import contextlib
 import json
 import os
+import socket
+import struct
 import subprocess
 import sys
 import time
@@ -182,6 +185,49 @@ def can_stats() -> str | None:
         return None
 
 
+FRAMES_RCVBUF = 4 << 20  # a second of any id's frames, many times over
+FRAMES_EVERY_S = 0.5  # read in batches: no wake per frame on CPU 1, where the simulator runs
+
+
+class FrameTap:
+    """One id's frames on the bus during the window, as the kernel's ``struct can_frame``s
+    (16 bytes each), for the host to decode (benchmarks/board/setpoints.py): what the
+    set-points carried, read by a reader of its own, not only how many there were."""
+
+    def __init__(self, channel: str, can_id: int) -> None:
+        self.sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        self.sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")  # none until ``watch``
+        with contextlib.suppress(OSError):  # SO_RCVBUFFORCE (root): past rmem_max
+            self.sock.setsockopt(socket.SOL_SOCKET, 33, FRAMES_RCVBUF)
+        self.sock.bind((channel,))
+        self.sock.setblocking(False)
+        self.can_id, self.got = can_id, bytearray()
+
+    def drain(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                self.got += self.sock.recv(16)
+
+    def watch(self, seconds: float) -> None:
+        """Sleep the window, reading what queued every FRAMES_EVERY_S (standard data frames
+        of the id, from now: nothing queued before to read at the window's edge)."""
+        rule = struct.pack("=II", self.can_id, 0x7FF | 3 << 30)  # | CAN_EFF_FLAG | CAN_RTR_FLAG
+        self.sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, rule)
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            time.sleep(min(left, FRAMES_EVERY_S))
+            self.drain()
+
+    def result(self) -> dict[str, Any]:
+        self.drain()
+        self.sock.close()
+        return {
+            "id": self.can_id,
+            "n": len(self.got) // 16,
+            "b64": base64.b64encode(self.got).decode(),
+        }
+
+
 CALIBRATION_LOOPS = 200_000
 
 
@@ -276,6 +322,13 @@ def main() -> int:
     p.add_argument("--channel", default="", help="CAN link to count frames on (vcan0)")
     p.add_argument("--nodes", default="", help="configured node names, comma-separated")
     p.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        metavar="ID",
+        help="keep this id's frames on --channel during the window (in the result, base64)",
+    )
+    p.add_argument(
         "--go",
         action="store_true",
         help="print PROBE_READY once started and calibrated, and begin the window only when a "
@@ -289,6 +342,7 @@ def main() -> int:
         return 1
     nodes = [n for n in args.nodes.split(",") if n]
     calibration_ms = calibrate()
+    tap = FrameTap(args.channel, args.frames) if args.frames is not None and args.channel else None
     if args.go:
         sys.stdout.write("PROBE_READY\n")
         sys.stdout.flush()
@@ -299,9 +353,14 @@ def main() -> int:
     first = snapshot(pids, args.channel, pss=False)
     sys.stdout.write(f"PROBE_T0 {json.dumps(sorted(pids))}\n")
     sys.stdout.flush()
-    time.sleep(args.seconds)
+    if tap is not None:
+        tap.watch(args.seconds)
+    else:
+        time.sleep(args.seconds)
     second = snapshot(pids, args.channel)
     out = compare(first, second)
+    if tap is not None:
+        out["frames"] = tap.result()
     out["pids"] = pids
     out["calibration_ms"] = calibration_ms
     out["nodes_now"] = sorted(find_appliance(sup, nodes))

@@ -24,13 +24,14 @@ import structlog
 import yaml
 
 from benchmarks.board import card as cardlib
-from benchmarks.board import kernelwork, profile, scenario
+from benchmarks.board import kernelwork, profile, scenario, setpoints
 from benchmarks.board import ladder as ladderlib
 from benchmarks.board import timeline as timelinelib
 from benchmarks.board.guest import MAIN, CoreSampler, Guest, ran_pct
 from benchmarks.harness import free_port
 from exolink import messaging
 from exolink.config import bundled
+from exolink.protocol import h2
 
 log = structlog.get_logger("bench-board")
 
@@ -395,6 +396,7 @@ def run_guest(
         def guest_probe(secs: float, nodes: list[str]) -> list[str]:
             return guest.ssh_cmd(
                 f"taskset -c 1 python3 {GUEST_PROBE} --unit exolink.service --seconds {secs:g} "
+                f"--frames {h2.JOINT_CONTROL} "
                 f"--channel vcan0 --nodes {','.join(nodes)}"
             )
 
@@ -421,6 +423,7 @@ def run_guest(
             result |= _run_load(
                 laptop, probe_cmd, seconds, profiler, guest.jit, fetch, work, guest.core_cpu_s, cap
             )
+            result["setpoints"] = _setpoints(result, cfg, work)
         else:  # no load from the laptop: the guest's own figures, said to be without it
             result["window"] = _probe_only(probe_cmd, seconds, profiler, result)
         if estop and laptop is not None:
@@ -624,6 +627,19 @@ def _fetch_timeline(
     )
     (work / "timeline-top.txt").write_text(text + "\n")
     return {"raw": str(raw), "text": str(work / "timeline-top.txt"), "intervals": len(rows)}
+
+
+def _setpoints(result: dict[str, Any], cfg: dict[str, Any], work: Path) -> dict[str, Any]:
+    """The probe's joint-control frames of the window, saved beside the console log
+    (``frames-70.bin``, struct can_frame each) and checked against the config's limits."""
+    frames = result.get("window", {}).get("probe", {}).pop("frames", None)
+    if not frames:
+        return {"error": "the probe kept no frames"}
+    raw = base64.b64decode(frames["b64"])
+    (work / f"frames-{frames['id']}.bin").write_bytes(raw)
+    manager = [n for n in cfg.get("nodes", []) if n.get("plugin") == "controller_manager"]
+    slot_ms = int((manager[0].get("params") or {}).get("slot_ms", 20)) if manager else 20
+    return setpoints.steps(raw, cfg.get("limits"), slot_ms)
 
 
 def _fetch_kernel_work(guest: Guest, work: Path) -> dict[str, Any]:

@@ -106,16 +106,24 @@ class CycleLoop:
 
     def _open_reader(self) -> None:
         n = self.node
-        # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other frames
-        # (torques, feet, the boards') are read with the next one, in arrival order and before
-        # that cycle's set-points: one wake-up per cycle, not 4-6. Anyone's disable or stop
-        # alone is rare: then one socket (_one_socket).
-        n.reader = open_reader(
-            n.ctx.config.can,
-            n.read_ids,
-            wake_on=None if n._one_socket() else [h2.JOINT_ANGLES],
-            drop=n.drops,
-        )
+        parked = n.parked
+        if parked is not None and (parked.quiet_bus is None) == n._one_socket():
+            n.parked = None  # the same sockets: unparked, with the ids of now
+            parked.unpark()
+            parked.set_ids(n.read_ids)
+            n.reader = parked
+        else:
+            n._close_parked()
+            # Only the angle frame, which starts a cycle, wakes the loop; the cycle's other
+            # frames (torques, feet, the boards') are read with the next one, in arrival order
+            # and before that cycle's set-points: one wake-up per cycle, not 4-6. Anyone's
+            # disable or stop alone is rare: then one socket (_one_socket).
+            n.reader = open_reader(
+                n.ctx.config.can,
+                n.read_ids,
+                wake_on=None if n._one_socket() else [h2.JOINT_ANGLES],
+                drop=n.drops,
+            )
         n.opened = n.last_angle_mono = time.monotonic()
         n.reader_opens += 1
 

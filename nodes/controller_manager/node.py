@@ -157,6 +157,7 @@ class ControllerManagerNode(Node):
         self.bus = self.own(open_bus(cfg.can, filters=[]))  # sends, reader closed
         self.writer = FrameWriter(self.bus, cfg.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued
+        self.parked: FrameReader | None = None  # the reader while idle, on SocketCAN (park)
         # A cycle's set-points and a safe action asked by a request go out in the order they
         # were decided: a disable is never overtaken by the set-points of the cycle in flight.
         self.io_lock = threading.Lock()
@@ -334,14 +335,26 @@ class ControllerManagerNode(Node):
 
     def _close_reader(self, forget: bool = True) -> None:
         """Idle: frames no longer reach this process, and what it knew of the bus is dropped
-        (a controller activated later starts from fresh frames). ``forget=False``: reopened at
-        once with other sockets (``CycleLoop.update_reads``), the state stands."""
+        (a controller activated later starts from fresh frames). On SocketCAN the reader is
+        parked, not closed (``FrameReader.park``: a close freed its BPF filter in a kworker
+        that held the board proxy's CPU 0 ~94 ms at each gait's stop), and the next activation
+        unparks it (``CycleLoop._open_reader``). ``forget=False``: reopened at once with other
+        sockets (``CycleLoop.update_reads``), the state stands."""
         with self.io_lock:  # a request's send may be using its socket
             reader, self.reader = self.reader, None
-            if reader is not None:
+            if reader is not None and forget and reader.parkable and self.parked is None:
+                reader.park()
+                self.parked = reader
+            elif reader is not None:
                 reader.close()
         if forget:
             self._forget_state()
+
+    def _close_parked(self) -> None:
+        with self.io_lock:
+            parked, self.parked = self.parked, None
+            if parked is not None:
+                parked.close()
 
     last_angle_ts: float | None  # the kernel stamp of the angle frame the last cycle ran on
 
@@ -402,3 +415,4 @@ class ControllerManagerNode(Node):
         """The safe action while the bus is open (the runtime releases it next)."""
         self.stop_all("controller manager shutting down")  # followers hear it before we go
         self._close_reader()  # opened while a controller is active, not owned
+        self._close_parked()

@@ -468,6 +468,48 @@ def test_content_filters_drop_in_the_kernel_what_a_reader_never_needs(vcan0: str
         tx.shutdown()
 
 
+@pytest.mark.parametrize("wake_on", [[110], None], ids=["two sockets", "one socket"])
+def test_a_parked_reader_hears_nothing_then_the_same_ids_with_its_rules(
+    vcan0: str, wake_on: list[int] | None
+) -> None:
+    """The controller manager parks its reader while idle instead of closing it (a close
+    freed the content filter's BPF program in a kworker: ~94 ms of the board proxy's CPU 0 at
+    each gait's stop). Parked, the frames queued before and those sent meanwhile are never
+    read; unparked, the same ids come back in order with the content rules still in force,
+    and new ids apply after."""
+    from exolink.canbus.filters import Drop
+
+    rules = [Drop(70, 6, byte=1, keep=frozenset({4, 5}))]
+    reader = open_reader(
+        CanConfig(interface="socketcan", channel=vcan0), [70, 110], wake_on=wake_on, drop=rules
+    )
+    tx = listener(vcan0)
+
+    def send(*frames: tuple[int, bytes]) -> None:
+        for fid, data in frames:
+            tx.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+
+    try:
+        assert reader.parkable
+        send((70, bytes([2, 4, 0, 0, 0, 0])))  # queued before the park: never read
+        time.sleep(0.05)
+        reader.park()
+        send((70, bytes([3, 4, 0, 0, 0, 0])), (110, bytes(6)))  # while parked: never queued
+        time.sleep(0.05)
+        assert reader.read(0.2) == []
+        reader.unpark()
+        sent = [(70, bytes([1, 1, 30, 0, 0, 0])), (70, bytes([4, 5, 0, 0, 0, 0])), (110, bytes(6))]
+        send(*sent)
+        got = reader.read(5.0)
+        assert [(f.arbitration_id, f.data) for f in got] == [sent[1], sent[2]]  # the rule held
+        reader.set_ids([70, 110, 120] if wake_on else [110, 120])
+        send((120, bytes(8)), (110, bytes(6)))
+        assert [f.arbitration_id for f in reader.read(5.0)] == [120, 110]
+    finally:
+        reader.close()
+        tx.shutdown()
+
+
 ANGLES_LEN = len(h2.encode(h2.JointAngles(40, 60, 0, 40, 60, 0)).data)  # the contract's (6)
 
 

@@ -206,6 +206,33 @@ class FrameReader:
             self.bus.set_filters(id_filters(new))
         self.ids = new
 
+    @property
+    def parkable(self) -> bool:
+        """Its sockets are SocketCAN's, whose id filter can be emptied (``park``)."""
+        return self._sock is not None and self._sock.family == socket.AF_CAN
+
+    def park(self) -> None:
+        """Nothing reaches this reader until ``unpark``, and nothing read before it is kept:
+        an owner idle for a while parks it instead of closing it. Closing a socket that
+        carries a content filter frees the BPF program in a kernel worker, which held the
+        board proxy's CPU 0 for 90-190 ms without preemption (A69, B69: the controller
+        manager's reader at each gait's stop, where the h2 reader missed its deadline), and
+        opening one compiles the program again. Only on SocketCAN (``parkable``)."""
+        if not self.parkable:
+            raise ValueError("only a SocketCAN reader parks (an empty id filter)")
+        for s in self._rx:
+            s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")  # no filter: no frame
+            while self._rx[s].receive_bytes():  # what queued before: read nowhere
+                pass
+        self._held.clear()
+        self.complete, self.behind_s, self._next_read = True, 0.0, 0.0
+
+    def unpark(self) -> None:
+        """Its id filters back as they were set (``set_ids`` after, for new ids)."""
+        for bus in (self.bus, self.quiet_bus):
+            if bus is not None:
+                bus.set_filters(bus.filters)
+
     def close(self) -> None:
         """Shut down the buses this reader opened (the quiet one too)."""
         for bus in (self.quiet_bus, self.bus):
