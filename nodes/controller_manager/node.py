@@ -41,7 +41,8 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
   ends with the lease (100 ms), no later than the watchdog's disable.
 
 Off the bus while idle: with no controller active and no switch queued the node holds no socket
-that frames reach (a send-only bus stays, for commands and safe actions): reading and decoding
+that frames reach (a send-only bus stays, for commands and safe actions; on SocketCAN the reader
+is parked behind an empty id filter, not closed: ``_close_reader``): reading and decoding
 every H2 and MACCEPA frame for nothing was the board's largest cost. A queued switch opens the
 reader; activations wait until it is warm (every configured board's position frame seen, or
 ``cycle_loop.WARM_S``) so a controller never starts from a stale or missing state, and the state
