@@ -77,6 +77,7 @@ class TimerLoop:
             # the op's frames the kernel's count had lost and their echoes found, and the
             # kernel's interval (trimmed)
             "recounted": timed.lease.recounted if timed else 0,
+            "restarted": timed.lease.restarted if timed else 0,
             "interval_us": round(timed.lease.interval_s * 1e6, 1) if timed else 0,
             "repeating": timed.plan.period or 0
             if timed and timed.plan.cycle_from is not None

@@ -159,6 +159,40 @@ def test_a_renewal_the_timer_races_loses_no_slot_its_echoes_count_them(
     assert len(got) - 1 <= counted <= len(got), (counted, len(got))
 
 
+def test_a_renewal_at_the_leases_last_frame_keeps_the_timer_going(
+    vcan0: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A renewal that reads one frame left and sets its count only after that frame went out
+    (a read-to-setup window longer than a period: a starved owner) would set a count on an
+    ended timer: silent until a later renewal saw no progress (B69: 50 and 87 ms gaps under
+    the 50 % cap). The renewal starts it again: the slots go on, in order, each once."""
+    import exolink.canbus.leases as leases
+
+    check = leases._check_lease
+
+    def slow(*args: int) -> None:  # the window outlasts the last frame's due time
+        check(*args)
+        time.sleep(1.5 * PERIOD)
+
+    bus = listen(vcan0)
+    op = CyclicLease(vcan0, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], 3)
+        while op.remaining() > 1:  # slots 0 and 1 out, 2 due
+            pass
+        monkeypatch.setattr(leases, "_check_lease", slow)
+        n = op.renew(plan(op.sent(), 12), 6)
+        frames = drain(bus, 0.15)
+    finally:
+        op.close()
+        bus.shutdown()
+    got, steps = steps_of(frames)
+    assert got[:3] == [0, 1, 2] and set(steps) == {1}, got
+    # the lease set was 6 from slot 2: five after the restart, one of them maybe before it
+    assert 7 <= len(got) <= 8, got
+    assert op.restarted == 1 and n == 2
+
+
 def test_ops_that_share_their_owners_echoes_count_only_their_own(vcan0: str) -> None:
     """The manager keeps one EchoTap for its life: closing a filtered socket frees its BPF
     program in a kernel worker, ~190 ms of CPU 0 on the board proxy. Between two ops the tap

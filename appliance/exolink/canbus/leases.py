@@ -162,6 +162,7 @@ class CyclicLease:
         self._unsure = 0  # frames the count may have lost in renewals' read-to-setup windows
         self._seen = 0  # the op's frames read back from the bus since ``start``, in order
         self.recounted = 0  # frames the count lost and the echoes found (``renew``)
+        self.restarted = 0  # renewals that started the timer again at the lease's end
         self._trim = PeriodTrim(period_s)
         self._packed: dict[bytes, bytes] = {}  # payload -> its can_frame (``_put``)
         try:
@@ -265,14 +266,25 @@ class CyclicLease:
         _check_lease(lease, k - n - 1, self.ring)  # ValueError: no renewal, nothing counted
         self._unsure -= found
         self.recounted += found
-        ran_out = n >= self._base + self._lease  # resumed by the caller: a new phase
+        left = self._base + self._lease - n  # frames the op may still send, by the read
         self._setup(socket.CAN_BCM_SETTIMER, lease, ring)
         # a frame the timer sent in the window, and one more for each period it lasted
-        window = 1 + int((time.monotonic() - t0) / self.period_s)
+        now = time.monotonic()
+        window = 1 + int((now - t0) / self.period_s)
         self._unsure = min(UNSURE_MAX, self._unsure + window)
         self._base = n
-        if not ran_out:
+        if 0 < left <= window and lease >= 2:
+            # The lease's last frames may have gone out between the read and the setup: the
+            # timer then ended, and the count just set waits for a start that never comes
+            # (silent until a later renewal saw no progress: two gaps, 50 and 87 ms, in B69).
+            # Started again now (a new phase, at most an interval off), with one frame less:
+            # the timer may have sent one between the two setups, and never past the plan.
+            self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, lease - 1, ring)
+            self._trim.restart(time.monotonic(), n + 1)
+            self.restarted += 1
+        elif left > 0:
             self._trim.update(t0, n)  # the interval for the next renewal's setup
+        # (left <= 0: the lease ran out before the read; the caller resumes, a new phase)
         return n
 
     def _echoed(self) -> int:
@@ -329,6 +341,7 @@ class Lease(Protocol):
     period_s: float
     ring: int
     recounted: int
+    restarted: int
 
     @property
     def interval_s(self) -> float: ...
@@ -372,6 +385,7 @@ class ThreadLease:
         self._lease = 0
         self._running = False
         self.recounted = 0  # never: this count loses nothing
+        self.restarted = 0  # never: its thread cannot end between a read and a setup
         self._next_at = 0.0  # monotonic time of the next frame
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"lease-{can_id}", daemon=True)
