@@ -87,16 +87,20 @@ def cmd_echo(args: argparse.Namespace) -> int:
         sub = messaging.MessageSubscription(
             r.session, r.device, r.selector(args.topic), on, ask_s=min(args.timeout, 3.0)
         )
-        start = time.monotonic()
-        while not done.wait(0.1):
-            if count[0] == 0 and time.monotonic() - start > args.timeout:
-                sub.close()
-                return fail(
-                    f"no messages on {args.topic} within {args.timeout:g} s "
-                    f"(appliance at {args.at}; see `exolink topics`)",
-                    EXIT_UNREACHABLE,
-                )
-        sub.close()
+        # Closed on every way out, the reader gone (stdout's EPIPE interrupts this thread) and
+        # Ctrl-C included: a subscriber left to the interpreter's exit is dropped while its
+        # callbacks may run (test_management_commands once waited 10 s for an `echo | head -1`).
+        try:
+            start = time.monotonic()
+            while not done.wait(0.1):
+                if count[0] == 0 and time.monotonic() - start > args.timeout:
+                    return fail(
+                        f"no messages on {args.topic} within {args.timeout:g} s "
+                        f"(appliance at {args.at}; see `exolink topics`)",
+                        EXIT_UNREACHABLE,
+                    )
+        finally:
+            sub.close()
     return 0
 
 
