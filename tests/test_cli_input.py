@@ -6,6 +6,7 @@ pipes and real files; the parser in-process where the refusal is argparse's."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -34,12 +35,19 @@ def _nodes(tmp_path: Path) -> list[dict]:  # type: ignore[type-arg]
 
 def _to_closed_pipe(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[bytes]:
     """Run `exolink ARGS` with stdout a pipe whose reader has already gone (`| head -1` once
-    head has its line): every write fails with EPIPE."""
+    head has its line): every write fails with EPIPE. With SIGINT ignored, as a background
+    job of a script starts it: a simulated SIGINT is then dropped, and the streaming commands
+    ran on until killed."""
     r, w = os.pipe()
     os.close(r)
     try:
         return subprocess.run(
-            [*EXOLINK, *args], stdout=w, stderr=subprocess.PIPE, timeout=timeout, check=False
+            [*EXOLINK, *args],
+            stdout=w,
+            stderr=subprocess.PIPE,
+            timeout=timeout,
+            check=False,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
         )
     finally:
         os.close(w)

@@ -41,6 +41,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             args = parse(argv)
             if getattr(args, "talks_to_appliance", False):
+                out.install()
                 sys.stdout = out
             code = run_guarded(args.func, args)
         finally:
