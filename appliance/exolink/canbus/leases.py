@@ -519,15 +519,21 @@ class EchoTap:
         (another length on the id is another sender's: the kernel drops it). A filter is
         attached only when the length changes, so an owner whose frames keep one length
         (the H2's 6 bytes) compiles and frees no program after its first op."""
+        self.expect(length)
+        self._listen(True)
+        while self._rx.receive_bytes():  # frames from before the op are not its own
+            pass
+
+    def expect(self, length: int | None) -> None:
+        """Frames of ``length`` bytes only from the next ``begin`` on (None: any): the filter
+        attached now, so an owner that knows its length compiles the program while idle, not
+        at its first op's start."""
         if length != self._length:
             if length is None:
                 self._sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
             else:
                 attach(self._sock, [Drop(self.can_id, n) for n in range(9) if n != length])
             self._length = length
-        self._listen(True)
-        while self._rx.receive_bytes():  # frames from before the op are not its own
-            pass
 
     def receive_bytes(self) -> bytes:
         """The packed frames queued now, a batch at most (b"": none)."""
