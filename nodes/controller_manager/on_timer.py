@@ -52,7 +52,7 @@ class TimerLoop:
         self.renewals = 0  # of the ops that ended
         self.sent = 0  # frames the ops that ended sent, by the kernel's count
         self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
-        # the ops' echoes, opened at the first op and kept for the node's life (EchoTap)
+        # the ops' echoes, opened while idle and kept for the node's life (open_echoes)
         self.echoes: EchoTap | None = None
 
     def open_echoes(self) -> None:
