@@ -4,6 +4,7 @@ as the probe keeps them (the kernel's struct can_frame), made by the one H2 enco
 from __future__ import annotations
 
 from benchmarks.board import setpoints
+from exolink.canbus.frames import CAN_FRAME
 from exolink.protocol import h2
 
 LIMITS = {"max_step_deg": 5, "joints": {"r_hip": {"min": -20, "max": 100}}}
@@ -11,7 +12,7 @@ LIMITS = {"max_step_deg": 5, "joints": {"r_hip": {"min": -20, "max": 100}}}
 
 def frame(motor: int, mode: str, setpoint: int) -> bytes:
     m = h2.encode_joint_control(motor, mode, setpoint, 0)
-    return setpoints.CAN_FRAME.pack(m.arbitration_id, m.dlc, bytes(m.data).ljust(8, b"\0"))
+    return CAN_FRAME.pack(m.arbitration_id, m.dlc, bytes(m.data).ljust(8, b"\0"))
 
 
 def test_steps_per_motor_against_the_limit_for_a_slot() -> None:
@@ -22,7 +23,7 @@ def test_steps_per_motor_against_the_limit_for_a_slot() -> None:
             frame(1, "position", 18),  # 8 deg: inside 5 deg x 2 cycles
             frame(1, "position", 40),  # 22 deg: a slot from elsewhere
             frame(2, "disabled", 0),  # not a set-point
-            setpoints.CAN_FRAME.pack(70, 8, bytes(8)),  # MACCEPA board 0's status on the id
+            CAN_FRAME.pack(70, 8, bytes(8)),  # MACCEPA board 0's status on the id
         ]
     )
     out = setpoints.steps(raw, LIMITS, slot_ms=20)

@@ -655,9 +655,8 @@ def _fetch_kernel_work(guest: Guest, work: Path) -> dict[str, Any]:
     ).stdout.splitlines()
     edges = []
     for line in left:
-        m = re.match(r"\[\s*(\d+\.\d+)\]", line)
-        if m and "timer_left" in line:
-            t = float(m.group(1))
+        t = _monotonic_s(line)
+        if t is not None and "timer_left" in line:
             edges.append(
                 {"t": t, **kernelwork.summarize([i for i in done if t <= i["t"] <= t + 2.0], 10)}
             )
@@ -741,6 +740,12 @@ def _probe_only(
         _end_profiler(prof, out if out is not None else {})
 
 
+def _monotonic_s(line: str) -> float | None:
+    """The time of a `journalctl -o short-monotonic` line (None: not such a line)."""
+    m = re.match(r"\[\s*(\d+\.\d+)\]", line)
+    return float(m.group(1)) if m else None
+
+
 def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
     """Journal lines of interest, split into the whole boot and the measurement window."""
     r = guest.ssh(
@@ -752,8 +757,8 @@ def _guest_logs(guest: Guest, result: dict[str, Any]) -> dict[str, Any]:
     lines = r.stdout.splitlines()
     inside = []
     for line in lines:
-        m = re.match(r"\[\s*(\d+\.\d+)\]", line)
-        if m and t0 is not None and t1 is not None and t0 <= float(m.group(1)) <= t1:
+        t = _monotonic_s(line)
+        if t is not None and t0 is not None and t1 is not None and t0 <= t <= t1:
             inside.append(line)
     return {
         "boot_total": {p: sum(p in line for line in lines) for p in LOG_PATTERNS.split("|")},

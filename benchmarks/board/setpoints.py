@@ -8,16 +8,15 @@ the frames said. Decoded here, on the host, by the one H2 decoder (exolink.proto
 
 from __future__ import annotations
 
-import struct
 from typing import Any
 
 import can
 
+from exolink.canbus.frames import CAN_FRAME
 from exolink.limits.joints import POSITION
 from exolink.protocol import h2
 
-CAN_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: id, len, pad, data
-CYCLE_MS = 10  # the limits' step is per H2 cycle
+CYCLE_MS = round(h2.PERIOD_S * 1000)  # the limits' step is per H2 cycle
 
 
 def steps(raw: bytes, limits: dict[str, Any] | None = None, slot_ms: int = 20) -> dict[str, Any]:

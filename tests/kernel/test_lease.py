@@ -193,6 +193,35 @@ def test_a_renewal_at_the_leases_last_frame_keeps_the_timer_going(
     assert op.restarted == 1 and n == 2
 
 
+def test_a_restarted_timer_stops_at_once(vcan0: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The restart at a lease's end is a motion path of its own: a stop (every trip path's
+    TX_DELETE) right after it leaves nothing more on the bus."""
+    import exolink.canbus.leases as leases
+
+    check = leases._check_lease
+
+    def slow(*args: int) -> None:
+        check(*args)
+        time.sleep(1.5 * PERIOD)
+
+    bus = listen(vcan0)
+    op = CyclicLease(vcan0, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], 3)
+        while op.remaining() > 1:
+            pass
+        monkeypatch.setattr(leases, "_check_lease", slow)
+        op.renew(plan(op.sent(), 12), 6)
+        assert op.restarted == 1
+        op.stop()
+        t = time.time()
+        late = [m for m in drain(bus, 0.1) if m.timestamp > t]
+    finally:
+        op.close()
+        bus.shutdown()
+    assert late == []
+
+
 def test_ops_that_share_their_owners_echoes_count_only_their_own(vcan0: str) -> None:
     """The manager keeps one EchoTap for its life: closing a filtered socket frees its BPF
     program in a kernel worker, ~190 ms of CPU 0 on the board proxy. Between two ops the tap

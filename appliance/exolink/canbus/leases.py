@@ -20,6 +20,7 @@ from exolink.canbus.filters import SO_DETACH_FILTER, Drop, attach
 from exolink.canbus.frames import CAN_EFF_FLAG, CAN_FRAME, CAN_RTR_FLAG, STD_MASK
 from exolink.canbus.mmsg import BatchReceiver
 from exolink.canbus.opening import CanOpenError
+from exolink.canbus.sockets import receive_none
 
 if TYPE_CHECKING:
     import can
@@ -510,8 +511,10 @@ class EchoTap:
         self._length: int | None = None  # the one length kept by the BPF filter (None: all)
 
     def _listen(self, on: bool) -> None:
-        mask = STD_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG
-        rule = struct.pack("=II", self.can_id, mask) if on else b""  # no filter: no frame
+        if not on:
+            receive_none(self._sock)
+            return
+        rule = struct.pack("=II", self.can_id, STD_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG)
         self._sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, rule)
 
     def begin(self, length: int | None) -> None:
@@ -521,8 +524,7 @@ class EchoTap:
         (the H2's 6 bytes) compiles and frees no program after its first op."""
         self.expect(length)
         self._listen(True)
-        while self._rx.receive_bytes():  # frames from before the op are not its own
-            pass
+        self._rx.discard()  # frames from before the op are not its own
 
     def expect(self, length: int | None) -> None:
         """Frames of ``length`` bytes only from the next ``begin`` on (None: any): the filter

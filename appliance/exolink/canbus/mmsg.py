@@ -152,6 +152,11 @@ class BatchReceiver:
         whole = [ln == size and not fl & trunc for ln, fl in zip(lengths, flags, strict=True)]
         return n, self._view[: n * size], whole, stamps
 
+    def discard(self) -> None:
+        """Everything queued now, read and dropped (frames from before a reader's turn)."""
+        while self._call():
+            pass
+
     def receive_bytes(self) -> bytes:
         """The datagrams queued, up to a batch, back to back, for datagrams of exactly
         ``msg_size`` bytes and no use for their times (a sender's own frames read back:

@@ -26,7 +26,13 @@ from exolink.canbus.frames import (
     id_filters,
 )
 from exolink.canbus.mmsg import BATCH, MSG_SIZE, BatchReceiver
-from exolink.canbus.sockets import RCVBUF_BYTES, bus_socket, size_receive_buffer, socket_drops
+from exolink.canbus.sockets import (
+    RCVBUF_BYTES,
+    bus_socket,
+    receive_none,
+    size_receive_buffer,
+    socket_drops,
+)
 from exolink.canbus.writer import FrameWriter
 from exolink.config import CanConfig
 
@@ -220,10 +226,9 @@ class FrameReader:
         opening one compiles the program again. Only on SocketCAN (``parkable``)."""
         if not self.parkable:
             raise ValueError("only a SocketCAN reader parks (an empty id filter)")
-        for s in self._rx:
-            s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")  # no filter: no frame
-            while self._rx[s].receive_bytes():  # what queued before: read nowhere
-                pass
+        for s, rx in self._rx.items():
+            receive_none(s)
+            rx.discard()  # what queued before: read nowhere
         self._held.clear()
         self.complete, self.behind_s, self._next_read = True, 0.0, 0.0
 

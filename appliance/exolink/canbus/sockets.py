@@ -23,6 +23,13 @@ _MEMINFO = struct.Struct("=9I")  # linux/sock_diag.h SK_MEMINFO_*: [0] rmem_allo
 RCVBUF_BYTES = {socket.AF_CAN: 1 << 20, socket.AF_INET: 3 << 20}  # by the bus socket's family
 
 
+def receive_none(sock: socket.socket) -> None:
+    """A CAN_RAW socket that no frame reaches from now on (an empty id filter): a socket kept
+    open while idle instead of closed (closing one with a BPF filter frees the program in a
+    kernel worker: docs/performance.md, stop 69)."""
+    sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")
+
+
 def bus_socket(bus: can.BusABC) -> socket.socket | None:
     """The socket under a bus that shows it (python-can's SocketCAN bus and the simulated bus
     both have a public ``socket``); None for a bus without one (the in-process virtual bus)."""
