@@ -23,7 +23,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -213,11 +213,13 @@ class Receiver(Protocol):
 def collect(bus: Receiver, seconds: float, ids: set[int] | None = None) -> list[Any]:
     """Every frame (of ``ids``, or all) ``bus`` receives for ``seconds``."""
     out = []
-    end = time.monotonic() + seconds
+    end, until = time.monotonic() + seconds, time.time() + seconds
     while (left := end - time.monotonic()) > 0:
         m = bus.recv(timeout=left)
         if m is not None and (ids is None or m.arbitration_id in ids):
             out.append(m)
+    if isinstance(bus, DrainedBus):  # the window's frames the listener had not handed over
+        out += [m for m in bus.caught_up(until) if ids is None or m.arbitration_id in ids]
     return out
 
 
@@ -274,30 +276,32 @@ class DrainedBus:
         return self.reader.dropped or 0
 
     def recv(self, timeout: float | None = None) -> Frame | None:
-        """The next frame, or None after ``timeout``: a can.BusABC's recv, for ``collect``.
-
-        Before a None, the reading thread finishes one more read: a host stalled for longer than
-        the timeout (CI's did) wakes this thread first, and frames the kernel already held for
-        the listener were otherwise missed as if never sent."""
+        """The next frame, or None after ``timeout``: a can.BusABC's recv, for ``collect``."""
         try:
             return self.q.get(timeout=timeout)
         except queue.Empty:
-            pass
+            return None
+
+    def caught_up(self, until: float) -> Iterator[Frame]:
+        """The frames received by wall time ``until`` (their kernel stamps) that the reading
+        thread had not handed over yet, after one more read by it: a host stalled for longer
+        than a window (CI's did) wakes the waiting thread first, and frames already received
+        were otherwise missed as if never sent. Taken one at a time: a later frame, and what a
+        caller stops before, stays queued."""
         self._passed.clear()
         self._passed.wait(1.0)
-        try:
-            return self.q.get_nowait()
-        except queue.Empty:
-            return None
+        held = self.q.queue  # only this thread takes from it
+        while held and held[0].timestamp <= until:
+            yield self.q.get_nowait()
 
     def wait_for(self, pred: Callable[[Frame], bool], timeout: float) -> Frame | None:
         """The first frame from now on that ``pred`` accepts, or None after ``timeout``."""
-        end = time.monotonic() + timeout
+        end, until = time.monotonic() + timeout, time.time() + timeout
         while (left := end - time.monotonic()) > 0:
             m = self.recv(timeout=left)
             if m is not None and pred(m):
                 return m
-        return None
+        return next((m for m in self.caught_up(until) if pred(m)), None)
 
     def collect(self, seconds: float) -> list[Frame]:
         """Every frame received for ``seconds``."""
