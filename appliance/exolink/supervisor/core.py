@@ -138,6 +138,16 @@ class Supervisor(NodeJudge, NodeTelemetry):
         # CDR from exolink.wire.cdr: no typestore (rosbags, numpy: ~13 MB, seconds of start on the A8)
         self.pub_trigger = self.msg.publisher("trigger", TRIGGER_TYPE, raw=True)
         self.pub_diag = self.msg.publisher("supervisor/diagnostics", DIAGNOSTICS_TYPE, raw=True)
+        config_path = self._workdir / "appliance.yaml"
+        config_path.write_text(yaml.safe_dump(_config_data(cfg, self._workdir), sort_keys=False))
+        # Every node in the dict before the API answers: its handlers iterate the dict on their
+        # own threads, and a node added meanwhile failed a boot-time `status` ("dictionary
+        # changed size during iteration", H69's journal). Never added to after this.
+        for ncfg in cfg.nodes:
+            node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
+            node.zygote = self.zygote
+            node.deadlines = cfg.deadlines_s(ncfg)
+            self.nodes[ncfg.name] = node
         self.api = ManagementApi(self)
         self._decls += self.api.serve(self.msg)
         # Laptops find the device by these tokens (exolink.client): the supervisor's own, so an
@@ -149,14 +159,8 @@ class Supervisor(NodeJudge, NodeTelemetry):
         self._decls += self._hear_nodes()
         self.trigger_src = trigger.open_source(cfg.trigger, self._on_edge)
         self.trigger_out = trigger.open_output(cfg.trigger)
-        config_path = self._workdir / "appliance.yaml"
-        config_path.write_text(yaml.safe_dump(_config_data(cfg, self._workdir), sort_keys=False))
-        for ncfg in cfg.nodes:
-            node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
-            node.zygote = self.zygote
-            node.deadlines = cfg.deadlines_s(ncfg)
-            self.nodes[ncfg.name] = node
-            if ncfg.enabled:
+        for node in self.nodes.values():
+            if node.cfg.enabled:
                 node.start()
         self.log.info(
             "supervisor_running",
