@@ -63,6 +63,25 @@ def plan(n: int, ahead: int = 8) -> dict[int, bytes]:
     return {k: slot(k) for k in range(n, n + ahead)}
 
 
+def renew_at_the_last_frame(op: CyclicLease, monkeypatch: pytest.MonkeyPatch) -> int:
+    """A lease of 3 started, then renewed (to 6) when one frame is left, with the renewal's
+    read-to-setup window made longer than a period (a starved owner): the last frame goes out
+    and the timer ends inside it. The renewal's slot."""
+    import exolink.canbus.leases as leases
+
+    check = leases._check_lease
+
+    def slow(*args: int) -> None:  # the window outlasts the last frame's due time
+        check(*args)
+        time.sleep(1.5 * PERIOD)
+
+    op.start([slot(k) for k in range(8)], 3)
+    while op.remaining() > 1:  # slots 0 and 1 out, 2 due
+        pass
+    monkeypatch.setattr(leases, "_check_lease", slow)
+    return op.renew(plan(op.sent(), 12), 6)
+
+
 def _results(name: str, data: dict) -> None:
     print(name, json.dumps(data))
     where = Path(os.environ.get("EXOLINK_KERNEL_RESULTS", "/tmp"))
@@ -166,22 +185,10 @@ def test_a_renewal_at_the_leases_last_frame_keeps_the_timer_going(
     (a read-to-setup window longer than a period: a starved owner) would set a count on an
     ended timer: silent until a later renewal saw no progress (B69: 50 and 87 ms gaps under
     the 50 % cap). The renewal starts it again: the slots go on, in order, each once."""
-    import exolink.canbus.leases as leases
-
-    check = leases._check_lease
-
-    def slow(*args: int) -> None:  # the window outlasts the last frame's due time
-        check(*args)
-        time.sleep(1.5 * PERIOD)
-
     bus = listen(vcan0)
     op = CyclicLease(vcan0, ID, PERIOD)
     try:
-        op.start([slot(k) for k in range(8)], 3)
-        while op.remaining() > 1:  # slots 0 and 1 out, 2 due
-            pass
-        monkeypatch.setattr(leases, "_check_lease", slow)
-        n = op.renew(plan(op.sent(), 12), 6)
+        n = renew_at_the_last_frame(op, monkeypatch)
         frames = drain(bus, 0.15)
     finally:
         op.close()
@@ -196,22 +203,10 @@ def test_a_renewal_at_the_leases_last_frame_keeps_the_timer_going(
 def test_a_restarted_timer_stops_at_once(vcan0: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """The restart at a lease's end is a motion path of its own: a stop (every trip path's
     TX_DELETE) right after it leaves nothing more on the bus."""
-    import exolink.canbus.leases as leases
-
-    check = leases._check_lease
-
-    def slow(*args: int) -> None:
-        check(*args)
-        time.sleep(1.5 * PERIOD)
-
     bus = listen(vcan0)
     op = CyclicLease(vcan0, ID, PERIOD)
     try:
-        op.start([slot(k) for k in range(8)], 3)
-        while op.remaining() > 1:
-            pass
-        monkeypatch.setattr(leases, "_check_lease", slow)
-        op.renew(plan(op.sent(), 12), 6)
+        renew_at_the_last_frame(op, monkeypatch)
         assert op.restarted == 1
         op.stop()
         t = time.time()
