@@ -102,7 +102,7 @@ def motion_nodes(
     *extra: dict[str, Any],
     deadline_ms: int = 50,
     h2_timeout_ms: int | None = None,
-    leased_deadline_ms: int = 100,
+    leased_deadline_ms: int = 200,
     params: dict[str, Any] | None = None,
     **manager: Any,
 ) -> list[dict[str, Any]]:

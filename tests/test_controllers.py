@@ -935,16 +935,18 @@ def test_a_late_manager_runs_the_newest_cycle_not_a_burst(routed, mbus) -> None:
 
 def test_the_timers_wake_and_lease_fit_the_deadline_they_are_judged_by() -> None:
     """While only the timer sends, the manager wakes at 40 % of the shorter of its lease and its
-    leased deadline (stock 100 / 100: every 40 ms, renewing each time), never more often than
+    leased deadline (stock 200 / 200: every 80 ms, renewing each time), never more often than
     its cycle's beat; a lease that would outlast the watchdog's disable by more than hung
     detection's budget is refused at start, naming both."""
     p = ManagerParams()
-    assert (p.lease_ms, p.slot_ms) == (100, 20)
-    assert p.timed_wake_s(100, 0.02) == pytest.approx(0.04)
-    assert p.timed_wake_s(50, 0.02) == pytest.approx(0.02)  # judged by 50 ms: as before
-    assert p.timed_wake_s(40, 0.02) == pytest.approx(0.02)
+    assert (p.lease_ms, p.slot_ms) == (200, 20)
+    assert p.timed_wake_s(200, 0.02) == pytest.approx(0.08)
+    short = ManagerParams(lease_ms=100)
+    assert short.timed_wake_s(100, 0.02) == pytest.approx(0.04)
+    assert short.timed_wake_s(50, 0.02) == pytest.approx(0.02)  # judged by 50 ms: as before
+    assert short.timed_wake_s(40, 0.02) == pytest.approx(0.02)
     with pytest.raises(ValueError, match=r"lease_ms 200 exceeds the leased heartbeat deadline "):
-        ManagerParams(lease_ms=200).timed_wake_s(100, 0.02)
+        p.timed_wake_s(100, 0.02)
     assert ManagerParams(lease_ms=160).timed_wake_s(100, 0.02) == pytest.approx(0.04)
     assert LEASE_PAST_TRIP_MS == 60
 

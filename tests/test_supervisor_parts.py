@@ -297,29 +297,29 @@ def test_an_idle_motion_node_is_held_to_the_default_deadline_until_it_says_other
 
 def test_a_leased_motion_node_is_held_to_its_leased_deadline_until_the_lease_ends() -> None:
     """The controller manager while only the kernel's timer sends says so (Pace.LEASED): the
-    board config's leased_deadline_ms (100) judges it, then its own 50 ms again from its first
-    beat that is not leased. The lease (100 ms) has ended the motion by then (node.py)."""
+    board config's leased_deadline_ms (200) judges it, then its own 50 ms again from its first
+    beat that is not leased. The lease (200 ms) has ended the motion by then (node.py)."""
     from exolink import liveness
 
     sup, trips = _supervisor_recording_trips()
     node, beater = _sleeping_node(sup, "controller_manager", timer=False)
-    assert sup.cfg.deadline_s(node.cfg, liveness.Pace.LEASED) == 0.1
+    assert sup.cfg.deadline_s(node.cfg, liveness.Pace.LEASED) == 0.2
     try:
         beater.beat(1000.0, pace=liveness.Pace.LEASED)
-        sup._check_nodes(1000.09)  # 90 ms: late by its own 50 ms, not by the lease's 100
+        sup._check_nodes(1000.19)  # 190 ms: late by its own 50 ms, not by the lease's 200
         assert trips == [] and node.pace == liveness.Pace.LEASED
-        assert sup._next_due(1000.09) == pytest.approx(1000.1)
-        beater.beat(1000.095, pace=liveness.Pace.OWN)  # back to the cycle loop: then hung
-        sup._check_nodes(1000.14)
+        assert sup._next_due(1000.19) == pytest.approx(1000.2)
+        beater.beat(1000.195, pace=liveness.Pace.OWN)  # back to the cycle loop: then hung
+        sup._check_nodes(1000.24)
         assert trips == [] and node.pace == liveness.Pace.OWN
-        sup._check_nodes(1000.155)
+        sup._check_nodes(1000.255)
         assert trips == ["controller_manager: no heartbeat for 60 ms (deadline 50 ms)"]
         node.proc.wait()
         node.proc = subprocess.Popen(["sleep", "60"])
         node.state = "running"
-        beater.beat(1001.0, pace=liveness.Pace.LEASED)  # leased, then silent past 100 ms
-        sup._check_nodes(1001.11)
-        assert trips[1:] == ["controller_manager: no heartbeat for 110 ms (deadline 100 ms)"]
+        beater.beat(1001.0, pace=liveness.Pace.LEASED)  # leased, then silent past 200 ms
+        sup._check_nodes(1001.21)
+        assert trips[1:] == ["controller_manager: no heartbeat for 210 ms (deadline 200 ms)"]
         assert node.state == "killed"
     finally:
         node.kill()

@@ -12,7 +12,8 @@ the supervisor (a child subreaper), which waits for it exactly as for a process 
 
 Protocol (SOCK_SEQPACKET from the supervisor): {ready} once imported; then per node a JSON
 request {name, config, env} with three file descriptors, the node's stdout, its liveness pipe
-and its deadline timer, and the reply {pid} or {error}.
+and its deadline timer (and a leased node's broadcast-manager socket, exolink.canbus.held), and
+the reply {pid} or {error}.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import traceback
 from typing import Any, NoReturn
 
 import exolink.canbus
+import exolink.canbus.held
 import exolink.errors
 import exolink.liveness
 import exolink.logs
@@ -50,7 +52,7 @@ def serve(fd: int) -> None:
     sock.send(b'{"ready": true}')  # imports done: the supervisor waits for this before any request
     while True:
         try:
-            msg, fds, _flags, _addr = socket.recv_fds(sock, MAX_REQUEST, 3)
+            msg, fds, _flags, _addr = socket.recv_fds(sock, MAX_REQUEST, 4)
         except OSError:
             return
         if not msg:
@@ -66,8 +68,8 @@ def serve(fd: int) -> None:
 
 
 def _spawn(req: dict[str, Any], fds: list[int], sock: socket.socket) -> int:
-    if len(fds) != 3:
-        raise ValueError(f"expected 3 file descriptors, got {len(fds)}")
+    if len(fds) not in (3, 4):
+        raise ValueError(f"expected 3 or 4 file descriptors, got {len(fds)}")
     r, w = os.pipe()
     mid = os.fork()
     if mid == 0:  # intermediate: fork the node, report its pid, leave at once
@@ -98,7 +100,7 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
         sock.close()
         own_process_group()
         set_comm(f"exo-{req['name']}")
-        out, live, timer = fds
+        out, live, timer, *held = fds
         os.dup2(out, 1)
         os.dup2(out, 2)
         os.close(out)
@@ -108,6 +110,8 @@ def _node(req: dict[str, Any], fds: list[int], sock: socket.socket) -> NoReturn:
         os.environ.update(req["env"])
         os.environ[exolink.liveness.ENV] = str(live)
         os.environ[exolink.liveness.TIMER_ENV] = str(timer)
+        if held:  # a leased node's broadcast-manager socket, the supervisor's too
+            os.environ[exolink.canbus.held.HELD_ENV] = str(held[0])
         args = [str(req["name"]), "-c", str(req["config"])]
         sys.argv = [exolink.runtime.__file__, *args]
         try:

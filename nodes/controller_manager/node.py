@@ -37,8 +37,9 @@ counted (``malformed`` in ``exolink controllers list --json``) and skipped. Safe
   that stops renewing (stopped, hung, starved) leaves on the bus;
 - the loop beats every cycle and at least every ``BEAT_S``: a hung manager is the watchdog's
   (``heartbeat_deadline_ms: 50`` in the configs); while only the timer sends, its beats say
-  so and it is judged by ``leased_deadline_ms`` (100 in the configs): a hang's motion then
-  ends with the lease (100 ms), no later than the watchdog's disable.
+  so and it is judged by ``leased_deadline_ms`` (200 in the configs): a hang's motion then
+  ends with the lease (200 ms), no later than the watchdog's disable; any trip deletes the op
+  before its first disable frame (the supervisor holds the op's socket: exolink.canbus.held).
 
 Off the bus while idle: with no controller active and no switch queued the node holds no socket
 that frames reach (a send-only bus stays, for commands and safe actions; on SocketCAN the reader

@@ -17,6 +17,7 @@ from exolink.nodes.controller_manager.timed import PLAN_CHUNK_S, Timed
 
 from exolink import logs
 from exolink.canbus import CanOpenError
+from exolink.canbus.held import held_socket
 from exolink.canbus.leases import EchoTap, open_echoes, open_lease
 from exolink.limits.joints import POSITION
 from exolink.liveness import Pace
@@ -47,6 +48,7 @@ class TimerLoop:
         self.plan_key: tuple[object, ...] = ()  # what the op was planned from (Manager.plan_key)
         self.beside = False  # the cycle loop runs beside the timer (see ``start``)
         self.refused = ""
+        self.refusals = 0
         self.lapses = 0
         self.resumes = 0  # of the lapses, resumed in place (Timed._renew)
         self.renewals = 0  # of the ops that ended
@@ -134,10 +136,13 @@ class TimerLoop:
                     ival_us / 1e6,
                     ring,
                     self.echoes,
+                    # the supervisor's copy: its watchdog deletes the op at every safe action
+                    held_socket() if can_cfg.interface == "socketcan" else None,
                 )
             except (CanOpenError, ValueError) as exc:  # the cycle loop goes on writing them
                 self.refused = str(exc)
-                if logs.rarely(self.runs + 1):
+                self.refusals += 1  # tried again each cycle: logged rarely
+                if logs.rarely(self.refusals):
                     n.log.error("timer_unavailable", error=str(exc))
                 return
             opened = time.perf_counter()

@@ -44,7 +44,7 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     # False: planned controllers run in the cycle loop like the others, one set-point per
     # update (no send op is made).
     timer: bool = True
-    lease_ms: Annotated[int, msgspec.Meta(ge=20, le=500)] = 100
+    lease_ms: Annotated[int, msgspec.Meta(ge=20, le=500)] = 200
     safe_action: Literal["disable", "stop"] = "disable"
     require_armed: bool = True
     # MACCEPA boards this manager drives (maccepa<N>/setpoint|duty|gains) and their limits.
@@ -54,7 +54,7 @@ class ManagerParams(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     def timed_wake_s(self, deadline_ms: int, shortest_s: float) -> float:
         """How often the loop wakes while the timer sends, judged by ``deadline_ms`` then (its
         leased deadline): ``TIMED_WAKE`` of the shorter of lease and deadline, each wake
-        renewing, never under ``shortest_s``. Stock (100 ms both): every 40 ms. A lease that
+        renewing, never under ``shortest_s``. Stock (200 ms both): every 80 ms. A lease that
         would outlast the watchdog's disable by more than ``LEASE_PAST_TRIP_MS``: ValueError."""
         if self.lease_ms > deadline_ms + LEASE_PAST_TRIP_MS:
             raise ValueError(

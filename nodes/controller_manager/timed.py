@@ -12,9 +12,11 @@ The op is leased: it sends at most ``lease_slots`` slots after the last renewal.
 before the loop's heartbeat, so a manager stopped, hung, starved or killed stops renewing
 before it stops beating, and the op ends at most ``lease_slots x slot_s`` after the last beat.
 Its beats meanwhile are judged by the leased deadline (exolink.liveness), at least the lease:
-stock, 100 ms both, so the op has ended by the watchdog's first disable frame (a frame's
+stock, 200 ms both, so the op has ended by the watchdog's first disable frame (a frame's
 interval later at most: the count a renewal reads may be one short). Any stop, trip or switch
-deletes the op first (``abort``).
+deletes the op first (``abort``), and on SocketCAN the watchdog deletes it itself before its
+first disable frame, whatever the manager is doing (exolink.canbus.held): the lease then bounds
+only what no watchdog can end.
 
 A renewal that finds the lease lapsed (the loop came after it ran out, or the kernel's race
 left the timer ended) resumes the op from the plan's next slot, in a new phase, when the last
@@ -42,7 +44,7 @@ from exolink.control.controller import State
 from exolink.protocol import h2
 
 log = structlog.get_logger()
-# A renewal once this many slots passed since the last: the 100 ms lease then reaches at least
+# A renewal once this many slots passed since the last: a 100 ms lease then reaches at least
 # three slots past the next renewal.
 RENEW_AFTER_SLOTS = 1.5
 STALLED_SLOTS = 2  # no frame sent in this many slots since a renewal: the op's timer ended

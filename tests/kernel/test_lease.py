@@ -4,6 +4,7 @@ their owner is stopped, killed or stops them. Counts are asserted; times are pri
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import itertools
 import json
@@ -20,6 +21,8 @@ import pytest
 
 from benchmarks.harness import EXOLINK, motion_nodes
 from exolink.canbus.leases import CyclicLease, EchoTap
+from exolink.cli.remote import watchdog_body
+from exolink.client import DEFAULT_AT, remote
 from exolink.protocol import h2
 
 pytestmark = pytest.mark.kernel
@@ -288,6 +291,53 @@ def test_an_owner_stopped_or_killed_leaves_at_most_its_lease(vcan0: str, how: in
         assert after, "the kernel's timer sent nothing after the owner stopped"
 
 
+HELD_OWNER = """
+import os, signal, sys
+from exolink.canbus.held import held_socket
+from exolink.canbus.leases import CyclicLease
+ID, PERIOD = 0x46, 0.010
+slot = lambda n: n.to_bytes(4, "big") + b"\\xee\\xee"
+op = CyclicLease(sys.argv[1], ID, PERIOD, ring=64, sock=held_socket())
+op.start([slot(k) for k in range(64)], 60)  # 600 ms leased, never renewed
+print("started", flush=True)
+os.kill(os.getpid(), signal.SIGSTOP)  # stopped: it can delete nothing
+"""
+
+
+def test_the_supervisors_copy_deletes_an_op_its_stopped_owner_cannot(vcan0: str) -> None:
+    """An owner's op on the socket the supervisor passed it (exolink.canbus.held), the owner
+    stopped with 600 ms of lease left: the supervisor's ``delete`` (each safe action of its
+    watchdog) ends the op at once, and the copy released at the owner's exit is closed."""
+    from exolink.canbus.held import HELD_ENV, HeldOps
+
+    held = HeldOps(vcan0, (ID,))
+    sock = held.open()
+    bus = listen(vcan0)
+    owner = subprocess.Popen(
+        [sys.executable, "-c", HELD_OWNER, vcan0],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, HELD_ENV: str(sock.fileno())},
+        pass_fds=(sock.fileno(),),
+    )
+    try:
+        assert owner.stdout is not None and owner.stdout.readline().strip() == "started"
+        before = drain(bus, 0.1)
+        t0 = time.time()
+        assert held.delete() == 1  # the op was there, and it was deleted
+        after = [m for m in drain(bus, 0.3) if m.timestamp > t0]
+        assert held.delete() == 0  # none left
+    finally:
+        owner.kill()
+        owner.wait()
+        bus.shutdown()
+    held.release(sock)
+    _results("held-delete", {"frames_before": len(before), "frames_after": len(after)})
+    assert len(before) >= 5, slots_of(before)  # the stopped owner's op was sending
+    assert after == [], slots_of(after)
+    assert sock.fileno() == -1  # released: closed
+
+
 def test_a_lapsed_lease_resumes_at_its_next_slot_in_order(vcan0: str) -> None:
     """A renewal, then ``resume``, after the lease ran out and after the race's state (a
     renewal's count set on an ended timer): the kernel's next frame is the next slot, then on
@@ -360,6 +410,22 @@ def _sending() -> dict | None:
     """The manager's timer status while it sends, else None."""
     timer = _manager()["timer"]
     return timer if timer["sending"] else None
+
+
+_ESTOP_ARGS = argparse.Namespace(
+    at=DEFAULT_AT, device=None, zenoh_config=None, timeout=5.0, domain=0, ns="h2"
+)
+
+
+def _restarted(pid: int) -> int:
+    """The controller manager's pid once a new one replaced ``pid``."""
+
+    def new() -> int | None:
+        nodes = json.loads(_cli("status", "--json").stdout)["nodes"]
+        now = next(n for n in nodes if n["name"] == "controller_manager")["pid"]
+        return now if now not in (None, pid) else None
+
+    return int(_until(new, "restarted"))
 
 
 def _walk() -> None:
@@ -438,10 +504,10 @@ def _motor_timing(channel: str, motor: int, seconds: float, slot_ms: float = 20.
 
 @pytest.mark.timeout(900)
 def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_path: Path) -> None:
-    """The gait on the broadcast manager's timer under the controller manager's lease (100 ms,
+    """The gait on the broadcast manager's timer under the controller manager's lease (200 ms,
     the board's; nice -10): a trip, a CPU hog at the manager's priority, SIGSTOP and kill -9 of
-    the manager mid-gait. No set-point may reach the bus more than 60 ms after the watchdog's
-    first disable frame."""
+    the manager mid-gait, and a trip while it is stopped. No set-point may reach the bus more
+    than 60 ms after the watchdog's first disable frame."""
     import yaml
 
     from exolink.config import bundled
@@ -522,24 +588,26 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
         finally:  # hung-killed by the supervisor meanwhile, as a rule
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGCONT)
-        # kill -9 of the (restarted) manager: the socket closes, the op with it
-        _until(
-            lambda: (
-                next(
-                    n
-                    for n in json.loads(_cli("status", "--json").stdout)["nodes"]
-                    if n["name"] == "controller_manager"
-                )["pid"]
-                not in (None, pid)
-            ),
-            "restarted",
-        )
+        # SIGSTOP of the (restarted) manager and an e-stop at once, well inside its 200 ms
+        # lease: the manager cannot delete the op, the watchdog does (the supervisor holds
+        # the op's socket: exolink.canbus.held), before its first disable frame
+        pid = _restarted(pid)
         _walk()
-        pid = next(
-            n["pid"]
-            for n in json.loads(_cli("status", "--json").stdout)["nodes"]
-            if n["name"] == "controller_manager"
-        )
+        out["timer_before_stop_estop"] = _until(_sending, "the timer sends")
+        with remote(_ESTOP_ARGS) as r:
+            assert r.device  # found now, not inside the measured act
+            estop = watchdog_body("estop")
+            try:
+                out["sigstop_estop"] = _after(
+                    vcan0, lambda: (os.kill(pid, signal.SIGSTOP), r.call("watchdog", body=estop))
+                )
+            finally:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGCONT)
+        # kill -9 of the (restarted) manager: the supervisor's copy of its socket is released
+        # at its exit, the op deleted with it
+        pid = _restarted(pid)
+        _walk()
         out["timer_before_sigkill"] = _until(_sending, "the timer sends")
         out["sigkill"] = _after(vcan0, lambda: os.kill(pid, signal.SIGKILL))
     finally:
@@ -549,11 +617,13 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
         up.terminate()
         up.wait(30)
         log.close()
-    for case in ("estop", "sigstop", "sigkill"):
+    for case in ("estop", "sigstop", "sigstop_estop", "sigkill"):
         assert out[case]["first_disable_ms"] is not None, (case, out[case])
         assert out[case]["last_set_point_after_first_disable_ms"] <= 60, (case, out[case])
     assert out["sigstop"]["last_set_point_ms"] is not None  # the kernel went on, leased
-    assert out["sigstop"]["last_set_point_ms"] <= 100 + 20, out["sigstop"]  # lease + a slot
-    # the op ends as the killed process's socket closes: one slot (four joints) at most, as the
-    # exit of a killed process in a busy UML guest took up to 18 ms
+    assert out["sigstop"]["last_set_point_ms"] <= 200 + 20, out["sigstop"]  # lease + a slot
+    # the watchdog deleted the stopped manager's op before its first disable frame
+    assert out["sigstop_estop"]["set_points_after_first_disable"] == 0, out["sigstop_estop"]
+    # the op ends at the killed process's exit (the supervisor releases its copy of the socket
+    # then): one slot (four joints) at most, as that exit in a busy UML guest took up to 18 ms
     assert out["sigkill"]["set_points_after"] <= 4, out["sigkill"]

@@ -58,6 +58,29 @@ class Event(NamedTuple):
     frame: Frame | None
 
 
+def open_bcm(channel: str) -> socket.socket:
+    """A broadcast-manager socket connected to ``channel`` (CanOpenError if refused)."""
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
+    except OSError as exc:
+        raise CanOpenError(f"cannot open a CAN broadcast-manager socket: {exc}") from exc
+    try:
+        sock.connect((channel,))
+    except OSError as exc:
+        sock.close()
+        raise CanOpenError(f"cannot reach {channel} for the broadcast manager: {exc}") from exc
+    return sock
+
+
+def tx_delete(sock: socket.socket, can_id: int) -> bool:
+    """TX_DELETE of ``can_id``'s send op on ``sock``: whether there was one (never raises)."""
+    try:
+        sock.send(HEAD.pack(socket.CAN_BCM_TX_DELETE, 0, 0, 0, 0, 0, 0, can_id, 0))
+    except OSError:  # EINVAL: no op on that id; EBADF: closed meanwhile
+        return False
+    return True
+
+
 class CyclicWatch:
     """One broadcast-manager receive op on ``channel``: ``can_id`` expected at least every
     ``timeout_s`` (0: no timer), frames reported when their length or the bits of ``mask``

@@ -15,7 +15,7 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Protocol
 
-from exolink.canbus.bcm import HEAD
+from exolink.canbus.bcm import HEAD, open_bcm, tx_delete
 from exolink.canbus.filters import SO_DETACH_FILTER, Drop, attach
 from exolink.canbus.frames import CAN_EFF_FLAG, CAN_FRAME, CAN_RTR_FLAG, STD_MASK
 from exolink.canbus.mmsg import BatchReceiver
@@ -124,7 +124,9 @@ class CyclicLease:
     process's wake-up, and the owner's silence bounds them: an owner stopped, hung or starved
     stops renewing, and the kernel sends what the lease still allows, then nothing (``count``
     frames at ``ival1``, no ``ival2``: the op's timer ends). Closing the socket (the process
-    killed) deletes the op at once; ``stop`` (TX_DELETE) does the same on purpose.
+    killed) deletes the op at once; ``stop`` (TX_DELETE) does the same on purpose; on a socket
+    the supervisor holds too (exolink.canbus.held) its watchdog does, at every safe action,
+    and at the owner's exit.
 
     Content is planned by slot: slot n is the n-th frame the op sends since ``start``, and it
     sits at ring position n mod ``ring``, always: the op's index is never reset after
@@ -150,7 +152,10 @@ class CyclicLease:
         period_s: float,
         ring: int = 16,
         echoes: EchoTap | None = None,
+        sock: socket.socket | None = None,
     ) -> None:
+        """``sock``: a broadcast-manager socket connected to ``channel`` that the supervisor
+        holds too (exolink.canbus.held), kept open by ``close``; else the op's own."""
         if not 0 < period_s < 60:
             raise ValueError(f"broadcast-manager period must be in (0, 60) s, got {period_s}")
         if not 2 <= ring <= 256:
@@ -166,25 +171,22 @@ class CyclicLease:
         self.restarted = 0  # renewals that started the timer again at the lease's end
         self._trim = PeriodTrim(period_s)
         self._packed: dict[bytes, bytes] = {}  # payload -> its can_frame (``_put``)
-        try:
-            self._sock = socket.socket(socket.AF_CAN, socket.SOCK_DGRAM, socket.CAN_BCM)
-        except OSError as exc:
-            raise CanOpenError(f"cannot open a CAN broadcast-manager socket: {exc}") from exc
-        try:
-            self._sock.connect((channel,))
-        except OSError as exc:
-            self._sock.close()
-            raise CanOpenError(f"cannot reach {channel} for the broadcast manager: {exc}") from exc
+        self._own_sock = sock is None
+        self._sock = open_bcm(channel) if sock is None else sock
         self._sock.settimeout(1.0)  # a TX_READ's answer is immediate; never wait forever
         self._own_echoes = echoes is None  # else the owner's, for its life (EchoTap)
         try:
             self._echoes = EchoTap(channel, can_id) if echoes is None else echoes
         except CanOpenError:
-            self._sock.close()
+            self._drop_sock()
             raise
         if self._echoes.can_id != can_id:
-            self._sock.close()
+            self._drop_sock()
             raise ValueError(f"echoes of id {self._echoes.can_id} cannot count id {can_id}'s op")
+
+    def _drop_sock(self) -> None:
+        if self._own_sock:
+            self._sock.close()
 
     @property
     def interval_s(self) -> float:
@@ -321,14 +323,16 @@ class CyclicLease:
 
     def stop(self) -> None:
         """TX_DELETE: nothing more from this op, now."""
-        head = HEAD.pack(socket.CAN_BCM_TX_DELETE, 0, 0, 0, 0, 0, 0, self.can_id, 0)
-        with contextlib.suppress(OSError):  # no op: nothing to delete
-            self._sock.send(head)
+        tx_delete(self._sock, self.can_id)  # no op: nothing to delete
         self._lease = 0
 
     def close(self) -> None:
-        """Closing the socket deletes its op in the kernel."""
-        self._sock.close()
+        """Closing the socket deletes its op in the kernel; a held socket (the supervisor's
+        too) stays open for the owner's next op, its op deleted."""
+        if self._own_sock:
+            self._sock.close()
+        else:
+            self.stop()
         if self._own_echoes:
             self._echoes.close()
         else:
@@ -564,9 +568,11 @@ def open_lease(
     period_s: float,
     ring: int,
     echoes: EchoTap | None = None,
+    sock: socket.socket | None = None,
 ) -> Lease:
     """The kernel's broadcast manager on SocketCAN (``echoes``: the caller's, from
-    ``open_echoes``; else its own), a thread of this process elsewhere."""
+    ``open_echoes``, else its own; ``sock``: the supervisor's held socket, exolink.canbus.held,
+    else its own), a thread of this process elsewhere."""
     if interface == "socketcan":
-        return CyclicLease(channel, can_id, period_s, ring, echoes)
+        return CyclicLease(channel, can_id, period_s, ring, echoes, sock)
     return ThreadLease(bus, can_id, period_s, ring)

@@ -24,6 +24,7 @@ import yaml
 from exolink import hardware, messaging
 from exolink.board import update
 from exolink.board.clock import BoardClock
+from exolink.canbus.held import HeldOps
 from exolink.config import ApplianceConfig
 from exolink.control.arming import WATCHDOG_TOPIC, WATCHDOG_TYPE
 from exolink.runtime import profiled, stop_on_signals
@@ -93,6 +94,7 @@ class Supervisor(NodeJudge, NodeTelemetry):
         self._decls: list[Any] = []
         self._workdir = Path(tempfile.mkdtemp(prefix="exolink-"))
         self.nodes: dict[str, NodeProcess] = {}
+        self.held: HeldOps | None = None  # leased nodes' send-op sockets (exolink.canbus.held)
         self.memory = MemoryTrim()
         self.node_api: dict[str, dict[str, int]] = {}  # each node's Admission counters
         self.clock = BoardClock(Path(state_dir(cfg, self._workdir)), cfg.clock.from_laptop)
@@ -130,6 +132,8 @@ class Supervisor(NodeJudge, NodeTelemetry):
             reopen=eyes.reopen,
         )
         self.watchdog.wake = self.wake.set  # a trip's repeats are due within 50 ms
+        if cfg.can.interface == "socketcan":  # leased nodes' send ops, deleted by every trip
+            self.held = self.watchdog.held = HeldOps(cfg.can.channel, (dev.command_id,))
         self.watchdog.start()  # safe action before anything else can move
         self._check_bus()  # before READY: a link already bad is known at start
         if cfg.can.interface == "socketcan":
@@ -147,6 +151,8 @@ class Supervisor(NodeJudge, NodeTelemetry):
             node = NodeProcess(ncfg, str(config_path), self._on_exit, self._on_line)
             node.zygote = self.zygote
             node.deadlines = cfg.deadlines_s(ncfg)
+            if ncfg.leased_deadline_ms is not None:
+                node.held = self.held
             self.nodes[ncfg.name] = node
         self.api = ManagementApi(self)
         self._decls += self.api.serve(self.msg)
@@ -406,6 +412,8 @@ class Supervisor(NodeJudge, NodeTelemetry):
                 src.close()
         if hasattr(self, "watchdog"):
             self.watchdog.close()
+        if self.held is not None:
+            self.held.close()
         for d in self._decls:
             with contextlib.suppress(Exception):
                 d.undeclare()

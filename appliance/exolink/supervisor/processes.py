@@ -11,6 +11,7 @@ import collections
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -22,6 +23,8 @@ from typing import Any
 import structlog
 
 from exolink import liveness
+from exolink.canbus import CanOpenError
+from exolink.canbus.held import HELD_ENV, HeldOps
 from exolink.config import NodeConfig
 from exolink.supervisor.forking import Forked, Zygote
 from exolink.supervisor.osproc import plain_priority, proc_state, proc_usage
@@ -89,6 +92,9 @@ class NodeProcess:
     channel: liveness.Channel | None = None  # this spawn's liveness pipe and deadline timer
     deadlines: tuple[float, ...] | None = None  # by Pace, s: its beats set the timer by them
     zygote: Zygote | None = None  # forks the node from a pre-imported runtime; else exec
+    # A leased node's broadcast-manager sockets, the watchdog's copies (exolink.canbus.held):
+    # one per spawn, released at its exit. None: the node gets none.
+    held: HeldOps | None = None
 
     @property
     def name(self) -> str:
@@ -124,7 +130,13 @@ class NodeProcess:
             env = {**os.environ, "EXOLINK_LOG_JSON": "1", "PYTHONUNBUFFERED": "1"}
             if self.deadlines is not None:
                 env[liveness.DEADLINES_ENV] = ",".join(f"{d:g}" for d in self.deadlines)
-            self.proc = self._spawn(env)
+            op_sock = self._held_socket()
+            try:
+                self.proc = self._spawn(env, op_sock)
+            except BaseException:
+                if op_sock is not None and self.held is not None:
+                    self.held.release(op_sock)
+                raise
             self.spawns += 1
             self.stopping_pids.clear()  # an older spawn's exit is judged not current anyway
             self.channel.spawned()
@@ -134,7 +146,7 @@ class NodeProcess:
             plain_priority(self.proc.pid)
             threading.Thread(
                 target=self._wait,
-                args=(self.proc, self.spawns),
+                args=(self.proc, self.spawns, op_sock),
                 daemon=True,
                 name=f"wait-{self.name}",
             ).start()
@@ -142,13 +154,27 @@ class NodeProcess:
                 target=self._read, args=(self.proc,), daemon=True, name=f"log-{self.name}"
             ).start()
 
-    def _spawn(self, env: dict[str, str]) -> subprocess.Popen[bytes] | Forked:
+    def _held_socket(self) -> socket.socket | None:
+        """This spawn's broadcast-manager socket, if the node leases (None if refused: the node
+        then opens its own, and only the lease bounds its op; said in the log)."""
+        if self.held is None:
+            return None
+        try:
+            return self.held.open()
+        except CanOpenError as exc:
+            structlog.get_logger().error("held_op_socket_failed", node=self.name, error=str(exc))
+            return None
+
+    def _spawn(
+        self, env: dict[str, str], op_sock: socket.socket | None
+    ) -> subprocess.Popen[bytes] | Forked:
         assert self.channel is not None
+        fds = [self.channel.child_fd, self.channel.timer]
+        if op_sock is not None:
+            fds.append(op_sock.fileno())
         if self.zygote is not None:
             try:
-                return self.zygote.spawn(
-                    self.name, self.config_path, env, [self.channel.child_fd, self.channel.timer]
-                )
+                return self.zygote.spawn(self.name, self.config_path, env, fds)
             except (OSError, RuntimeError) as exc:  # a start is worth more than a fast one
                 structlog.get_logger().warning("zygote_failed", node=self.name, error=str(exc))
         cmd = [sys.executable, "-m", "exolink.runtime", self.name, "-c", self.config_path]
@@ -160,18 +186,23 @@ class NodeProcess:
                 **env,
                 liveness.ENV: str(self.channel.child_fd),
                 liveness.TIMER_ENV: str(self.channel.timer),
+                **({HELD_ENV: str(op_sock.fileno())} if op_sock is not None else {}),
             },
             stdin=subprocess.DEVNULL,
             process_group=0,  # not a session of its own: see zygote.own_process_group
-            pass_fds=(self.channel.child_fd, self.channel.timer),
+            pass_fds=fds,
         )
 
-    def _wait(self, proc: subprocess.Popen[bytes] | Forked, spawn: int) -> None:
+    def _wait(
+        self, proc: subprocess.Popen[bytes] | Forked, spawn: int, op_sock: socket.socket | None
+    ) -> None:
         """The exit of spawn number ``spawn``, reported under the node's lock: whether it is
         still the node's current spawn and what the supervisor makes of its exit are one step,
         so a restart can never start a successor in between (it then saw its predecessor's exit
         taken for its own: "stopped", with its process running unwatched)."""
         rc = proc.wait()
+        if op_sock is not None and self.held is not None:  # its ops end with it, as its own
+            self.held.release(op_sock)  # socket's would (exolink.canbus.held)
         sig = signal.Signals(-rc).name if rc < 0 else None
         with self.lock:
             deliberate = proc.pid in self.stopping_pids

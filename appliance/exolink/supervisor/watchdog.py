@@ -66,6 +66,7 @@ from exolink.supervisor.wakeup import Wakeup
 
 if TYPE_CHECKING:
     from exolink.canbus.bcm import CyclicWatch, Event
+    from exolink.canbus.held import HeldOps
 
 REPEAT_AFTER_S = (0.05, 0.25)
 STALL_BACKSTOP_S = 0.5
@@ -135,6 +136,8 @@ class Watchdog:
         self.first_trip_ns: int | None = None
         self.wake: Callable[[], None] = lambda: None  # the periodic check is due sooner
         self._stop = threading.Event()
+        # Leased nodes' send ops (exolink.canbus.held): each safe action deletes them first.
+        self.held: HeldOps | None = None
         # Wakes the listener when arming changes what it waits for (armed: a deadline; not
         # armed: id-70 frames too).
         self._pokes = Wakeup()  # arming, disarming, trips, close: the listener looks again
@@ -156,6 +159,10 @@ class Watchdog:
         return self._s.state == "armed"
 
     def send_safe_action(self) -> int:
+        """The nodes' send ops deleted (they may be stopped, hung or starved, and a lease runs
+        on after its owner), then the safe action."""
+        if self.held is not None:
+            self.held.delete()
         sent = 0
         for f in self.frames:
             try:
