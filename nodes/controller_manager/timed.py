@@ -109,6 +109,13 @@ class Plan(Mapping[int, bytes]):
             raise KeyError(index)
         return self.frames[self._fold(k) * self.per_slot + i]
 
+    def get(self, index: int, default: bytes | None = None) -> bytes | None:  # type: ignore[override]
+        """``Mapping.get`` without its KeyError: a renewal looks up each slot it places."""
+        k, i = divmod(index, self.per_slot)
+        if index < 0 or k >= self.slots:
+            return default
+        return self.frames.get(self._fold(k) * self.per_slot + i, default)
+
     def __contains__(self, index: object) -> bool:
         if not isinstance(index, int) or index < 0:
             return False

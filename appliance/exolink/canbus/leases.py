@@ -51,9 +51,11 @@ def _place_ahead(
     """Both leases' renewal: slot k sits at ring position k mod ``ring`` from ``start`` on, and
     each is placed once (a plan does not change what it planned), so only slots from
     ``max(n, written)`` up to a ring ahead of ``n`` are put. The first slot not placed."""
-    k = max(n, written)
-    while k < n + ring and k in frames_from:
-        put(k, frames_from[k])
+    k, end = max(n, written), n + ring
+    # one lookup a slot (``get``), not a test and a fetch: on the board proxy the two were a
+    # fifth of a renewal's Python (F71, cProfile)
+    while k < end and (frame := frames_from.get(k)) is not None:
+        put(k, frame)
         k += 1
     return k
 
