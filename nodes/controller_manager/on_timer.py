@@ -7,7 +7,6 @@ the methods say so."""
 
 from __future__ import annotations
 
-import contextlib
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -19,17 +18,12 @@ from exolink import logs
 from exolink.canbus import CanOpenError
 from exolink.canbus.held import held_socket
 from exolink.canbus.leases import EchoTap, open_echoes, open_lease
-from exolink.limits.joints import POSITION
 from exolink.liveness import Pace
 from exolink.protocol import h2
 
 if TYPE_CHECKING:
     from exolink.nodes.controller_manager.node import ControllerManagerNode
 
-# Reading back the timer's last frames after its op is deleted: a read this long that brings
-# none means the echo queue is empty (a frame's loopback is a softirq away, on the board's CAN
-# its transmit interrupt: ~0.1 ms at 1 Mbit/s).
-ECHO_S = 0.003
 # Renewals between two credits of the op's frames to their controllers' ``written`` (~1 s at
 # a renewal every 40 ms): a credit each renewal was ~4 % of a wake's CPU (cProfile on the
 # board proxy, E65), for a count the pattern player reads every 2 s.
@@ -53,7 +47,6 @@ class TimerLoop:
         self.resumes = 0  # of the lapses, resumed in place (Timed._renew)
         self.renewals = 0  # of the ops that ended
         self.sent = 0  # frames the ops that ended sent, by the kernel's count
-        self.echoed: dict[int, int] = {}  # joint -> the timer's last set-point read on the bus
         # the ops' echoes, opened while idle and kept for the node's life (open_echoes)
         self.echoes: EchoTap | None = None
 
@@ -146,7 +139,6 @@ class TimerLoop:
                     n.log.error("timer_unavailable", error=str(exc))
                 return
             opened = time.perf_counter()
-            self.echoed = {}
             slot_s = ival_us * len(joints) / 1e6
             timed = Timed(
                 lease,
@@ -197,7 +189,7 @@ class TimerLoop:
             return
         clock.mark("timer read")  # the wait's wake-up and the sockets' drain
         if frames:
-            n._stops(self._echoed(frames))
+            n._stops(self._decoded(frames))
         if self.timed is None:
             return
         # Alive before the renewal's planning too (a gait's first cycle is planned slot by slot,
@@ -282,16 +274,12 @@ class TimerLoop:
         )
         timed.credited = b
 
-    def _echoed(self, frames: list[Any]) -> list[tuple[Any, Any]]:
-        """Frames read while the timer sends, decoded: the timer's own set-points as the bus
-        carried them kept (each joint's last position: what the step limit goes on from when
-        the cycle loop takes the joints back). The caller acts on disables (``_stops``)."""
-        n = self.node
-        decoded = [(f, n.view.decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
-        for _f, d in decoded:
-            if isinstance(d, h2.JointControl) and d.mode == POSITION and 1 <= d.motor <= 6:
-                self.echoed[d.motor - 1] = d.setpoint
-        return decoded
+    def _decoded(self, frames: list[Any]) -> list[tuple[Any, Any]]:
+        """Frames read while the timer sends (anyone's disable or stop), decoded for the
+        caller's ``_stops``; the angle frames, read only beside a feedback controller, are not
+        news here."""
+        view = self.node.view
+        return [(f, view.decode(f)) for f in frames if f.arbitration_id != h2.JOINT_ANGLES]
 
     def drives(self, joints: set[int]) -> bool:
         """The op sends set-points for one of ``joints`` (indices)."""
@@ -304,9 +292,8 @@ class TimerLoop:
             self._end()
 
     def leave(self, orderly: bool) -> None:
-        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent,
-        read back from the bus once the op is deleted (the frames it sent before are then in
-        the reader's queue, or in the kernel's backlog for a moment: read until quiet)."""
+        """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent, by
+        the op's count made good by its echoes once it is deleted (``Timed.leave``)."""
         n = self.node
         with n.io_lock:
             if self.timed is None:
@@ -315,19 +302,8 @@ class TimerLoop:
                 self.timed.abort()
                 self._end()
                 return
-            joints = self.timed.plan.joints
-            back = self.timed.leave()
-            frames: list[Any] = []
-            if n.reader is not None:
-                with contextlib.suppress(can.CanError, OSError):
-                    while batch := n.reader.read(ECHO_S):
-                        frames += batch
-            decoded = self._echoed(frames)
-            # the bus is the truth where the kernel's count may be one frame short
-            back |= {j: self.echoed[j] for j in joints if j in self.echoed}
-            n.manager.written_back(back)
+            n.manager.written_back(self.timed.leave())
             self._end()
-        n._stops(decoded)
 
     def _end(self) -> None:
         n = self.node

@@ -363,12 +363,15 @@ class Timed:
         self.lease.close()
 
     def leave(self) -> dict[int, int]:
-        """End the op at once and return each joint's last sent position by the op's count, so
-        the cycle loop's step limit goes on from it (slots planned but not sent are dropped).
-        The kernel's count can be one frame short (``CyclicLease``): the node prefers what it
-        read back from the bus."""
+        """End the op at once and return each joint's last sent position, so the cycle loop's
+        step limit goes on from it (slots planned but not sent are dropped). The kernel's
+        count can be a frame short (a renewal's race, or a frame sent after the read): the
+        op's echoes make it good (``Lease.settled``), else the cycle loop would step from the
+        slot before the one the joint is at, a slot's step past the limit."""
         try:
-            sent = self.lease.sent()
+            counted = self.lease.sent()
+            self.lease.stop()
+            sent = self.lease.settled(counted)
         finally:
             self.abort()
         n, out = self.per_slot, {}

@@ -71,7 +71,11 @@ TRIM_MAX = 0.2
 # how far ahead an echo is matched (the echo socket's queue overflowed: the next ones match).
 UNSURE_MAX = 8
 ECHO_SEARCH = 8
-PACKED_MAX = 4096  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
+PACKED_MAX = 4096
+# CyclicLease.settled: how long an op's last echoes are waited for after its TX_DELETE (a
+# frame's loopback is a softirq away on vcan; on the board's CAN, its transmit interrupt:
+# ~0.1 ms at 1 Mbit/s)
+ECHO_WAIT_S = 0.003  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
 
 
 class PeriodTrim:
@@ -323,6 +327,20 @@ class CyclicLease:
         self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, self._lease)
         self._trim.restart(time.monotonic(), self._base + 1)
 
+    def settled(self, counted: int) -> int:
+        """After ``stop``: how many of the op's frames went out, ``counted`` (a ``sent`` read
+        before the stop) made good by their echoes: a frame the timer sent after that read,
+        or one a renewal's race left out of the count, was on the bus. An echo still on its
+        way (a real controller loops a frame back once it is transmitted) is waited for up
+        to ``ECHO_WAIT_S``; an echo lost to a full queue counts nothing, so the kernel's
+        count stays the floor."""
+        end = time.monotonic() + ECHO_WAIT_S
+        seen = self._echoed()
+        while seen < counted and time.monotonic() < end:
+            time.sleep(ECHO_WAIT_S / 10)
+            seen = self._echoed()
+        return max(counted, seen)
+
     def stop(self) -> None:
         """TX_DELETE: nothing more from this op, now."""
         tx_delete(self._sock, self.can_id)  # no op: nothing to delete
@@ -355,6 +373,7 @@ class Lease(Protocol):
 
     def start(self, frames: list[bytes], lease: int) -> None: ...
     def sent(self) -> int: ...
+    def settled(self, counted: int) -> int: ...
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int: ...
     def resume(self) -> None: ...
     def stop(self) -> None: ...
@@ -435,6 +454,11 @@ class ThreadLease:
             _check_lease(lease, k - n - 1, self.ring)
             self._base, self._lease, self._count = n, lease, lease
             return n
+
+    def settled(self, counted: int) -> int:
+        """``CyclicLease.settled``: this count loses nothing, and a frame sent after the
+        caller's read is counted too."""
+        return max(counted, self.sent())
 
     def resume(self) -> None:
         """``CyclicLease.resume``: the timer started again now, from the op's next frame (its
