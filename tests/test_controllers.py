@@ -939,14 +939,18 @@ def test_the_timers_wake_and_lease_fit_the_deadline_they_are_judged_by() -> None
     its cycle's beat; a lease that would outlast the watchdog's disable by more than hung
     detection's budget is refused at start, naming both."""
     p = ManagerParams()
-    assert (p.lease_ms, p.slot_ms) == (200, 20)
+    assert (p.lease_for(200), p.slot_ms) == (200, 20)
     assert p.timed_wake_s(200, 0.02) == pytest.approx(0.08)
+    # unset, the lease is the deadline it is judged by, at least 100 ms where that deadline
+    # allows: a manager judged by its own 50 ms (no leased_deadline_ms) as before, 100 ms
+    assert p.lease_for(50) == 100 and p.timed_wake_s(50, 0.02) == pytest.approx(0.02)
+    assert p.lease_for(30) == 90
     short = ManagerParams(lease_ms=100)
     assert short.timed_wake_s(100, 0.02) == pytest.approx(0.04)
     assert short.timed_wake_s(50, 0.02) == pytest.approx(0.02)  # judged by 50 ms: as before
     assert short.timed_wake_s(40, 0.02) == pytest.approx(0.02)
     with pytest.raises(ValueError, match=r"lease_ms 200 exceeds the leased heartbeat deadline "):
-        p.timed_wake_s(100, 0.02)
+        ManagerParams(lease_ms=200).timed_wake_s(100, 0.02)
     assert ManagerParams(lease_ms=160).timed_wake_s(100, 0.02) == pytest.approx(0.04)
     assert LEASE_PAST_TRIP_MS == 60
 

@@ -34,9 +34,10 @@ class TimerLoop:
     """The node's timer side: one ``Timed`` op at a time (``timed``: None while the cycle
     loop writes), and its counters for the node's status."""
 
-    def __init__(self, node: ControllerManagerNode, beat_s: float) -> None:
+    def __init__(self, node: ControllerManagerNode, beat_s: float, lease_ms: int) -> None:
         self.node = node
         self.beat_s = beat_s  # the loop's wake while the timer sends
+        self.lease_ms = lease_ms  # ManagerParams.lease_for
         self.timed: Timed | None = None
         self.runs = 0
         self.plan_key: tuple[object, ...] = ()  # what the op was planned from (Manager.plan_key)
@@ -116,7 +117,7 @@ class TimerLoop:
             pace = Pace.OWN if beside else Pace.LEASED
             n.beat(pace)
             ival_us = round(p.slot_ms * 1e3 / len(joints))  # the joints of a slot spread over it
-            lease_slots = p.lease_ms // p.slot_ms
+            lease_slots = self.lease_ms // p.slot_ms
             ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
             t0 = time.perf_counter()
             try:
@@ -259,7 +260,7 @@ class TimerLoop:
             resumed=resumed,
             renewals=renewals,
             renewal_gap_ms=round(gap_s * 1e3, 1),
-            lease_ms=self.node.params.lease_ms,
+            lease_ms=self.lease_ms,
         )
 
     def credit(self, timed: Timed) -> None:
