@@ -136,9 +136,8 @@ class ControllerManagerNode(Node):
         except ValueError as exc:  # a lease that would outlast the watchdog's disable
             raise ValueError(f"{self.name} params: {exc}") from None
         self.leased_stall_s = 2 * wake_s
-        self.timer = TimerLoop(
-            self, wake_s, p.lease_for(deadline)
-        )  # planned set-points on a timer (on_timer.py)
+        # planned set-points on a timer (on_timer.py)
+        self.timer = TimerLoop(self, wake_s, p.lease_for(deadline))
         self.cycle = CycleLoop(self, BEAT_S)  # read -> update -> write each cycle (cycle_loop.py)
         self.last_state: State | None = None  # the last cycle's: a plan's activation state
         for n, spec in enumerate(p.controllers):

@@ -24,8 +24,8 @@ from exolink.protocol import h2
 if TYPE_CHECKING:
     from exolink.nodes.controller_manager.node import ControllerManagerNode
 
-# Renewals between two credits of the op's frames to their controllers' ``written`` (~1 s at
-# a renewal every 40 ms): a credit each renewal was ~4 % of a wake's CPU (cProfile on the
+# Renewals between two credits of the op's frames to their controllers' ``written`` (~2 s at
+# the stock renewal every 80 ms): a credit each renewal was ~4 % of a wake's CPU (cProfile on the
 # board proxy, E65), for a count the pattern player reads every 2 s.
 CREDIT_EVERY = 25
 

@@ -38,7 +38,6 @@ class HeldOps:
         self.can_ids = can_ids
         self._lock = threading.Lock()
         self._socks: set[socket.socket] = set()
-        self.deleted = 0  # ops the watchdog deleted (status)
 
     def open(self) -> socket.socket:
         """A new socket for one spawn, held until ``release``; CanOpenError if the kernel
@@ -53,9 +52,7 @@ class HeldOps:
         (the watchdog's safe action must go on)."""
         with self._lock:
             socks = list(self._socks)
-        n = sum(tx_delete(s, i) for s in socks for i in self.can_ids)
-        self.deleted += n
-        return n
+        return sum(tx_delete(s, i) for s in socks for i in self.can_ids)
 
     def release(self, sock: socket.socket) -> None:
         """A spawn's exit: its ops deleted, the copy closed."""
@@ -66,12 +63,11 @@ class HeldOps:
         sock.close()
 
     def close(self) -> None:
+        """Every copy released (the supervisor's shutdown)."""
         with self._lock:
-            socks, self._socks = list(self._socks), set()
+            socks = list(self._socks)
         for s in socks:
-            for i in self.can_ids:
-                tx_delete(s, i)
-            s.close()
+            self.release(s)
 
 
 @cache

@@ -71,11 +71,11 @@ TRIM_MAX = 0.2
 # how far ahead an echo is matched (the echo socket's queue overflowed: the next ones match).
 UNSURE_MAX = 8
 ECHO_SEARCH = 8
-PACKED_MAX = 4096
+PACKED_MAX = 4096  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
 # CyclicLease.settled: how long an op's last echoes are waited for after its TX_DELETE (a
 # frame's loopback is a softirq away on vcan; on the board's CAN, its transmit interrupt:
 # ~0.1 ms at 1 Mbit/s)
-ECHO_WAIT_S = 0.003  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
+ECHO_WAIT_S = 0.003
 
 
 class PeriodTrim:
@@ -351,7 +351,7 @@ class CyclicLease:
         too) stays open for the owner's next op, its op deleted."""
         if self._own_sock:
             self._sock.close()
-        else:
+        elif self._lease:  # not deleted yet (``Timed.abort`` stops first: one TX_DELETE)
             self.stop()
         if self._own_echoes:
             self._echoes.close()
