@@ -360,6 +360,33 @@ def test_after_a_stop_the_echoes_settle_what_the_bus_carried(vcan0: str) -> None
     assert settled == len(frames) > counted, (counted, settled, len(frames))
 
 
+def test_forged_echoes_cannot_move_the_settled_count_along_the_plan(vcan0: str) -> None:
+    """Another sender puts byte-exact copies of the op's next ten planned slots on the bus
+    right after a stop (a raw socket: python-can's frames differ in their len8_dlc byte, and
+    would match nothing): ``settled`` takes at most the frames the timer could have sent since
+    the count's read, not the forged ten (the step limit would go on from a slot never sent)."""
+    import socket
+
+    from exolink.canbus.frames import CAN_FRAME
+
+    forger = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    forger.bind((vcan0,))
+    op = CyclicLease(vcan0, ID, PERIOD, ring=32)
+    try:
+        op.start([slot(k) for k in range(32)], 30)
+        time.sleep(5 * PERIOD)
+        counted = op.sent()
+        op.stop()
+        for k in range(counted, counted + 10):
+            forger.send(CAN_FRAME.pack(ID, 6, slot(k).ljust(8, b"\0")))
+        settled = op.settled(counted)
+    finally:
+        op.close()
+        forger.close()
+    _results("settled-forged", {"counted": counted, "settled": settled})
+    assert counted <= settled < counted + 10, (counted, settled)
+
+
 def test_a_lapsed_lease_resumes_at_its_next_slot_in_order(vcan0: str) -> None:
     """A renewal, then ``resume``, after the lease ran out and after the race's state (a
     renewal's count set on an ended timer): the kernel's next frame is the next slot, then on

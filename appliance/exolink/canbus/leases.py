@@ -173,6 +173,7 @@ class CyclicLease:
         self._lease = 0  # the count that start or renew set
         self._unsure = 0  # frames the count may have lost in renewals' read-to-setup windows
         self._seen = 0  # the op's frames read back from the bus since ``start``, in order
+        self._read_at = 0.0  # monotonic time of the last count read (``sent``)
         self.recounted = 0  # frames the count lost and the echoes found (``renew``)
         self.restarted = 0  # renewals that started the timer again at the lease's end
         self._trim = PeriodTrim(period_s)
@@ -247,6 +248,7 @@ class CyclicLease:
 
     def sent(self) -> int:
         """The slot the op sends next: how many it sent since ``start``."""
+        self._read_at = time.monotonic()
         return self._base + self._lease - self.remaining()
 
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
@@ -333,13 +335,17 @@ class CyclicLease:
         or one a renewal's race left out of the count, was on the bus. An echo still on its
         way (a real controller loops a frame back once it is transmitted) is waited for up
         to ``ECHO_WAIT_S``; an echo lost to a full queue counts nothing, so the kernel's
-        count stays the floor."""
+        count stays the floor. The echoes add at most what the timer could have sent since
+        that read, and what renewals' races may have left out (``renew``'s bound): a forged
+        echo on the bus cannot move the step limit's start further along the plan."""
         end = time.monotonic() + ECHO_WAIT_S
         seen = self._echoed()
         while seen < counted and time.monotonic() < end:
             time.sleep(ECHO_WAIT_S / 10)
             seen = self._echoed()
-        return max(counted, seen)
+        since = time.monotonic() - self._read_at
+        most = counted + self._unsure + 1 + int(since / self._trim.ival_s)
+        return max(counted, min(seen, most))
 
     def stop(self) -> None:
         """TX_DELETE: nothing more from this op, now."""
