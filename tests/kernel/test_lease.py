@@ -673,6 +673,10 @@ def test_the_managers_timer_ends_with_its_owner_and_every_trip(vcan0: str, tmp_p
     assert out["sigstop"]["last_set_point_ms"] <= 200 + 20, out["sigstop"]  # lease + a slot
     # the watchdog deleted the stopped manager's op before its first disable frame
     assert out["sigstop_estop"]["set_points_after_first_disable"] == 0, out["sigstop_estop"]
-    # the op ends at the killed process's exit (the supervisor releases its copy of the socket
-    # then): one slot (four joints) at most, as that exit in a busy UML guest took up to 18 ms
-    assert out["sigkill"]["set_points_after"] <= 4, out["sigkill"]
+    # kill -9: the op ends when the supervisor reaps the process (it releases its copy of the
+    # socket and trips the watchdog then), never after the first disable frame and never later
+    # than the lease would have. How soon is the guest's exit time, not a behaviour: 1-7
+    # set-points (5-35 ms) in CI runs, reported in the results line, not asserted (a bound of
+    # 4 failed CI on a loaded host)
+    assert out["sigkill"]["set_points_after_first_disable"] == 0, out["sigkill"]
+    assert (out["sigkill"]["last_set_point_ms"] or 0) <= 200 + 20, out["sigkill"]  # lease + a slot
