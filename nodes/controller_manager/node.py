@@ -76,7 +76,7 @@ from exolink.nodes.controller_manager.on_timer import TimerLoop
 from exolink.nodes.controller_manager.params import ManagerParams
 from exolink.nodes.controller_manager.slots import Cycle, ManagerRefused
 
-from exolink.canbus import CanOpenError, FrameReader, FrameWriter, open_bus
+from exolink.canbus import FrameReader, FrameWriter, open_bus
 from exolink.config import ConfigError
 from exolink.control.arming import ArmingState
 from exolink.control.controller import ACTIVITY_TOPIC, ACTIVITY_TYPE, State
@@ -158,9 +158,6 @@ class ControllerManagerNode(Node):
         # with the loaded controllers' extras (CycleLoop.update_reads)
         self.read_ids = sorted(self.base_ids)
         self.bus = self.own(open_bus(cfg.can, filters=[]))  # sends, reader closed
-        if p.timer:  # while idle, not at the first gait's start (TimerLoop.open_echoes)
-            with contextlib.suppress(CanOpenError):  # the first start tries again, or refuses
-                self.timer.open_echoes()
         self.writer = FrameWriter(self.bus, cfg.can)
         self.reader: FrameReader | None = None  # open while a controller is active or queued
         self.parked: FrameReader | None = None  # the reader while idle, on SocketCAN (park)

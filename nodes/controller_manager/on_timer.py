@@ -17,7 +17,7 @@ from exolink.nodes.controller_manager.timed import PLAN_CHUNK_S, Timed
 from exolink import logs
 from exolink.canbus import CanOpenError
 from exolink.canbus.held import held_socket
-from exolink.canbus.leases import EchoTap, open_echoes, open_lease
+from exolink.canbus.leases import open_lease
 from exolink.liveness import Pace
 from exolink.protocol import h2
 
@@ -48,24 +48,6 @@ class TimerLoop:
         self.resumes = 0  # of the lapses, resumed in place (Timed._renew)
         self.renewals = 0  # of the ops that ended
         self.sent = 0  # frames the ops that ended sent, by the kernel's count
-        # the ops' echoes, opened while idle and kept for the node's life (open_echoes)
-        self.echoes: EchoTap | None = None
-
-    def open_echoes(self) -> None:
-        """The ops' echo socket, once, its filter for the H2's joint-control length compiled
-        with it: the node calls this while idle, so a gait's first start does not pay for it
-        (H69: the open was 36 ms of a capped first start that missed its 100 ms deadline by
-        19; 16 ms on the second start). ``start`` calls it too (CanOpenError: no timer)."""
-        if self.echoes is None:
-            can_cfg = self.node.ctx.config.can
-            tap = open_echoes(can_cfg.interface, can_cfg.channel, h2.JOINT_CONTROL)
-            if tap is not None:
-                try:
-                    tap.expect(h2.dlc_of(h2.JOINT_CONTROL))
-                except OSError as exc:
-                    tap.close()
-                    raise CanOpenError(f"cannot filter the op's echoes: {exc}") from exc
-                self.echoes = self.node.own(tap)
 
     @property
     def sending(self) -> bool:
@@ -86,7 +68,7 @@ class TimerLoop:
             # slots computed through the manager, and the cycle replayed (0: none yet)
             "computed": timed.computed if timed else 0,
             "plan_cpu_ms": round(timed.plan_cpu_s * 1e3, 1) if timed else 0,
-            # the op's frames the kernel's count had lost and their echoes found, and the
+            # the op's frames its count had lost and the kernel's own count found, and the
             # kernel's interval (trimmed)
             "recounted": timed.lease.recounted if timed else 0,
             "restarted": timed.lease.restarted if timed else 0,
@@ -121,7 +103,6 @@ class TimerLoop:
             ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
             t0 = time.perf_counter()
             try:
-                self.open_echoes()
                 lease = open_lease(
                     can_cfg.interface,
                     can_cfg.channel,
@@ -129,7 +110,6 @@ class TimerLoop:
                     h2.JOINT_CONTROL,
                     ival_us / 1e6,
                     ring,
-                    self.echoes,
                     # the supervisor's copy: its watchdog deletes the op at every safe action
                     held_socket() if can_cfg.interface == "socketcan" else None,
                 )
@@ -294,7 +274,7 @@ class TimerLoop:
 
     def leave(self, orderly: bool) -> None:
         """Back to the cycle loop; ``orderly``: its step limit goes on from what was sent, by
-        the op's count made good by its echoes once it is deleted (``Timed.leave``)."""
+        the op's count made good by the kernel's once it is deleted (``Timed.leave``)."""
         n = self.node
         with n.io_lock:
             if self.timed is None:

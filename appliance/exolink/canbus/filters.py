@@ -25,7 +25,6 @@ from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 SO_ATTACH_FILTER = 26  # asm-generic/socket.h; Python exports neither
-SO_DETACH_FILTER = 27
 STD_MASK = 0x7FF
 MAX_RULES = 32
 MAX_KEEP = 32  # a rule's jumps are 8-bit offsets: its instructions stay far below 256

@@ -8,19 +8,15 @@ from __future__ import annotations
 
 import contextlib
 import socket
-import struct
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Protocol
 
-from exolink.canbus.bcm import HEAD, open_bcm, tx_delete
-from exolink.canbus.filters import SO_DETACH_FILTER, Drop, attach
-from exolink.canbus.frames import CAN_EFF_FLAG, CAN_FRAME, CAN_RTR_FLAG, STD_MASK
-from exolink.canbus.mmsg import BatchReceiver
+from exolink.canbus.bcm import HEAD, SentCounts, open_bcm, tx_delete
+from exolink.canbus.frames import CAN_FRAME
 from exolink.canbus.opening import CanOpenError
-from exolink.canbus.sockets import receive_none
 
 if TYPE_CHECKING:
     import can
@@ -66,16 +62,7 @@ def _place_ahead(
 TRIM_WINDOW_S = 2.0
 TRIM_MIN_FRAMES = 100
 TRIM_MAX = 0.2
-# CyclicLease: the most frames a renewal's echoes may add to the kernel's count (a renewal
-# preempted for periods loses more than one; a larger loss is made good over renewals), and
-# how far ahead an echo is matched (the echo socket's queue overflowed: the next ones match).
-UNSURE_MAX = 8
-ECHO_SEARCH = 8
 PACKED_MAX = 4096  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
-# CyclicLease.settled: how long an op's last echoes are waited for after its TX_DELETE (a
-# frame's loopback is a softirq away on vcan; on the board's CAN, its transmit interrupt:
-# ~0.1 ms at 1 Mbit/s)
-ECHO_WAIT_S = 0.003
 
 
 class PeriodTrim:
@@ -141,8 +128,9 @@ class CyclicLease:
     the timer (SETTIMER without STARTTIMER keeps the phase; the same number of frames keeps
     the index). A frame the kernel sends between that read and the renewal was already at
     its position: nothing is repeated or skipped, the phase never slips, and the lease ends
-    one frame later than counted (``sent`` is then one short, until the op's own echoes make
-    it good at the next renewal: ``_echoed``). So a lease never reaches a
+    one frame later than counted (``sent`` is then one short, until the kernel's own count of
+    the op's frames makes it good at the next renewal: ``SentCounts``). So a lease never
+    reaches a
     position the renewal did not write, it is at most the frames planned minus one. If that
     frame was the lease's last, the op's timer ended before the setup, which sets the new
     count but does not start it: the op stays silent with a full count, and every later
@@ -157,7 +145,6 @@ class CyclicLease:
         can_id: int,
         period_s: float,
         ring: int = 16,
-        echoes: EchoTap | None = None,
         sock: socket.socket | None = None,
     ) -> None:
         """``sock``: a broadcast-manager socket connected to ``channel`` that the supervisor
@@ -171,25 +158,19 @@ class CyclicLease:
         self._written = 0  # slots below this are placed (in increasing order: never again)
         self._base = 0  # slot of the op's first frame since the last start or renew
         self._lease = 0  # the count that start or renew set
-        self._unsure = 0  # frames the count may have lost in renewals' read-to-setup windows
-        self._seen = 0  # the op's frames read back from the bus since ``start``, in order
-        self._read_at = 0.0  # monotonic time of the last count read (``sent``)
-        self.recounted = 0  # frames the count lost and the echoes found (``renew``)
+        self._final: int | None = None  # the kernel's count of the op's frames at ``stop``
+        self.recounted = 0  # frames the op's count lost and the kernel's own count found
         self.restarted = 0  # renewals that started the timer again at the lease's end
         self._trim = PeriodTrim(period_s)
         self._packed: dict[bytes, bytes] = {}  # payload -> its can_frame (``_put``)
         self._own_sock = sock is None
         self._sock = open_bcm(channel) if sock is None else sock
         self._sock.settimeout(1.0)  # a TX_READ's answer is immediate; never wait forever
-        self._own_echoes = echoes is None  # else the owner's, for its life (EchoTap)
         try:
-            self._echoes = EchoTap(channel, can_id) if echoes is None else echoes
+            self._counts = SentCounts(self._sock)
         except CanOpenError:
             self._drop_sock()
             raise
-        if self._echoes.can_id != can_id:
-            self._drop_sock()
-            raise ValueError(f"echoes of id {self._echoes.can_id} cannot count id {can_id}'s op")
 
     def _drop_sock(self) -> None:
         if self._own_sock:
@@ -227,14 +208,14 @@ class CyclicLease:
         for k, f in enumerate(frames[: self.ring]):
             self._put(k, f)
         self._written = min(len(frames), self.ring)
-        lengths = {len(f) for f in frames}
-        self._echoes.begin(lengths.pop() if len(lengths) == 1 else None)
+        tx_delete(self._sock, self.can_id)  # a new op: the kernel counts its frames from 0
+        self._final = None
         self._setup(
             socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER | socket.CAN_BCM_TX_RESET_MULTI_IDX,
             lease,
         )
         self._trim.restart(time.monotonic(), 1)  # slot 0 went out with the setup
-        self._base = self._unsure = self._seen = 0
+        self._base = 0
 
     def remaining(self) -> int:
         """Frames the op may still send (0: the lease ran out, or no op)."""
@@ -247,8 +228,7 @@ class CyclicLease:
         return int(HEAD.unpack_from(reply)[2])
 
     def sent(self) -> int:
-        """The slot the op sends next: how many it sent since ``start``."""
-        self._read_at = time.monotonic()
+        """The slot the op sends next: how many it sent since ``start``, by its count."""
         return self._base + self._lease - self.remaining()
 
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
@@ -262,27 +242,24 @@ class CyclicLease:
         board proxy), in 60 % of renewals (B68), and once the count was a ring behind, the op
         sent slots a ring old (the gait jumping back 180 ms; tests/kernel/test_lease.py). So
         the slots are placed before the read, from what surely went out (a frame is placed
-        over one already sent), and the read is followed by the setup alone; the op's own
-        frames read back from the bus (``_echoed``) make good what is still lost, by at most
-        the frames those windows could have held: a forged echo moves nothing further."""
-        seen = self._echoed()
+        over one already sent), and the read is followed by the setup alone; the kernel's own
+        count of the op's frames (``SentCounts``: exact, no setup resets it, no sender on the
+        bus moves it) makes good what the op's count lost."""
+        seen = self._counts.sent(self.can_id) or 0
         k = _place_ahead(frames_from, max(self._base, seen), self._written, self.ring, self._put)
         self._written = max(self._written, k)
         ring = b"".join(self._frames)
         t0 = time.monotonic()
         n = self.sent()  # from here to the setup, a frame the timer sends is not counted
-        found = min(seen - n, self._unsure) if seen > n else 0
+        found = seen - n if seen > n else 0
         n += found
         lease = min(lease, k - n - 1)  # never past the plan, even one frame late
         _check_lease(lease, k - n - 1, self.ring)  # ValueError: no renewal, nothing counted
-        self._unsure -= found
         self.recounted += found
         left = self._base + self._lease - n  # frames the op may still send, by the read
         self._setup(socket.CAN_BCM_SETTIMER, lease, ring)
         # a frame the timer sent in the window, and one more for each period it lasted
-        now = time.monotonic()
-        window = 1 + int((now - t0) / self.period_s)
-        self._unsure = min(UNSURE_MAX, self._unsure + window)
+        window = 1 + int((time.monotonic() - t0) / self.period_s)
         self._base = n
         if 0 < left <= window and lease >= 2:
             # The lease's last frames may have gone out between the read and the setup: the
@@ -298,28 +275,6 @@ class CyclicLease:
         # (left <= 0: the lease ran out before the read; the caller resumes, a new phase)
         return n
 
-    def _echoed(self) -> int:
-        """How many of the op's frames the bus carried, by their echoes matched in order
-        against what was placed for each slot (byte for byte: no parsing). Another sender's
-        frame on the id matches nothing; an echo lost to a full queue skips only itself."""
-        k, ring, frames, size = self._seen, self.ring, self._frames, CAN_FRAME.size
-        oldest, written = self._written - ring, self._written  # slots held in the ring
-        full = self._echoes.batch * size
-        while echoes := self._echoes.receive_bytes():
-            for i in range(0, len(echoes), size):
-                frame = echoes[i : i + size]
-                if oldest <= k < written and frames[k % ring] == frame:
-                    k += 1  # the next slot: the rule
-                    continue
-                for j in range(max(k + 1, oldest), min(k + ECHO_SEARCH, written)):
-                    if frames[j % ring] == frame:
-                        k = j + 1
-                        break
-            if len(echoes) < full:
-                break
-        self._seen = k
-        return k
-
     def resume(self) -> None:
         """After a renewal of an op whose timer ended (its lease ran out, or the race above):
         the timer started again with the count that renewal set, the slot it returned now (its
@@ -331,24 +286,31 @@ class CyclicLease:
 
     def settled(self, counted: int) -> int:
         """After ``stop``: how many of the op's frames went out, ``counted`` (a ``sent`` read
-        before the stop) made good by their echoes: a frame the timer sent after that read,
-        or one a renewal's race left out of the count, was on the bus. An echo still on its
-        way (a real controller loops a frame back once it is transmitted) is waited for up
-        to ``ECHO_WAIT_S``; an echo lost to a full queue counts nothing, so the kernel's
-        count stays the floor. The echoes add at most what the timer could have sent since
-        that read, and what renewals' races may have left out (``renew``'s bound): a forged
-        echo on the bus cannot move the step limit's start further along the plan."""
-        end = time.monotonic() + ECHO_WAIT_S
-        seen = self._echoed()
-        while seen < counted and time.monotonic() < end:
-            time.sleep(ECHO_WAIT_S / 10)
-            seen = self._echoed()
-        since = time.monotonic() - self._read_at
-        most = counted + self._unsure + 1 + int(since / self._trim.ival_s)
-        return max(counted, min(seen, most))
+        before the stop) made good by the kernel's own count, which ``stop`` read with the
+        timer halted: a frame the timer sent after that read, or one a renewal's race left
+        out of the op's count, was on the bus (the step limit goes on from the slot the joint
+        is at, Timed.leave)."""
+        return max(counted, self._final or 0)
 
     def stop(self) -> None:
-        """TX_DELETE: nothing more from this op, now."""
+        """Nothing more from this op, now: its timer halted (a setup without an interval
+        cancels it and keeps the op), so the kernel's count of its frames is final when read,
+        then TX_DELETE. An op already stopped, or never started, is only deleted."""
+        if self._lease:
+            head = HEAD.pack(
+                socket.CAN_BCM_TX_SETUP,
+                socket.CAN_BCM_SETTIMER,
+                0,
+                0,
+                0,
+                0,
+                0,
+                self.can_id,
+                self.ring,
+            )
+            with contextlib.suppress(OSError):  # the TX_DELETE below ends it all the same
+                self._sock.send(head + b"".join(self._frames))
+                self._final = self._counts.sent(self.can_id)
         tx_delete(self._sock, self.can_id)  # no op: nothing to delete
         self._lease = 0
 
@@ -359,10 +321,7 @@ class CyclicLease:
             self._sock.close()
         elif self._lease:  # not deleted yet (``Timed.abort`` stops first: one TX_DELETE)
             self.stop()
-        if self._own_echoes:
-            self._echoes.close()
-        else:
-            self._echoes.end()
+        self._counts.close()
 
 
 class Lease(Protocol):
@@ -521,77 +480,6 @@ class ThreadLease:
                     self._bus.send(msg)
 
 
-class EchoTap:
-    """``can_id``'s standard data frames read back from the bus, the op's own among them
-    (SocketCAN loops a frame sent on the host back to every other socket), for
-    ``CyclicLease``'s count; never blocking.
-
-    Its owner keeps one for its life, not one per op: closing a socket that carries a BPF
-    filter frees the program in a kernel worker, and on the board proxy each free held CPU 0
-    for ~190 ms without preemption (A69: two of them right after the timer's end, and the h2
-    reader missed its 500 ms deadline there in 3 of 9 runs of stop 68). Between ops it reads
-    nothing (an empty id filter), so it costs the bus no copies and queues no memory."""
-
-    def __init__(self, channel: str, can_id: int) -> None:
-        self.can_id = can_id
-        self._sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-        try:
-            self._listen(False)
-            self._sock.bind((channel,))
-            self._sock.setblocking(False)
-        except OSError as exc:
-            self._sock.close()
-            raise CanOpenError(f"cannot read {channel}'s frames back: {exc}") from exc
-        self._rx = BatchReceiver(self._sock, CAN_FRAME.size)
-        self.batch = self._rx.batch
-        self._length: int | None = None  # the one length kept by the BPF filter (None: all)
-
-    def _listen(self, on: bool) -> None:
-        if not on:
-            receive_none(self._sock)
-            return
-        rule = struct.pack("=II", self.can_id, STD_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG)
-        self._sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, rule)
-
-    def begin(self, length: int | None) -> None:
-        """The id's frames from now on (an op's start): of ``length`` bytes only, when given
-        (another length on the id is another sender's: the kernel drops it). A filter is
-        attached only when the length changes, so an owner whose frames keep one length
-        (the H2's 6 bytes) compiles and frees no program after its first op."""
-        self.expect(length)
-        self._listen(True)
-        self._rx.discard()  # frames from before the op are not its own
-
-    def expect(self, length: int | None) -> None:
-        """Frames of ``length`` bytes only from the next ``begin`` on (None: any): the filter
-        attached now, so an owner that knows its length compiles the program while idle, not
-        at its first op's start."""
-        if length != self._length:
-            if length is None:
-                self._sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
-            else:
-                attach(self._sock, [Drop(self.can_id, n) for n in range(9) if n != length])
-            self._length = length
-
-    def receive_bytes(self) -> bytes:
-        """The packed frames queued now, a batch at most (b"": none)."""
-        return self._rx.receive_bytes()
-
-    def end(self) -> None:
-        """The op is over: nothing more is read or queued until the next ``begin``."""
-        with contextlib.suppress(OSError):
-            self._listen(False)
-
-    def close(self) -> None:
-        self._sock.close()
-
-
-def open_echoes(interface: str, channel: str, can_id: int) -> EchoTap | None:
-    """The echoes a ``CyclicLease`` of ``can_id`` counts with, for the caller's life; None
-    where leases are ``ThreadLease``s (they count their own sends)."""
-    return EchoTap(channel, can_id) if interface == "socketcan" else None
-
-
 def open_lease(
     interface: str,
     channel: str,
@@ -599,12 +487,10 @@ def open_lease(
     can_id: int,
     period_s: float,
     ring: int,
-    echoes: EchoTap | None = None,
     sock: socket.socket | None = None,
 ) -> Lease:
-    """The kernel's broadcast manager on SocketCAN (``echoes``: the caller's, from
-    ``open_echoes``, else its own; ``sock``: the supervisor's held socket, exolink.canbus.held,
-    else its own), a thread of this process elsewhere."""
+    """The kernel's broadcast manager on SocketCAN (``sock``: the supervisor's held socket,
+    exolink.canbus.held, else its own), a thread of this process elsewhere."""
     if interface == "socketcan":
-        return CyclicLease(channel, can_id, period_s, ring, echoes, sock)
+        return CyclicLease(channel, can_id, period_s, ring, sock)
     return ThreadLease(bus, can_id, period_s, ring)

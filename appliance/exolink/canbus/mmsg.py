@@ -157,13 +157,6 @@ class BatchReceiver:
         while self._call():
             pass
 
-    def receive_bytes(self) -> bytes:
-        """The datagrams queued, up to a batch, back to back, for datagrams of exactly
-        ``msg_size`` bytes and no use for their times (a sender's own frames read back:
-        leases.CyclicLease), so no header is read."""
-        n = self._call()
-        return self._view[: n * self.msg_size].tobytes() if n else b""
-
     def _headers(self, n: int) -> tuple[tuple[int, ...], tuple[int, ...], list[float | None]]:
         """The last call's lengths, flags and kernel times (SO_TIMESTAMPNS, the only control
         message asked for; None where the kernel sent none), the whole batch's headers and
