@@ -160,6 +160,9 @@ def test_faults_silent_malformed_flood(sim: Harness) -> None:
 
 def test_cross_process_udp_multicast(spawn, group: str, mbus: can.BusABC) -> None:  # type: ignore[no-untyped-def]
     proc = spawn("sim", "--interface", "udp_multicast", "--channel", group, name="sim")
+    # its bus open before the start frame is sent: on a slow host the imports took longer than
+    # a fixed wait, the frame went to nobody, and the stream never started (a CI-equivalent run)
+    wait_for(lambda: "sim_running" in proc.output(), timeout=60, explain=proc.output)
     collect(mbus, 0.5)
     assert collect(mbus, 0.3, set(h2.DATA_IDS)) == [], "streams before the start frame"
     mbus.send(h2.encode_stream(True))
