@@ -364,10 +364,10 @@ class Timed:
 
     def leave(self) -> dict[int, int]:
         """End the op at once and return each joint's last sent position, so the cycle loop's
-        step limit goes on from it (slots planned but not sent are dropped). The kernel's
-        count can be a frame short (a renewal's race, or a frame sent after the read): the
-        kernel's own count makes it good (``Lease.settled``), else the cycle loop would step from the
-        slot before the one the joint is at, a slot's step past the limit."""
+        step limit goes on from it (slots planned but not sent are dropped). The op's count
+        can be a frame short (a renewal's race, or a frame sent after the read): the kernel's
+        count of its frames makes it good (``Lease.settled``), else the cycle loop would step
+        from the slot before the one the joint is at, a slot's step past the limit."""
         try:
             counted = self.lease.sent()
             self.lease.stop()

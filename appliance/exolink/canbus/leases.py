@@ -130,10 +130,9 @@ class CyclicLease:
     its position: nothing is repeated or skipped, the phase never slips, and the lease ends
     one frame later than counted (``sent`` is then one short, until the kernel's own count of
     the op's frames makes it good at the next renewal: ``SentCounts``). So a lease never
-    reaches a
-    position the renewal did not write, it is at most the frames planned minus one. If that
-    frame was the lease's last, the op's timer ended before the setup, which sets the new
-    count but does not start it: the op stays silent with a full count, and every later
+    reaches a position the renewal did not write, it is at most the frames planned minus
+    one. If that frame was the lease's last, the op's timer ended before the setup, which
+    sets the new count but does not start it: the op stays silent with a full count, and every later
     renewal reads no progress (the board proxy under a CPU cap, I63). ``resume`` starts such
     an op's timer again (STARTTIMER without resetting the index): the slot it would have sent
     next goes out now, the rest one a period after it, a new phase (Timed: a lapse resumed).
@@ -181,9 +180,12 @@ class CyclicLease:
         """The interval the kernel is given: the period, trimmed (``PeriodTrim``)."""
         return self._trim.ival_s
 
-    def _setup(self, flags: int, lease: int, ring: bytes | None = None) -> None:
-        """TX_SETUP with the ring's frames (``ring``: joined ahead, by ``renew``)."""
-        ival = self._trim.ival_s
+    def _setup(
+        self, flags: int, lease: int, ring: bytes | None = None, ival_s: float | None = None
+    ) -> None:
+        """TX_SETUP with the ring's frames (``ring``: joined ahead, by ``renew``), at the
+        trimmed interval unless ``ival_s`` is given (0 with SETTIMER: the timer halted)."""
+        ival = self._trim.ival_s if ival_s is None else ival_s
         sec, usec = int(ival), round((ival % 1) * 1e6)
         head = HEAD.pack(
             socket.CAN_BCM_TX_SETUP, flags, lease, sec, usec, 0, 0, self.can_id, self.ring
@@ -297,19 +299,8 @@ class CyclicLease:
         cancels it and keeps the op), so the kernel's count of its frames is final when read,
         then TX_DELETE. An op already stopped, or never started, is only deleted."""
         if self._lease:
-            head = HEAD.pack(
-                socket.CAN_BCM_TX_SETUP,
-                socket.CAN_BCM_SETTIMER,
-                0,
-                0,
-                0,
-                0,
-                0,
-                self.can_id,
-                self.ring,
-            )
             with contextlib.suppress(OSError):  # the TX_DELETE below ends it all the same
-                self._sock.send(head + b"".join(self._frames))
+                self._setup(socket.CAN_BCM_SETTIMER, 0, ival_s=0.0)
                 self._final = self._counts.sent(self.can_id)
         tx_delete(self._sock, self.can_id)  # no op: nothing to delete
         self._lease = 0
