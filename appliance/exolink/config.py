@@ -162,6 +162,11 @@ class NodeConfig(_Strict, frozen=True, kw_only=True):
     # hang then ends the motion at the lease's end; the node checks its lease fits at start.
     # Never shorter than its own (the longer of the two).
     leased_deadline_ms: PositiveMs | None = None
+    # A node found late while the kernel had kept it waiting for the CPU (starved, not hung:
+    # exolink.supervisor.starving) is judged again until this much silence (default: never;
+    # never shorter than its own deadlines). Killing a starved node costs a whole re-import on a core that
+    # is already full. Not for a motion node (one with a lease): starved, its motion must end.
+    starved_deadline_ms: PositiveMs | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
@@ -195,6 +200,12 @@ class ApplianceConfig(_Strict, frozen=True, kw_only=True):
         if pace == Pace.LEASED:
             return max(own, node.leased_deadline_ms or 0) / 1000
         return own / 1000
+
+    def starved_deadline_s(self, node: NodeConfig) -> float | None:
+        """How long a starved node may stay silent (None: it is judged as any late node)."""
+        if node.starved_deadline_ms is None:
+            return None
+        return max(node.starved_deadline_ms / 1000, *self.deadlines_s(node))
 
     def deadlines_s(self, node: NodeConfig) -> tuple[float, ...]:
         """Its deadlines by ``Pace`` (own, idle, leased): what its beats set its timer by."""
@@ -240,6 +251,13 @@ def _check_nodes(
             line = line_of(root, f"nodes[{i}].name")
             raise ConfigError(f"{cfg.source}:{line}: nodes[{i}].name: duplicate node {node.name!r}")
         seen.add(node.name)
+        if node.starved_deadline_ms is not None and node.leased_deadline_ms is not None:
+            line = line_of(root, f"nodes[{i}].starved_deadline_ms")
+            raise ConfigError(
+                f"{cfg.source}:{line}: nodes[{i}].starved_deadline_ms: node {node.name!r} has a "
+                "leased_deadline_ms (it moves the joints): a motion node is judged by its own "
+                "deadlines, starved or hung"
+            )
         for key in node.params:
             if key in MOVED_TO_LIMITS:
                 line = line_of(root, f"nodes[{i}].params.{key}")

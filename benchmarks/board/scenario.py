@@ -143,6 +143,9 @@ def bench_config(
         # H2 fell silent and the watchdog tripped (B64, C64): a failure of the bench, not of
         # the appliance.
         "heartbeat_deadline_ms": SIM_DEADLINE_MS,
+        # and starved, not hung, on a full CPU 1 (C73: killed while runnable; its restart
+        # re-imports on the same CPU): judged again up to ten times that
+        "starved_deadline_ms": 10 * SIM_DEADLINE_MS,
         # The hardware's stand-in, not the appliance: on TCG it could not step its models every
         # 10 ms, and CPU 1 full made its kernel timers late (H2 gaps the appliance took for
         # silence). The kernel still sends every frame every 10 ms (udp_multicast: ignored).

@@ -39,6 +39,12 @@ def node_health(n: NodeInfo) -> str:
     return {"backoff": "restarting"}.get(state, state)
 
 
+def _starved(n: NodeInfo) -> str:
+    """Silences past its deadline while it waited for the CPU: the core is full, not the node
+    hung (exolink.supervisor.starving)."""
+    return f" (starved {n.starved}x)" if n.starved else ""
+
+
 def _or(value: Any, absent: str = "-") -> Any:
     return absent if value is UNSET else value
 
@@ -53,7 +59,7 @@ _COLUMNS: list[tuple[str, bool, Any]] = [
     ("cpu_s", True, lambda n: _or(n.cpu_s)),
     ("rss_mb", True, lambda n: _or(n.rss_mb)),
     ("last exit", False, lambda n: n.last_exit or "-"),
-    ("health", False, lambda n: node_health(n) + _receive(_or(n.receive, ""))),
+    ("health", False, lambda n: node_health(n) + _starved(n) + _receive(_or(n.receive, ""))),
 ]
 
 

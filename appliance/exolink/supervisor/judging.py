@@ -14,6 +14,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from exolink import liveness
+from exolink.supervisor import starving
 from exolink.supervisor.osproc import apply_priority, proc_state
 
 if TYPE_CHECKING:
@@ -62,8 +63,9 @@ class NodeJudge:
             if not late:
                 continue
             hb, deadline = node.heartbeat_at, self.cfg.deadline_s(node.cfg, node.pace)
+            starved = "" if node.starved_after is None else ", starved past its limit"
             detail = (
-                f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms)"
+                f"{node.name}: no heartbeat for {(now - hb) * 1000:.0f} ms (deadline {deadline * 1000:.0f} ms{starved})"
                 if hb is not None
                 else f"{node.name}: no heartbeat {grace:g} s after start"
             )
@@ -105,8 +107,38 @@ class NodeJudge:
                 late = now - node.started_at > grace
             else:
                 late = now - hb > self.cfg.deadline_s(node.cfg, node.pace)
+                if (limit := self.cfg.starved_deadline_s(node.cfg)) is not None:
+                    if not late:
+                        node.sched_mark, node.starved_after = starving.read(node.pid, now), None
+                    elif now - hb <= limit and self._starved(node, now, hb):
+                        node.due_at = min(hb + limit, now + self._recheck_s(node))
+                        return False
         node.due_at = self._due(node, now, grace, expired)
         return late
+
+    def _starved(self, node: NodeProcess, now: float, hb: float) -> bool:
+        """Past its deadline but waiting for the CPU (exolink.supervisor.starving): judged
+        again until its ``starved_deadline_ms``; logged once per silence, and counted."""
+        pid = node.pid
+        share = (
+            None if pid is None else starving.waited_share(node.sched_mark, starving.read(pid, now))
+        )
+        if share is None:
+            return False
+        if node.starved_after != hb:
+            node.starved_after, node.starved = hb, node.starved + 1
+            self.log.warning(
+                "node_starved",
+                node_name=node.name,
+                silent_ms=round((now - hb) * 1000),
+                waited_pct=round(100 * share),
+                limit_ms=round(1000 * (self.cfg.starved_deadline_s(node.cfg) or 0)),
+            )
+        return True
+
+    def _recheck_s(self, node: NodeProcess) -> float:
+        """How often a starved node is looked at again: a quarter of its deadline."""
+        return max(self.cfg.deadline_s(node.cfg, node.pace) / 4, 0.02)
 
     def _due(self, node: NodeProcess, now: float, grace: float, expired: bool = False) -> float:
         """When ``node`` next needs a look, given what the loop knows of it now (inf: only the

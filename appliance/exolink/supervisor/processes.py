@@ -28,6 +28,7 @@ from exolink.canbus.held import HELD_ENV, HeldOps
 from exolink.config import NodeConfig
 from exolink.supervisor.forking import Forked, Zygote
 from exolink.supervisor.osproc import plain_priority, proc_state, proc_usage
+from exolink.supervisor.starving import Sched
 from exolink.wire import replies
 
 LOG_LINES = 500
@@ -73,6 +74,11 @@ class NodeProcess:
     # the deadline its last beat asked to be judged by (exolink.liveness: own, idle, leased)
     pace: liveness.Pace = liveness.Pace.OWN
     start_s: float | None = None  # spawn to first heartbeat: how close a slow card is to the grace
+    # Starved, not hung (exolink.supervisor.starving): its loop as last read while on time, the
+    # beat a starved silence began after (None: none now), and such silences counted.
+    sched_mark: Sched | None = None
+    starved_after: float | None = None
+    starved: int = 0
     # Spawns counted, and the pids asked to stop: an exit is judged by its own spawn, never by
     # whatever the node is by the time its report comes (see _wait).
     spawns: int = 0
@@ -142,6 +148,7 @@ class NodeProcess:
             self.channel.spawned()
             self.state, self.started_at = "running", time.monotonic()
             self.heartbeat_at, self.start_s = None, None
+            self.sched_mark = self.starved_after = None
             self.pace, self.due_at = liveness.Pace.OWN, 0.0
             plain_priority(self.proc.pid)
             threading.Thread(
@@ -337,6 +344,7 @@ class NodeProcess:
             idle=self.pace == liveness.Pace.IDLE,
             leased=self.pace == liveness.Pace.LEASED,
             start_s=None if self.start_s is None else round(self.start_s, 2),
+            starved=self.starved,
             cpu_s=usage.get("cpu_s", replies.UNSET),
             rss_mb=usage.get("rss_mb", replies.UNSET),
         )

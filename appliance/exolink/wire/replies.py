@@ -39,6 +39,7 @@ class NodeInfo(Reply):
     idle: bool = False  # held to the appliance's default deadline (exolink.liveness)
     leased: bool = False  # held to its lease's deadline while only the kernel sends
     start_s: float | None = None  # spawn to first heartbeat
+    starved: int = 0  # silences past its deadline while it waited for the CPU (not hung)
     receive: dict[str, Any] | UnsetType = UNSET  # a bus reader's losses (FrameReader.counters)
     card: dict[str, Any] | UnsetType = UNSET  # the recorder's card: free space, hours left
     cpu_s: float | UnsetType = UNSET  # from /proc, while it runs

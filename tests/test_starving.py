@@ -1,0 +1,172 @@
+"""Starved or hung (exolink.supervisor.starving): real processes, a real scheduler. A node's loop
+kept waiting for the CPU by a busy process on its CPU (at a far higher weight) is starved; one
+asleep or stopped is not, and a node without ``starved_deadline_ms`` (the motion nodes) is judged
+at its deadline either way."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from exolink.supervisor import starving
+
+SPIN = "import os\nos.nice({nice})\nwhile True: pass\n"
+
+
+def _cpu() -> int:
+    return max(os.sched_getaffinity(0))
+
+
+def _spinner(nice: int, cpu: int) -> subprocess.Popen[bytes]:
+    proc = subprocess.Popen([sys.executable, "-c", SPIN.format(nice=nice)])
+    os.sched_setaffinity(proc.pid, {cpu})
+    return proc
+
+
+@contextlib.contextmanager
+def starved_process() -> Iterator[subprocess.Popen[bytes]]:
+    """A busy loop at nice 19 and another at nice 0 on one CPU: the first gets ~1/70 of it
+    (CFS weights 15 and 1024) and waits on the run queue the rest of the time."""
+    cpu = _cpu()
+    victim, hog = _spinner(19, cpu), _spinner(0, cpu)
+    try:
+        time.sleep(0.2)  # both imported and spinning
+        yield victim
+    finally:
+        for p in (victim, hog):
+            p.kill()
+            p.wait()
+
+
+def _share(pid: int, span_s: float = 0.4) -> float | None:
+    mark = starving.read(pid, time.monotonic())
+    time.sleep(span_s)
+    return starving.waited_share(mark, starving.read(pid, time.monotonic()))
+
+
+def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() -> None:
+    if starving.read(os.getpid(), 0.0) is None:
+        pytest.skip("this kernel has no /proc/<pid>/schedstat")
+    with starved_process() as victim:
+        share = _share(victim.pid)
+        assert share is not None and share > 0.5, share
+        os.kill(victim.pid, signal.SIGSTOP)  # stopped (once it runs to take the signal)
+        end = time.monotonic() + 10
+        while (st := starving.read(victim.pid, 0.0)) is not None and st.state != "T":
+            assert time.monotonic() < end, st
+            time.sleep(0.02)
+        assert _share(victim.pid) is None
+    asleep = subprocess.Popen(["sleep", "60"])
+    try:
+        assert _share(asleep.pid) is None
+    finally:
+        asleep.kill()
+        asleep.wait()
+    assert starving.read(asleep.pid, 0.0) is None  # gone: not starved
+    assert starving.waited_share(None, starving.read(os.getpid(), 0.0)) is None  # no mark
+
+
+def _reader_node(sup: Any, proc: subprocess.Popen[bytes]) -> tuple[Any, Any]:
+    """The board config's h2 reader (deadline 500 ms, starved_deadline_ms 1500) as ``proc``."""
+    from exolink import liveness
+    from exolink.supervisor.processes import NodeProcess
+
+    node = NodeProcess(sup.cfg.node("h2_reader"), "", lambda _e: None, lambda _n, _l: None)
+    node.channel = liveness.Channel()
+    node.proc = proc
+    node.state, node.heartbeat_at = "running", time.monotonic()
+    sup.nodes[node.name] = node
+    return node, liveness.Beater(node.channel.child_fd)
+
+
+def _until(t: float) -> float:
+    time.sleep(max(0.0, t - time.monotonic()))
+    return time.monotonic()
+
+
+def test_a_starved_reader_is_judged_again_up_to_its_limit_then_tripped() -> None:
+    """Board config: silent past its 500 ms while it waits for the CPU, the h2 reader is not
+    killed (a re-import on a full core) and the watchdog does not trip; silent past its
+    1500 ms, it is, and the trip says it was starved."""
+    from tests.test_supervisor_parts import _supervisor_recording_trips
+
+    if starving.read(os.getpid(), 0.0) is None:
+        pytest.skip("this kernel has no /proc/<pid>/schedstat")
+    sup, trips = _supervisor_recording_trips()
+    with starved_process() as victim:
+        node, beater = _reader_node(sup, victim)
+        try:
+            beater.beat()
+            sup._check_nodes(time.monotonic())  # on time: the scheduler's counts marked
+            hb = node.heartbeat_at
+            assert node.sched_mark is not None and node.starved == 0
+            sup._check_nodes(_until(hb + 0.6))
+            assert trips == [] and node.state == "running" and node.starved == 1
+            assert hb + 0.6 < node.due_at <= hb + 1.5  # looked at again before its limit
+            sup._check_nodes(_until(hb + 1.0))  # the same silence: counted once
+            assert trips == [] and node.starved == 1
+            sup._check_nodes(_until(hb + 1.55))
+            assert len(trips) == 1 and "starved past its limit" in trips[0], trips
+            assert trips[0].startswith("h2_reader: no heartbeat for") and node.state == "killed"
+        finally:
+            node.kill()
+            node.channel.close()
+
+
+def test_an_asleep_reader_and_a_starved_manager_are_judged_at_their_deadlines() -> None:
+    """Not starved (asleep: blocked, deadlocked), the reader trips at its 500 ms; the
+    controller manager has no starved deadline (it moves the joints): starved, it trips at its
+    own 50 ms."""
+    from tests.test_supervisor_parts import _supervisor_recording_trips
+
+    sup, trips = _supervisor_recording_trips()
+    node, beater = _reader_node(sup, subprocess.Popen(["sleep", "60"]))
+    try:
+        beater.beat()
+        sup._check_nodes(time.monotonic())
+        sup._check_nodes(_until(node.heartbeat_at + 0.55))
+        assert len(trips) == 1 and trips[0].endswith("(deadline 500 ms)") and node.starved == 0
+        assert node.state == "killed"
+    finally:
+        node.kill()
+        node.channel.close()
+    assert sup.cfg.starved_deadline_s(sup.cfg.node("controller_manager")) is None
+    sup, trips = _supervisor_recording_trips()
+    with starved_process() as victim:
+        from exolink import liveness
+        from exolink.supervisor.processes import NodeProcess
+
+        mgr = NodeProcess(
+            sup.cfg.node("controller_manager"), "", lambda _e: None, lambda _n, _l: None
+        )
+        mgr.channel = liveness.Channel()
+        mgr.proc, mgr.state, mgr.heartbeat_at = victim, "running", time.monotonic()
+        sup.nodes[mgr.name] = mgr
+        try:
+            liveness.Beater(mgr.channel.child_fd).beat()
+            sup._check_nodes(time.monotonic())
+            sup._check_nodes(_until(mgr.heartbeat_at + 0.06))
+            assert len(trips) == 1 and trips[0].endswith("(deadline 50 ms)"), trips
+        finally:
+            mgr.kill()
+            mgr.channel.close()
+
+
+def test_a_motion_node_cannot_be_given_a_starved_deadline() -> None:
+    from exolink.config import ConfigError, bundled, parse
+
+    text = bundled("board").read_text()
+    bad = text.replace(
+        "    leased_deadline_ms: 200", "    starved_deadline_ms: 1000\n    leased_deadline_ms: 200"
+    )
+    assert bad != text
+    with pytest.raises(ConfigError, match="starved_deadline_ms: node 'controller_manager' has a"):
+        parse(bad, "board.yaml")
