@@ -273,7 +273,7 @@ def test_status_table_aligned_and_health_never_blank() -> None:
     nodes = [
         node("simulator", critical=False),
         node("maccepa_bridge_left_leg_board_3", health="error: joint angle outside its range"),
-        node("h2_reader", health="ok"),
+        node("h2_reader", health="ok", starved=2),  # late twice while it waited for the CPU
         node("pattern_player", heartbeat_age_s=None),  # spawned, no heartbeat yet
         node("recorder", "stopped", critical=False, last_exit="stopped by operator"),
         node("timing_monitor", "stopped", enabled=False, critical=False),
@@ -298,7 +298,7 @@ def test_status_table_aligned_and_health_never_blank() -> None:
     assert said == [
         "ok",
         "error: joint angle outside its range",
-        "ok",
+        "ok (starved 2x)",
         "starting",
         "stopped",
         "disabled",

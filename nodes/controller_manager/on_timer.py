@@ -100,7 +100,9 @@ class TimerLoop:
             n.beat(pace)
             ival_us = round(p.slot_ms * 1e3 / len(joints))  # the joints of a slot spread over it
             lease_slots = self.lease_ms // p.slot_ms
-            ring = min(lease_slots + 4, 256 // len(joints)) * len(joints)
+            # two leases and a slot each side: a renewal's count is bounded by the slots placed
+            # past the old count's end (CyclicLease.renew), and stays a whole lease
+            ring = min(2 * lease_slots + 2, 256 // len(joints)) * len(joints)
             t0 = time.perf_counter()
             try:
                 lease = open_lease(

@@ -325,7 +325,7 @@ class Timed:
         if self.lapsed:
             return
         n = self.per_slot
-        last_lease = self.lease_frames
+        last_end = self.lease.ends_at
         gap = now - self.renewed_at
         resumable = gap <= RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s
         try:
@@ -338,7 +338,7 @@ class Timed:
                 self.lapsed = "plan ran short"
             return
         lapse = ""
-        if sent >= self.base + last_lease:
+        if sent >= last_end:
             lapse = "ran out"  # the loop came later than the lease: nothing went out since
         elif sent == self.base and gap >= STALLED_SLOTS * self.slot_s:
             # Not one frame in slots' time: the op's timer ended between the last renewal's
@@ -353,7 +353,7 @@ class Timed:
             self.resumed.append((lapse, gap))
         self.since_renewal_s, self.renewed_at = gap, now
         self.base = sent
-        self.lease_frames = min(self.lease_slots * n, self.plan.slots * n - sent - 1)
+        self.lease_frames = self.lease.ends_at - sent  # as set: bounded by the plan
         self.renewals += 1
         self.plan.forget_before(sent // n - 1)
 

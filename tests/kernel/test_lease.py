@@ -101,7 +101,7 @@ def test_renewed_set_points_leave_on_the_kernels_timer_without_gap_or_skip(vcan0
             time.sleep(2 * PERIOD)  # the owner wakes every second period, as the manager
             t0 = time.perf_counter()
             n = op.sent()
-            op.renew(plan(n), LEASE)
+            op.renew(plan(n, 16), LEASE)  # two leases ahead, as the manager's ring (on_timer)
             walls.append(time.perf_counter() - t0)
             renewals += 1
         op.stop()
@@ -205,6 +205,40 @@ def test_a_renewal_at_the_leases_last_frame_keeps_the_timer_going(
     # the lease set was 6 from slot 2: five after the restart, one of them maybe before it
     assert 7 <= len(got) <= 8, got
     assert op.restarted == 1 and n == 2
+
+
+def test_a_renewal_whose_setup_lands_late_sends_no_slot_it_did_not_place(
+    vcan0: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The owner preempted between its reads and its setup for 3.5 periods (a starved
+    manager), while the old count still runs: the new count starts where the op is when the
+    setup lands. Bounded by the read alone (``n + lease`` within the plan), it went two slots
+    past the plan, from ring positions a ring old (C74: the gait jumped back 280 ms, a knee
+    45 -> 0 -> 58 deg). Bounded from the old count's end, every frame on the bus is the next
+    placed slot."""
+    import exolink.canbus.leases as leases
+
+    check = leases._check_lease
+
+    def preempted(*args: int) -> None:
+        check(*args)
+        time.sleep(3.5 * PERIOD)
+
+    bus = listen(vcan0)
+    op = CyclicLease(vcan0, ID, PERIOD, ring=16)
+    try:
+        op.start([slot(k) for k in range(8)], 6)  # slots 0..7 placed, 0..5 leased
+        while op.remaining() > 4:  # slots 0 and 1 out
+            pass
+        monkeypatch.setattr(leases, "_check_lease", preempted)
+        n = op.renew(plan(op.sent(), 6), 6)  # nothing past slot 7 to place
+        frames = drain(bus, 0.2)
+    finally:
+        op.close()
+        bus.shutdown()
+    got, steps = steps_of(frames)
+    _results("late-setup", {"renewal_at": n, "slots": got})
+    assert got[:2] == [0, 1] and set(steps) == {1} and got[-1] <= 7, got
 
 
 def test_a_restarted_timer_stops_at_once(vcan0: str, monkeypatch: pytest.MonkeyPatch) -> None:

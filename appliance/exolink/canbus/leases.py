@@ -233,58 +233,81 @@ class CyclicLease:
         """The slot the op sends next: how many it sent since ``start``, by its count."""
         return self._base + self._lease - self.remaining()
 
+    @property
+    def ends_at(self) -> int:
+        """The slot the count set last ends before (the op sends no slot from it on, unless a
+        setup landed late: then a few slots later, within what was placed)."""
+        return self._base + self._lease
+
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
         """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
-        slot) and ``lease`` frames from now, fewer than are planned from n (fewer than two
-        planned: ValueError). A lease that already ran out is not restarted (``start`` is a
-        new phase, on purpose).
+        slot, by the kernel's own count) and up to ``lease`` frames from now, never one the
+        renewal did not place (none placeable: ValueError, no renewal). A lease that already
+        ran out is not restarted (``start`` is a new phase, on purpose).
 
-        The kernel's count loses a frame each time the timer sends one between a renewal's
-        read and its setup, and the loss stays: with ~2 ms of Python between the two (the
-        board proxy), in 60 % of renewals (B68), and once the count was a ring behind, the op
-        sent slots a ring old (the gait jumping back 180 ms; tests/kernel/test_lease.py). So
-        the slots are placed before the read, from what surely went out (a frame is placed
-        over one already sent), and the read is followed by the setup alone; the kernel's own
-        count of the op's frames (``SentCounts``: exact, no setup resets it, no sender on the
-        bus moves it) makes good what the op's count lost."""
-        seen = self._counts.sent(self.can_id) or 0
-        k = _place_ahead(frames_from, max(self._base, seen), self._written, self.ring, self._put)
+        The reads and the setup are system calls apart, and the owner can be preempted between
+        them for any time: the timer goes on sending the old count meanwhile, and the new
+        count starts wherever the op is when the setup lands. Bounded by the slots placed from
+        the read alone (``n + lease`` within the plan), a setup that landed three frames late
+        (a starved manager, C74: calibration 867 ms) sent two frames past the plan, from ring
+        positions a ring old: the gait jumped back 280 ms (a knee 45 -> 0 -> 58 deg). So the
+        op's count is read first (TX_READ: it sends at most ``left`` more frames), then the
+        kernel's count of its frames (``SentCounts``: exact, no setup resets it, no sender on
+        the bus moves it): the op is at most at ``n + left`` when the setup lands, and the new
+        count is bounded from there. The slots are placed before the reads (from the last
+        renewal's slot; a slot placed over one already sent is harmless). The ring holds two
+        leases (on_timer), so the bound costs nothing while renewals come in time."""
+        k = _place_ahead(frames_from, self._base, self._written, self.ring, self._put)
         self._written = max(self._written, k)
         ring = b"".join(self._frames)
         t0 = time.monotonic()
-        n = self.sent()  # from here to the setup, a frame the timer sends is not counted
-        found = seen - n if seen > n else 0
-        n += found
-        lease = min(lease, k - n - 1)  # never past the plan, even one frame late
-        _check_lease(lease, k - n - 1, self.ring)  # ValueError: no renewal, nothing counted
-        self.recounted += found
-        left = self._base + self._lease - n  # frames the op may still send, by the read
+        left = self.remaining()  # the old count: at most this many more frames ...
+        seen = self._counts.sent(self.can_id)  # ... after these (read after it)
+        if seen is None:
+            raise ValueError(f"no count of op {self.can_id:#x}'s frames in the kernel: no renewal")
+        counted = self._base + self._lease - left  # the op's count of them: short after a race
+        n = max(seen, self._base)
+        lease = min(lease, k - n - left)  # never past the plan, however late the setup lands
+        _check_lease(lease, k - n - left, self.ring)  # ValueError: no renewal, nothing counted
+        self.recounted += max(0, n - counted)
         self._setup(socket.CAN_BCM_SETTIMER, lease, ring)
-        # a frame the timer sent in the window, and one more for each period it lasted
-        window = 1 + int((time.monotonic() - t0) / self.period_s)
+        # frames the timer may have sent since the read: one, and one more each period it took
+        window = 1 + int((time.monotonic() - t0) / self.interval_s)
         self._base = n
         if 0 < left <= window and lease >= 2:
-            # The lease's last frames may have gone out between the read and the setup: the
-            # timer then ended, and the count just set waits for a start that never comes
-            # (silent until a later renewal saw no progress: two gaps, 50 and 87 ms, in B69).
-            # Started again now (a new phase, at most an interval off), with one frame less:
-            # the timer may have sent one between the two setups, and never past the plan.
-            self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, lease - 1, ring)
-            self._trim.restart(time.monotonic(), n + 1)
+            # The old count's last frames may have gone out before the setup: the timer then
+            # ended, and the count just set waits for a start that never comes (silent until
+            # a later renewal saw no progress: two gaps, 50 and 87 ms, in B69). Started again
+            # now (a new phase, at most an interval off) from where it stopped.
+            self._start_here(n + lease)
             self.restarted += 1
         elif left > 0:
             self._trim.update(t0, n)  # the interval for the next renewal's setup
-        # (left <= 0: the lease ran out before the read; the caller resumes, a new phase)
+        # (left == 0: the lease ran out before the read; the caller resumes, a new phase)
         return n
+
+    def _start_here(self, end: int) -> None:
+        """The timer halted (a setup without an interval: the op's index stays), the kernel's
+        count of its frames read (exact: nothing moves it now), then started from there for
+        the frames up to slot ``end`` (exclusive), never past what is placed: a new phase. A
+        start read from the count before a halt could begin wherever a preempted owner's
+        timer had got to meanwhile."""
+        self._setup(socket.CAN_BCM_SETTIMER, 0, ival_s=0.0)
+        at = self._counts.sent(self.can_id)
+        if at is None:  # the op is gone (the supervisor's copy deleted it): nothing to start
+            return
+        self._base = at
+        count = min(end, self._written) - at
+        if count >= 1:  # else halted: the next renewal finds no progress (a lapse)
+            self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, count)
+            self._trim.restart(time.monotonic(), at + 1)
 
     def resume(self) -> None:
         """After a renewal of an op whose timer ended (its lease ran out, or the race above):
-        the timer started again with the count that renewal set, the slot it returned now (its
-        index kept, so each slot stays at its ring position; one slot ahead after the race,
-        whose frame is at its position too), then one per period. A new phase, as
-        ``start``'s."""
-        self._setup(socket.CAN_BCM_SETTIMER | socket.CAN_BCM_STARTTIMER, self._lease)
-        self._trim.restart(time.monotonic(), self._base + 1)
+        the timer started again from where the op is (its index kept, so each slot stays at
+        its ring position), for what that renewal allowed: the next slot now, the rest one a
+        period after it. A new phase, as ``start``'s."""
+        self._start_here(self._base + self._lease)
 
     def settled(self, counted: int) -> int:
         """After ``stop``: how many of the op's frames went out, ``counted`` (a ``sent`` read
@@ -326,6 +349,9 @@ class Lease(Protocol):
 
     @property
     def interval_s(self) -> float: ...
+
+    @property
+    def ends_at(self) -> int: ...
 
     def start(self, frames: list[bytes], lease: int) -> None: ...
     def sent(self) -> int: ...
@@ -387,6 +413,12 @@ class ThreadLease:
             self._index, self._count, self._base, self._lease = 0, lease, 0, lease
             self._running, self._next_at = True, time.monotonic()
             self._cond.notify()
+
+    @property
+    def ends_at(self) -> int:
+        """``CyclicLease.ends_at`` (exact here: a renewal cannot land late)."""
+        with self._cond:
+            return self._base + self._lease
 
     def remaining(self) -> int:
         """The op's count, as TX_READ says it: a renewal sets it even on a timer that ended."""
