@@ -46,32 +46,32 @@ def starved_process() -> Iterator[subprocess.Popen[bytes]]:
             p.wait()
 
 
-def _share(pid: int, span_s: float = 0.4) -> float | None:
+def _shares(pid: int, span_s: float = 0.4) -> tuple[float, float] | None:
     mark = starving.read(pid, time.monotonic())
     time.sleep(span_s)
-    return starving.waited_share(mark, starving.read(pid, time.monotonic()))
+    return starving.starved(mark, starving.read(pid, time.monotonic()))
 
 
 def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() -> None:
     if starving.read(os.getpid(), 0.0) is None:
         pytest.skip("this kernel has no /proc/<pid>/schedstat")
     with starved_process() as victim:
-        share = _share(victim.pid)
-        assert share is not None and share > 0.5, share
+        shares = _shares(victim.pid)
+        assert shares is not None and shares[0] > 0.5 and shares[1] < 0.1, shares
         os.kill(victim.pid, signal.SIGSTOP)  # stopped (once it runs to take the signal)
         end = time.monotonic() + 10
         while (st := starving.read(victim.pid, 0.0)) is not None and st.state != "T":
             assert time.monotonic() < end, st
             time.sleep(0.02)
-        assert _share(victim.pid) is None
+        assert _shares(victim.pid) is None
     asleep = subprocess.Popen(["sleep", "60"])
     try:
-        assert _share(asleep.pid) is None
+        assert _shares(asleep.pid) is None
     finally:
         asleep.kill()
         asleep.wait()
     assert starving.read(asleep.pid, 0.0) is None  # gone: not starved
-    assert starving.waited_share(None, starving.read(os.getpid(), 0.0)) is None  # no mark
+    assert starving.starved(None, starving.read(os.getpid(), 0.0)) is None  # no mark
 
 
 def _reader_node(sup: Any, proc: subprocess.Popen[bytes]) -> tuple[Any, Any]:
@@ -170,3 +170,20 @@ def test_a_motion_node_cannot_be_given_a_starved_deadline() -> None:
     assert bad != text
     with pytest.raises(ConfigError, match="starved_deadline_ms: node 'controller_manager' has a"):
         parse(bad, "board.yaml")
+
+
+def test_the_rule_runnable_and_kept_off_the_cpu_or_waiting() -> None:
+    """The kernel adds a wait when the thread gets the CPU: a loop kept off it since before
+    the mark shows no wait yet, only no run (C74's recorder); one that spun on a free CPU ran
+    the whole span (hung); one asleep is not runnable."""
+    from exolink.supervisor.starving import Sched
+
+    mark = Sched(0.0, "S", 5_000_000, 7_000_000)
+    off = Sched(1.0, "R", 5_000_000, 7_000_000)  # neither ran nor had its wait added
+    assert starving.starved(mark, off) == (0.0, 0.0)
+    spun = Sched(1.0, "R", 1_005_000_000, 7_000_000)
+    assert starving.starved(mark, spun) is None
+    shared = Sched(1.0, "R", 605_000_000, 407_000_000)  # ran 60 %, waited 40 %: starved
+    assert starving.starved(mark, shared) == pytest.approx((0.4, 0.6))
+    assert starving.starved(mark, Sched(1.0, "S", 5_000_000, 7_000_000)) is None
+    assert starving.starved(mark, Sched(0.01, "R", 5_000_000, 7_000_000)) is None  # too short

@@ -120,10 +120,8 @@ class NodeJudge:
         """Past its deadline but waiting for the CPU (exolink.supervisor.starving): judged
         again until its ``starved_deadline_ms``; logged once per silence, and counted."""
         pid = node.pid
-        share = (
-            None if pid is None else starving.waited_share(node.sched_mark, starving.read(pid, now))
-        )
-        if share is None:
+        shares = None if pid is None else starving.starved(node.sched_mark, starving.read(pid, now))
+        if shares is None:
             return False
         if node.starved_after != hb:
             node.starved_after, node.starved = hb, node.starved + 1
@@ -131,7 +129,8 @@ class NodeJudge:
                 "node_starved",
                 node_name=node.name,
                 silent_ms=round((now - hb) * 1000),
-                waited_pct=round(100 * share),
+                waited_pct=round(100 * shares[0]),
+                ran_pct=round(100 * shares[1]),
                 limit_ms=round(1000 * (self.cfg.starved_deadline_s(node.cfg) or 0)),
             )
         return True
