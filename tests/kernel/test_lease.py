@@ -241,6 +241,45 @@ def test_a_renewal_whose_setup_lands_late_sends_no_slot_it_did_not_place(
     assert got[:2] == [0, 1] and set(steps) == {1} and got[-1] <= 7, got
 
 
+def test_an_op_the_supervisor_deleted_mid_renewal_is_not_started_again(
+    vcan0: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The supervisor's copy of the socket deletes the op at a safe action; one that lands
+    between a renewal's reads and its setup makes that setup create a new op (index 0, count
+    0 sent). The renewal's restart, and a later resume, find the kernel's count gone back
+    and delete it: nothing reaches the bus after the delete."""
+    import exolink.canbus.leases as leases
+    from exolink.canbus.bcm import tx_delete
+
+    check = leases._check_lease
+    deleted: list[float] = []
+
+    def safe_action(*args: int) -> None:  # the watchdog's TX_DELETE, then the window runs on
+        check(*args)
+        tx_delete(op._sock, ID)
+        deleted.append(time.time())
+        time.sleep(1.5 * PERIOD)
+
+    bus = listen(vcan0)
+    op = CyclicLease(vcan0, ID, PERIOD)
+    try:
+        op.start([slot(k) for k in range(8)], 3)
+        while op.remaining() > 1:
+            pass
+        monkeypatch.setattr(leases, "_check_lease", safe_action)
+        op.renew(plan(op.sent(), 12), 6)
+        monkeypatch.setattr(leases, "_check_lease", check)
+        with contextlib.suppress(ValueError):
+            op.renew(plan(op.sent(), 12), 6)
+        op.resume()
+        frames = drain(bus, 0.2)
+    finally:
+        op.close()
+        bus.shutdown()
+    after = [m for m in frames if m.timestamp > deleted[0]]
+    assert deleted and after == [], slots_of(after)
+
+
 def test_a_restarted_timer_stops_at_once(vcan0: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """The restart at a lease's end is a motion path of its own: a stop (every trip path's
     TX_DELETE) right after it leaves nothing more on the bus."""

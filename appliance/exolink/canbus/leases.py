@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import struct
 import threading
 import time
 from collections import deque
@@ -221,13 +222,18 @@ class CyclicLease:
 
     def remaining(self) -> int:
         """Frames the op may still send (0: the lease ran out, or no op)."""
+        return self._read_count() or 0
+
+    def _read_count(self) -> int | None:
+        """TX_READ's count (None: no op on this id, or no answer: never taken for 0 by a
+        renewal, whose bound it is)."""
         head = HEAD.pack(socket.CAN_BCM_TX_READ, 0, 0, 0, 0, 0, 0, self.can_id, 0)
         try:
             self._sock.send(head)
             reply = self._sock.recv(HEAD.size + self.ring * CAN_FRAME.size)
-        except OSError:  # EINVAL: no op on this id (never started, or deleted)
-            return 0
-        return int(HEAD.unpack_from(reply)[2])
+            return int(HEAD.unpack_from(reply)[2])
+        except (OSError, struct.error):  # EINVAL: no op (never started, or deleted); timeout
+            return None
 
     def sent(self) -> int:
         """The slot the op sends next: how many it sent since ``start``, by its count."""
@@ -261,14 +267,28 @@ class CyclicLease:
         self._written = max(self._written, k)
         ring = b"".join(self._frames)
         t0 = time.monotonic()
-        left = self.remaining()  # the old count: at most this many more frames ...
+        left = self._read_count()  # the old count: at most this many more frames ...
         seen = self._counts.sent(self.can_id)  # ... after these (read after it)
-        if seen is None:
-            raise ValueError(f"no count of op {self.can_id:#x}'s frames in the kernel: no renewal")
+        if left is None or seen is None:
+            raise ValueError(f"op {self.can_id:#x}: no count to bound a renewal by: none made")
         counted = self._base + self._lease - left  # the op's count of them: short after a race
-        n = max(seen, self._base)
-        lease = min(lease, k - n - left)  # never past the plan, however late the setup lands
-        _check_lease(lease, k - n - left, self.ring)  # ValueError: no renewal, nothing counted
+        if seen < self._base or counted > seen + 1:
+            # The kernel's count went back (the op was deleted, by the supervisor's copy at a
+            # safe action, and a setup made a new one) or is behind the op's own count (frames
+            # the device refused: the op's index went on, its count of sent frames did not;
+            # one frame is the count's own lag before 6.15, which the bound below allows for):
+            # where the op is is not known, so it goes (TX_DELETE).
+            self.stop()
+            raise ValueError(
+                f"op {self.can_id:#x}: the kernel counts {seen} frames sent, the op "
+                f"{counted} since slot {self._base}: its index is not known, op deleted"
+            )
+        n = seen
+        # never past the plan, however late the setup lands; one frame less for a kernel
+        # that counts a frame down before it counts it sent (before 6.15)
+        bound = k - n - left - 1
+        lease = min(lease, bound)
+        _check_lease(lease, bound, self.ring)  # ValueError: no renewal, nothing counted
         self.recounted += max(0, n - counted)
         self._setup(socket.CAN_BCM_SETTIMER, lease, ring)
         # frames the timer may have sent since the read: one, and one more each period it took
@@ -294,7 +314,10 @@ class CyclicLease:
         timer had got to meanwhile."""
         self._setup(socket.CAN_BCM_SETTIMER, 0, ival_s=0.0)
         at = self._counts.sent(self.can_id)
-        if at is None:  # the op is gone (the supervisor's copy deleted it): nothing to start
+        if at is None or at < self._base:
+            # gone, or made again by that setup after the supervisor's copy deleted it (a safe
+            # action): nothing may start, and the op so made goes too
+            self.stop()
             return
         self._base = at
         count = min(end, self._written) - at
