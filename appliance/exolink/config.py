@@ -164,8 +164,9 @@ class NodeConfig(_Strict, frozen=True, kw_only=True):
     leased_deadline_ms: PositiveMs | None = None
     # A node found late while the kernel had kept it waiting for the CPU (starved, not hung:
     # exolink.supervisor.starving) is judged again until this much silence (default: never;
-    # never shorter than its own deadlines). Killing a starved node costs a whole re-import on a core that
-    # is already full. Not for a motion node (one with a lease): starved, its motion must end.
+    # never shorter than its own deadlines). Killing a starved node costs a whole re-import on
+    # a core that is already full. Not for a motion node (one with a lease): starved, its
+    # motion must end.
     starved_deadline_ms: PositiveMs | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
 

@@ -124,19 +124,18 @@ class CyclicLease:
 
     Content is planned by slot: slot n is the n-th frame the op sends since ``start``, and it
     sits at ring position n mod ``ring``, always: the op's index is never reset after
-    ``start``. A renewal reads how many were sent (TX_READ: the op's remaining ``count``),
-    writes slots n, n+1, ... at their positions and sets a new ``count`` without restarting
-    the timer (SETTIMER without STARTTIMER keeps the phase; the same number of frames keeps
-    the index). A frame the kernel sends between that read and the renewal was already at
-    its position: nothing is repeated or skipped, the phase never slips, and the lease ends
-    one frame later than counted (``sent`` is then one short, until the kernel's own count of
-    the op's frames makes it good at the next renewal: ``SentCounts``). So a lease never
-    reaches a position the renewal did not write, it is at most the frames planned minus
-    one. If that frame was the lease's last, the op's timer ended before the setup, which
-    sets the new count but does not start it: the op stays silent with a full count, and every later
-    renewal reads no progress (the board proxy under a CPU cap, I63). ``resume`` starts such
-    an op's timer again (STARTTIMER without resetting the index): the slot it would have sent
-    next goes out now, the rest one a period after it, a new phase (Timed: a lapse resumed).
+    ``start``. A renewal writes slots at their positions, reads the op's remaining
+    ``count`` (TX_READ) and then the kernel's own count of its frames (``SentCounts``), and
+    sets a new ``count`` without restarting the timer (SETTIMER without STARTTIMER keeps the
+    phase; the same number of frames keeps the index). Frames the kernel sends before that
+    setup lands were already at their positions: nothing is repeated or skipped, and the new
+    count is bounded from where the old one ends, so no frame the renewal did not place goes
+    out however late the setup lands (``renew``). If the old count ran out before the setup,
+    the timer ended and the setup does not start it: the op stays silent with a full count
+    (the board proxy under a CPU cap, I63). The renewal then, or ``resume``, halts the timer,
+    reads the exact count and starts it from there: the next slot now, the rest one a period
+    after it, a new phase (Timed: a lapse resumed). An op whose count went back (deleted by
+    the supervisor's copy and made again by a setup) is deleted, never started.
     """
 
     def __init__(
