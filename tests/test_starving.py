@@ -19,24 +19,30 @@ import pytest
 from exolink.supervisor import starving
 
 SPIN = "import os\nos.nice({nice})\nwhile True: pass\n"
+# The main thread asleep on a lock (a futex) while a thread of its own spins ({spin}: or sleeps).
+WAIT_ON_OWN = (
+    "import os, threading, time\nos.nice({nice})\n"
+    "threading.Thread(target=lambda: {spin}, daemon=True).start()\n"
+    "lock = threading.Lock()\nlock.acquire()\nlock.acquire()\n"
+)
 
 
 def _cpu() -> int:
     return max(os.sched_getaffinity(0))
 
 
-def _spinner(nice: int, cpu: int) -> subprocess.Popen[bytes]:
-    proc = subprocess.Popen([sys.executable, "-c", SPIN.format(nice=nice)])
+def _spinner(nice: int, cpu: int, code: str = SPIN) -> subprocess.Popen[bytes]:
+    proc = subprocess.Popen([sys.executable, "-c", code.format(nice=nice)])
     os.sched_setaffinity(proc.pid, {cpu})
     return proc
 
 
 @contextlib.contextmanager
-def starved_process() -> Iterator[subprocess.Popen[bytes]]:
-    """A busy loop at nice 19 and another at nice 0 on one CPU: the first gets ~1/70 of it
-    (CFS weights 15 and 1024) and waits on the run queue the rest of the time."""
+def starved_process(code: str = SPIN) -> Iterator[subprocess.Popen[bytes]]:
+    """A busy loop (``code``) at nice 19 and another at nice 0 on one CPU: the first gets
+    ~1/70 of it (CFS weights 15 and 1024) and waits on the run queue the rest of the time."""
     cpu = _cpu()
-    victim, hog = _spinner(19, cpu), _spinner(0, cpu)
+    victim, hog = _spinner(19, cpu, code), _spinner(0, cpu)
     try:
         time.sleep(0.2)  # both imported and spinning
         yield victim
@@ -72,6 +78,38 @@ def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() ->
         asleep.wait()
     assert starving.read(asleep.pid, 0.0) is None  # gone: not starved
     assert starving.starved(None, starving.read(os.getpid(), 0.0)) is None  # no mark
+
+
+def _main_asleep(pid: int) -> None:
+    """Until ``pid``'s main thread sleeps (its interpreter started, the lock taken)."""
+    end = time.monotonic() + 20
+    while (st := starving.read(pid, 0.0)) is None or st.state != "S" or not st.others:
+        assert time.monotonic() < end, st
+        time.sleep(0.05)
+
+
+def test_a_loop_asleep_on_a_thread_of_its_own_that_waits_for_the_cpu_is_starved() -> None:
+    """C76: nodes killed with their loop asleep in a futex or a pipe read while the core was
+    full. A main thread asleep on a lock while a thread of its process is runnable and kept
+    waiting is starved; asleep while every thread of it sleeps, it is not."""
+    if starving.read(os.getpid(), 0.0) is None:
+        pytest.skip("this kernel has no /proc/<pid>/schedstat")
+    with starved_process(WAIT_ON_OWN.replace("{spin}", "any(iter(int, 1))")) as victim:
+        _main_asleep(victim.pid)
+        mark = starving.read(victim.pid, time.monotonic())
+        time.sleep(0.4)
+        now = starving.read(victim.pid, time.monotonic(), states=True)
+        assert now is not None and now.state == "S" and now.other_runnable, now
+        shares = starving.starved(mark, now)
+        assert shares is not None and shares[0] > 0.5 and shares[1] < 0.1, shares
+        assert starving.starved(mark, starving.read(victim.pid, time.monotonic())) is None
+    with starved_process(WAIT_ON_OWN.replace("{spin}", "time.sleep(60)")) as victim:
+        _main_asleep(victim.pid)
+        mark = starving.read(victim.pid, time.monotonic())
+        time.sleep(0.4)
+        now = starving.read(victim.pid, time.monotonic(), states=True)
+        assert now is not None and now.state == "S" and not now.other_runnable, now
+        assert starving.starved(mark, now) is None  # every thread asleep: blocked, not starved
 
 
 def _reader_node(sup: Any, proc: subprocess.Popen[bytes]) -> tuple[Any, Any]:
@@ -187,3 +225,18 @@ def test_the_rule_runnable_and_kept_off_the_cpu_or_waiting() -> None:
     assert starving.starved(mark, shared) == pytest.approx((0.4, 0.6))
     assert starving.starved(mark, Sched(1.0, "S", 5_000_000, 7_000_000)) is None
     assert starving.starved(mark, Sched(0.01, "R", 5_000_000, 7_000_000)) is None  # too short
+
+
+def test_the_rule_asleep_on_a_runnable_thread_of_its_own() -> None:
+    """The process's threads' waits added up, a thread begun since the mark with all of its
+    own; no runnable thread, or too little wait, is not starved; the ran share is not used."""
+    from exolink.supervisor.starving import Sched
+
+    mark = Sched(0.0, "R", 0, 0, {11: (10, 100_000_000), 12: (0, 0)})
+    waits = {11: (10, 300_000_000), 13: (0, 60_000_000)}  # 12 ended, 13 began since the mark
+    now = Sched(1.0, "S", 0, 0, waits, other_runnable=True)
+    assert starving.starved(mark, now) == pytest.approx((0.26, 0.0))
+    little = Sched(1.0, "S", 0, 0, {11: (10, 200_000_000)}, other_runnable=True)
+    assert starving.starved(mark, little) is None  # waited 10 %, ran 0 %: not the ran rule
+    assert starving.starved(mark, Sched(1.0, "S", 0, 0, waits)) is None  # none runnable
+    assert starving.starved(mark, Sched(1.0, "D", 0, 0, waits, other_runnable=True)) is None

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from exolink import liveness
 from exolink.supervisor import starving
-from exolink.supervisor.osproc import apply_priority, proc_state
+from exolink.supervisor.osproc import apply_priority, proc_state, runnable_others
 
 if TYPE_CHECKING:
     from exolink.config import ApplianceConfig
@@ -81,11 +81,13 @@ class NodeJudge:
     def _threads_now(self) -> dict[str, str]:
         """Each node's main thread as the kernel sees it when one is found hung: runnable (R)
         while it missed its deadline says the core was busy with others; sleeping in a futex,
-        that it waited for a lock (the GIL); elsewhere, where it blocked."""
+        that it waited for a lock (the GIL: with another of its threads runnable, for that one);
+        elsewhere, where it blocked."""
         out = {}
         for n in self.nodes.values():
             if (pid := n.pid) is not None:
-                out[n.name] = proc_state(pid)
+                runnable, others = runnable_others(pid)
+                out[n.name] = f"{proc_state(pid)}; {runnable} of {others} other threads runnable"
         return out
 
     def _judge_node(
@@ -120,7 +122,8 @@ class NodeJudge:
         """Past its deadline but waiting for the CPU (exolink.supervisor.starving): judged
         again until its ``starved_deadline_ms``; logged once per silence, and counted."""
         pid = node.pid
-        shares = None if pid is None else starving.starved(node.sched_mark, starving.read(pid, now))
+        now_sched = None if pid is None else starving.read(pid, now, states=True)
+        shares = starving.starved(node.sched_mark, now_sched)
         if shares is None:
             return False
         if node.starved_after != hb:

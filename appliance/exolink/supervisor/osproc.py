@@ -76,6 +76,21 @@ def proc_state(pid: int) -> str:
         return f"gone ({exc.strerror})"
 
 
+def runnable_others(pid: int) -> tuple[int, int]:
+    """How many of a process's other threads are runnable, of how many: a loop asleep in a
+    futex while one is says it waits for that thread (the GIL), not that it hung."""
+    runnable = total = 0
+    with contextlib.suppress(OSError):
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            if tid == str(pid):
+                continue
+            with contextlib.suppress(OSError, IndexError):
+                with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
+                    runnable += f.read().rpartition(b")")[2].split()[0] == b"R"
+                total += 1
+    return runnable, total
+
+
 def children(pid: int, leader_only: bool = False) -> dict[int, tuple[str, str]]:
     """Every child of ``pid`` -> (state letter, comm), from each of its threads' list: a
     subreaper's orphans are re-parented to one of its threads. ``leader_only``: the main

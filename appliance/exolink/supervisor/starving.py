@@ -4,18 +4,24 @@ A node whose loop waits for the CPU behind others (runnable, on the run queue) i
 hung: on a full core the h2 reader went 509-598 ms without a beat (deadline 500 ms) while its
 thread was runnable (`make bench-board` on a host 2-2.8x slower, docs/performance.md), and each
 kill cost a whole re-import on the core that was already full. The kernel counts how long each
-thread waited on a run queue (``/proc/<pid>/schedstat``: run time, wait time) and in what
-state it is: a loop that blocked (a deadlock, a stop signal, a lock) is not runnable and does not
-wait there, one that spins is caught at the node's ``starved_deadline_ms`` however long it
+thread waited on a run queue (``/proc/<pid>/task/<tid>/schedstat``: run time, wait time) and in
+what state it is: a loop that blocked (a deadlock, a stop signal, a lock) is not runnable and does
+not wait there, one that spins is caught at the node's ``starved_deadline_ms`` however long it
 waited. The wait is added when the thread gets the CPU, so a loop kept off it since before the
 span shows none: runnable now and on the CPU for at most half the span counts as starved too
-(C74: the recorder killed at 30 s, runnable). A kernel without schedstat reads as not starved:
-the node is then judged as any late node.
+(C74: the recorder killed at 30 s, runnable). A loop asleep while a thread of its own process is
+runnable waits for that thread (the GIL, a lock, a channel it fills: C76 killed the pattern
+player asleep in a futex and the recorder in a pipe read, the core full): starved when the
+process's threads together waited a quarter of the span (the rule "ran at most half" is not
+used there: an asleep loop runs little either way). A kernel without schedstat reads as not
+starved: the node is then judged as any late node.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 WAIT_SHARE = 0.25  # of the span looked at: a loop that waited for the CPU this much was starved,
 RAN_SHARE = 0.5  # or one runnable now that ran at most this much of it
@@ -24,36 +30,78 @@ MIN_SPAN_S = 0.05  # a span shorter than this says nothing
 
 @dataclass(frozen=True, slots=True)
 class Sched:
-    """A node's main thread (its loop, exolink.runtime) as the scheduler counts it."""
+    """A node's main thread (its loop, exolink.runtime) as the scheduler counts it, and its
+    process's other threads."""
 
     t: float  # monotonic, when read
     state: str  # R: running or waiting for the CPU; S, D, T: not waiting for it
     run_ns: int  # time on the CPU since the thread began
     wait_ns: int  # time on a run queue, waiting for the CPU, up to its last turn on it
+    others: Mapping[int, tuple[int, int]] = field(default_factory=dict)  # tid -> (run, wait)
+    other_runnable: bool = False  # one of them was runnable (read only when the loop sleeps)
 
 
-def read(pid: int, t: float) -> Sched | None:
-    """The main thread's state and run-queue wait (None: gone, or no schedstat)."""
+def _read(path: str) -> bytes:
+    """A small /proc file by raw system calls: a third of ``open()``'s cost (a read a thread,
+    each time a node is judged on time)."""
+    fd = os.open(path, os.O_RDONLY)
     try:
-        with open(f"/proc/{pid}/schedstat", "rb") as f:
-            run, wait = f.read().split()[:2]
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            state = f.read().rpartition(b")")[2].split()[0].decode()
-        return Sched(t, state, int(run), int(wait))
+        return os.read(fd, 1024)
+    finally:
+        os.close(fd)
+
+
+def _schedstat(path: str) -> tuple[int, int]:
+    run, wait = _read(f"{path}/schedstat").split()[:2]
+    return int(run), int(wait)
+
+
+def _state(path: str) -> str:
+    return _read(f"{path}/stat").rpartition(b")")[2].split()[0].decode()
+
+
+def read(pid: int, t: float, states: bool = False) -> Sched | None:
+    """The main thread's state and run-queue wait, and its siblings' (None: gone, or no
+    schedstat). ``states``: whether a sibling is runnable too, when the main thread sleeps
+    (a late node: the on-time mark needs only the counts)."""
+    try:
+        run, wait = _schedstat(f"/proc/{pid}")
+        state = _state(f"/proc/{pid}")
+        tids = [int(tid) for tid in os.listdir(f"/proc/{pid}/task") if tid != str(pid)]
     except (OSError, IndexError, ValueError):
         return None
+    others: dict[int, tuple[int, int]] = {}
+    runnable = False
+    for tid in tids:
+        path = f"/proc/{pid}/task/{tid}"
+        try:
+            others[tid] = _schedstat(path)
+            runnable = runnable or (states and state == "S" and _state(path) == "R")
+        except (OSError, IndexError, ValueError):
+            continue  # a thread that ended meanwhile
+    return Sched(t, state, run, wait, others, runnable)
 
 
 def starved(mark: Sched | None, now: Sched | None) -> tuple[float, float] | None:
     """Over the span from ``mark`` (read while the node was on time) to ``now``, the shares its
     loop waited for the CPU and ran, if it was starved: runnable now, and it waited at least
-    WAIT_SHARE of the span or ran at most RAN_SHARE of it; None: not starved (blocked, or not
-    known)."""
-    if mark is None or now is None or now.state != "R":
+    WAIT_SHARE of the span or ran at most RAN_SHARE of it; or asleep while a thread of its
+    process is runnable, and the threads together waited WAIT_SHARE (shares then of the whole
+    process); None: not starved (blocked, or not known)."""
+    if mark is None or now is None:
         return None
     span = now.t - mark.t
     if span < MIN_SPAN_S:
         return None
-    waited = (now.wait_ns - mark.wait_ns) / 1e9 / span
-    ran = (now.run_ns - mark.run_ns) / 1e9 / span
-    return (waited, ran) if waited >= WAIT_SHARE or ran <= RAN_SHARE else None
+    if now.state == "R":
+        waited = (now.wait_ns - mark.wait_ns) / 1e9 / span
+        ran = (now.run_ns - mark.run_ns) / 1e9 / span
+        return (waited, ran) if waited >= WAIT_SHARE or ran <= RAN_SHARE else None
+    if now.state != "S" or not now.other_runnable:
+        return None
+    run_ns, wait_ns = now.run_ns - mark.run_ns, now.wait_ns - mark.wait_ns
+    for tid, (run, wait) in now.others.items():
+        was = mark.others.get(tid, (0, 0))  # a thread begun since the mark: all of it
+        run_ns, wait_ns = run_ns + run - was[0], wait_ns + wait - was[1]
+    waited, ran = wait_ns / 1e9 / span, run_ns / 1e9 / span
+    return (waited, ran) if waited >= WAIT_SHARE else None
