@@ -325,6 +325,25 @@ def test_a_lease_whose_timer_ended_at_a_renewal_is_resumed_not_a_silent_gait(bus
     assert after and before + after == planned, (before, after, planned)
 
 
+def test_an_op_deleted_under_the_owner_is_lost_not_resumed(buses) -> None:  # type: ignore[no-untyped-def]
+    """The supervisor's copy of the op deletes it at a safe action (CyclicLease: the next
+    renewal finds no count, OpLost; tests/kernel/test_lease.py). Timed does not wait for more
+    plan or resume it however soon it renews: ``lapsed`` "op lost", the node leaves the timer,
+    and the bus stays silent."""
+    tx, rx = buses
+    m, timed = gait_timed(tx, 3, 8, 1000.0)
+    try:
+        assert timed.begin(m, STATE, None) is None
+        time.sleep(0.03)
+        timed.lease.stop()  # the safe action's TX_DELETE, as the sim's lease takes it
+        t = time.monotonic()
+        assert timed.keep(m, STATE, None, t) is None
+        assert timed.lapsed == "op lost" and not timed.resumed
+        assert drain(rx, 0.01) and drain(rx, 0.1) == []  # what went before; then nothing
+    finally:
+        timed.abort()
+
+
 def test_a_plan_slower_than_the_op_waits_and_resumes_in_order(buses) -> None:  # type: ignore[no-untyped-def]
     """Slots planned slower than the op sends them (30 ms a slot against 20 ms slots: a gait's
     first cycle under a 50 % cap): a renewal that finds too little planned is not made, the op

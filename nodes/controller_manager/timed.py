@@ -39,7 +39,7 @@ import structlog
 from exolink.nodes.controller_manager.manager import Manager
 from exolink.nodes.controller_manager.slots import PLANNED, Cycle
 
-from exolink.canbus.leases import Lease
+from exolink.canbus.leases import Lease, OpLost
 from exolink.control.controller import State
 from exolink.protocol import h2
 
@@ -181,7 +181,9 @@ class Timed:
         self.credited = 0  # the op's frames counted as their controllers' (TimerLoop.credit)
         self.computed = 0  # slots planned through the manager (the rest replayed)
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
-        self.lapsed = ""  # why the lease lapsed ("ran out", "stalled", "plan ran short"); "" holds
+        self.lapsed = (
+            ""  # why the lease lapsed ("ran out", "stalled", "plan ran short", "op lost"); "" holds
+        )
         self.resumed: list[tuple[str, float]] = []  # lapses resumed in place: why, the gap (s)
         self.sending = False  # the op started
         self.horizon = 0  # the slot the plan is to reach (``_plan_ahead``)
@@ -330,6 +332,9 @@ class Timed:
         resumable = gap <= RESUME_WITHIN_LEASES * self.lease_slots * self.slot_s
         try:
             sent = self.lease.renew(self.plan, self.lease_slots * n)
+        except OpLost:  # deleted (a safe action) or its place not known: no resume
+            self.lapsed = "op lost"
+            return
         except ValueError:  # under two frames planned past the op's: no renewal yet
             # The op sends out its lease (never past the plan) and stops; planning goes on and
             # a later renewal resumes it. A gait's first cycle planned under a 50 % cap fell

@@ -66,6 +66,12 @@ TRIM_MAX = 0.2
 PACKED_MAX = 4096  # payloads packed and kept (a gait's cycle: four joints' ~50 slots)
 
 
+class OpLost(ValueError):
+    """The op is gone, or where it is is not known (deleted by the supervisor's copy at a
+    safe action, frames the device refused): no renewal can bring it back, and none is tried
+    again (a short plan, the other ValueError of ``renew``, is waited for)."""
+
+
 class PeriodTrim:
     """The interval to give the broadcast manager so that the op's mean period is the one
     asked for. The kernel arms each frame's timer when the last one went out (``now + ival``),
@@ -247,7 +253,8 @@ class CyclicLease:
     def renew(self, frames_from: Mapping[int, bytes], lease: int) -> int:
         """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
         slot, by the kernel's own count) and up to ``lease`` frames from now, never one the
-        renewal did not place (none placeable: ValueError, no renewal). A lease that already
+        renewal did not place (none placeable: ValueError, no renewal; the op gone or its place
+        not known: OpLost). A lease that already
         ran out is not restarted (``start`` is a new phase, on purpose).
 
         The reads and the setup are system calls apart, and the owner can be preempted between
@@ -269,7 +276,7 @@ class CyclicLease:
         left = self._read_count()  # the old count: at most this many more frames ...
         seen = self._counts.sent(self.can_id)  # ... after these (read after it)
         if left is None or seen is None:
-            raise ValueError(f"op {self.can_id:#x}: no count to bound a renewal by: none made")
+            raise OpLost(f"op {self.can_id:#x}: no count to bound a renewal by: none made")
         counted = self._base + self._lease - left  # the op's count of them: short after a race
         if seen < self._base or counted > seen + 1:
             # The kernel's count went back (the op was deleted, by the supervisor's copy at a
@@ -278,7 +285,7 @@ class CyclicLease:
             # one frame is the count's own lag before 6.15, which the bound below allows for):
             # where the op is is not known, so it goes (TX_DELETE).
             self.stop()
-            raise ValueError(
+            raise OpLost(
                 f"op {self.can_id:#x}: the kernel counts {seen} frames sent, the op "
                 f"{counted} since slot {self._base}: its index is not known, op deleted"
             )
@@ -414,6 +421,7 @@ class ThreadLease:
         self._base = 0
         self._lease = 0
         self._running = False
+        self._stopped = False  # stop()ped: gone, as a deleted op (a renewal: OpLost)
         self.recounted = 0  # never: this count loses nothing
         self.restarted = 0  # never: its thread cannot end between a read and a setup
         self._next_at = 0.0  # monotonic time of the next frame
@@ -433,7 +441,7 @@ class ThreadLease:
                 self._put(k, f)
             self._written = min(len(frames), self.ring)
             self._index, self._count, self._base, self._lease = 0, lease, 0, lease
-            self._running, self._next_at = True, time.monotonic()
+            self._running, self._next_at, self._stopped = True, time.monotonic(), False
             self._cond.notify()
 
     @property
@@ -455,8 +463,11 @@ class ThreadLease:
         """As the kernel's SETTIMER without STARTTIMER (its count loses nothing: one lock):
         the new count is set, and a timer that
         ended (its count reached 0, even between this renewal's read and its setup) stays
-        ended, the op silent with a full count (Timed.keep tells that from a stall)."""
+        ended, the op silent with a full count (Timed.keep tells that from a stall). A stopped
+        lease is gone, as a deleted op: OpLost."""
         with self._cond:
+            if self._stopped:
+                raise OpLost(f"lease {self.can_id:#x}: stopped, nothing to renew")
             n = self._base + self._lease - self._count
             k = _place_ahead(frames_from, n, self._written, self.ring, self._put)
             self._written = max(self._written, k)
@@ -483,7 +494,7 @@ class ThreadLease:
 
     def stop(self) -> None:
         with self._cond:
-            self._running, self._count, self._lease = False, 0, 0
+            self._running, self._count, self._lease, self._stopped = False, 0, 0, True
 
     def close(self) -> None:
         with self._cond:
