@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -19,11 +20,13 @@ import pytest
 from exolink.supervisor import starving
 
 SPIN = "import os\nos.nice({nice})\nwhile True: pass\n"
-# The main thread asleep on a lock (a futex) while a thread of its own spins ({spin}: or sleeps).
+# The main thread asleep in a pipe read (the recorder in C76) while a thread of its own spins
+# ({spin}: or sleeps), from a second after: the main thread in its read by then, not waiting for
+# the GIL the spinner holds (which, at nice 19 beside a hog, it took more than 20 s to get).
 WAIT_ON_OWN = (
     "import os, threading, time\nos.nice({nice})\n"
-    "threading.Thread(target=lambda: {spin}, daemon=True).start()\n"
-    "lock = threading.Lock()\nlock.acquire()\nlock.acquire()\n"
+    "threading.Thread(target=lambda: time.sleep(1) or {spin}, daemon=True).start()\n"
+    "r, w = os.pipe()\nos.read(r, 1)\n"
 )
 
 
@@ -55,7 +58,7 @@ def starved_process(code: str = SPIN) -> Iterator[subprocess.Popen[bytes]]:
 def _shares(pid: int, span_s: float = 0.4) -> tuple[float, float] | None:
     mark = starving.read(pid, time.monotonic())
     time.sleep(span_s)
-    return starving.starved(mark, starving.read(pid, time.monotonic()))
+    return starving.starved(mark, starving.read(pid, time.monotonic(), states=True))
 
 
 def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() -> None:
@@ -66,7 +69,7 @@ def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() ->
         assert shares is not None and shares[0] > 0.5 and shares[1] < 0.1, shares
         os.kill(victim.pid, signal.SIGSTOP)  # stopped (once it runs to take the signal)
         end = time.monotonic() + 10
-        while (st := starving.read(victim.pid, 0.0)) is not None and st.state != "T":
+        while (st := starving.read(victim.pid, 0.0, True)) is not None and st.state != "T":
             assert time.monotonic() < end, st
             time.sleep(0.02)
         assert _shares(victim.pid) is None
@@ -81,21 +84,23 @@ def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() ->
 
 
 def _main_asleep(pid: int) -> None:
-    """Until ``pid``'s main thread sleeps (its interpreter started, the lock taken)."""
+    """Until ``pid``'s main thread sleeps in its pipe read for good (not for the GIL on the
+    way there, which it would leave)."""
     end = time.monotonic() + 20
-    while (st := starving.read(pid, 0.0)) is None or st.state != "S" or not st.others:
-        assert time.monotonic() < end, st
+    while "pipe_read" not in Path(f"/proc/{pid}/wchan").read_text():
+        assert time.monotonic() < end, Path(f"/proc/{pid}/wchan").read_text()
         time.sleep(0.05)
 
 
 def test_a_loop_asleep_on_a_thread_of_its_own_that_waits_for_the_cpu_is_starved() -> None:
     """C76: nodes killed with their loop asleep in a futex or a pipe read while the core was
-    full. A main thread asleep on a lock while a thread of its process is runnable and kept
+    full. A main thread asleep in a read while a thread of its process is runnable and kept
     waiting is starved; asleep while every thread of it sleeps, it is not."""
     if starving.read(os.getpid(), 0.0) is None:
         pytest.skip("this kernel has no /proc/<pid>/schedstat")
     with starved_process(WAIT_ON_OWN.replace("{spin}", "any(iter(int, 1))")) as victim:
         _main_asleep(victim.pid)
+        time.sleep(1.2)  # its thread spinning (from a second after its start)
         mark = starving.read(victim.pid, time.monotonic())
         time.sleep(0.4)
         now = starving.read(victim.pid, time.monotonic(), states=True)

@@ -111,7 +111,9 @@ class NodeJudge:
                 late = now - hb > self.cfg.deadline_s(node.cfg, node.pace)
                 if (limit := self.cfg.starved_deadline_s(node.cfg)) is not None:
                     if not late:
-                        node.sched_mark, node.starved_after = starving.read(node.pid, now), None
+                        threads = node.threads()
+                        node.sched_mark = None if threads is None else threads.read(now)
+                        node.starved_after = None
                     elif now - hb <= limit and self._starved(node, now, hb):
                         node.due_at = min(hb + limit, now + self._recheck_s(node))
                         return False
@@ -121,8 +123,8 @@ class NodeJudge:
     def _starved(self, node: NodeProcess, now: float, hb: float) -> bool:
         """Past its deadline but waiting for the CPU (exolink.supervisor.starving): judged
         again until its ``starved_deadline_ms``; logged once per silence, and counted."""
-        pid = node.pid
-        now_sched = None if pid is None else starving.read(pid, now, states=True)
+        threads = node.threads()
+        now_sched = None if threads is None else threads.read(now, states=True)
         shares = starving.starved(node.sched_mark, now_sched)
         if shares is None:
             return False
@@ -132,6 +134,9 @@ class NodeJudge:
                 "node_starved",
                 node_name=node.name,
                 silent_ms=round((now - hb) * 1000),
+                loop=now_sched.state
+                if now_sched
+                else "?",  # R: runnable; S: on a thread of its own
                 waited_pct=round(100 * shares[0]),
                 ran_pct=round(100 * shares[1]),
                 limit_ms=round(1000 * (self.cfg.starved_deadline_s(node.cfg) or 0)),

@@ -28,7 +28,7 @@ from exolink.canbus.held import HELD_ENV, HeldOps
 from exolink.config import NodeConfig
 from exolink.supervisor.forking import Forked, Zygote
 from exolink.supervisor.osproc import plain_priority, proc_state, proc_usage
-from exolink.supervisor.starving import Sched
+from exolink.supervisor.starving import Sched, Threads
 from exolink.wire import replies
 
 LOG_LINES = 500
@@ -77,6 +77,7 @@ class NodeProcess:
     # Starved, not hung (exolink.supervisor.starving): its loop as last read while on time, the
     # beat a starved silence began after (None: none now), and such silences counted.
     sched_mark: Sched | None = None
+    sched: Threads | None = None  # this spawn's threads' counts, read again (not reopened)
     starved_after: float | None = None
     starved: int = 0
     # Spawns counted, and the pids asked to stop: an exit is judged by its own spawn, never by
@@ -217,6 +218,8 @@ class NodeProcess:
             current = spawn == self.spawns
             if current:
                 self.last_exit = sig or f"exit {rc}"
+                if self.sched is not None:
+                    self.sched.close()  # its files: a respawn opens its own
             exit_ = Exit(self.name, None if rc < 0 else rc, sig, deliberate, proc.pid, current)
             self.on_exit(exit_)
 
@@ -286,6 +289,18 @@ class NodeProcess:
                     seconds=timeout + REAP_WAIT_S,
                     state=proc_state(proc.pid),
                 )
+
+    def threads(self) -> Threads | None:
+        """This spawn's threads' counts (exolink.supervisor.starving), opened at first use;
+        under ``lock``."""
+        pid = self.pid
+        if pid is None:
+            return None
+        if self.sched is None or self.sched.pid != pid:
+            if self.sched is not None:
+                self.sched.close()
+            self.sched = Threads(pid)
+        return self.sched
 
     def kill(self) -> None:
         """SIGKILL (a hung node); the exit is handled like a crash, restart policy included."""
