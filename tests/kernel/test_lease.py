@@ -10,6 +10,7 @@ import itertools
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -20,7 +21,7 @@ import can
 import pytest
 
 from benchmarks.harness import EXOLINK, motion_nodes
-from exolink.canbus.leases import CyclicLease
+from exolink.canbus.leases import CyclicLease, OpLost
 from exolink.cli.remote import watchdog_body
 from exolink.client import DEFAULT_AT, remote
 from exolink.protocol import h2
@@ -280,6 +281,42 @@ def test_an_op_the_supervisor_deleted_mid_renewal_is_not_started_again(
     assert deleted and after == [], slots_of(after)
 
 
+def _link(channel: str, up: bool) -> None:
+    from pyroute2 import IPRoute
+
+    with IPRoute() as ip:
+        ip.link("set", index=ip.link_lookup(ifname=channel)[0], state="up" if up else "down")
+
+
+def test_frames_the_device_refused_end_the_op(vcan0: str) -> None:
+    """Since 6.1 the kernel counts a frame sent only when the device took it, while the op's
+    index goes on: frames refused (the interface down for a few periods) leave the op's own
+    count ahead of the kernel's, so where the op is is not known. The next renewal says so
+    (OpLost) and deletes the op: nothing more on the bus once the device takes frames again."""
+    op = CyclicLease(vcan0, ID, PERIOD)
+    bus = None
+    try:
+        op.start([slot(k) for k in range(8)], LEASE)
+        time.sleep(2 * PERIOD)
+        op.renew(plan(op.sent(), 16), LEASE)
+        _link(vcan0, up=False)
+        time.sleep(3 * PERIOD)  # ~3 frames refused (ENETDOWN), counted down all the same
+        _link(vcan0, up=True)
+        bus = listen(vcan0)
+        # the device's going down left an error pending on the op's socket (ENETDOWN), which
+        # the renewal's TX_READ would take for its answer: cleared, to reach the count check
+        op._sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+        with pytest.raises(OpLost, match="the op"):
+            op.renew(plan(op.sent(), 16), LEASE)
+        t = time.time()
+        late = [m for m in drain(bus, 0.2) if m.timestamp > t]
+    finally:
+        op.close()
+        if bus is not None:
+            bus.shutdown()
+    assert late == [], slots_of(late)
+
+
 def test_a_restarted_timer_stops_at_once(vcan0: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """The restart at a lease's end is a motion path of its own: a stop (every trip path's
     TX_DELETE) right after it leaves nothing more on the bus."""
@@ -352,7 +389,7 @@ def test_the_kernels_count_is_the_ops_own_whatever_else_is_on_the_bus(vcan0: str
 
 OWNER = """
 import sys, time
-from exolink.canbus.leases import CyclicLease
+from exolink.canbus.leases import CyclicLease, OpLost
 from exolink.protocol import h2
 ID, PERIOD, LEASE = 0x46, 0.010, 6
 slot = lambda n: n.to_bytes(4, "big") + b"\\xee\\xee"
@@ -399,7 +436,7 @@ def test_an_owner_stopped_or_killed_leaves_at_most_its_lease(vcan0: str, how: in
 HELD_OWNER = """
 import os, signal, sys
 from exolink.canbus.held import held_socket
-from exolink.canbus.leases import CyclicLease
+from exolink.canbus.leases import CyclicLease, OpLost
 ID, PERIOD = 0x46, 0.010
 slot = lambda n: n.to_bytes(4, "big") + b"\\xee\\xee"
 op = CyclicLease(sys.argv[1], ID, PERIOD, ring=64, sock=held_socket())

@@ -276,7 +276,10 @@ class CyclicLease:
         left = self._read_count()  # the old count: at most this many more frames ...
         seen = self._counts.sent(self.can_id)  # ... after these (read after it)
         if left is None or seen is None:
-            raise OpLost(f"op {self.can_id:#x}: no count to bound a renewal by: none made")
+            # gone, or a read that failed (a socket error pending from the device going
+            # down): where the op is is not known, so it goes, as below
+            self.stop()
+            raise OpLost(f"op {self.can_id:#x}: no count to bound a renewal by: op deleted")
         counted = self._base + self._lease - left  # the op's count of them: short after a race
         if seen < self._base or counted > seen + 1:
             # The kernel's count went back (the op was deleted, by the supervisor's copy at a
