@@ -134,9 +134,7 @@ class NodeJudge:
                 "node_starved",
                 node_name=node.name,
                 silent_ms=round((now - hb) * 1000),
-                loop=now_sched.state
-                if now_sched
-                else "?",  # R: runnable; S: on a thread of its own
+                loop=now_sched.state if now_sched else "?",  # R, or S: on a thread of its own
                 waited_pct=round(100 * shares[0]),
                 ran_pct=round(100 * shares[1]),
                 limit_ms=round(1000 * (self.cfg.starved_deadline_s(node.cfg) or 0)),
