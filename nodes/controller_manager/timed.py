@@ -181,9 +181,8 @@ class Timed:
         self.credited = 0  # the op's frames counted as their controllers' (TimerLoop.credit)
         self.computed = 0  # slots planned through the manager (the rest replayed)
         self.plan_cpu_s = 0.0  # this thread's CPU spent planning them
-        self.lapsed = (
-            ""  # why the lease lapsed ("ran out", "stalled", "plan ran short", "op lost"); "" holds
-        )
+        # why the lease lapsed ("ran out", "stalled", "plan ran short", "op lost"); "" holds
+        self.lapsed = ""
         self.resumed: list[tuple[str, float]] = []  # lapses resumed in place: why, the gap (s)
         self.sending = False  # the op started
         self.horizon = 0  # the slot the plan is to reach (``_plan_ahead``)

@@ -254,8 +254,8 @@ class CyclicLease:
         """Slots ``n, n+1, ...`` from ``frames_from`` (slot -> payload; n, returned: the next
         slot, by the kernel's own count) and up to ``lease`` frames from now, never one the
         renewal did not place (none placeable: ValueError, no renewal; the op gone or its place
-        not known: OpLost). A lease that already
-        ran out is not restarted (``start`` is a new phase, on purpose).
+        not known: OpLost, the op deleted). A lease that already ran out is not restarted
+        (``start`` is a new phase, on purpose).
 
         The reads and the setup are system calls apart, and the owner can be preempted between
         them for any time: the timer goes on sending the old count meanwhile, and the new
