@@ -19,7 +19,7 @@ import pytest
 
 from benchmarks.harness import free_port
 from exolink.config import NodeConfig, Priority, TriggerConfig
-from exolink.supervisor import canlink, trigger
+from exolink.supervisor import canlink, starving, trigger
 from exolink.supervisor.osproc import apply_priority, proc_usage
 from exolink.supervisor.systemd import Notifier
 
@@ -521,6 +521,12 @@ def _sleeping_node(sup: Any, name: str, timer: bool) -> tuple[Any, Any]:
     deadlines = cfg.deadlines_s(node.cfg) if timer else ()
     beater = liveness.Beater(node.channel.child_fd, node.channel.timer, deadlines)
     node.proc = subprocess.Popen(["sleep", "60"])
+    # asleep before it is judged: a process not yet run (a loaded CI host) is runnable and
+    # would be judged starved, not hung (exolink.supervisor.starving)
+    end = time.monotonic() + 10
+    while (st := starving.read(node.proc.pid, 0.0, states=True)) is not None and st.state != "S":
+        assert time.monotonic() < end, st
+        time.sleep(0.01)
     node.state, node.heartbeat_at = "running", time.monotonic()
     sup.nodes[name] = node
     return node, beater
