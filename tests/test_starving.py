@@ -66,7 +66,7 @@ def test_a_loop_waiting_for_the_cpu_is_starved_one_asleep_or_stopped_is_not() ->
         pytest.skip("this kernel has no /proc/<pid>/schedstat")
     with starved_process() as victim:
         shares = _shares(victim.pid)
-        assert shares is not None and shares[0] > 0.5 and shares[1] < 0.1, shares
+        assert shares is not None and shares[1] < 0.1, shares  # kept off the CPU: starved
         os.kill(victim.pid, signal.SIGSTOP)  # stopped (once it runs to take the signal)
         end = time.monotonic() + 10
         while (st := starving.read(victim.pid, 0.0, True)) is not None and st.state != "T":
@@ -106,7 +106,7 @@ def test_a_loop_asleep_on_a_thread_of_its_own_that_waits_for_the_cpu_is_starved(
         now = starving.read(victim.pid, time.monotonic(), states=True)
         assert now is not None and now.state == "S" and now.other_runnable, now
         shares = starving.starved(mark, now)
-        assert shares is not None and shares[0] > 0.5 and shares[1] < 0.1, shares
+        assert shares is not None and shares[1] < 0.1, shares  # kept off the CPU: starved
         assert starving.starved(mark, starving.read(victim.pid, time.monotonic())) is None
     with starved_process(WAIT_ON_OWN.replace("{spin}", "time.sleep(60)")) as victim:
         _main_asleep(victim.pid)
