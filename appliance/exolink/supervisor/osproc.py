@@ -76,6 +76,18 @@ def proc_state(pid: int) -> str:
         return f"gone ({exc.strerror})"
 
 
+def thread_state(pid: int, tid: int | None = None) -> str:
+    """A thread's state letter (R: runnable; S, D, T: not) from its ``stat``, by raw system
+    calls (read at each late look at a node); OSError: gone."""
+    fd = os.open(
+        f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat", os.O_RDONLY
+    )
+    try:
+        return os.read(fd, 1024).rpartition(b")")[2].split()[0].decode()
+    finally:
+        os.close(fd)
+
+
 def runnable_others(pid: int) -> tuple[int, int]:
     """How many of a process's other threads are runnable, of how many: a loop asleep in a
     futex while one is says it waits for that thread (the GIL), not that it hung."""
@@ -85,8 +97,7 @@ def runnable_others(pid: int) -> tuple[int, int]:
             if tid == str(pid):
                 continue
             with contextlib.suppress(OSError, IndexError):
-                with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
-                    runnable += f.read().rpartition(b")")[2].split()[0] == b"R"
+                runnable += thread_state(pid, int(tid)) == "R"
                 total += 1
     return runnable, total
 

@@ -23,6 +23,8 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from exolink.supervisor.osproc import thread_state
+
 WAIT_SHARE = 0.25  # of the span looked at: a loop that waited for the CPU this much was starved,
 RAN_SHARE = 0.5  # or one runnable now that ran at most this much of it
 MIN_SPAN_S = 0.05  # a span shorter than this says nothing
@@ -59,7 +61,7 @@ class Threads:
         pid = self.pid
         try:
             tids = {int(tid) for tid in os.listdir(f"/proc/{pid}/task")}
-            state = _state(f"/proc/{pid}") if states else "?"
+            state = thread_state(pid) if states else "?"
         except (OSError, IndexError, ValueError):
             self.close()
             return None
@@ -87,17 +89,9 @@ class Threads:
         self._fds.clear()
 
 
-def _state(path: str) -> str:
-    fd = os.open(f"{path}/stat", os.O_RDONLY)
-    try:
-        return os.read(fd, 1024).rpartition(b")")[2].split()[0].decode()
-    finally:
-        os.close(fd)
-
-
 def _runnable(pid: int, tid: int) -> bool:
     try:
-        return _state(f"/proc/{pid}/task/{tid}") == "R"
+        return thread_state(pid, tid) == "R"
     except (OSError, IndexError):
         return False
 
